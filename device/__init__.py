@@ -1,0 +1,1 @@
+"""tactile.device: wire protocol, simulated pen, recorder, recordings, firmware."""

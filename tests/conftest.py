@@ -1,0 +1,43 @@
+"""Shared test helpers."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+REPO = Path(__file__).resolve().parents[1]
+SHARED = REPO.parent / "shared"
+HAPMAT = SHARED / "datasets" / "hapmat" / "hapmat_stick_imu.npz"
+
+
+def pen_stream(n: int, per_frame: int = 1, seed: int = 0, header_every: int = 100):
+    """A clean binary stream of ``n`` samples, and the samples: (bytes, frame spans, raw (n, 8)).
+
+    Each sample's channel 0 holds its sequence number mod 2**15, so a sample can be traced.
+    ``spans`` lists (start, end, first_seq, n_samples) of every samples frame in the bytes
+    (end includes the delimiter); header frames have n_samples = 0.
+    """
+    from tactile.device.info import pen_info
+    from tactile.device.protocol import encode_header, encode_samples
+
+    rng = np.random.default_rng(seed)
+    raw = rng.integers(-32768, 32768, (n, 8)).astype(np.int16)
+    raw[:, 0] = np.arange(n) % 32768
+    out = bytearray()
+    spans = []
+    for s in range(0, n, per_frame):
+        if header_every and s % header_every == 0:
+            h = encode_header(pen_info())
+            spans.append((len(out), len(out) + len(h), s, 0))
+            out += h
+        f = encode_samples(s, s * 10_000, raw[s : s + per_frame])
+        spans.append((len(out), len(out) + len(f), s, len(raw[s : s + per_frame])))
+        out += f
+    return bytes(out), spans, raw
+
+
+@pytest.fixture
+def rng():
+    return np.random.default_rng(12345)

@@ -1,0 +1,302 @@
+"""Stream decoder: fuzzing, corruption recovery, gaps, duplicates, restarts, CSV mode."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from conftest import pen_stream
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from tactile.device.decoder import Gap, Header, Samples, StreamDecoder, decode
+from tactile.device.info import pen_info
+from tactile.device.protocol import (
+    MAX_ENCODED,
+    cobs_encode,
+    encode_header,
+    encode_samples,
+    samples_body,
+)
+from tactile.errors import ConfigError
+
+
+def feed_chunked(data: bytes, rng: np.random.Generator, dec: StreamDecoder | None = None):
+    dec = dec or StreamDecoder()
+    events = []
+    i = 0
+    while i < len(data):
+        k = int(rng.integers(1, 300))
+        events += dec.feed(data[i : i + k])
+        i += k
+    return events, dec
+
+
+def delivered(events):
+    """(seqs, raw rows) of all delivered samples, in delivery order."""
+    seqs, rows = [], []
+    for e in events:
+        if isinstance(e, Samples):
+            seqs.extend(range(e.seq, e.seq + len(e.raw)))
+            rows.append(e.raw)
+    return np.array(seqs, dtype=np.int64), (np.concatenate(rows) if rows else np.zeros((0, 8)))
+
+
+def check_no_invention(events, raw):
+    """Every delivered sample is the original sample of that seq, in strictly rising order."""
+    seqs, rows = delivered(events)
+    assert np.all(np.diff(seqs) > 0), "samples reordered or repeated"
+    assert seqs.size == 0 or seqs.max() < len(raw)
+    np.testing.assert_array_equal(rows, raw[seqs])
+    # gaps account exactly for every jump in the sequence
+    expected_next = None
+    for e in events:
+        if isinstance(e, Gap):
+            assert e.reason == "drop" and e.missing > 0
+            assert expected_next is not None and e.seq == expected_next + e.missing
+            expected_next = e.seq
+        elif isinstance(e, Samples):
+            if expected_next is not None:
+                assert e.seq == expected_next, "a jump in seq without a gap event"
+            expected_next = e.seq + len(e.raw)
+    return seqs
+
+
+def test_clean_stream_any_chunking(rng):
+    data, spans, raw = pen_stream(1000, per_frame=3)
+    for _ in range(5):
+        events, dec = feed_chunked(data, rng)
+        seqs = check_no_invention(events, raw)
+        assert seqs.tolist() == list(range(1000))
+        assert dec.stats.errors == 0 and dec.stats.bytes_discarded == 0
+        assert isinstance(events[0], Header) and events[0].info == pen_info()
+        # per_frame=3: a header precedes samples 0, 300, 600, 900
+        assert dec.stats.header_frames == 4 and dec.stats.header_changes == 0
+
+
+def test_one_byte_at_a_time():
+    data, _, raw = pen_stream(50)
+    dec = StreamDecoder()
+    events = [e for b in data for e in dec.feed(bytes([b]))]
+    assert delivered(events)[0].tolist() == list(range(50))
+
+
+def test_crc_failures_are_counted_and_become_gaps():
+    info = pen_info()
+    raw = np.arange(40 * 8, dtype=np.int16).reshape(40, 8)
+    bad = {3, 4, 17, 39}
+    out = bytearray(encode_header(info))
+    for s in range(40):
+        body = samples_body(s, s * 10_000, raw[s : s + 1])
+        crc = 0x1234 if s in bad else None
+        if crc is None:
+            out += encode_samples(s, s * 10_000, raw[s : s + 1])
+        else:
+            out += cobs_encode(body + crc.to_bytes(2, "little")) + b"\x00"
+    events, stats = decode(bytes(out))
+    assert stats.crc_errors == 4 and stats.malformed == 0
+    # 3-4 is one gap of 2; 17 one gap; 39 is the last frame: lost with nothing after it
+    gaps = [(e.seq, e.missing) for e in events if isinstance(e, Gap)]
+    assert gaps == [(5, 2), (18, 1)]
+    assert stats.samples == 36 and stats.samples_lost == 3
+
+
+def test_garbage_between_frames_is_discarded_and_counted(rng):
+    data, spans, raw = pen_stream(300)
+    out = bytearray()
+    garbage_bytes = 0
+    for start, end, _, _ in spans:
+        if rng.random() < 0.3:
+            g = bytes(rng.integers(1, 256, int(rng.integers(1, 40))).astype(np.uint8))
+            out += g
+            garbage_bytes += len(g)
+        out += data[start:end]
+    events, dec = feed_chunked(bytes(out), rng)
+    seqs = check_no_invention(events, raw)
+    assert seqs.tolist() == list(range(300)), "a frame after garbage was not recovered"
+    assert dec.stats.bytes_discarded == garbage_bytes
+
+
+def test_lost_delimiter_recovers_the_next_frame():
+    data, spans, raw = pen_stream(20, header_every=0)
+    out = bytearray(data)
+    start, end, _, _ = spans[5]
+    out[end - 1] = 0x07  # frame 5's delimiter becomes a data byte: 5 and 6 merge
+    events, stats = decode(bytes(out))
+    assert delivered(events)[0].tolist() == [s for s in range(20) if s != 5]
+    assert stats.malformed + stats.crc_errors == 1
+
+
+def test_duplicated_frames_are_dropped():
+    data, spans, raw = pen_stream(60, header_every=0)
+    out = bytearray()
+    for k, (start, end, _, _) in enumerate(spans):
+        out += data[start:end]
+        if k % 7 == 0:
+            out += data[start:end]
+    events, stats = decode(bytes(out))
+    assert delivered(events)[0].tolist() == list(range(60))
+    assert stats.duplicates == 9 and stats.gaps == 0
+
+
+def test_partly_overlapping_resend_keeps_only_new_samples():
+    raw = np.arange(10 * 8, dtype=np.int16).reshape(10, 8)
+    data = encode_samples(0, 0, raw[0:4]) + encode_samples(2, 20_000, raw[2:7])
+    events, stats = decode(data)
+    seqs, rows = delivered(events)
+    assert seqs.tolist() == list(range(7))
+    np.testing.assert_array_equal(rows, raw[:7])
+
+
+def test_sequence_wraps_without_a_gap():
+    raw = np.zeros((1, 8), np.int16)
+    data = b"".join(encode_samples((2**32 - 3 + i) % 2**32, i, raw) for i in range(6))
+    events, stats = decode(data)
+    assert delivered(events)[0].tolist() == list(range(6))
+    assert stats.gaps == 0
+
+
+def test_restart_is_a_gap_and_host_seq_stays_monotonic():
+    raw = np.zeros((1, 8), np.int16)
+    before = b"".join(encode_samples(5000 + i, i, raw) for i in range(5))
+    after = encode_header(pen_info()) + b"".join(encode_samples(i, i, raw) for i in range(5))
+    events, stats = decode(before + after)
+    assert delivered(events)[0].tolist() == list(range(10))
+    assert [e for e in events if isinstance(e, Gap)] == [Gap(5, 0, "restart")]
+    assert stats.restarts == 1
+
+
+def test_header_change_is_reported_and_mismatched_frames_dropped():
+    from tactile.device.info import PEN_CHANNELS, DeviceInfo
+
+    other = DeviceInfo(100.0, PEN_CHANNELS[2:5], "imu-only")
+    data = (
+        encode_header(pen_info())
+        + encode_samples(0, 0, np.zeros((1, 8), np.int16))
+        + encode_header(other)
+        + encode_samples(1, 10, np.zeros((1, 8), np.int16))  # contradicts the new header
+        + encode_samples(2, 20, np.zeros((1, 3), np.int16))
+    )
+    events, stats = decode(data)
+    headers = [e for e in events if isinstance(e, Header)]
+    assert [h.changed for h in headers] == [False, True] and headers[1].info == other
+    assert stats.header_changes == 1 and stats.malformed == 1
+
+
+def test_buffer_stays_bounded_on_endless_garbage(rng):
+    dec = StreamDecoder(mode="binary")
+    for _ in range(200):
+        dec.feed(bytes(rng.integers(1, 256, 1000).astype(np.uint8)))
+        assert len(dec._buf) <= MAX_ENCODED
+    auto = StreamDecoder()
+    for _ in range(50):
+        auto.feed(bytes(rng.integers(1, 256, 1000).astype(np.uint8)))
+        assert len(auto._buf) <= 8192
+
+
+@st.composite
+def corrupted_streams(draw):
+    n = draw(st.integers(1, 120))
+    per_frame = draw(st.sampled_from([1, 1, 2, 5]))
+    data, spans, raw = pen_stream(n, per_frame, seed=draw(st.integers(0, 1000)))
+    data = bytearray(data)
+    ops = draw(
+        st.lists(
+            st.tuples(
+                st.sampled_from(["flip", "insert", "delete", "dup", "drop"]),
+                st.integers(0, len(data) - 1),
+                st.binary(min_size=1, max_size=30),
+            ),
+            max_size=12,
+        )
+    )
+    damaged = np.zeros(len(data) + 1, bool)  # original bytes flipped or deleted
+    inserted = np.zeros(len(data) + 1, bool)  # bytes inserted just before this position
+    # apply from the end backwards so that earlier positions stay valid
+    pieces = {i: bytes([b]) for i, b in enumerate(data)}
+    extra_before = {}
+    for op, pos, blob in sorted(ops, key=lambda o: -o[1]):
+        if op == "flip":
+            pieces[pos] = bytes([pieces[pos][0] ^ (1 << (blob[0] % 8))]) if pieces[pos] else b""
+            damaged[pos] = True
+        elif op == "insert":
+            extra_before[pos] = extra_before.get(pos, b"") + blob
+            inserted[pos] = True
+        elif op == "delete":
+            for i in range(pos, min(pos + len(blob), len(data))):
+                pieces[i] = b""
+                damaged[i] = True
+        else:
+            span = next(s for s in spans if s[0] <= pos < s[1])
+            if op == "dup":
+                extra_before[span[1]] = extra_before.get(span[1], b"") + bytes(
+                    data[span[0] : span[1]]
+                )
+            else:
+                for i in range(span[0], span[1]):
+                    pieces[i] = b""
+                    damaged[i] = True
+    out = b"".join(extra_before.get(i, b"") + pieces[i] for i in range(len(data)))
+    out += extra_before.get(len(data), b"")
+    return out, spans, raw, damaged, inserted
+
+
+@given(case=corrupted_streams(), seed=st.integers(0, 2**32 - 1))
+@settings(max_examples=300, deadline=None)
+def test_fuzz_corruptions(case, seed):
+    out, spans, raw, damaged, inserted = case
+    events, dec = feed_chunked(out, np.random.default_rng(seed))
+    seqs = check_no_invention(events, raw)
+    got = set(seqs.tolist())
+    for start, end, first, n in spans:
+        # an insertion recorded at `start` lands before the frame, outside it
+        inner = damaged[start:end].any() or inserted[start + 1 : end].any()
+        if n and not inner:
+            assert set(range(first, first + n)) <= got, "an intact frame was lost"
+    assert dec.stats.samples == len(seqs)
+
+
+@given(st.binary(max_size=3000), st.sampled_from(["auto", "binary", "csv"]))
+@settings(max_examples=300, deadline=None)
+def test_random_bytes_never_raise_or_invent(data, mode):
+    dec = StreamDecoder(mode=mode)
+    events = dec.feed(data)
+    for e in events:  # random bytes can only look like CSV rows, never like CRC-checked frames
+        assert not (isinstance(e, Samples) and e.raw.dtype == np.int16)
+
+
+# -- CSV mode ------------------------------------------------------------------------------------
+
+
+def test_csv_auto_detected_with_names_and_rejections():
+    text = b"boot: ok!\r\nax,ay,az\r\n1,2,3\r\n4,5,6\r\n7,x,9\r\n1,2\r\nnan,1,2\r\n# c\r\n\r\n8 ,9, 10\r\n"
+    events, stats = decode(text)
+    assert StreamDecoder().mode == "auto"
+    header = next(e for e in events if isinstance(e, Header))
+    assert header.info.channel_names == ("ax", "ay", "az")
+    seqs, rows = delivered(events)
+    assert seqs.tolist() == [0, 1, 5]
+    np.testing.assert_array_equal(rows, [[1, 2, 3], [4, 5, 6], [8, 9, 10]])
+    assert [e for e in events if isinstance(e, Gap)] == [Gap(5, 3, "rejected")]
+    assert stats.csv_rows == 3 and stats.csv_rejected == 4  # boot: ok!, 7,x,9, 1,2, nan
+
+
+def test_csv_without_names_and_blank_separated():
+    events, stats = decode(b"1 2\n3 4\n5 6\n", csv_rate_hz=50.0)
+    header = next(e for e in events if isinstance(e, Header))
+    assert header.info.channel_names == ("ch0", "ch1") and header.info.sample_rate_hz == 50.0
+    samples = [e for e in events if isinstance(e, Samples)]
+    assert [s.t_us for s in samples] == [0, 20_000, 40_000]
+
+
+def test_csv_split_anywhere_gives_the_same_result(rng):
+    text = b"".join(b"%d,%d,%d\n" % (i, -i, 2 * i) for i in range(200))
+    ref, _ = decode(text)
+    events, _ = feed_chunked(text, rng)
+    assert delivered(events)[0].tolist() == delivered(ref)[0].tolist() == list(range(200))
+
+
+def test_bad_decoder_settings():
+    with pytest.raises(ConfigError, match="mode 'hex'"):
+        StreamDecoder(mode="hex")
+    with pytest.raises(ConfigError, match="csv rate"):
+        StreamDecoder(csv_rate_hz=0)
