@@ -24,7 +24,9 @@ TYPE_HEADER = 0x01
 TYPE_SAMPLES = 0x02
 SEQ_MODULO = 1 << 32  # sequence numbers and device timestamps are u32 and wrap
 MAX_SAMPLES_PER_FRAME = 32
-MAX_BODY = 2048  # largest frame body (type .. last data byte, CRC excluded), in bytes
+MAX_BODY = 2560  # largest frame body (type .. last data byte, CRC excluded), in bytes
+# (the largest header, 32 channels with 32-byte names and units, is 2409 bytes; the largest
+# samples frame, 32 x 32 int16, is 2059)
 # Largest encoded frame, delimiter excluded: COBS adds one byte per 254 plus one.
 MAX_ENCODED = MAX_BODY + 2 + (MAX_BODY + 2) // 254 + 1
 
