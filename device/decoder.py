@@ -157,6 +157,7 @@ class StreamDecoder:
         self._host_next = 0
         self._t_last: int | None = None  # last device time seen, u32
         self._t_host = 0  # unwrapped device time of the last frame
+        self._restart_pending = False  # set by reconnected()
         # csv state
         self._csv_names: tuple[str, ...] | None = None
         self._csv_rejected_run = 0
@@ -178,6 +179,18 @@ class StreamDecoder:
         if self.mode == "binary":
             return self._feed_binary()
         return self._feed_csv()
+
+    def reconnected(self) -> None:
+        """The link was re-opened: drop partial bytes and expect the device to have restarted.
+
+        The next samples frame is then reported after a ``restart`` gap whatever its sequence
+        number, since a pen that was unplugged rebooted and counts from 0 again.
+        """
+        self.stats.bytes_discarded += len(self._buf)
+        self._buf.clear()
+        if self._dev_next is not None:
+            self._dev_next = None
+            self._restart_pending = True
 
     @property
     def next_seq(self) -> int:
@@ -271,7 +284,15 @@ class StreamDecoder:
             return
         self.stats.frames += 1
         n = raw.shape[0]
-        if self._dev_next is None:  # first frame: host seq starts at the device's count
+        if self._restart_pending:  # first frame after a reconnection
+            self._restart_pending = False
+            host = self._host_next
+            self.stats.restarts += 1
+            self.stats.gaps += 1
+            events.append(Gap(host, 0, "restart"))
+            self._t_last = None
+            self._t_host += self._dt(parsed.t_us)
+        elif self._dev_next is None:  # first frame: host seq starts at the device's count
             host = parsed.seq
             self._t_host = parsed.t_us
         else:

@@ -20,7 +20,6 @@ import struct
 from pathlib import Path
 
 import numpy as np
-
 from tactile.device.info import PEN_CHANNELS, ChannelSpec, DeviceInfo, pen_info
 from tactile.device.protocol import cobs_encode, crc16, encode_header, encode_samples
 
@@ -28,7 +27,7 @@ VECTORS = Path(__file__).with_name("firmware") / "test_vectors.txt"
 
 
 def _bits(x: float) -> str:
-    return "0x%08x" % struct.unpack("<I", struct.pack("<f", x))[0]
+    return f"0x{struct.unpack('<I', struct.pack('<f', x))[0]:08x}"
 
 
 def _from_bits(s: str) -> float:

@@ -1,0 +1,232 @@
+"""``tactile-record``: read a pen and write labelled takes.
+
+    tactile-record --port sim://?texture=paper --label paper --seconds 60 --out data/
+
+Data (the paths of the takes written) goes to stdout, progress and diagnostics to stderr. Ctrl-C
+or SIGTERM finishes the take cleanly; a killed recorder leaves a readable take missing at most
+the last second. A vanished port is reopened with backoff and the take goes on after a
+``restart`` gap. A header change (another pen, another layout) starts a new take.
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+import signal
+import sys
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import serial
+import tactile.device  # noqa: F401  (registers sim://)
+from tactile.device.decoder import Gap, Header, Samples, StreamDecoder
+from tactile.device.info import DeviceInfo
+from tactile.device.recording import TakeWriter
+
+from tactile.cli import add_debug, run
+from tactile.errors import ConfigError, DeviceError
+
+MAX_EARLY = 100_000  # samples held while waiting for the first header (binary mode)
+
+
+@dataclass
+class RecordResult:
+    takes: list[Path] = field(default_factory=list)
+    samples: int = 0
+    reconnects: int = 0
+    stats: dict = field(default_factory=dict)
+
+
+def open_port(port: str, baud: int, timeout: float = 0.1) -> serial.SerialBase:
+    """Open a device path or any pyserial URL (``sim://``, ``socket://``, ``loop://``...)."""
+    try:
+        return serial.serial_for_url(port, baudrate=baud, timeout=timeout)
+    except ValueError as e:  # pyserial's "invalid URL" and bad settings
+        raise DeviceError(f"cannot open {port}: {e}") from None
+
+
+class Recorder:
+    """Decoder events -> take files. Separate from the port loop so tests can drive it."""
+
+    def __init__(self, out: Path, label: str, source: str, extra: dict | None = None) -> None:
+        self.out, self.label, self.source, self.extra = out, label, source, extra
+        self.writer: TakeWriter | None = None
+        self.early: list[Samples | Gap] = []  # before the first header: kept, in order
+        self.result = RecordResult()
+
+    def handle(self, events: list, decoder: StreamDecoder) -> int:
+        """Write the events; returns the number of samples written."""
+        written = 0
+        for ev in events:
+            if isinstance(ev, Header):
+                if self.writer is not None and ev.changed:
+                    self._close(decoder)
+                if self.writer is None:
+                    self._open(ev.info)
+                    for e in self.early:
+                        written += self._put(e)
+                    self.early.clear()
+            elif self.writer is None:
+                if len(self.early) >= MAX_EARLY:
+                    raise DeviceError("no header from the device after 100000 samples")
+                self.early.append(ev)
+            else:
+                written += self._put(ev)
+        self.result.samples += written
+        return written
+
+    def _put(self, ev: Samples | Gap) -> int:
+        if isinstance(ev, Gap):
+            self.writer.gap(ev)
+            return 0
+        self.writer.write(ev.seq, ev.t_us, ev.raw)
+        return len(ev.raw)
+
+    def _open(self, info: DeviceInfo) -> None:
+        self.writer = TakeWriter(self.out, self.label, info, self.source, extra=self.extra)
+        self.result.takes.append(self.writer.csv_path)
+
+    def _close(self, decoder: StreamDecoder) -> None:
+        if self.writer is not None:
+            self.writer.set_decoder_stats(decoder.stats)
+            self.writer.close()
+            self.writer = None
+
+    def close(self, decoder: StreamDecoder) -> None:
+        self._close(decoder)
+        self.result.stats = decoder.stats.as_dict()
+
+
+def record(
+    port: str,
+    label: str,
+    out: Path,
+    seconds: float = math.inf,
+    baud: int = 115200,
+    csv_rate_hz: float = 100.0,
+    stall_timeout: float = 2.0,
+    progress: bool = True,
+) -> RecordResult:
+    """Record until ``seconds`` of samples are written, or SIGINT/SIGTERM."""
+    rec = Recorder(out, label, port)
+    decoder = StreamDecoder(csv_rate_hz=csv_rate_hz)
+    stop = {"flag": False}
+
+    def on_signal(signum, frame):  # finish the take, do not die mid-write
+        stop["flag"] = True
+
+    old = {s: signal.signal(s, on_signal) for s in (signal.SIGINT, signal.SIGTERM)}
+    link = open_port(port, baud)
+    last_data = last_report = time.monotonic()
+    try:
+        while not stop["flag"]:
+            try:
+                data = link.read(4096)
+            except serial.SerialException as e:
+                _say(f"port lost ({e}); reconnecting", progress=True)
+                if rec.writer:
+                    rec.writer.flush()
+                link = _reconnect(port, baud, stop)
+                if link is None:
+                    break
+                rec.result.reconnects += 1
+                decoder.reconnected()
+                last_data = time.monotonic()
+                continue
+            now = time.monotonic()
+            if data:
+                last_data = now
+                rec.handle(decoder.feed(data), decoder)
+            elif now - last_data > stall_timeout:
+                _say(f"no data for {now - last_data:.1f} s", progress=True)
+                last_data = now
+            rate = decoder.info.sample_rate_hz if decoder.info else csv_rate_hz
+            if progress and now - last_report >= 1.0:
+                last_report = now
+                _progress(label, rec.result.samples / rate, seconds, decoder)
+            if rec.result.samples >= seconds * rate:
+                break
+    finally:
+        rec.close(decoder)
+        link.close()
+        for s, h in old.items():
+            signal.signal(s, h)
+    return rec.result
+
+
+def _reconnect(port: str, baud: int, stop: dict) -> serial.SerialBase | None:
+    delay = 0.1
+    while not stop["flag"]:
+        try:
+            link = open_port(port, baud)
+            _say(f"reconnected to {port}", progress=True)
+            return link
+        except (serial.SerialException, DeviceError):
+            time.sleep(delay)
+            delay = min(delay * 2, 2.0)
+    return None
+
+
+def _progress(label: str, done_s: float, total_s: float, decoder: StreamDecoder) -> None:
+    st = decoder.stats
+    total = "" if math.isinf(total_s) else f" / {total_s:.0f} s"
+    _say(
+        f"[{label}] {done_s:6.1f} s{total}  samples {st.samples}  gaps {st.gaps} "
+        f"(lost {st.samples_lost})  errors {st.errors}",
+        progress=True,
+    )
+
+
+def _say(msg: str, progress: bool) -> None:
+    if progress:
+        print(msg, file=sys.stderr, flush=True)
+
+
+def build_parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(
+        prog="tactile-record",
+        description="Record labelled takes from a pen (device path or pyserial URL).",
+    )
+    p.add_argument("--port", required=True, help="/dev/ttyACM0, sim://?texture=paper, socket://...")
+    p.add_argument("--label", required=True, help="the texture being stroked, e.g. paper")
+    p.add_argument("--out", required=True, type=Path, help="dataset folder (created if missing)")
+    p.add_argument("--seconds", type=float, default=math.inf, help="stop after this much data")
+    p.add_argument("--baud", type=int, default=115200, help="UART baud rate (default 115200)")
+    p.add_argument("--csv-rate", type=float, default=100.0, help="rate of CSV-mode devices, Hz")
+    p.add_argument("--quiet", action="store_true", help="no progress lines on stderr")
+    add_debug(p)
+    return p
+
+
+def _main(args: argparse.Namespace) -> int:
+    if not (args.seconds > 0):
+        raise ConfigError(f"--seconds {args.seconds}: must be > 0")
+    res = record(
+        args.port, args.label, args.out, args.seconds, args.baud, args.csv_rate,
+        progress=not args.quiet,
+    )
+    for path in res.takes:
+        print(path)
+    st = res.stats
+    print(
+        f"tactile-record: {res.samples} samples in {len(res.takes)} take(s); gaps {st.get('gaps')}"
+        f" (lost {st.get('samples_lost')}), errors crc {st.get('crc_errors')} malformed "
+        f"{st.get('malformed')} csv {st.get('csv_rejected')}, reconnects {res.reconnects}",
+        file=sys.stderr,
+    )
+    if not res.takes:
+        raise DeviceError(f"no data received from {args.port}")
+    return 0
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    return run("tactile-record", _main, args)
+
+
+if __name__ == "__main__":
+    sys.exit(main())
+
+
+__all__ = ["record", "Recorder", "main"]

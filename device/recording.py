@@ -1,0 +1,272 @@
+"""Recordings: one take per file pair, a dataset is a folder of them.
+
+A take is ``NAME.csv`` (what the pen sent, one row per sample, columns ``seq,t_us,<channels>``,
+raw counts exactly as received) plus ``NAME.json`` beside it (label, channel names, units,
+scales, rate, device header, start time, source, the gaps the decoder saw and its counters).
+Both open in any text editor or spreadsheet. ``value_in_unit = raw * scale + offset``.
+
+The writer appends and flushes the CSV at least once a second and rewrites the JSON atomically
+at the same time, so a recorder killed at any moment leaves a readable take that lost at most the
+last second. A take the writer closed cleanly says ``"complete": true``.
+"""
+
+from __future__ import annotations
+
+import io
+import json
+import math
+import os
+import time
+from collections.abc import Iterator
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+from tactile.device.decoder import DecoderStats, Gap
+from tactile.device.info import DeviceInfo
+
+from tactile.errors import RecordingError
+
+FORMAT = "tactile-recording"
+VERSION = 1
+FIXED_COLUMNS = ("seq", "t_us")
+
+
+@dataclass
+class Take:
+    """One recording read back.
+
+    ``raw`` is (n, channels) as stored (int64 for integer data, float64 otherwise); ``seq`` and
+    ``t_us`` are (n,) int64. ``gaps`` lists the decoder's gap events as dicts.
+    """
+
+    path: Path
+    meta: dict
+    info: DeviceInfo
+    seq: np.ndarray
+    t_us: np.ndarray
+    raw: np.ndarray
+    truncated: bool = False  # the last line was cut (the writer was killed mid-write)
+
+    @property
+    def label(self) -> str:
+        return self.meta["label"]
+
+    @property
+    def channels(self) -> tuple[str, ...]:
+        return self.info.channel_names
+
+    def values(self) -> np.ndarray:
+        """(n, channels) float64 in the channels' units."""
+        scale = np.array([c.scale for c in self.info.channels])
+        offset = np.array([c.offset for c in self.info.channels])
+        return self.raw * scale + offset
+
+    def segments(self) -> list[tuple[int, int]]:
+        """Row ranges [start, stop) with no gap inside: split at seq jumps and recorded gaps."""
+        if len(self.seq) == 0:
+            return []
+        cuts = set(np.flatnonzero(np.diff(self.seq) != 1) + 1)
+        where = {int(s): i for i, s in enumerate(self.seq)}
+        for g in self.meta.get("gaps", []):
+            if g["seq"] in where and where[g["seq"]] > 0:
+                cuts.add(where[g["seq"]])
+        bounds = [0, *sorted(cuts), len(self.seq)]
+        return [(a, b) for a, b in zip(bounds[:-1], bounds[1:], strict=True) if b > a]
+
+
+class TakeWriter:
+    """Writes one take; use as a context manager or call :meth:`close`.
+
+    Args:
+        folder: dataset folder (created if missing).
+        label: the class of this take (e.g. ``paper``).
+        info: the device header the samples belong to.
+        source: where the data came from (port URL, file...), kept in the metadata.
+        name: file stem; default ``<label>-<UTC time>``, made unique in the folder.
+        extra: more metadata (e.g. ``{"session": 3}``).
+    """
+
+    def __init__(
+        self,
+        folder: str | os.PathLike,
+        label: str,
+        info: DeviceInfo,
+        source: str = "",
+        name: str | None = None,
+        extra: dict | None = None,
+        flush_every_s: float = 1.0,
+    ) -> None:
+        if not label or any(ch in label for ch in "/\\\n,") or label.startswith("."):
+            raise RecordingError(f"label {label!r}: must be non-empty, without / \\ , or newline")
+        self.folder = Path(folder)
+        self.folder.mkdir(parents=True, exist_ok=True)
+        started = time.gmtime()
+        stem = name or f"{label}-{time.strftime('%Y%m%dT%H%M%SZ', started)}"
+        self.csv_path = _unique(self.folder, stem)
+        self.json_path = self.csv_path.with_suffix(".json")
+        self.info = info
+        self.meta = {
+            "format": FORMAT,
+            "version": VERSION,
+            "label": label,
+            "started_utc": time.strftime("%Y-%m-%dT%H:%M:%SZ", started),
+            "source": source,
+            "device": info.to_dict(),
+            "columns": [*FIXED_COLUMNS, *info.channel_names],
+            "samples": 0,
+            "first_seq": None,
+            "last_seq": None,
+            "gaps": [],
+            "decoder": {},
+            "complete": False,
+            **(extra or {}),
+        }
+        self._flush_every = flush_every_s
+        self._last_flush = time.monotonic()
+        self._csv = open(self.csv_path, "w", encoding="ascii", newline="\n")  # noqa: SIM115
+        self._csv.write(",".join(self.meta["columns"]) + "\n")
+        self.flush()
+
+    def write(self, seq: int, t_us: int, raw: np.ndarray) -> None:
+        """Append samples (n, channels) starting at ``seq`` with device time ``t_us``."""
+        raw = np.asarray(raw)
+        if raw.ndim != 2 or raw.shape[1] != len(self.info.channels):
+            raise RecordingError(
+                f"samples of shape {raw.shape} do not fit {len(self.info.channels)} channels"
+            )
+        if self.meta["last_seq"] is not None and seq <= self.meta["last_seq"]:
+            raise RecordingError(f"seq {seq} after {self.meta['last_seq']}: samples out of order")
+        n = len(raw)
+        t = t_us + np.round(np.arange(n) * (1e6 / self.info.sample_rate_hz)).astype(np.int64)
+        seqs = np.arange(seq, seq + n, dtype=np.int64)
+        buf = io.StringIO()
+        if np.issubdtype(raw.dtype, np.integer):
+            np.savetxt(buf, np.column_stack([seqs, t, raw.astype(np.int64)]), "%d", ",")
+        else:  # repr round-trips a float64 exactly
+            for s, ti, row in zip(seqs, t, raw.tolist(), strict=True):
+                buf.write(f"{s},{ti},{','.join(map(repr, row))}\n")
+        self._csv.write(buf.getvalue())
+        if self.meta["first_seq"] is None:
+            self.meta["first_seq"] = seq
+        self.meta["last_seq"] = seq + len(raw) - 1
+        self.meta["samples"] += len(raw)
+        self._maybe_flush()
+
+    def gap(self, gap: Gap) -> None:
+        self.meta["gaps"].append({"seq": gap.seq, "missing": gap.missing, "reason": gap.reason})
+        self._maybe_flush()
+
+    def set_decoder_stats(self, stats: DecoderStats) -> None:
+        self.meta["decoder"] = stats.as_dict()
+
+    def _maybe_flush(self) -> None:
+        if time.monotonic() - self._last_flush >= self._flush_every:
+            self.flush()
+
+    def flush(self) -> None:
+        """Make everything written so far durable and readable."""
+        self._csv.flush()
+        os.fsync(self._csv.fileno())
+        tmp = self.json_path.with_suffix(".json.tmp")
+        tmp.write_text(json.dumps(self.meta, indent=1) + "\n")
+        os.replace(tmp, self.json_path)
+        self._last_flush = time.monotonic()
+
+    def close(self) -> None:
+        if self._csv.closed:
+            return
+        self.meta["complete"] = True
+        self.flush()
+        self._csv.close()
+
+    def __enter__(self) -> TakeWriter:
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+
+def _unique(folder: Path, stem: str) -> Path:
+    path = folder / f"{stem}.csv"
+    k = 1
+    while path.exists() or path.with_suffix(".json").exists():
+        k += 1
+        path = folder / f"{stem}-{k}.csv"
+    return path
+
+
+def read_take(path: str | os.PathLike) -> Take:
+    """Read a take from its ``.csv`` or ``.json`` path. Raises :class:`RecordingError`."""
+    path = Path(path)
+    csv_path, json_path = path.with_suffix(".csv"), path.with_suffix(".json")
+    for p in (csv_path, json_path):
+        if not p.is_file():
+            raise RecordingError(f"{p}: missing (a take is a .csv with a .json beside it)")
+    try:
+        meta = json.loads(json_path.read_text())
+    except (json.JSONDecodeError, UnicodeDecodeError) as e:
+        raise RecordingError(f"{json_path}: not valid JSON ({e})") from None
+    if meta.get("format") != FORMAT or meta.get("version") != VERSION:
+        raise RecordingError(
+            f"{json_path}: not a {FORMAT} v{VERSION} file "
+            f"(format={meta.get('format')!r}, version={meta.get('version')!r})"
+        )
+    try:
+        info = DeviceInfo.from_dict(meta["device"])
+        label = meta["label"]
+    except (KeyError, TypeError, ValueError) as e:
+        raise RecordingError(f"{json_path}: bad device or label ({e})") from None
+    if not isinstance(label, str) or not label:
+        raise RecordingError(f"{json_path}: label must be a non-empty string")
+    text = csv_path.read_text(encoding="ascii", errors="replace")
+    truncated = bool(text) and not text.endswith("\n")
+    lines = text.split("\n")
+    if truncated:
+        lines = lines[:-1]  # a killed writer's half line: everything before it is whole
+    columns = lines[0].split(",") if lines and lines[0] else []
+    expected = [*FIXED_COLUMNS, *info.channel_names]
+    if columns != expected:
+        raise RecordingError(f"{csv_path}: columns {columns} do not match the metadata {expected}")
+    rows = [ln for ln in lines[1:] if ln]
+    n, c = len(rows), len(info.channels)
+    try:
+        table = np.array([r.split(",") for r in rows], dtype=object).reshape(n, c + 2)
+        seq = table[:, 0].astype(np.int64)
+        t_us = table[:, 1].astype(np.int64)
+        body = table[:, 2:].astype(str)
+        integer = n > 0 and not any(("." in v or "e" in v.lower()) for v in body.ravel())
+        raw = body.astype(np.int64) if integer or n == 0 else body.astype(np.float64)
+    except (ValueError, OverflowError) as e:
+        raise RecordingError(f"{csv_path}: unreadable rows ({e})") from None
+    if n and not np.all(np.isfinite(raw)):
+        raise RecordingError(f"{csv_path}: holds NaN or inf values")
+    if n and np.any(np.diff(seq) <= 0):
+        bad = int(np.flatnonzero(np.diff(seq) <= 0)[0]) + 2
+        raise RecordingError(f"{csv_path}: seq not increasing at data row {bad}")
+    return Take(csv_path, meta, info, seq, t_us, raw.reshape(n, c), truncated)
+
+
+def iter_takes(folder: str | os.PathLike) -> Iterator[Path]:
+    """The ``.csv`` files of the takes in a dataset folder (recursively), sorted."""
+    folder = Path(folder)
+    if not folder.is_dir():
+        raise RecordingError(f"{folder}: not a folder")
+    return iter(sorted(p for p in folder.rglob("*.csv") if p.with_suffix(".json").is_file()))
+
+
+def load_dataset(folder: str | os.PathLike) -> list[Take]:
+    """Every take in ``folder``; raises if there is none or if channel layouts disagree."""
+    takes = [read_take(p) for p in iter_takes(folder)]
+    if not takes:
+        raise RecordingError(f"{folder}: no takes (.csv + .json pairs) found")
+    first = takes[0]
+    for t in takes[1:]:
+        if t.channels != first.channels or not math.isclose(
+            t.info.sample_rate_hz, first.info.sample_rate_hz
+        ):
+            raise RecordingError(
+                f"{t.path}: channels/rate {t.channels}@{t.info.sample_rate_hz} Hz differ from "
+                f"{first.path}: {first.channels}@{first.info.sample_rate_hz} Hz"
+            )
+    return takes

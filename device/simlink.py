@@ -1,0 +1,194 @@
+"""The simulated pen on a link: the bytes it sends, with the faults a real cable has.
+
+:class:`PenLink` turns :class:`~tactile.device.simulator.PenSimulator` samples into the wire
+format (header at start and every second, samples frames, or CSV lines) and injects faults
+deterministically from its seed. The same object feeds the ``sim://`` pyserial URL
+(:mod:`tactile.device.protocol_sim`), the pseudo-terminal (``tactile-sim --pty``) and tests.
+
+Fault options (all off by default):
+
+* ``garbage=P``: before each frame, with probability P, 1..32 random non-zero bytes;
+* ``flip=P``: each byte has one random bit flipped with probability P;
+* ``drop=P``: each samples frame is lost with probability P (the pen's counter moves on);
+* ``stall=T:D``: at stream second T the link goes silent for D seconds; the samples of those
+  D seconds are lost (the pen keeps counting), as when a USB hub stalls;
+* ``unplug=T:D``: at stream second T the port raises as a vanished USB serial device does and
+  cannot be reopened for D seconds; the pen then restarts (sequence from 0, header first).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, fields
+from urllib.parse import parse_qsl
+
+import numpy as np
+from tactile.device.protocol import encode_header, encode_samples
+from tactile.device.simulator import TEXTURES, PenSimulator
+
+from tactile.errors import ConfigError
+
+
+@dataclass(frozen=True)
+class LinkConfig:
+    """Everything ``sim://?...`` accepts; unknown keys and bad values are errors."""
+
+    texture: str = "paper"
+    seed: int = 0
+    rate: float = 100.0  # Hz
+    speed: float = 1.0  # x real time; math.inf = as fast as the reader reads ("max")
+    seconds: float = math.inf  # the pen stops sending after this much stream time
+    per_frame: int = 1  # samples per frame
+    format: str = "binary"  # or "csv"
+    garbage: float = 0.0
+    flip: float = 0.0
+    drop: float = 0.0
+    stall: tuple[float, float] | None = None
+    unplug: tuple[float, float] | None = None
+
+    def __post_init__(self) -> None:
+        if self.texture not in TEXTURES:
+            raise ConfigError(f"texture {self.texture!r}: must be one of {', '.join(TEXTURES)}")
+        if not (0 < self.rate <= 10_000):
+            raise ConfigError(f"rate {self.rate!r}: must be in (0, 10000] Hz")
+        if not self.speed > 0:
+            raise ConfigError(f"speed {self.speed!r}: must be > 0 or 'max'")
+        if not 1 <= self.per_frame <= 32:
+            raise ConfigError(f"per_frame {self.per_frame!r}: must be 1..32")
+        if self.format not in ("binary", "csv"):
+            raise ConfigError(f"format {self.format!r}: must be binary or csv")
+        for name in ("garbage", "flip", "drop"):
+            p = getattr(self, name)
+            if not 0 <= p <= 1:
+                raise ConfigError(f"{name}={p!r}: must be a probability in [0, 1]")
+        if not self.seconds > 0:
+            raise ConfigError(f"seconds {self.seconds!r}: must be > 0")
+
+    @classmethod
+    def from_query(cls, query: str) -> LinkConfig:
+        """Parse ``texture=paper&seed=3&speed=max&unplug=2:0.5`` (the part after ``?``)."""
+        kinds = {f.name: f.type for f in fields(cls)}
+        kw: dict = {}
+        for key, value in parse_qsl(query, keep_blank_values=True, strict_parsing=False):
+            if key not in kinds:
+                raise ConfigError(f"sim:// option {key!r} unknown; allowed: {', '.join(kinds)}")
+            try:
+                kw[key] = _convert(key, value)
+            except ValueError:
+                raise ConfigError(f"sim:// option {key}={value!r}: not a valid value") from None
+        return cls(**kw)
+
+
+def _convert(key: str, value: str):
+    if key in ("texture", "format"):
+        return value
+    if key in ("seed", "per_frame"):
+        return int(value)
+    if key in ("stall", "unplug"):
+        t, d = value.split(":")
+        t, d = float(t), float(d)
+        if not (t >= 0 and d > 0):
+            raise ValueError
+        return (t, d)
+    if key == "speed" and value == "max":
+        return math.inf
+    return float(value)
+
+
+@dataclass
+class Injected:
+    """What the link did to the stream, to compare with what a receiver counted."""
+
+    frames: int = 0
+    samples: int = 0  # samples the pen produced (sent or not)
+    dropped_frames: int = 0
+    dropped_samples: int = 0
+    garbage_bytes: int = 0
+    flipped_bytes: int = 0
+    stalled_samples: int = 0
+
+
+class PenLink:
+    """Bytes the pen sends, produced on demand, with faults. Deterministic given the config.
+
+    Args:
+        config: the link settings.
+        restart_at_s: start the pen at this stream time (after an unplug the pen reboots: its
+            counter restarts at 0 while the hand, and so the simulated motion, went on).
+    """
+
+    def __init__(self, config: LinkConfig, restart_at_s: float = 0.0) -> None:
+        self.config = config
+        self.sim = PenSimulator(config.texture, config.seed, config.rate)
+        self.rng = np.random.default_rng([config.seed, 0x11AC])
+        self.injected = Injected()
+        self.info = self.sim.info
+        self.seq = 0  # the pen's sample counter since it (re)started
+        skip = round(restart_at_s * config.rate)
+        while skip > 0:  # advance the motion, not the counter
+            k = min(skip, 4096)
+            self.sim.read(k)
+            skip -= k
+        self._next_header = 0
+        self._stall_done = False
+
+    @property
+    def stream_time(self) -> float:
+        """Seconds of samples produced since the simulation began."""
+        return self.sim.n_read / self.config.rate
+
+    @property
+    def finished(self) -> bool:
+        return self.stream_time >= self.config.seconds - 1e-9
+
+    def produce(self, n: int) -> bytes:
+        """The bytes for the next ``n`` samples (fewer at the end of ``seconds``)."""
+        cfg = self.config
+        if math.isfinite(cfg.seconds):
+            n = min(n, max(0, round(cfg.seconds * cfg.rate) - self.sim.n_read))
+        out = bytearray()
+        while n > 0:
+            if cfg.stall and not self._stall_done and self.stream_time >= cfg.stall[0]:
+                lost = round(cfg.stall[1] * cfg.rate)
+                self.sim.read(lost)
+                self.seq += lost
+                self.injected.samples += lost
+                self.injected.stalled_samples += lost
+                self._stall_done = True
+            if self.seq >= self._next_header:  # header at start, then once a second
+                if cfg.format == "binary":
+                    out += self._fault(encode_header(self.info))
+                elif self.seq == 0:  # CSV: the names line once, as hobby sketches print it
+                    out += (",".join(self.info.channel_names) + "\n").encode()
+                self._next_header = self.seq + max(1, round(cfg.rate))
+            k = min(n, cfg.per_frame)
+            raw = self.sim.read(k)
+            t_us = round(self.sim.n_read * 1e6 / cfg.rate) - round(k * 1e6 / cfg.rate)
+            self.injected.samples += k
+            self.injected.frames += 1
+            if cfg.drop and self.rng.random() < cfg.drop:
+                self.injected.dropped_frames += 1
+                self.injected.dropped_samples += k
+            elif cfg.format == "csv":
+                out += self._fault("".join(",".join(map(str, r)) + "\n" for r in raw).encode())
+            else:
+                out += self._fault(encode_samples(self.seq, t_us, raw))
+            self.seq += k
+            n -= k
+        return bytes(out)
+
+    def _fault(self, data: bytes) -> bytes:
+        cfg = self.config
+        if cfg.garbage and self.rng.random() < cfg.garbage:
+            g = self.rng.integers(1, 256, int(self.rng.integers(1, 33))).astype(np.uint8)
+            self.injected.garbage_bytes += len(g)
+            data = g.tobytes() + data
+        if cfg.flip:
+            hit = self.rng.random(len(data)) < cfg.flip
+            if hit.any():
+                arr = np.frombuffer(data, np.uint8).copy()
+                bits = self.rng.integers(0, 8, int(hit.sum()))
+                arr[hit] ^= (1 << bits).astype(np.uint8)
+                self.injected.flipped_bytes += int(hit.sum())
+                data = arr.tobytes()
+        return data
