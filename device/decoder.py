@@ -20,6 +20,7 @@ from dataclasses import dataclass, field
 from typing import Literal
 
 import numpy as np
+
 from tactile.device.info import ChannelSpec, DeviceInfo
 from tactile.device.protocol import (
     MAX_ENCODED,
@@ -30,7 +31,6 @@ from tactile.device.protocol import (
     crc16,
     parse_body,
 )
-
 from tactile.errors import ConfigError
 
 MAX_CSV_LINE = 4096  # bytes; a longer line without a newline is discarded

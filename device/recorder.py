@@ -19,12 +19,12 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 import serial
+
 import tactile.device  # noqa: F401  (registers sim://)
+from tactile.cli import add_debug, run
 from tactile.device.decoder import Gap, Header, Samples, StreamDecoder
 from tactile.device.info import DeviceInfo
 from tactile.device.recording import TakeWriter
-
-from tactile.cli import add_debug, run
 from tactile.errors import ConfigError, DeviceError
 
 MAX_EARLY = 100_000  # samples held while waiting for the first header (binary mode)
@@ -49,8 +49,13 @@ def open_port(port: str, baud: int, timeout: float = 0.1) -> serial.SerialBase:
 class Recorder:
     """Decoder events -> take files. Separate from the port loop so tests can drive it."""
 
-    def __init__(self, out: Path, label: str, source: str, extra: dict | None = None) -> None:
+    def __init__(
+        self, out: Path, label: str, source: str, extra: dict | None = None,
+        seconds: float = math.inf,
+    ) -> None:
         self.out, self.label, self.source, self.extra = out, label, source, extra
+        self.seconds = seconds
+        self.max_samples = math.inf  # set from the device's rate when its header arrives
         self.writer: TakeWriter | None = None
         self.early: list[Samples | Gap] = []  # before the first header: kept, in order
         self.result = RecordResult()
@@ -63,6 +68,7 @@ class Recorder:
                 if self.writer is not None and ev.changed:
                     self._close(decoder)
                 if self.writer is None:
+                    self.max_samples = self.seconds * ev.info.sample_rate_hz
                     self._open(ev.info)
                     for e in self.early:
                         written += self._put(e)
@@ -73,15 +79,19 @@ class Recorder:
                 self.early.append(ev)
             else:
                 written += self._put(ev)
-        self.result.samples += written
         return written
 
     def _put(self, ev: Samples | Gap) -> int:
+        room = self.max_samples - self.result.samples
+        if room <= 0:
+            return 0
         if isinstance(ev, Gap):
             self.writer.gap(ev)
             return 0
-        self.writer.write(ev.seq, ev.t_us, ev.raw)
-        return len(ev.raw)
+        raw = ev.raw[: int(min(room, len(ev.raw)))]
+        self.writer.write(ev.seq, ev.t_us, raw)
+        self.result.samples += len(raw)
+        return len(raw)
 
     def _open(self, info: DeviceInfo) -> None:
         self.writer = TakeWriter(self.out, self.label, info, self.source, extra=self.extra)
@@ -109,7 +119,7 @@ def record(
     progress: bool = True,
 ) -> RecordResult:
     """Record until ``seconds`` of samples are written, or SIGINT/SIGTERM."""
-    rec = Recorder(out, label, port)
+    rec = Recorder(out, label, port, seconds=seconds)
     decoder = StreamDecoder(csv_rate_hz=csv_rate_hz)
     stop = {"flag": False}
 
@@ -145,7 +155,7 @@ def record(
             if progress and now - last_report >= 1.0:
                 last_report = now
                 _progress(label, rec.result.samples / rate, seconds, decoder)
-            if rec.result.samples >= seconds * rate:
+            if rec.result.samples >= rec.max_samples:
                 break
     finally:
         rec.close(decoder)

@@ -268,7 +268,10 @@ def test_random_bytes_never_raise_or_invent(data, mode):
 
 
 def test_csv_auto_detected_with_names_and_rejections():
-    text = b"boot: ok!\r\nax,ay,az\r\n1,2,3\r\n4,5,6\r\n7,x,9\r\n1,2\r\nnan,1,2\r\n# c\r\n\r\n8 ,9, 10\r\n"
+    text = (
+        b"boot: ok!\r\nax,ay,az\r\n1,2,3\r\n4,5,6\r\n7,x,9\r\n1,2\r\nnan,1,2\r\n# c\r\n\r\n"
+        b"8 ,9, 10\r\n"
+    )
     events, stats = decode(text)
     assert StreamDecoder().mode == "auto"
     header = next(e for e in events if isinstance(e, Header))

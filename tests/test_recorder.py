@@ -1,0 +1,239 @@
+"""The simulated link, the recorder and the recordings format, end to end."""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+
+import numpy as np
+import pytest
+import serial
+
+import tactile.device  # noqa: F401  (registers sim://)
+from tactile.device.decoder import StreamDecoder
+from tactile.device.hapmat import import_hapmat
+from tactile.device.protocol_sim import forget_unplugs
+from tactile.device.recorder import main as record_main
+from tactile.device.recorder import record
+from tactile.device.recording import TakeWriter, load_dataset, read_take
+from tactile.device.sim_cli import make_dataset
+from tactile.device.simlink import LinkConfig, PenLink
+from tactile.device.simulator import PenSimulator
+from tactile.errors import ConfigError, RecordingError
+
+
+def read_all(url: str) -> bytes:
+    port = serial.serial_for_url(url, timeout=0.2)
+    out = bytearray()
+    while chunk := port.read(4096):
+        out += chunk
+    port.close()
+    return bytes(out)
+
+
+def assert_samples_are_the_pen(take, texture: str, seed: int, rate: float = 100.0):
+    """Every stored row is the simulator's sample of that seq: nothing invented or reordered."""
+    truth = PenSimulator(texture, seed, rate).read(int(take.seq.max()) + 1)
+    np.testing.assert_array_equal(take.raw, truth[take.seq])
+
+
+def test_sim_url_is_deterministic_and_complete():
+    url = "sim://?texture=desk&seed=4&speed=max&seconds=3"
+    a, b = read_all(url), read_all(url)
+    assert a == b
+    dec = StreamDecoder()
+    dec.feed(a)
+    assert dec.stats.samples == 300 and dec.stats.errors == 0 and dec.stats.header_frames == 3
+
+
+@pytest.mark.parametrize(
+    "url, message",
+    [
+        ("sim://?texture=velvet", "texture 'velvet'"),
+        ("sim://?colour=red", "option 'colour' unknown"),
+        ("sim://?seed=x", "seed='x'"),
+        ("sim://?drop=2", "drop=2.0"),
+    ],
+)
+def test_sim_url_rejects_bad_options(url, message):
+    with pytest.raises(serial.SerialException, match=message):
+        serial.serial_for_url(url)
+
+
+def test_link_faults_are_counted_exactly_by_the_decoder():
+    cfg = LinkConfig.from_query("texture=paper&seed=1&garbage=0.05&drop=0.03&seconds=30")
+    link = PenLink(cfg)
+    data = link.produce(10_000)
+    dec = StreamDecoder()
+    dec.feed(data + b"\x00")
+    inj = link.injected
+    assert inj.dropped_frames > 20 and inj.garbage_bytes > 500
+    assert dec.stats.bytes_discarded == inj.garbage_bytes
+    assert dec.stats.samples + dec.stats.samples_lost <= inj.samples
+    # a dropped frame at the very end cannot be seen as a gap; all others are
+    assert inj.dropped_samples - dec.stats.samples_lost in (0, 1)
+    assert dec.stats.samples == inj.samples - inj.dropped_samples
+
+
+def test_recorder_over_sim_with_faults(tmp_path):
+    url = "sim://?texture=mouse_pad&seed=5&speed=max&garbage=0.02&flip=0.0005&drop=0.02&stall=3:0.3"
+    res = record(url, "mouse_pad", tmp_path, seconds=8, progress=False)
+    assert len(res.takes) == 1
+    take = read_take(res.takes[0])
+    assert take.meta["complete"] and take.label == "mouse_pad" and not take.truncated
+    assert take.channels == PenSimulator("paper").info.channel_names
+    assert len(take.seq) >= 800
+    assert_samples_are_the_pen(take, "mouse_pad", 5)
+    gaps = take.meta["gaps"]
+    assert any(g["missing"] == 30 for g in gaps), "the 0.3 s stall is a 30-sample gap"
+    # every jump in seq is a recorded gap of exactly that size
+    jumps = {int(take.seq[i + 1]): int(take.seq[i + 1] - take.seq[i] - 1)
+             for i in np.flatnonzero(np.diff(take.seq) != 1)}
+    assert jumps == {g["seq"]: g["missing"] for g in gaps}
+    assert take.meta["decoder"]["crc_errors"] + take.meta["decoder"]["malformed"] > 0
+    assert len(take.segments()) == len(gaps) + 1
+
+
+def test_recorder_survives_unplug(tmp_path):
+    forget_unplugs()
+    url = "sim://?texture=paper&seed=2&speed=max&unplug=2:0.4"
+    t0 = time.monotonic()
+    res = record(url, "paper", tmp_path, seconds=5, progress=False)
+    assert time.monotonic() - t0 >= 0.4  # it waited for the cable
+    assert res.reconnects == 1
+    take = read_take(res.takes[0])
+    assert [g["reason"] for g in take.meta["gaps"]] == ["restart"]
+    assert len(take.seq) >= 500 and np.all(np.diff(take.seq) > 0)
+    assert len(take.segments()) == 2
+    forget_unplugs()
+
+
+def test_recorder_reads_csv_devices(tmp_path):
+    res = record("sim://?texture=desk&seed=7&speed=max&format=csv", "desk", tmp_path, seconds=2,
+                 progress=False)
+    take = read_take(res.takes[0])
+    assert take.channels[:2] == ("pressure_0", "pressure_1")  # from the names line
+    assert len(take.seq) == 200
+    truth = PenSimulator("desk", 7).read(200)
+    np.testing.assert_array_equal(take.raw, truth)
+
+
+def test_recorder_over_a_pty(tmp_path):
+    sim = subprocess.Popen(
+        [sys.executable, "-m", "tactile.device.sim_cli", "--pty", "--texture", "cardboard",
+         "--seed", "9", "--speed", "4", "--seconds", "20"],
+        stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+    )
+    try:
+        path = sim.stdout.readline().strip()
+        assert path.startswith("/dev/")
+        res = record(path, "cardboard", tmp_path, seconds=3, progress=False)
+    finally:
+        sim.send_signal(signal.SIGTERM)
+        sim.wait(10)
+    take = read_take(res.takes[0])
+    assert len(take.seq) >= 300
+    assert_samples_are_the_pen(take, "cardboard", 9)
+
+
+def test_killed_recorder_leaves_a_readable_take(tmp_path):
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "tactile.device.recorder", "--port",
+         "sim://?texture=paper&seed=1&speed=2", "--label", "paper", "--out", str(tmp_path),
+         "--quiet"],
+        stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+    )
+    time.sleep(3.5)
+    proc.send_signal(signal.SIGKILL)
+    proc.wait(10)
+    (csv,) = tmp_path.glob("*.csv")
+    take = read_take(csv)
+    assert not take.meta["complete"]
+    # ~3 s of wall time at 2x is ~600 samples; at most the last second (200) may be missing,
+    # plus interpreter start-up
+    assert len(take.seq) >= 250, len(take.seq)
+    assert_samples_are_the_pen(take, "paper", 1)
+
+
+def test_ctrl_c_finishes_the_take(tmp_path):
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "tactile.device.recorder", "--port",
+         "sim://?texture=desk&seed=1&speed=5", "--label", "desk", "--out", str(tmp_path)],
+        stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+    )
+    time.sleep(2.5)
+    proc.send_signal(signal.SIGINT)
+    out, err = proc.communicate(timeout=10)
+    assert proc.returncode == 0, err
+    take = read_take(out.strip())
+    assert take.meta["complete"] and len(take.seq) > 100
+
+
+def test_cli_errors_are_one_line(tmp_path, capsys):
+    code = record_main(["--port", "sim://?texture=velvet", "--label", "x", "--out", str(tmp_path)])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert code == 2 and len(err) == 1 and "texture 'velvet'" in err[0]
+    code = record_main(["--port", "/dev/does-not-exist", "--label", "x", "--out", str(tmp_path)])
+    assert code == 2 and "does-not-exist" in capsys.readouterr().err
+    code = record_main(["--port", "loop://", "--label", "x", "--out", str(tmp_path),
+                        "--seconds", "-1"])
+    assert code == 1 and "--seconds" in capsys.readouterr().err
+
+
+def test_dataset_of_simulated_users(tmp_path):
+    paths = make_dataset(tmp_path, takes=2, textures=("paper", "non_contact"), seconds=2)
+    assert len(paths) == 4
+    takes = load_dataset(tmp_path)
+    assert sorted((t.label, t.meta["user"]) for t in takes) == [
+        ("non_contact", 0), ("non_contact", 1), ("paper", 0), ("paper", 1)]
+    for t in takes:
+        assert t.raw.shape == (200, 8) and t.meta["complete"]
+    with pytest.raises(ConfigError, match="velvet"):
+        make_dataset(tmp_path, 1, ("velvet",))
+
+
+def test_hapmat_import(tmp_path):
+    from conftest import HAPMAT
+
+    if not HAPMAT.is_file():
+        pytest.skip(f"shared HapMat data not found at {HAPMAT.name} beside the repository")
+    import_hapmat(HAPMAT, tmp_path)
+    takes = load_dataset(tmp_path)
+    assert sorted(t.label for t in takes) == ["fabric", "leather", "metal", "paper", "wood"]
+    raw = np.load(HAPMAT)["X"]
+    fabric = next(t for t in takes if t.label == "fabric")
+    assert fabric.meta["absent_channels"] == ["pressure_0", "pressure_1"]
+    np.testing.assert_allclose(fabric.values()[:, :3], raw[0][:, :3], rtol=0, atol=0)
+    np.testing.assert_allclose(fabric.values()[:, 3:], np.degrees(raw[0][:, 6:9].astype(float)))
+
+
+def test_bad_recordings_are_refused(tmp_path):
+    info = PenSimulator("paper").info
+    with TakeWriter(tmp_path, "paper", info, name="t") as w:
+        w.write(0, 0, np.zeros((5, 8), np.int16))
+        with pytest.raises(RecordingError, match="out of order"):
+            w.write(3, 0, np.zeros((1, 8), np.int16))
+    csv = tmp_path / "t.csv"
+    assert len(read_take(csv).seq) == 5
+    text = csv.read_text()
+    csv.write_text(text.replace("seq,t_us,pressure_0", "seq,t_us,pressure_9"))
+    with pytest.raises(RecordingError, match="columns"):
+        read_take(csv)
+    csv.write_text(text + "2,0,1,1,1,1,1,1,1,1\n")
+    with pytest.raises(RecordingError, match="seq not increasing"):
+        read_take(csv)
+    meta = json.loads((tmp_path / "t.json").read_text())
+    (tmp_path / "t.json").write_text(json.dumps({**meta, "format": "other"}))
+    with pytest.raises(RecordingError, match="not a tactile-recording"):
+        read_take(csv)
+    os.remove(tmp_path / "t.json")
+    with pytest.raises(RecordingError, match="missing"):
+        read_take(csv)
+    with pytest.raises(RecordingError, match="no takes"):
+        load_dataset(tmp_path)
+    with pytest.raises(RecordingError, match="label"):
+        TakeWriter(tmp_path, "a/b", info)
