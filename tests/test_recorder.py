@@ -125,7 +125,8 @@ def test_recorder_reads_csv_devices(tmp_path):
 def test_recorder_over_a_pty(tmp_path):
     sim = subprocess.Popen(
         [sys.executable, "-m", "tactile.device.sim_cli", "--pty", "--texture", "cardboard",
-         "--seed", "9", "--speed", "4", "--seconds", "20"],
+         "--seed", "9", "--speed", "4", "--seconds", "20",
+         "--link", "garbage=0.02&flip=0.0005&drop=0.01"],
         stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
     )
     try:
@@ -136,7 +137,8 @@ def test_recorder_over_a_pty(tmp_path):
         sim.send_signal(signal.SIGTERM)
         sim.wait(10)
     take = read_take(res.takes[0])
-    assert len(take.seq) >= 300
+    assert len(take.seq) == 300 and take.meta["gaps"], "drops on the link are recorded gaps"
+    assert take.meta["decoder"]["bytes_discarded"] > 0
     assert_samples_are_the_pen(take, "cardboard", 9)
 
 
