@@ -15,8 +15,8 @@ import struct
 from dataclasses import dataclass
 
 import numpy as np
-from tactile.device.info import MAX_CHANNELS, ChannelSpec, DeviceInfo
 
+from tactile.device.info import MAX_CHANNELS, ChannelSpec, DeviceInfo
 from tactile.errors import FrameError
 
 DELIMITER = 0x00

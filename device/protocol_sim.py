@@ -14,8 +14,8 @@ from urllib.parse import urlsplit
 
 import serial
 from serial.serialutil import PortNotOpenError, SerialBase, SerialException
-from tactile.device.simlink import LinkConfig, PenLink
 
+from tactile.device.simlink import LinkConfig, PenLink
 from tactile.errors import ConfigError
 
 # Unplug state shared by every instance, keyed by URL: a reopened port must stay unopenable

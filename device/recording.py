@@ -22,9 +22,9 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
+
 from tactile.device.decoder import DecoderStats, Gap
 from tactile.device.info import DeviceInfo
-
 from tactile.errors import RecordingError
 
 FORMAT = "tactile-recording"

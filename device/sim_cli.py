@@ -20,11 +20,10 @@ import tty
 import zlib
 from pathlib import Path
 
+from tactile.cli import add_debug, run
 from tactile.device.recording import TakeWriter
 from tactile.device.simlink import LinkConfig, PenLink
 from tactile.device.simulator import TEXTURES, PenSimulator
-
-from tactile.cli import add_debug, run
 from tactile.errors import ConfigError
 
 

@@ -23,9 +23,9 @@ from dataclasses import dataclass, fields
 from urllib.parse import parse_qsl
 
 import numpy as np
+
 from tactile.device.protocol import encode_header, encode_samples
 from tactile.device.simulator import TEXTURES, PenSimulator
-
 from tactile.errors import ConfigError
 
 

@@ -30,6 +30,7 @@ import math
 from dataclasses import dataclass
 
 import numpy as np
+
 from tactile.device.info import (
     ACCEL_SCALE,
     GYRO_SCALE,
@@ -39,7 +40,6 @@ from tactile.device.info import (
     DeviceInfo,
     pen_info,
 )
-
 from tactile.errors import ConfigError, TactileError
 
 TEXTURES: tuple[str, ...] = (
@@ -52,6 +52,7 @@ TEXTURES: tuple[str, ...] = (
     "non_contact",
 )
 
+GRAIN_MM = 2.0  # mm: features shorter than this are felt one by one as grain
 BLOCK = 128  # samples per internal block; fixed so that output never depends on read sizes
 G0 = 9.80665  # m/s^2 per g
 
@@ -60,8 +61,8 @@ IMU_FROM_TIP = 0.04  # m along the rod from the tip to the IMU
 IMU_RADIUS = 0.006  # m from the rod's axis to the IMU (the rod is ~10 mm thick, IMU on its side)
 GRIP_LEVER = 0.08  # m from the tip to where the fingers hold the rod
 TIP_STIFFNESS = 3.0e4  # N/m, the rubber tip sensor compressed axially (a few mm of soft rubber)
-MOVING_MASS = 0.08  # kg, rod plus the part of the fingers that moves with it at contact rates
-ROD_INERTIA = 1.0e-4  # kg*m^2, rod plus finger pads rotating about the grip
+MOVING_MASS = 0.025  # kg, the rod plus the finger pads that move with it at contact rates
+ROD_INERTIA = 3.0e-4  # kg*m^2, rod plus finger pads rotating about the grip
 FRICTION_V0 = 0.004  # m/s, speed over which Coulomb friction changes sign (regularisation)
 
 # --- sensors (MPU-6050 class IMU with a ~44 Hz digital low-pass; 12-bit ADC on the tip) -----
@@ -87,7 +88,10 @@ class TextureParams:
     part of the height profile; ``period_mm``/``period_um``: wavelength and amplitude of a
     periodic part (0 = none); ``patch_mm``: contact patch radius, which smooths features shorter
     than it; ``mu_kinetic``/``mu_static``: friction of the rubber tip on it; ``stick_speed``:
-    m/s below which the contact sticks and slips; ``stiffness``: N/m of the surface layer under
+    m/s below which the contact sticks and slips; ``mu_variation``: RMS
+    variation of the friction coefficient along the path; ``grain``: RMS normal-force ripple
+    per newton of push from single asperities and fibres (what the rubber sensor feels most
+    directly); ``stiffness``: N/m of the surface layer under
     the tip; ``damping``: damping ratio of the tip-on-surface contact.
     """
 
@@ -99,6 +103,8 @@ class TextureParams:
     mu_kinetic: float
     mu_static: float
     stick_speed: float
+    mu_variation: float
+    grain: float
     stiffness: float
     damping: float
 
@@ -129,28 +135,88 @@ class TextureParams:
 #   to ~20-30 Hz). Damping: foams and fibres dissipate (zeta 0.5-0.8), hard stacks ring.
 _TEXTURE_TABLE: dict[str, TextureParams] = {
     "desk": TextureParams(
-        roughness_um=1.5, corr_mm=0.5, period_mm=0.0, period_um=0.0, patch_mm=0.3,
-        mu_kinetic=0.45, mu_static=0.55, stick_speed=0.005, stiffness=3e5, damping=0.15,
+        roughness_um=1.5,
+        corr_mm=0.5,
+        period_mm=0.0,
+        period_um=0.0,
+        patch_mm=0.2,
+        mu_kinetic=0.45,
+        mu_static=0.55,
+        stick_speed=0.005,
+        mu_variation=0.015,
+        grain=0.01,
+        stiffness=3e5,
+        damping=0.15,
     ),
     "cardboard": TextureParams(
-        roughness_um=8.0, corr_mm=0.4, period_mm=7.0, period_um=25.0, patch_mm=0.5,
-        mu_kinetic=0.55, mu_static=0.65, stick_speed=0.01, stiffness=2e4, damping=0.35,
+        roughness_um=10.0,
+        corr_mm=0.4,
+        period_mm=7.0,
+        period_um=40.0,
+        patch_mm=0.3,
+        mu_kinetic=0.55,
+        mu_static=0.65,
+        stick_speed=0.01,
+        mu_variation=0.04,
+        grain=0.05,
+        stiffness=2e4,
+        damping=0.35,
     ),
     "nonwoven_cloth": TextureParams(
-        roughness_um=40.0, corr_mm=1.2, period_mm=0.0, period_um=0.0, patch_mm=0.8,
-        mu_kinetic=0.65, mu_static=0.95, stick_speed=0.05, stiffness=3.5e3, damping=0.6,
+        roughness_um=70.0,
+        corr_mm=0.6,
+        period_mm=0.0,
+        period_um=0.0,
+        patch_mm=0.3,
+        mu_kinetic=0.65,
+        mu_static=0.95,
+        stick_speed=0.05,
+        mu_variation=0.1,
+        grain=0.12,
+        stiffness=3.5e3,
+        damping=0.6,
     ),
     "paper": TextureParams(
-        roughness_um=4.0, corr_mm=0.25, period_mm=0.0, period_um=0.0, patch_mm=0.35,
-        mu_kinetic=0.5, mu_static=0.6, stick_speed=0.008, stiffness=8e4, damping=0.25,
+        roughness_um=4.0,
+        corr_mm=0.25,
+        period_mm=0.0,
+        period_um=0.0,
+        patch_mm=0.2,
+        mu_kinetic=0.5,
+        mu_static=0.6,
+        stick_speed=0.008,
+        mu_variation=0.03,
+        grain=0.03,
+        stiffness=8e4,
+        damping=0.25,
     ),
     "plastic_folder": TextureParams(
-        roughness_um=0.6, corr_mm=0.6, period_mm=0.0, period_um=0.0, patch_mm=0.3,
-        mu_kinetic=0.75, mu_static=1.05, stick_speed=0.035, stiffness=1.5e5, damping=0.12,
+        roughness_um=0.6,
+        corr_mm=0.6,
+        period_mm=0.0,
+        period_um=0.0,
+        patch_mm=0.2,
+        mu_kinetic=0.75,
+        mu_static=1.05,
+        stick_speed=0.035,
+        mu_variation=0.015,
+        grain=0.006,
+        stiffness=1.5e5,
+        damping=0.12,
     ),
     "mouse_pad": TextureParams(
-        roughness_um=12.0, corr_mm=0.5, period_mm=0.5, period_um=8.0, patch_mm=0.7,
-        mu_kinetic=0.8, mu_static=1.0, stick_speed=0.025, stiffness=2.0e3, damping=0.75,
+        roughness_um=20.0,
+        corr_mm=0.5,
+        period_mm=0.5,
+        period_um=10.0,
+        patch_mm=0.3,
+        mu_kinetic=0.8,
+        mu_static=1.0,
+        stick_speed=0.025,
+        mu_variation=0.06,
+        grain=0.07,
+        stiffness=2.0e3,
+        damping=0.75,
     ),
 }
 
@@ -182,8 +248,8 @@ class Session:
     in the stroke plane; lean_deg: sideways lean; roll_deg: rotation of the IMU about the rod;
     rock_rad_per_m / twist_rad_per_m: pitch and roll change per metre of stroke travel (wrist
     rocking); swing_rad_per_m: yaw per metre (strokes driven by the wrist swing the pen about
-    the vertical); tremor_dps: RMS physiological tremor as angular rate, deg/s; tremor_hz: its centre
-    frequency; grip_stiffness: N*m/rad of the fingers resisting rod rotation; grip_hz and
+    the vertical); tremor_dps: RMS physiological tremor as angular rate, deg/s; tremor_hz: its
+    centre frequency; grip_stiffness: N*m/rad of the fingers resisting rod rotation; grip_hz and
     grip_damping: resonance of the rod rocking in the grip; hand_stiffness: N/m of the arm
     behind the push; pause_rate: pauses per second; lift_prob: chance a stroke is in the air.
     """
@@ -211,8 +277,14 @@ class Session:
 
     def __post_init__(self) -> None:
         positive = (
-            "speed", "stroke_length", "force", "tremor_hz", "grip_stiffness", "grip_hz",
-            "grip_damping", "hand_stiffness",
+            "speed",
+            "stroke_length",
+            "force",
+            "tremor_hz",
+            "grip_stiffness",
+            "grip_hz",
+            "grip_damping",
+            "hand_stiffness",
         )
         for name in positive:
             value = getattr(self, name)
@@ -244,7 +316,7 @@ class Session:
             tilt_deg=float(rng.uniform(10.0, 40.0)),
             lean_deg=float(rng.uniform(-10.0, 10.0)),
             roll_deg=float(rng.uniform(-40.0, 40.0)),
-            rock_rad_per_m=sign * logu(0.5, 4.0),
+            rock_rad_per_m=sign * logu(1.0, 6.0),
             twist_rad_per_m=float(rng.uniform(-1.5, 1.5)),
             swing_rad_per_m=float(rng.uniform(-3.0, 3.0)),
             tremor_dps=logu(0.4, 3.0),
@@ -345,7 +417,9 @@ class _Surface:
             cycles = max(1, round(self.LENGTH / (p.period_mm * 1e-3)))  # keep it periodic
             phase = 2 * math.pi * cycles * np.arange(n) / n + rng.uniform(0, 2 * math.pi)
             h += p.period_um * 1e-6 * np.sin(phase)
-        h = np.fft.irfft(np.fft.rfft(h) * np.exp(-0.5 * (k * p.patch_mm * 1e-3) ** 2), n)
+        # The contact patch averages features shorter than itself away (first-order roll-off:
+        # a soft rubber tip still feels single fibres and edges, only weaker).
+        h = np.fft.irfft(np.fft.rfft(h) / (1.0 + (k * p.patch_mm * 1e-3) ** 2), n)
         self.x = np.arange(n + 1) * self.DX  # (n+1,) grid including the period's end
         self.h = self._periodic(h - h.mean())
         self.h1 = self._integral(self.h)  # m^2, running integral of h (zero mean)
@@ -364,7 +438,9 @@ class _Surface:
     def _at(self, table: np.ndarray, x: np.ndarray) -> np.ndarray:
         return np.interp(np.mod(x + self.offset, self.LENGTH), self.x, table)
 
-    def mean(self, table: np.ndarray, upper: np.ndarray, x: np.ndarray, width: np.ndarray) -> np.ndarray:
+    def mean(
+        self, table: np.ndarray, upper: np.ndarray, x: np.ndarray, width: np.ndarray
+    ) -> np.ndarray:
         """Average of the profile ``table`` over ``[x - width/2, x + width/2]``, (n,).
 
         ``upper`` is the running integral of ``table``; where ``width`` is below the grid step
@@ -377,14 +453,15 @@ class _Surface:
 
     def read(
         self, x: np.ndarray, v: np.ndarray, aperture_s: float, follow_hz: float
-    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         """What the tip feels at positions ``x`` (n,) m moving at ``v`` (n,) m/s.
 
         The sensor integrates over ``aperture_s`` (its own bandwidth; much shorter than a
         sample period, so texture vibration aliases as on a real 100 Hz pen). The moving mass
         follows features longer than ~``|v| / follow_hz``; shorter ones compress the contact.
-        Returns ``(du, du_int, dslope)``: the contact compression from roughness (m), its time
-        integral (m*s), and the extra surface slope under the tip (m/m), each (n,).
+        Returns ``(seen, du, du_int, dslope)``: the height under the tip (m), the contact
+        compression from roughness (m), its time integral (m*s), and the surface slope under the
+        tip beyond what the moving mass follows (m/m), each (n,).
         """
         travel = np.abs(v) * aperture_s
         follow = 0.44 * np.abs(v) / follow_hz  # box length whose half-power wavelength ~ v/f
@@ -393,12 +470,22 @@ class _Surface:
         # integral over time of du = integral over path / v (the tip moves at v)
         du_path = self._at(self.h1, x) - self.mean(self.h1, self.h2, x, follow)
         moving = np.abs(v) > 1e-4
-        du_int = np.where(moving, du_path / np.where(moving, np.abs(v), 1.0), 0.0)
+        du_int = np.where(moving, du_path / np.where(moving, v, 1.0), 0.0)  # dt = dx / v
         half = np.maximum(travel, self.DX) / 2
         slope = (self._at(self.h, x + half) - self._at(self.h, x - half)) / (2 * half)
         far = np.maximum(follow, 4 * self.DX) / 2
         slope_follow = (self._at(self.h, x + far) - self._at(self.h, x - far)) / (2 * far)
-        return du, du_int, slope - slope_follow
+        return seen, du, du_int, slope - slope_follow
+
+    def grain(self, x: np.ndarray, v: np.ndarray, seen: np.ndarray) -> np.ndarray:
+        """Unit-RMS texture grain under the tip, (n,).
+
+        The height ``seen`` (from :meth:`read`) minus its mean over :data:`GRAIN_MM`, divided
+        by the profile's RMS: the asperities and fibres the tip rides over one by one.
+        """
+        width = np.full_like(x, GRAIN_MM * 1e-3)
+        rms = float(np.sqrt(np.mean(self.h**2)))
+        return (seen - self.mean(self.h, self.h1, x, width)) / rms
 
 
 # ------------------------------------------------------------------------------------------
@@ -480,7 +567,9 @@ def _rot(axis: int, angle: np.ndarray) -> np.ndarray:
     return r
 
 
-def _orientation(pitch: np.ndarray, lean: np.ndarray, yaw: np.ndarray, roll: np.ndarray) -> np.ndarray:
+def _orientation(
+    pitch: np.ndarray, lean: np.ndarray, yaw: np.ndarray, roll: np.ndarray
+) -> np.ndarray:
     """Body-to-world rotations (n, 3, 3): yaw about Z, pitch about Y, lean about X, roll about
     the rod."""
     return _rot(2, yaw) @ _rot(1, pitch) @ _rot(0, lean) @ _R0 @ _rot(0, roll)
@@ -537,7 +626,9 @@ class PenSimulator:
         self.rate_hz = float(rate_hz)
         seeds = np.random.SeedSequence(self.seed).spawn(4)
         self._seeds = seeds
-        self.session = session if session is not None else Session.random(np.random.default_rng(seeds[0]))
+        self.session = (
+            session if session is not None else Session.random(np.random.default_rng(seeds[0]))
+        )
         self.params = texture_params(texture)
         self.reset()
 
@@ -587,7 +678,6 @@ class PenSimulator:
         # Filters: tip on surface (user's push, roughness) and rod rocking in the grip.
         if p is not None:
             self._push_lp = _Fir(_second_order_kernel(p.contact_hz, p.damping, fs, False))
-            self._base_lp = _Fir(_second_order_kernel(p.contact_hz, p.damping, fs, True))
         grip = _second_order_kernel(ses.grip_hz, ses.grip_damping, fs, False)
         self._grip_lp = _Fir(grip)
         # Carried kinematic state: previous tip position, IMU positions, orientation.
@@ -626,13 +716,22 @@ class PenSimulator:
         if p is None:  # non_contact: nothing touches, the tip is in the air
             return _TipForces(zeros, zeros, zeros, zeros, zeros + 0.002)
         steady = self._push_lp(push)  # the push, slowed by the surface's compliance (N)
-        du, du_int, dslope = self._surface.read(s, v, SENSOR_APERTURE_S, p.contact_hz)
-        ripple = p.contact_stiffness * du * contact  # N, roughness compressing the contact
-        ripple_int = p.contact_stiffness * du_int * contact  # N*s, its time integral
+        seen, du, du_int, dslope = self._surface.read(s, v, SENSOR_APERTURE_S, p.contact_hz)
+        # Fibres, weave and fillers make the friction coefficient itself vary along the path;
+        # it follows the same profile (normalised), scaled by the texture's mu_variation.
+        mu_local = p.mu_kinetic + p.mu_variation * seen / (p.roughness_um * 1e-6)
+        grain = self._surface.grain(s, v, seen)
+        # Normal force ripple: the roughness the moving mass cannot follow compresses the
+        # contact, and single asperities/fibres load the rubber tip one by one (grain).
+        ripple = (p.contact_stiffness * du + p.grain * steady * grain) * contact  # N
+        # Its time integral drives the rod's rotation rate. Grain is left out: its single
+        # asperity kicks are short (well above the grip's resonance), so the fingers absorb the
+        # rotation they would cause; it still shows in the pressure and the acceleration.
+        ripple_int = p.contact_stiffness * du_int * contact  # N*s
         normal = np.maximum(steady + ripple, 0.0)
         slip = self._stick_slip(s, s_prev, v, steady)
         direction = np.tanh(v / FRICTION_V0)  # friction opposes motion; smooth through v = 0
-        tangential = steady * (p.mu_kinetic * direction + slip)  # N, slow part
+        tangential = steady * (mu_local * direction + slip)  # N, friction as sampled
         # Fast forces rock the rod about the grip: the normal ripple acts on a lever arm
         # L sin(tilt), the friction ripple (mu on the normal ripple, plus the tip climbing the
         # short slopes) on L cos(tilt).
@@ -647,7 +746,9 @@ class PenSimulator:
         z_tip = -steady / p.stiffness  # soft surfaces: the tip sinks in as you push
         return _TipForces(normal, tangential, alpha, omega, z_tip)
 
-    def _stick_slip(self, s: np.ndarray, s_prev: float, v: np.ndarray, normal: np.ndarray) -> np.ndarray:
+    def _stick_slip(
+        self, s: np.ndarray, s_prev: float, v: np.ndarray, normal: np.ndarray
+    ) -> np.ndarray:
         """Extra friction coefficient from stick-slip (n,), a sawtooth in travelled distance.
 
         While stuck, the grip's compliance loads up to ``(mu_s - mu_k) N`` and then slips: one
@@ -684,8 +785,11 @@ class PenSimulator:
         bend = self._grip_lp(GRIP_LEVER * tip.tangential / ses.grip_stiffness)  # rad
         gain = 1.0 + self._tremor_gain(t)
         pitch = (
-            math.radians(ses.tilt_deg) + ses.rock_rad_per_m * s + self._pitch_wander(t)
-            + gain * self._tremor[1](t) - bend
+            math.radians(ses.tilt_deg)
+            + ses.rock_rad_per_m * s
+            + self._pitch_wander(t)
+            + gain * self._tremor[1](t)
+            - bend
         )
         lean = math.radians(ses.lean_deg) + self._lean_wander(t) + gain * self._tremor[2](t)
         yaw = ses.swing_rad_per_m * s + self._yaw_wander(t)
@@ -697,9 +801,17 @@ class PenSimulator:
         p_prev = np.stack([imu[0], imu[0]]) if self._p_prev is None else self._p_prev
         # Body rate from consecutive orientations: R_{k-1}^T R_k ~ I + [w]x dt.
         rel = np.concatenate([r_prev[None], rot[:-1]]).transpose(0, 2, 1) @ rot
-        rates = 0.5 * fs * np.stack(
-            [rel[:, 2, 1] - rel[:, 1, 2], rel[:, 0, 2] - rel[:, 2, 0], rel[:, 1, 0] - rel[:, 0, 1]],
-            axis=1,
+        rates = (
+            0.5
+            * fs
+            * np.stack(
+                [
+                    rel[:, 2, 1] - rel[:, 1, 2],
+                    rel[:, 0, 2] - rel[:, 2, 0],
+                    rel[:, 1, 0] - rel[:, 0, 1],
+                ],
+                axis=1,
+            )
         )
         pos = np.concatenate([p_prev, imu])  # (n+2, 3)
         accel = (pos[2:] - 2 * pos[1:-1] + pos[:-2]) * fs * fs  # (n, 3) m/s^2, world
@@ -718,7 +830,8 @@ class PenSimulator:
         """Noise, bias, quantisation and saturation: (n, 8) int16 raw counts."""
         rng, n = self._noise_rng, len(force)
         pressure = (
-            force / PRESSURE_SCALE + self._pressure_offset
+            force / PRESSURE_SCALE
+            + self._pressure_offset
             + rng.normal(0.0, PRESSURE_NOISE_COUNTS, n)
         )
         accel = specific + self._accel_bias + rng.normal(0.0, ACCEL_NOISE_G, (n, 3))
@@ -730,7 +843,9 @@ class PenSimulator:
         return out
 
 
-def simulate(texture: str, seconds: float, seed: int = 0, rate_hz: float = PEN_RATE_HZ) -> np.ndarray:
+def simulate(
+    texture: str, seconds: float, seed: int = 0, rate_hz: float = PEN_RATE_HZ
+) -> np.ndarray:
     """``round(seconds * rate_hz)`` samples of ``texture`` from a fresh simulator, (n, 8) int16."""
     if isinstance(seconds, bool) or not isinstance(seconds, (int, float)):
         raise ConfigError(f"seconds {seconds!r}: must be a number")

@@ -20,6 +20,7 @@ import struct
 from pathlib import Path
 
 import numpy as np
+
 from tactile.device.info import PEN_CHANNELS, ChannelSpec, DeviceInfo, pen_info
 from tactile.device.protocol import cobs_encode, crc16, encode_header, encode_samples
 

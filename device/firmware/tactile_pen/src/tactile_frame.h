@@ -33,7 +33,9 @@ extern "C" {
 #define TF_MAX_CHANNELS 32u
 #define TF_MAX_SAMPLES 32u  /* samples per frame */
 #define TF_MAX_NAME 32u     /* bytes in a device string, channel name or unit */
-#define TF_MAX_BODY 2048u   /* frame body: type byte .. last data byte, CRC excluded */
+/* Largest frame body (type byte .. last data byte, CRC excluded). Every frame within the
+ * other limits fits: the largest header is 2409 bytes, the largest samples frame 2059. */
+#define TF_MAX_BODY 2560u
 #define TF_SAMPLES_HEAD 11u /* type, u32 seq, u32 t_us, u8 n_channels, u8 n_samples */
 
 /* Encoded size of a body of `body` bytes: + 2 CRC bytes, + COBS overhead (at most one code
@@ -44,7 +46,7 @@ extern "C" {
 /* Buffer size that holds any samples frame of `c` channels x `n` samples. */
 #define TF_SAMPLES_FRAME_SIZE(c, n) TF_FRAME_SIZE(TF_SAMPLES_HEAD + 2u * (c) * (n))
 
-/* Buffer size that holds any frame at all (2060 bytes). */
+/* Buffer size that holds any frame at all (2574 bytes, delimiter included). */
 #define TF_MAX_FRAME TF_FRAME_SIZE(TF_MAX_BODY)
 
 typedef struct {
@@ -79,8 +81,7 @@ size_t tf_cobs_encode(const uint8_t *in, size_t len, uint8_t *out, size_t cap);
  *   seq: number of the first sample (the device's sample counter, wraps at 2^32)
  *   t_us: device clock at the first sample, microseconds (wraps at 2^32)
  *   data: n_samples x n_channels int16 values, sample-major: data[s * n_channels + c]
- * Requires 1 <= n_channels <= 32, 1 <= n_samples <= 32 and a body of at most TF_MAX_BODY
- * bytes (n_channels * n_samples <= 1018). */
+ * Requires 1 <= n_channels <= 32 and 1 <= n_samples <= 32. */
 size_t tf_encode_samples(uint32_t seq, uint32_t t_us, uint8_t n_channels, uint8_t n_samples,
                          const int16_t *data, uint8_t *out, size_t cap);
 

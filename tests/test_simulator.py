@@ -1,0 +1,201 @@
+"""The simulated pen: API contract, determinism, chunk invariance, ranges, and physics sanity."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+import pytest
+
+from tactile.device.info import PEN_CHANNELS, PEN_RATE_HZ
+from tactile.device.simulator import TEXTURES, PenSimulator, Session, simulate
+from tactile.errors import ConfigError
+
+CONTACT = [t for t in TEXTURES if t != "non_contact"]
+
+
+def test_textures_are_the_pen_papers() -> None:
+    assert TEXTURES == (
+        "desk",
+        "cardboard",
+        "nonwoven_cloth",
+        "paper",
+        "plastic_folder",
+        "mouse_pad",
+        "non_contact",
+    )
+
+
+@pytest.mark.parametrize("texture", TEXTURES)
+def test_shape_dtype_and_info(texture: str) -> None:
+    sim = PenSimulator(texture, seed=1)
+    x = sim.read(250)
+    assert x.shape == (250, len(PEN_CHANNELS)) and x.dtype == np.int16
+    assert sim.n_read == 250
+    assert sim.info.sample_rate_hz == PEN_RATE_HZ
+    assert sim.info.channel_names[0] == "pressure_0"
+    assert np.array_equal(x[:, 0], x[:, 1])  # one tip sensor, sent twice
+    assert sim.read(0).shape == (0, 8)
+    assert simulate(texture, 1.234, seed=1).shape == (123, 8)
+
+
+def test_same_seed_same_stream_different_seed_differs() -> None:
+    a = simulate("paper", 5.0, seed=3)
+    assert np.array_equal(a, simulate("paper", 5.0, seed=3))
+    assert not np.array_equal(a, simulate("paper", 5.0, seed=4))
+    assert not np.array_equal(a, simulate("desk", 5.0, seed=3))
+
+
+def test_reset_replays_the_stream() -> None:
+    sim = PenSimulator("mouse_pad", seed=9)
+    first = sim.read(300)
+    sim.read(77)
+    sim.reset()
+    assert sim.n_read == 0
+    assert np.array_equal(sim.read(300), first)
+
+
+@pytest.mark.parametrize("texture", ["nonwoven_cloth", "plastic_folder", "non_contact"])
+def test_chunk_invariance(texture: str) -> None:
+    whole = PenSimulator(texture, seed=5).read(1000)
+    rng = np.random.default_rng(0)
+    for _ in range(4):
+        sim = PenSimulator(texture, seed=5)
+        parts, total = [], 0
+        while total < 1000:
+            n = int(min(rng.choice([0, 1, 2, 7, 31, 128, 129, 300]), 1000 - total))
+            parts.append(sim.read(n))
+            total += n
+        assert np.array_equal(np.concatenate(parts), whole)
+
+
+def test_explicit_session_is_used() -> None:
+    ses = Session(force=2.0)
+    sim = PenSimulator("desk", seed=2, session=ses)
+    assert sim.session is ses
+    assert PenSimulator("desk", seed=2).session == PenSimulator("desk", seed=2).session
+
+
+def test_unknown_texture_and_bad_settings_raise_config_error() -> None:
+    with pytest.raises(ConfigError, match="velvet.*desk.*non_contact"):
+        PenSimulator("velvet")
+    with pytest.raises(ConfigError):
+        simulate("velvet", 1.0)
+    with pytest.raises(ConfigError):
+        PenSimulator("desk", rate_hz=0.0)
+    with pytest.raises(ConfigError):
+        PenSimulator("desk").read(-1)
+    with pytest.raises(ConfigError):
+        Session(speed=-0.1)
+
+
+@pytest.mark.parametrize("texture", TEXTURES)
+def test_ranges_and_gravity(texture: str) -> None:
+    x = simulate(texture, 20.0, seed=11).astype(np.float64)
+    assert x[:, 0].min() >= 0 and x[:, 0].max() <= 4095
+    accel_g = x[:, 2:5] * PEN_CHANNELS[2].scale
+    norm = np.linalg.norm(accel_g, axis=1)
+    assert 0.85 < np.median(norm) < 1.2  # gravity dominates (plus stroke and vibration)
+    gyro = x[:, 5:8] * PEN_CHANNELS[5].scale
+    assert 0.5 < np.sqrt((gyro**2).sum(axis=1).mean()) < 200.0  # deg/s: the hand moves
+
+
+def test_saturation_clips_instead_of_wrapping() -> None:
+    heavy = PenSimulator("desk", seed=1, session=Session(force=80.0)).read(1000)
+    assert heavy[:, 0].max() == 4095
+    # Tremor peaking at ~2-3x the +/-250 deg/s range: the rails are hit, and a sample on one
+    # rail is never next to one on the other (a wrap-around would put +32767 next to -32768).
+    shaky = PenSimulator("non_contact", seed=1, session=Session(tremor_dps=120.0)).read(2000)
+    gyro = shaky[:, 5:8].astype(np.int64)
+    assert gyro.max() == 32767 and gyro.min() == -32768
+    a, b = gyro[:-1], gyro[1:]
+    assert not np.any((a >= 30000) & (b <= -30000) | (a <= -30000) & (b >= 30000))
+
+
+def test_non_contact_has_no_pressure_and_contact_presses() -> None:
+    for seed in range(4):
+        air = simulate("non_contact", 10.0, seed=seed)
+        assert air[:, 0].max() <= 8  # offset and noise of an unloaded sensor only
+        for texture in CONTACT:
+            pressed = simulate(texture, 10.0, seed=seed)
+            assert np.median(pressed[:, 0]) > 30  # > 0.3 N
+
+
+def _reversal_rate(gyro: np.ndarray, fs: float = PEN_RATE_HZ) -> float:
+    """Sign changes per second of the 3 Hz low-passed gyro on its principal axis."""
+    spec = np.fft.rfft(gyro - gyro.mean(axis=0), axis=0)
+    spec[np.fft.rfftfreq(len(gyro), 1 / fs) > 3.0] = 0
+    slow = np.fft.irfft(spec, len(gyro), axis=0)
+    w = slow @ np.linalg.svd(slow, full_matrices=False)[2][0]
+    sign = np.sign(w[np.abs(w) > 0.1 * w.std()])
+    return float((np.diff(sign) != 0).sum() * fs / len(gyro))
+
+
+@pytest.mark.parametrize("texture", ["paper", "non_contact"])
+def test_strokes_reverse_at_a_plausible_rate(texture: str) -> None:
+    for seed in range(3):
+        x = simulate(texture, 30.0, seed=seed).astype(np.float64)
+        rate = _reversal_rate(x[:, 5:8])
+        assert 0.3 < rate < 5.0, (seed, rate)  # back-and-forth strokes: ~0.5-3 reversals/s
+
+
+def _window_stats(x: np.ndarray, window: int = 200) -> np.ndarray:
+    """Per window: log mean pressure, log relative pressure vibration (first differences),
+    log accel and gyro high-band energy (first differences). (n_windows, 4)"""
+    x = x.astype(np.float64)
+    rows = []
+    for i in range(0, len(x) - window + 1, window):
+        w = x[i : i + window]
+        p = w[:, 0] * PEN_CHANNELS[0].scale + 0.05
+        rows.append(
+            [
+                np.log(p.mean()),
+                np.log(np.diff(p).std() / p.mean() + 1e-4),
+                np.log(np.diff(w[:, 2:5], axis=0).std() + 1.0),
+                np.log(np.diff(w[:, 5:8], axis=0).std() + 1.0),
+            ]
+        )
+    return np.array(rows)
+
+
+def test_textures_distinguishable_by_simple_statistics() -> None:
+    """Nearest centroid on 4 window statistics, trained on some sessions and tested on others,
+    is well above chance (1/7): the physics differs between textures. Mean pressure alone is
+    not enough, because the push varies from session to session."""
+
+    def dataset(seeds: range) -> tuple[np.ndarray, np.ndarray]:
+        feats, labels = [], []
+        for k, texture in enumerate(TEXTURES):
+            for seed in seeds:
+                f = _window_stats(simulate(texture, 20.0, seed=seed))
+                feats.append(f)
+                labels += [k] * len(f)
+        return np.concatenate(feats), np.array(labels)
+
+    train_x, train_y = dataset(range(0, 8))
+    test_x, test_y = dataset(range(100, 108))
+    mu, sd = train_x.mean(axis=0), train_x.std(axis=0)
+    train_x, test_x = (train_x - mu) / sd, (test_x - mu) / sd
+
+    def accuracy(cols: list[int]) -> float:
+        centroids = np.array([train_x[train_y == k][:, cols].mean(axis=0) for k in range(7)])
+        dist = ((test_x[:, None, cols] - centroids[None]) ** 2).sum(axis=-1)
+        return float((dist.argmin(axis=1) == test_y).mean())
+
+    everything, pressure_level = accuracy([0, 1, 2, 3]), accuracy([0])
+    assert everything >= 0.35, everything  # chance is 0.14
+    assert pressure_level < everything - 0.1, (pressure_level, everything)
+
+
+def test_vibration_frequency_scales_with_speed() -> None:
+    """Same surface and person, faster strokes: texture vibration moves up in frequency, so
+    the pressure ripple's first differences grow relative to the ripple itself."""
+
+    def ripple_ratio(speed: float) -> float:
+        ses = dataclasses.replace(Session(), speed=speed, speed_jitter=0.0, lift_prob=0.0)
+        p = PenSimulator("cardboard", seed=4, session=ses).read(3000)[:, 0].astype(np.float64)
+        spec = np.abs(np.fft.rfft(p - p.mean())) ** 2
+        f = np.fft.rfftfreq(len(p), 1 / PEN_RATE_HZ)
+        return float(spec[(f > 2) & (f < 10)].sum() / spec[f > 2].sum())
+
+    assert ripple_ratio(0.03) > ripple_ratio(0.15)
