@@ -1,0 +1,183 @@
+"""Training: config validation, leak-free splits, windows, normalisation, checkpoints, learning."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+import torch
+
+from tactile.device.info import pen_info
+from tactile.device.recording import TakeWriter, load_dataset, read_take
+from tactile.device.sim_cli import make_dataset
+from tactile.errors import ConfigError, RecordingError
+from tactile.training.config import TrainConfig
+from tactile.training.data import channel_stats, classes_of, cut, split_takes
+from tactile.training.evaluate import main as eval_main
+from tactile.training.evaluate import predict
+from tactile.training.train import load_checkpoint, parse_sets, train
+from tactile.training.train import main as train_main
+
+EASY = ("non_contact", "paper", "nonwoven_cloth")
+
+
+@pytest.fixture(scope="module")
+def dataset(tmp_path_factory):
+    out = tmp_path_factory.mktemp("sim")
+    make_dataset(out, takes=6, textures=EASY, seconds=12, seed=1)
+    return out
+
+
+@pytest.fixture(scope="module")
+def trained(dataset, tmp_path_factory):
+    run = tmp_path_factory.mktemp("run")
+    cfg = TrainConfig(epochs=12, hidden=32, layers=1, batch_size=64, lr=1e-2, patience=12,
+                      seed=3, threads=1)
+    metrics = train(dataset, run, cfg, progress=False)
+    return run, metrics
+
+
+def test_config_rejects_unknown_keys_and_bad_values(tmp_path):
+    with pytest.raises(ConfigError, match=r"unknown config key\(s\) \['hiden'\]"):
+        TrainConfig.from_dict({"hiden": 3})
+    with pytest.raises(ConfigError, match="hidden='64': must be int"):
+        TrainConfig.from_dict({"hidden": "64"})
+    with pytest.raises(ConfigError, match="dropout must be in"):
+        TrainConfig(dropout=1.5)
+    with pytest.raises(ConfigError, match="hop == window"):
+        TrainConfig(state="carry", hop=25)
+    with pytest.raises(ConfigError, match="emd_channels"):
+        TrainConfig(model="linear")
+    toml = tmp_path / "c.toml"
+    toml.write_text('hidden = 16\nemd_channels = ["accel_z"]\n')
+    cfg = TrainConfig.from_toml(toml)
+    assert cfg.hidden == 16 and cfg.emd_channels == ("accel_z",)
+    assert parse_sets(["layers=3", "emd_channels=a,b"], cfg).emd_channels == ("a", "b")
+    with pytest.raises(ConfigError, match="unknown setting"):
+        parse_sets(["nope=1"], cfg)
+    assert TrainConfig.from_dict(cfg.to_dict()) == cfg
+
+
+def test_splits_never_share_a_user_or_take(dataset):
+    takes = load_dataset(dataset)
+    for split in ("user", "take"):
+        s = split_takes(takes, TrainConfig(split=split, seed=5))
+        sets = [set(s.train), set(s.val), set(s.test)]
+        assert not (sets[0] & sets[1] or sets[0] & sets[2] or sets[1] & sets[2])
+        assert set().union(*sets) == set(range(len(takes)))
+        if split == "user":
+            users = [{takes[i].meta["user"] for i in part} for part in sets]
+            assert not (users[0] & users[1] or users[0] & users[2] or users[1] & users[2])
+    s = split_takes(takes, TrainConfig(split="time", test_fraction=0.3))
+    for i in range(len(takes)):
+        (a0, a1), (b0, b1), (c0, c1) = s.train[i], s.val[i], s.test[i]
+        assert a0 == 0 and a1 == b0 and b1 == c0 and c1 == len(takes[i].seq)
+    w_train = cut(takes, classes_of(takes), (), 50, 25, s.train)
+    w_test = cut(takes, classes_of(takes), (), 50, 25, s.test)
+    for i in range(len(takes)):  # time split: no test window overlaps a training window
+        tr = w_train.start[w_train.take == i]
+        te = w_test.start[w_test.take == i]
+        assert tr.max() + 50 <= te.min()
+
+
+def test_windows_never_span_a_gap(tmp_path):
+    info = pen_info()
+    raw = np.arange(300 * 8, dtype=np.int16).reshape(300, 8)
+    with TakeWriter(tmp_path, "paper", info, name="g") as w:
+        w.write(0, 0, raw[:120])
+        w.write(130, 1_300_000, raw[130:300])  # 10 samples lost
+    take = read_take(tmp_path / "g.csv")
+    assert take.segments() == [(0, 120), (120, 290)]
+    win = cut([take], ("paper",), (), 50, 10, None)
+    for s in win.start:
+        seqs = take.seq[s : s + 50]
+        assert np.all(np.diff(seqs) == 1)
+    # rows 0..119 give starts 0, 10, ..., 70; rows 120..289 give starts 120, 130, ..., 240
+    assert win.start.tolist() == list(range(0, 71, 10)) + list(range(120, 241, 10))
+    # the shifted ("novel") windows stay inside their run too
+    shifted = cut([take], ("paper",), (), 50, 10, None, shift=7)
+    assert all(np.all(np.diff(take.seq[s : s + 50]) == 1) for s in shifted.start)
+
+
+def test_normalisation_comes_from_training_windows_only(trained, dataset):
+    run, metrics = trained
+    model, ck = load_checkpoint(run)
+    takes = load_dataset(dataset)
+    names = [t.path.name for t in takes]
+    test = {names.index(n) for n in ck["test_rows"]}
+    every = cut(takes, tuple(ck["classes"]), tuple(ck["channels"]), 50, 25, None)
+    s = split_takes(takes, model.cfg)  # the split is deterministic given the config
+    mean, std = channel_stats(cut(takes, tuple(ck["classes"]), tuple(ck["channels"]), 50, 25,
+                                  s.train))
+    np.testing.assert_allclose(ck["mean"], mean, rtol=1e-6)
+    np.testing.assert_allclose(ck["std"], std, rtol=1e-6)
+    all_mean, _ = channel_stats(every)
+    assert not np.allclose(all_mean, mean, rtol=1e-3)
+    assert not set(s.train) & test
+
+
+def test_training_learns_above_chance(trained):
+    _, metrics = trained
+    # 3 classes: chance is 1/3; test users were never seen in training
+    assert metrics["accuracy"] >= 0.6, metrics["accuracy"]
+    assert metrics["recall"]["non_contact"] >= 0.9  # no pressure at all: the easy class
+    assert 0 <= metrics["shifted"]["mean"] <= 1
+
+
+def test_checkpoint_round_trip_rebuilds_the_same_model(trained, dataset):
+    run, metrics = trained
+    ck = torch.load(run / "checkpoint.pt", weights_only=True)  # data, not code
+    assert ck["classes"] == sorted(EASY)
+    model, _ = load_checkpoint(run)
+    takes = load_dataset(dataset)
+    names = [t.path.name for t in takes]
+    rows = {names.index(n): tuple(r) for n, r in ck["test_rows"].items()}
+    w = cut(takes, tuple(ck["classes"]), tuple(ck["channels"]), 50, 25, rows)
+    probs = predict(model, w)
+    acc = float((probs.argmax(1) == w.y).mean())
+    assert acc == pytest.approx(metrics["accuracy"], abs=1e-9)
+    for f in ("metrics.json", "confusion.txt", "curves.png", "confusion.png"):
+        assert (run / f).stat().st_size > 100
+    assert "label of input data" in (run / "confusion.txt").read_text()
+
+
+def test_eval_cli_json(trained, dataset, capsys):
+    run, metrics = trained
+    assert eval_main([str(run), str(dataset), "--json"]) == 0
+    out = json.loads(capsys.readouterr().out)
+    assert out["scope"] == "the run's test split"
+    assert out["accuracy"] == pytest.approx(metrics["accuracy"])
+    assert set(out["shifted"]) == {"-0.2s", "-0.1s", "+0.1s", "+0.2s", "mean"}
+
+
+def test_carry_emd_and_linear_variants_train(dataset, tmp_path):
+    base = dict(epochs=2, hidden=8, layers=1, threads=1, patience=2)
+    m = train(dataset, tmp_path / "carry",
+              TrainConfig(**base, state="carry", hop=50, carry_steps=4), progress=False)
+    assert m["split_windows"]["test"] > 0 and 0 <= m["accuracy"] <= 1
+    m = train(dataset, tmp_path / "emd",
+              TrainConfig(**base, emd_channels=("pressure_0",), emd_imfs=2, emd_sifts=4),
+              progress=False)
+    model, _ = load_checkpoint(tmp_path / "emd")
+    assert model.pre.n_features == 8 + 2
+    m = train(dataset, tmp_path / "lin",
+              TrainConfig(**base, model="linear", emd_channels=("accel_z",), emd_imfs=3),
+              progress=False)
+    assert 0 <= m["accuracy"] <= 1
+
+
+def test_cli_errors(dataset, tmp_path, capsys):
+    assert train_main([str(dataset), "--out", str(tmp_path), "--set", "hidden=x"]) == 1
+    assert "hidden='x'" in capsys.readouterr().err
+    assert train_main([str(tmp_path / "none"), "--out", str(tmp_path)]) == 1
+    assert "not a folder" in capsys.readouterr().err
+    assert eval_main([str(tmp_path), str(dataset)]) == 1
+    assert "no checkpoint" in capsys.readouterr().err
+    with pytest.raises(RecordingError, match="only one label"):
+        one = tmp_path / "one"
+        make_dataset(one, 3, ("paper",), seconds=2)
+        train(one, tmp_path / "r", TrainConfig(epochs=1), progress=False)
+    with pytest.raises(ConfigError, match="not among the input channels"):
+        train(dataset, tmp_path / "r", TrainConfig(channels=("accel_x",),
+                                                   emd_channels=("accel_z",)), progress=False)

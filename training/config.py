@@ -1,0 +1,142 @@
+"""The training configuration: one frozen dataclass, validated when built.
+
+Unknown keys and wrong types are errors (a typo must not silently train the default). The
+resolved config travels in the checkpoint, so a run can always be rebuilt and exported.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import tomllib
+import typing
+from dataclasses import dataclass
+from pathlib import Path
+
+from tactile.errors import ConfigError
+
+MODELS = ("lstm", "linear")
+STATE_MODES = ("window", "carry")
+SPLITS = ("user", "take", "time")
+
+
+@dataclass(frozen=True)
+class TrainConfig:
+    """Everything that decides a training run.
+
+    Data: ``window`` samples per window, a new window every ``hop`` samples; ``channels`` picks
+    and orders the input channels (empty: all the recordings have). Splits: ``user`` keeps each
+    user (the takes' ``user`` field, else each take) wholly in train, validation or test;
+    ``take`` does the same per take; ``time`` puts the first ``1 - test_fraction`` of every take
+    in training and the rest in test (for datasets with one take per class).
+
+    Features: the normalised channels, plus ``emd_imfs`` IMFs of each of ``emd_channels``
+    (computed with ``emd_sifts`` sifts per IMF), as extra inputs at every time step.
+
+    Model: ``lstm`` (``layers`` x ``hidden``, ``dropout``) or ``linear`` (a linear classifier on
+    the log energies of the IMFs, the granular-media paper's baseline; needs ``emd_channels``).
+    ``state``: ``window`` classifies each window from a fresh state (the pen paper); ``carry``
+    carries the LSTM state from window to window (needs ``hop == window``) and trains on runs of
+    ``carry_steps`` consecutive windows.
+    """
+
+    window: int = 50
+    hop: int = 25
+    channels: tuple[str, ...] = ()
+    emd_channels: tuple[str, ...] = ()
+    emd_imfs: int = 4
+    emd_sifts: int = 10
+    model: str = "lstm"
+    layers: int = 2
+    hidden: int = 64
+    dropout: float = 0.4
+    state: str = "window"
+    carry_steps: int = 8
+    epochs: int = 40
+    batch_size: int = 128
+    lr: float = 3e-3
+    weight_decay: float = 1e-4
+    patience: int = 6
+    split: str = "user"
+    test_fraction: float = 0.3
+    val_fraction: float = 0.2
+    seed: int = 0
+    threads: int = 2
+
+    def __post_init__(self) -> None:
+        _check_types(self)
+        checks = [
+            (self.window >= 4, "window must be >= 4 samples"),
+            (self.hop >= 1, "hop must be >= 1 sample"),
+            (self.model in MODELS, f"model must be one of {', '.join(MODELS)}"),
+            (self.state in STATE_MODES, f"state must be one of {', '.join(STATE_MODES)}"),
+            (self.split in SPLITS, f"split must be one of {', '.join(SPLITS)}"),
+            (self.layers >= 1 and self.hidden >= 1, "layers and hidden must be >= 1"),
+            (0 <= self.dropout < 1, "dropout must be in [0, 1)"),
+            (self.epochs >= 1 and self.batch_size >= 1, "epochs and batch_size must be >= 1"),
+            (self.lr > 0 and self.weight_decay >= 0, "lr must be > 0, weight_decay >= 0"),
+            (0 < self.test_fraction < 1, "test_fraction must be in (0, 1)"),
+            (0 < self.val_fraction < 1, "val_fraction must be in (0, 1)"),
+            (1 <= self.emd_imfs <= 8 and 1 <= self.emd_sifts <= 50,
+             "emd_imfs must be 1..8 and emd_sifts 1..50"),
+            (self.carry_steps >= 2, "carry_steps must be >= 2"),
+            (self.threads >= 1, "threads must be >= 1"),
+        ]
+        for ok, msg in checks:
+            if not ok:
+                raise ConfigError(f"{msg} (got {self._short()})")
+        if self.state == "carry" and self.hop != self.window:
+            raise ConfigError(
+                f"state='carry' needs hop == window (got hop={self.hop}, window={self.window}): "
+                "a carried state must see every sample once"
+            )
+        if self.state == "carry" and self.model != "lstm":
+            raise ConfigError("state='carry' needs model='lstm'")
+        if self.model == "linear" and not self.emd_channels:
+            raise ConfigError("model='linear' classifies EMD features: give emd_channels")
+
+    def _short(self) -> str:
+        return ", ".join(f"{k}={v!r}" for k, v in self.to_dict().items()
+                         if v != getattr(TrainConfig, k, None))
+
+    def to_dict(self) -> dict:
+        return {f.name: (list(v) if isinstance(v, tuple) else v)
+                for f in dataclasses.fields(self) for v in [getattr(self, f.name)]}
+
+    @classmethod
+    def from_dict(cls, d: dict) -> TrainConfig:
+        known = {f.name for f in dataclasses.fields(cls)}
+        unknown = sorted(set(d) - known)
+        if unknown:
+            raise ConfigError(f"unknown config key(s) {unknown}; allowed: {sorted(known)}")
+        kw = {k: tuple(v) if isinstance(v, list) else v for k, v in d.items()}
+        return cls(**kw)
+
+    @classmethod
+    def from_toml(cls, path: Path) -> TrainConfig:
+        try:
+            return cls.from_dict(tomllib.loads(Path(path).read_text()))
+        except (OSError, tomllib.TOMLDecodeError) as e:
+            raise ConfigError(f"{path}: {e}") from None
+
+    def replace(self, **kw) -> TrainConfig:
+        return self.from_dict({**self.to_dict(), **kw})
+
+
+def _check_types(cfg: TrainConfig) -> None:
+    hints = typing.get_type_hints(type(cfg))
+    for f in dataclasses.fields(cfg):
+        value, hint = getattr(cfg, f.name), hints[f.name]
+        if typing.get_origin(hint) is tuple:
+            ok = isinstance(value, tuple) and all(isinstance(v, str) for v in value)
+            want = "a list of names"
+        elif hint is float:
+            ok = isinstance(value, (int, float)) and not isinstance(value, bool)
+            want = "a number"
+        else:
+            ok = isinstance(value, hint) and not (hint is int and isinstance(value, bool))
+            want = hint.__name__
+        if not ok:
+            raise ConfigError(f"config {f.name}={value!r}: must be {want}")
+
+
+__all__ = ["TrainConfig", "MODELS", "STATE_MODES", "SPLITS"]

@@ -1,0 +1,121 @@
+"""The models: preprocessing (normalisation + EMD features) and the classifier heads.
+
+Everything here is torch ops that export to ONNX unchanged, so the deployed graph computes the
+very features training used. Shapes: B batch, T time (window), C channels, F features,
+K IMFs per EMD channel, H hidden size, L LSTM layers.
+"""
+
+from __future__ import annotations
+
+import torch
+from torch import Tensor, nn
+
+from tactile.training.config import TrainConfig
+from tactile.training.emd import EMD
+
+LOG_EPS = 1e-6
+
+
+class Preprocess(nn.Module):
+    """(B, T, C) values in the channels' units -> (B, T, C + Ce*K) features.
+
+    Each channel is normalised with the training split's mean and std; the IMFs of the
+    normalised ``emd_index`` channels (``EMD(n_imfs, n_sifts)``, over the window) are appended.
+    """
+
+    def __init__(
+        self, mean: Tensor, std: Tensor, emd_index: list[int], n_imfs: int, n_sifts: int
+    ) -> None:
+        super().__init__()
+        self.register_buffer("mean", mean.float().clone())  # (C,)
+        self.register_buffer("std", std.float().clone())  # (C,)
+        self.register_buffer("emd_index", torch.tensor(emd_index, dtype=torch.long))  # (Ce,)
+        self.emd = EMD(n_imfs, n_sifts) if emd_index else None
+        self.n_channels = int(mean.numel())
+        self.n_emd = len(emd_index) * n_imfs
+
+    @property
+    def n_features(self) -> int:
+        return self.n_channels + self.n_emd
+
+    def forward(self, x: Tensor) -> Tensor:
+        z = (x - self.mean) / self.std  # (B, T, C)
+        if self.emd is None:
+            return z
+        sel = torch.index_select(z, 2, self.emd_index).transpose(1, 2)  # (B, Ce, T)
+        imfs, _, _ = self.emd(sel)  # (B, Ce, K, T)
+        feats = imfs.flatten(1, 2).transpose(1, 2)  # (B, T, Ce*K)
+        return torch.cat([z, feats.to(z.dtype)], dim=2)
+
+
+class LSTMHead(nn.Module):
+    """(B, T, F) features + state (L, B, H) x 2 -> logits (B, classes) after the last sample."""
+
+    def __init__(self, n_in: int, n_classes: int, hidden: int, layers: int, dropout: float):
+        super().__init__()
+        self.layers, self.hidden = layers, hidden
+        self.lstm = nn.LSTM(
+            n_in, hidden, layers, batch_first=True, dropout=dropout if layers > 1 else 0.0
+        )
+        self.drop = nn.Dropout(dropout)
+        self.out = nn.Linear(hidden, n_classes)
+
+    def forward(self, f: Tensor, h: Tensor, c: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+        y, (h, c) = self.lstm(f, (h, c))  # y: (B, T, H)
+        return self.out(self.drop(y[:, -1])), h, c
+
+
+class LinearHead(nn.Module):
+    """Baseline: logits from the log mean energy of each IMF over the window (B, Ce*K).
+
+    The state passes through untouched so that both heads share one interface.
+    """
+
+    def __init__(self, n_channels: int, n_emd: int, n_classes: int):
+        super().__init__()
+        self.n_channels = n_channels
+        self.out = nn.Linear(n_emd, n_classes)
+
+    def forward(self, f: Tensor, h: Tensor, c: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+        imfs = f[:, :, self.n_channels :]  # (B, T, Ce*K)
+        energy = torch.log(imfs.pow(2).mean(dim=1) + LOG_EPS)  # (B, Ce*K)
+        return self.out(energy), h, c
+
+
+class TextureModel(nn.Module):
+    """The whole classifier: raw window in units -> class probabilities, with explicit state.
+
+    ``forward(x, h, c)``: x (B, T, C) float32 in the channels' units, h and c (L, B, H);
+    returns probabilities (B, classes) and the new h, c. In ``window`` state mode callers pass
+    zeros; in ``carry`` mode the previous window's h, c.
+    """
+
+    def __init__(self, cfg: TrainConfig, n_classes: int, mean: Tensor, std: Tensor,
+                 emd_index: list[int]):
+        super().__init__()
+        self.cfg = cfg
+        self.pre = Preprocess(mean, std, emd_index, cfg.emd_imfs, cfg.emd_sifts)
+        if cfg.model == "lstm":
+            self.head = LSTMHead(self.pre.n_features, n_classes, cfg.hidden, cfg.layers,
+                                 cfg.dropout)
+        else:
+            self.head = LinearHead(self.pre.n_channels, self.pre.n_emd, n_classes)
+
+    @property
+    def state_shape(self) -> tuple[int, int]:
+        """(layers, hidden) of the state tensors; (1, 1) for the linear head."""
+        if isinstance(self.head, LSTMHead):
+            return self.head.layers, self.head.hidden
+        return 1, 1
+
+    def zero_state(self, batch: int) -> tuple[Tensor, Tensor]:
+        layers, hidden = self.state_shape
+        z = torch.zeros(layers, batch, hidden)
+        return z, z.clone()
+
+    def logits(self, x: Tensor, h: Tensor, c: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+        return self.head(self.pre(x), h, c)
+
+    def forward(self, x: Tensor, h: Tensor, c: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+        logits, h, c = self.logits(x, h, c)
+        return torch.softmax(logits, dim=1), h, c
