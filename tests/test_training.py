@@ -106,10 +106,11 @@ def test_normalisation_comes_from_training_windows_only(trained, dataset):
     takes = load_dataset(dataset)
     names = [t.path.name for t in takes]
     test = {names.index(n) for n in ck["test_rows"]}
-    every = cut(takes, tuple(ck["classes"]), tuple(ck["channels"]), 50, 25, None)
-    s = split_takes(takes, model.cfg)  # the split is deterministic given the config
-    mean, std = channel_stats(cut(takes, tuple(ck["classes"]), tuple(ck["channels"]), 50, 25,
-                                  s.train))
+    cfg = model.cfg
+    every = cut(takes, tuple(ck["classes"]), tuple(ck["channels"]), cfg.window, cfg.hop, None)
+    s = split_takes(takes, cfg)  # the split is deterministic given the config
+    mean, std = channel_stats(cut(takes, tuple(ck["classes"]), tuple(ck["channels"]),
+                                  cfg.window, cfg.hop, s.train))
     np.testing.assert_allclose(ck["mean"], mean, rtol=1e-6)
     np.testing.assert_allclose(ck["std"], std, rtol=1e-6)
     all_mean, _ = channel_stats(every)
@@ -133,7 +134,8 @@ def test_checkpoint_round_trip_rebuilds_the_same_model(trained, dataset):
     takes = load_dataset(dataset)
     names = [t.path.name for t in takes]
     rows = {names.index(n): tuple(r) for n, r in ck["test_rows"].items()}
-    w = cut(takes, tuple(ck["classes"]), tuple(ck["channels"]), 50, 25, rows)
+    w = cut(takes, tuple(ck["classes"]), tuple(ck["channels"]), model.cfg.window,
+            model.cfg.hop, rows)
     probs = predict(model, w)
     acc = float((probs.argmax(1) == w.y).mean())
     assert acc == pytest.approx(metrics["accuracy"], abs=1e-9)
@@ -181,3 +183,18 @@ def test_cli_errors(dataset, tmp_path, capsys):
     with pytest.raises(ConfigError, match="not among the input channels"):
         train(dataset, tmp_path / "r", TrainConfig(channels=("accel_x",),
                                                    emd_channels=("accel_z",)), progress=False)
+
+
+def test_center_removes_the_window_mean_of_matching_channels_only():
+    from tactile.training.model import Preprocess
+    from tactile.training.train import centered
+
+    names = ("pressure_0", "accel_x", "gyro_z", "ch0")
+    assert centered(names, ("accel_*", "gyro_*")) == [1, 2]
+    assert centered(names, ()) == []
+    pre = Preprocess(torch.zeros(4), torch.full((4,), 2.0), [], 4, 10, center_index=[1, 2])
+    x = torch.randn(3, 50, 4) + 5.0
+    z = pre(x)
+    torch.testing.assert_close(z[:, :, [0, 3]], x[:, :, [0, 3]] / 2)
+    torch.testing.assert_close(z[:, :, 1:3].mean(1), torch.zeros(3, 2), atol=1e-6, rtol=0)
+    torch.testing.assert_close(z[:, :, 1:3], (x[:, :, 1:3] - x[:, :, 1:3].mean(1, True)) / 2)

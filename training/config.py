@@ -29,8 +29,12 @@ class TrainConfig:
     ``take`` does the same per take; ``time`` puts the first ``1 - test_fraction`` of every take
     in training and the rest in test (for datasets with one take per class).
 
-    Features: the normalised channels, plus ``emd_imfs`` IMFs of each of ``emd_channels``
-    (computed with ``emd_sifts`` sifts per IMF), as extra inputs at every time step.
+    Features: the normalised channels (those matching a ``center`` pattern minus their mean over
+    the window, which removes offsets such as gravity on a tilted pen), plus ``emd_imfs`` IMFs
+    of each of ``emd_channels`` (``emd_sifts`` sifts per IMF), as extra inputs at every step.
+
+    Training multiplies each window's channels by random gains in ``1 +/- augment_gain`` (0: off),
+    so that the model does not key on one user's signal levels.
 
     Model: ``lstm`` (``layers`` x ``hidden``, ``dropout``) or ``linear`` (a linear classifier on
     the log energies of the IMFs, the granular-media paper's baseline; needs ``emd_channels``).
@@ -40,8 +44,9 @@ class TrainConfig:
     """
 
     window: int = 50
-    hop: int = 25
+    hop: int = 10
     channels: tuple[str, ...] = ()
+    center: tuple[str, ...] = ("accel_*", "gyro_*")
     emd_channels: tuple[str, ...] = ()
     emd_imfs: int = 4
     emd_sifts: int = 10
@@ -51,11 +56,12 @@ class TrainConfig:
     dropout: float = 0.4
     state: str = "window"
     carry_steps: int = 8
-    epochs: int = 40
+    epochs: int = 60
     batch_size: int = 128
     lr: float = 3e-3
     weight_decay: float = 1e-4
-    patience: int = 6
+    patience: int = 10
+    augment_gain: float = 0.3
     split: str = "user"
     test_fraction: float = 0.3
     val_fraction: float = 0.2
@@ -80,6 +86,7 @@ class TrainConfig:
              "emd_imfs must be 1..8 and emd_sifts 1..50"),
             (self.carry_steps >= 2, "carry_steps must be >= 2"),
             (self.threads >= 1, "threads must be >= 1"),
+            (0 <= self.augment_gain < 1, "augment_gain must be in [0, 1)"),
         ]
         for ok, msg in checks:
             if not ok:

@@ -19,14 +19,19 @@ LOG_EPS = 1e-6
 class Preprocess(nn.Module):
     """(B, T, C) values in the channels' units -> (B, T, C + Ce*K) features.
 
-    Each channel is normalised with the training split's mean and std; the IMFs of the
+    Each channel is normalised with the training split's mean and std (and the ``center_index``
+    channels have their mean over the window removed); the IMFs of the
     normalised ``emd_index`` channels (``EMD(n_imfs, n_sifts)``, over the window) are appended.
     """
 
     def __init__(
-        self, mean: Tensor, std: Tensor, emd_index: list[int], n_imfs: int, n_sifts: int
+        self, mean: Tensor, std: Tensor, emd_index: list[int], n_imfs: int, n_sifts: int,
+        center_index: list[int] | None = None,
     ) -> None:
         super().__init__()
+        mask = torch.zeros(int(mean.numel()))
+        mask[list(center_index or [])] = 1.0
+        self.register_buffer("center_mask", mask)  # (C,) 1 where the window mean is removed
         self.register_buffer("mean", mean.float().clone())  # (C,)
         self.register_buffer("std", std.float().clone())  # (C,)
         self.register_buffer("emd_index", torch.tensor(emd_index, dtype=torch.long))  # (Ce,)
@@ -40,6 +45,8 @@ class Preprocess(nn.Module):
 
     def forward(self, x: Tensor) -> Tensor:
         z = (x - self.mean) / self.std  # (B, T, C)
+        # offsets (gravity on a tilted pen, a gyroscope's bias) say little of the surface
+        z = z - z.mean(dim=1, keepdim=True) * self.center_mask
         if self.emd is None:
             return z
         sel = torch.index_select(z, 2, self.emd_index).transpose(1, 2)  # (B, Ce, T)
@@ -91,10 +98,10 @@ class TextureModel(nn.Module):
     """
 
     def __init__(self, cfg: TrainConfig, n_classes: int, mean: Tensor, std: Tensor,
-                 emd_index: list[int]):
+                 emd_index: list[int], center_index: list[int] | None = None):
         super().__init__()
         self.cfg = cfg
-        self.pre = Preprocess(mean, std, emd_index, cfg.emd_imfs, cfg.emd_sifts)
+        self.pre = Preprocess(mean, std, emd_index, cfg.emd_imfs, cfg.emd_sifts, center_index)
         if cfg.model == "lstm":
             self.head = LSTMHead(self.pre.n_features, n_classes, cfg.hidden, cfg.layers,
                                  cfg.dropout)

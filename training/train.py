@@ -13,6 +13,7 @@ the validation split -> evaluate on the test split -> write RUN/:
 from __future__ import annotations
 
 import argparse
+import fnmatch
 import json
 import math
 import sys
@@ -69,8 +70,9 @@ def train(data: Path, out: Path, cfg: TrainConfig, progress: bool = True) -> dic
          f"val {len(parts['val'])}, test {len(parts['test'])}; split {split.description}")
     mean, std = channel_stats(parts["train"])
     emd_index = [channels.index(c) for c in cfg.emd_channels]
+    center_index = centered(channels, cfg.center)
     model = TextureModel(cfg, len(classes), torch.from_numpy(mean), torch.from_numpy(std),
-                         emd_index)
+                         emd_index, center_index)
     t0 = time.perf_counter()
     feats = {k: _features(model, w, progress, k) for k, w in parts.items()}
     feature_s = time.perf_counter() - t0
@@ -102,6 +104,7 @@ def train(data: Path, out: Path, cfg: TrainConfig, progress: bool = True) -> dic
         "mean": mean.tolist(),
         "std": std.tolist(),
         "emd_index": emd_index,
+        "center_index": center_index,
         "test_rows": {names[i]: list(r) for i, r in split.test.items()},
         "metrics": _plain(metrics),
         "state_dict": model.state_dict(),
@@ -111,6 +114,11 @@ def train(data: Path, out: Path, cfg: TrainConfig, progress: bool = True) -> dic
     (out / "confusion.txt").write_text(table(metrics, classes, "test split") + "\n")
     _plots(out, history, metrics, classes)
     return metrics
+
+
+def centered(channels: tuple[str, ...], patterns: tuple[str, ...]) -> list[int]:
+    """Indices of the channels matching any ``center`` pattern (shell-style, e.g. ``accel_*``)."""
+    return [i for i, c in enumerate(channels) if any(fnmatch.fnmatchcase(c, p) for p in patterns)]
 
 
 def _features(model: TextureModel, w: Windows, progress: bool, name: str) -> torch.Tensor:
@@ -155,14 +163,22 @@ def _fit(model: TextureModel, parts: dict, feats: dict, progress: bool) -> dict:
                       disable=not progress, leave=False, file=sys.stderr):
             rows = order[i : i + cfg.batch_size]
             h, c = model.zero_state(len(rows))
+            f_all = feats["train"]
+            if cfg.augment_gain:  # a random gain per window and feature (B, 1, F)
+                shape = (*rows.shape, 1, f_all.shape[-1])
+                gain = 1 + cfg.augment_gain * (2 * torch.rand(shape, generator=gen) - 1)
             if carry:  # (B, steps): state flows through the steps, loss at every window
                 loss = 0.0
                 for s in range(rows.shape[1]):
-                    logits, h, c = head(feats["train"][rows[:, s]], h, c)
+                    f = f_all[rows[:, s]]
+                    if cfg.augment_gain:
+                        f = f * gain[:, s]
+                    logits, h, c = head(f, h, c)
                     loss = loss + loss_fn(logits, y["train"][rows[:, s]])
                 loss = loss / rows.shape[1]
             else:
-                logits, _, _ = head(feats["train"][rows], h, c)
+                f = f_all[rows] * gain if cfg.augment_gain else f_all[rows]
+                logits, _, _ = head(f, h, c)
                 loss = loss_fn(logits, y["train"][rows])
             opt.zero_grad()
             loss.backward()
@@ -208,7 +224,7 @@ def load_checkpoint(run_dir: Path) -> tuple[TextureModel, dict]:
                              f"this package reads {CHECKPOINT_VERSION}")
     cfg = TrainConfig.from_dict(ck["config"])
     model = TextureModel(cfg, len(ck["classes"]), torch.tensor(ck["mean"]),
-                         torch.tensor(ck["std"]), list(ck["emd_index"]))
+                         torch.tensor(ck["std"]), list(ck["emd_index"]), list(ck["center_index"]))
     model.load_state_dict(ck["state_dict"])
     model.eval()
     return model, ck
@@ -288,8 +304,6 @@ def parse_sets(pairs: list[str], base: TrainConfig) -> TrainConfig:
         try:
             if isinstance(current, tuple):
                 d[key] = [v for v in value.split(",") if v]
-            elif isinstance(current, bool):
-                d[key] = value.lower() in ("1", "true", "yes")
             elif isinstance(current, int):
                 d[key] = int(value)
             elif isinstance(current, float):
