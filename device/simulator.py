@@ -7,13 +7,17 @@ The pen is a rigid rod held in the fingers, a pressure-conductive rubber sensor 
 1. **Hand motion** -- minimum-jerk strokes along the world X axis with reversals, dwells, pauses
    and lifts; pen tilt, lean and wrist roll that rock with the stroke and wander slowly; tremor.
 2. **Contact** -- the user's push reaches the tip through the surface's compliance (a second-order
-   system per texture); a spatial roughness profile ``h(x)`` read at the tip's position gives a
-   force ripple whose temporal frequency is ``speed / wavelength``; friction (Coulomb, slope of
-   the profile, stick-slip below a texture-specific speed) bends the rod in the grip.
+   system and a viscoelastic creep per texture); the hand's jitter and the long features the tip
+   rides over press through the arm and the surface in series; a spatial roughness profile
+   ``h(x)`` read at the tip's position gives a force ripple whose temporal frequency is
+   ``speed / wavelength``; friction (Coulomb, slope of the profile, stick-slip below a
+   texture-specific speed) bends the rod in the grip, and stick-slip chatter loads the tip
+   sensor along the tilted rod.
 3. **Rigid-body kinematics** -- the IMU's position and orientation give its specific force
    (gravity included, ~1 g) and body angular rate.
-4. **Sensors** -- MEMS noise and bias, quantisation to int16 counts, saturation at +/-2 g,
-   +/-250 deg/s and the 12-bit pressure ADC (0..4095).
+4. **Sensors** -- MEMS noise and bias (the one pen's offsets, plus turn-on repeatability),
+   quantisation to int16 counts, saturation at +/-2 g, +/-250 deg/s and the 12-bit pressure
+   ADC (0..4095).
 
 Streaming is chunk-invariant: samples are produced in internal blocks of :data:`BLOCK` samples,
 whatever the caller asks for, and every random draw and filter state lives in the object.
@@ -70,6 +74,11 @@ ACCEL_NOISE_G = 400e-6 * math.sqrt(44.0)  # 400 ug/sqrt(Hz) over 44 Hz -> ~2.7 m
 GYRO_NOISE_DPS = 0.005 * math.sqrt(44.0)  # 0.005 dps/sqrt(Hz) over 44 Hz -> ~0.033 dps RMS
 ACCEL_BIAS_G = 0.02  # RMS zero-g offset per axis after factory trim
 GYRO_BIAS_DPS = 1.0  # RMS zero-rate offset per axis
+# The offsets above belong to the pen (one pen, drawn once from PEN_SERIAL); from one session to
+# the next they only move by their turn-on repeatability and temperature drift.
+PEN_SERIAL = 20190601
+ACCEL_BIAS_REPEAT_G = 0.003
+GYRO_BIAS_REPEAT_DPS = 0.1
 # No anti-alias filter in front of either sensor: an MPU-6050 left at its default digital
 # low-pass (~260 Hz) and an ADC reading the tip's divider directly see the contact at an instant
 # (~2 ms), so texture vibration above 50 Hz folds into the 100 Hz samples.
@@ -92,7 +101,9 @@ class TextureParams:
     variation of the friction coefficient along the path; ``grain``: RMS normal-force ripple
     per newton of push from single asperities and fibres (what the rubber sensor feels most
     directly); ``stiffness``: N/m of the surface layer under
-    the tip; ``damping``: damping ratio of the tip-on-surface contact.
+    the tip; ``damping``: damping ratio of the tip-on-surface contact; ``creep_s``: time
+    constant of the layer's viscoelastic creep (foam, fibre pile): the push builds up at the tip
+    this much later, and faster push changes (tremor, push/pull steps) are smoothed.
     """
 
     roughness_um: float
@@ -107,6 +118,7 @@ class TextureParams:
     grain: float
     stiffness: float
     damping: float
+    creep_s: float
 
     @property
     def contact_stiffness(self) -> float:
@@ -132,7 +144,12 @@ class TextureParams:
 # - stiffness: the surface layer under the tip: a desk and a folder on it are rigid compared
 #   with the rubber tip (>= 1e5 N/m); paper and cardboard liners compress a little; a 3 mm
 #   foam mouse pad or a ~1 mm non-woven cloth is ~2-4e3 N/m (so the contact bandwidth drops
-#   to ~20-30 Hz). Damping: foams and fibres dissipate (zeta 0.5-0.8), hard stacks ring.
+#   to ~45-60 Hz). Damping: foams and fibres dissipate (zeta 0.5-0.8), hard stacks ring.
+#   Foam and fibre pile also creep: the force builds up over tens of ms (creep_s), paper and
+#   cardboard liners a little, desk and folder not at all.
+# - friction sets how far the drag bends the rod in the grip (a tilt offset flipping with the
+#   stroke); its contrast between textures (0.3 on a waxed desk to ~0.9 for rubber snagging on
+#   fabric or foam) is one of the main cues that survives between people.
 _TEXTURE_TABLE: dict[str, TextureParams] = {
     "desk": TextureParams(
         roughness_um=1.5,
@@ -140,55 +157,59 @@ _TEXTURE_TABLE: dict[str, TextureParams] = {
         period_mm=0.0,
         period_um=0.0,
         patch_mm=0.2,
-        mu_kinetic=0.45,
-        mu_static=0.55,
+        mu_kinetic=0.3,
+        mu_static=0.4,
         stick_speed=0.005,
-        mu_variation=0.015,
-        grain=0.01,
+        mu_variation=0.02,
+        grain=0.004,
         stiffness=3e5,
         damping=0.15,
+        creep_s=0.0,
     ),
     "cardboard": TextureParams(
-        roughness_um=10.0,
+        roughness_um=12.0,
         corr_mm=0.4,
         period_mm=7.0,
-        period_um=40.0,
+        period_um=80.0,
         patch_mm=0.3,
         mu_kinetic=0.55,
         mu_static=0.65,
         stick_speed=0.01,
-        mu_variation=0.04,
-        grain=0.05,
-        stiffness=2e4,
+        mu_variation=0.05,
+        grain=0.07,
+        stiffness=1.5e4,
         damping=0.35,
+        creep_s=0.01,
     ),
     "nonwoven_cloth": TextureParams(
-        roughness_um=70.0,
+        roughness_um=80.0,
         corr_mm=0.6,
         period_mm=0.0,
         period_um=0.0,
         patch_mm=0.3,
-        mu_kinetic=0.65,
-        mu_static=0.95,
+        mu_kinetic=0.9,
+        mu_static=1.2,
         stick_speed=0.05,
-        mu_variation=0.1,
-        grain=0.12,
-        stiffness=3.5e3,
+        mu_variation=0.15,
+        grain=0.25,
+        stiffness=3e3,
         damping=0.6,
+        creep_s=0.04,
     ),
     "paper": TextureParams(
-        roughness_um=4.0,
+        roughness_um=6.0,
         corr_mm=0.25,
         period_mm=0.0,
         period_um=0.0,
         patch_mm=0.2,
-        mu_kinetic=0.5,
-        mu_static=0.6,
+        mu_kinetic=0.6,
+        mu_static=0.7,
         stick_speed=0.008,
         mu_variation=0.03,
-        grain=0.03,
+        grain=0.06,
         stiffness=8e4,
         damping=0.25,
+        creep_s=0.003,
     ),
     "plastic_folder": TextureParams(
         roughness_um=0.6,
@@ -196,13 +217,14 @@ _TEXTURE_TABLE: dict[str, TextureParams] = {
         period_mm=0.0,
         period_um=0.0,
         patch_mm=0.2,
-        mu_kinetic=0.75,
-        mu_static=1.05,
-        stick_speed=0.035,
+        mu_kinetic=0.7,
+        mu_static=1.1,
+        stick_speed=0.1,
         mu_variation=0.015,
         grain=0.006,
         stiffness=1.5e5,
         damping=0.12,
+        creep_s=0.0,
     ),
     "mouse_pad": TextureParams(
         roughness_um=20.0,
@@ -210,13 +232,14 @@ _TEXTURE_TABLE: dict[str, TextureParams] = {
         period_mm=0.5,
         period_um=10.0,
         patch_mm=0.3,
-        mu_kinetic=0.8,
-        mu_static=1.0,
+        mu_kinetic=0.9,
+        mu_static=1.1,
         stick_speed=0.025,
         mu_variation=0.06,
-        grain=0.07,
-        stiffness=2.0e3,
+        grain=0.12,
+        stiffness=2e3,
         damping=0.75,
+        creep_s=0.06,
     ),
 }
 
@@ -241,16 +264,16 @@ def _check_texture(texture: str) -> None:
 class Session:
     """How one person holds and moves the pen during one take (all units SI unless named).
 
-    speed: mean stroke speed, m/s (0.03..0.2); speed_jitter: per-stroke log-normal sigma;
-    stroke_length: m, tip travel per stroke; force: mean push on the tip, N; force_wander:
-    relative RMS of the slow force variation; push_bias: relative extra force when stroking
-    towards +X (people press differently pushing and pulling); tilt_deg: pen tilt from vertical
-    in the stroke plane; lean_deg: sideways lean; roll_deg: rotation of the IMU about the rod;
-    rock_rad_per_m / twist_rad_per_m: pitch and roll change per metre of stroke travel (wrist
-    rocking); swing_rad_per_m: yaw per metre (strokes driven by the wrist swing the pen about
-    the vertical); tremor_dps: RMS physiological tremor as angular rate, deg/s; tremor_hz: its
-    centre frequency; grip_stiffness: N*m/rad of the fingers resisting rod rotation; grip_hz and
-    grip_damping: resonance of the rod rocking in the grip; hand_stiffness: N/m of the arm
+    speed: mean stroke speed, m/s (0.05..0.11 in random sessions); speed_jitter: per-stroke
+    log-normal sigma; stroke_length: m, tip travel per stroke; force: mean push on the tip, N;
+    force_wander: relative RMS of the slow force variation; push_bias: relative extra force when
+    stroking towards +X (people press differently pushing and pulling); tilt_deg: pen tilt from
+    vertical in the stroke plane; lean_deg: sideways lean; roll_deg: rotation of the IMU about
+    the rod; rock_rad_per_m / twist_rad_per_m: pitch and roll change per metre of stroke travel
+    (wrist rocking); swing_rad_per_m: yaw per metre (strokes driven by the wrist swing the pen
+    about the vertical); tremor_dps: RMS physiological tremor as angular rate, deg/s; tremor_hz:
+    its centre frequency; grip_stiffness: N*m/rad of the fingers resisting rod rotation; grip_hz
+    and grip_damping: resonance of the rod rocking in the grip; hand_stiffness: N/m of the arm
     behind the push; pause_rate: pauses per second; lift_prob: chance a stroke is in the air.
     """
 
@@ -300,33 +323,41 @@ class Session:
 
     @classmethod
     def random(cls, rng: np.random.Generator) -> Session:
-        """A plausible person: independent draws, wide enough that sessions overlap."""
+        """A plausible person: independent draws over what differs between people.
+
+        Ranges are what people plausibly do, not the widest a model can take: stroke speed
+        varies ~2x (5-11 cm/s) and push 2.5x (1-2.5 N); the pen is held 20-45 deg from
+        vertical (45-70 deg from the surface) with the IMU's side up within +/-10 deg (the
+        pen's grip orients it); the wrist rocks the pen the same way for everyone (drawing the
+        tip towards the palm stands the pen up), 1.5-3 rad/m; tremor 0.5-1.2 deg/s. The grip
+        is light (1.5-3 N m/rad) and well damped (finger pads, zeta 0.4-0.6), so the drag of
+        the surface shows as a tilt offset that flips with the stroke.
+        """
 
         def logu(lo: float, hi: float) -> float:  # log-uniform: as many slow as fast users
             return float(math.exp(rng.uniform(math.log(lo), math.log(hi))))
 
-        sign = 1.0 if rng.random() < 0.5 else -1.0
         return cls(
-            speed=logu(0.03, 0.2),
-            speed_jitter=float(rng.uniform(0.1, 0.35)),
-            stroke_length=logu(0.02, 0.10),
-            force=logu(0.6, 4.0),
-            force_wander=float(rng.uniform(0.04, 0.2)),
-            push_bias=float(rng.uniform(-0.15, 0.15)),
-            tilt_deg=float(rng.uniform(10.0, 40.0)),
-            lean_deg=float(rng.uniform(-10.0, 10.0)),
-            roll_deg=float(rng.uniform(-40.0, 40.0)),
-            rock_rad_per_m=sign * logu(1.0, 6.0),
-            twist_rad_per_m=float(rng.uniform(-1.5, 1.5)),
-            swing_rad_per_m=float(rng.uniform(-3.0, 3.0)),
-            tremor_dps=logu(0.4, 3.0),
-            tremor_hz=float(rng.uniform(7.5, 11.5)),
-            grip_stiffness=logu(3.0, 12.0),
-            grip_hz=float(rng.uniform(12.0, 28.0)),
-            grip_damping=float(rng.uniform(0.15, 0.4)),
-            hand_stiffness=logu(500.0, 2000.0),
-            pause_rate=float(rng.uniform(0.0, 0.08)),
-            lift_prob=float(rng.uniform(0.0, 0.06)),
+            speed=logu(0.05, 0.11),
+            speed_jitter=float(rng.uniform(0.1, 0.25)),
+            stroke_length=logu(0.03, 0.07),
+            force=logu(1.0, 2.5),
+            force_wander=float(rng.uniform(0.04, 0.1)),
+            push_bias=float(rng.uniform(-0.08, 0.08)),
+            tilt_deg=float(rng.uniform(20.0, 45.0)),
+            lean_deg=float(rng.uniform(-5.0, 5.0)),
+            roll_deg=float(rng.uniform(-10.0, 10.0)),
+            rock_rad_per_m=-logu(1.5, 3.0),
+            twist_rad_per_m=float(rng.uniform(-0.5, 0.5)),
+            swing_rad_per_m=float(rng.uniform(-1.0, 1.0)),
+            tremor_dps=logu(0.5, 1.2),
+            tremor_hz=float(rng.uniform(8.0, 11.0)),
+            grip_stiffness=logu(1.5, 3.0),
+            grip_hz=float(rng.uniform(16.0, 24.0)),
+            grip_damping=float(rng.uniform(0.4, 0.6)),
+            hand_stiffness=logu(700.0, 1400.0),
+            pause_rate=float(rng.uniform(0.0, 0.05)),
+            lift_prob=float(rng.uniform(0.0, 0.03)),
         )
 
 
@@ -380,6 +411,17 @@ def _second_order_kernel(f_hz: float, zeta: float, fs: float, base_excited: bool
     return kernel / kernel.sum()
 
 
+def _first_order_kernel(tau_s: float, fs: float) -> np.ndarray:
+    """FIR of a first-order lag ``1 / (tau s + 1)`` (unit DC gain, input held over each sample);
+    ``[1.0]`` for ``tau_s`` = 0."""
+    if tau_s <= 0:
+        return np.ones(1)
+    taps = int(min(max(2, math.ceil(6 * tau_s * fs) + 1), 512))
+    edges = np.exp(-np.arange(taps + 1) / (tau_s * fs))
+    kernel = edges[:-1] - edges[1:]  # step response increments: exact for a held input
+    return kernel / kernel.sum()
+
+
 class _Fir:
     """A causal FIR filter that keeps its input history between blocks."""
 
@@ -425,6 +467,7 @@ class _Surface:
         self.h1 = self._integral(self.h)  # m^2, running integral of h (zero mean)
         self.h2 = self._integral(self.h1)  # m^3, running integral of h1
         self.offset = rng.uniform(0, self.LENGTH)
+        self.rms = float(np.sqrt(np.mean(self.h**2)))  # m, of the whole profile
 
     def _periodic(self, y: np.ndarray) -> np.ndarray:
         return np.append(y, y[0])
@@ -484,8 +527,7 @@ class _Surface:
         by the profile's RMS: the asperities and fibres the tip rides over one by one.
         """
         width = np.full_like(x, GRAIN_MM * 1e-3)
-        rms = float(np.sqrt(np.mean(self.h**2)))
-        return (seen - self.mean(self.h, self.h1, x, width)) / rms
+        return (seen - self.mean(self.h, self.h1, x, width)) / self.rms
 
 
 # ------------------------------------------------------------------------------------------
@@ -671,13 +713,21 @@ class PenSimulator:
         self._y_wander = _Wander(static_rng, 0.2 * ses.stroke_length, 0.02, 0.3)
         self._tremor = [_Wander(static_rng, tremor_rad, f_lo, f_hi, 8) for _ in range(3)]
         self._tremor_gain = _Wander(static_rng, 0.4, 0.1, 0.5)  # tremor waxes and wanes
-        # Sensor offsets of this pen (zero-g, zero-rate, unloaded pressure).
-        self._accel_bias = static_rng.normal(0.0, ACCEL_BIAS_G, 3)
-        self._gyro_bias = static_rng.normal(0.0, GYRO_BIAS_DPS, 3)
-        self._pressure_offset = static_rng.uniform(0.0, PRESSURE_OFFSET_COUNTS)
+        # Sensor offsets: those of the one pen every session uses (drawn once, from a fixed
+        # seed), plus what changes from power-up to power-up and with temperature.
+        pen_rng = np.random.default_rng(PEN_SERIAL)
+        self._accel_bias = pen_rng.normal(0.0, ACCEL_BIAS_G, 3) + static_rng.normal(
+            0.0, ACCEL_BIAS_REPEAT_G, 3
+        )
+        self._gyro_bias = pen_rng.normal(0.0, GYRO_BIAS_DPS, 3) + static_rng.normal(
+            0.0, GYRO_BIAS_REPEAT_DPS, 3
+        )
+        self._pressure_offset = pen_rng.uniform(0.0, PRESSURE_OFFSET_COUNTS)
         # Filters: tip on surface (user's push, roughness) and rod rocking in the grip.
         if p is not None:
-            self._push_lp = _Fir(_second_order_kernel(p.contact_hz, p.damping, fs, False))
+            contact_lp = _second_order_kernel(p.contact_hz, p.damping, fs, False)
+            creep = _first_order_kernel(p.creep_s, fs)
+            self._push_lp = _Fir(np.convolve(contact_lp, creep))
         grip = _second_order_kernel(ses.grip_hz, ses.grip_damping, fs, False)
         self._grip_lp = _Fir(grip)
         # Carried kinematic state: previous tip position, IMU positions, orientation.
@@ -700,7 +750,7 @@ class PenSimulator:
         s_prev = s[0] if self._s_prev is None else self._s_prev
         v = np.diff(np.concatenate([[s_prev], s])) * fs  # (n,) m/s, tip speed along X
         tip = self._contact(t, s, s_prev, v, contact)
-        rates, specific_force = self._rigid_body(t, s, tip)
+        rates, specific_force, _ = self._rigid_body(t, s, tip)
         self._s_prev = float(s[-1])
         return self._sensors(tip.normal, specific_force, rates)
 
@@ -711,15 +761,25 @@ class PenSimulator:
         ses, p = self.session, self.params
         tremor_z = GRIP_LEVER * self._tremor[0](t)  # m, hand's vertical jitter from tremor
         push = ses.force * (1 + self._force_wander(t) + ses.push_bias * np.tanh(v / 0.02))
-        push = np.maximum(push + ses.hand_stiffness * tremor_z, 0.0) * contact
         zeros = np.zeros_like(t)
         if p is None:  # non_contact: nothing touches, the tip is in the air
             return _TipForces(zeros, zeros, zeros, zeros, zeros + 0.002)
-        steady = self._push_lp(push)  # the push, slowed by the surface's compliance (N)
         seen, du, du_int, dslope = self._surface.read(s, v, SENSOR_APERTURE_S, p.contact_hz)
+        # The hand holds its height on these time scales, so its jitter and the long features
+        # the tip rides over (height seen minus the part not followed: cardboard flutes, cloth
+        # clumps) press through the arm and the surface layer in series: a soft layer takes up
+        # part of them.
+        k_series = 1.0 / (1.0 / ses.hand_stiffness + 1.0 / p.stiffness)
+        push = np.maximum(push + k_series * (tremor_z + seen - du), 0.0) * contact
+        steady = self._push_lp(push)  # the push, slowed by the surface's compliance (N)
         # Fibres, weave and fillers make the friction coefficient itself vary along the path;
-        # it follows the same profile (normalised), scaled by the texture's mu_variation.
-        mu_local = p.mu_kinetic + p.mu_variation * seen / (p.roughness_um * 1e-6)
+        # it follows the same profile (normalised), scaled by the texture's mu_variation. The
+        # rod's rotation in the grip cannot follow faster than the grip's resonance, so what
+        # bends it is the friction averaged over each sample's travel (not the instant value,
+        # which would alias texture far above the resonance into it).
+        srf = self._surface
+        mean_h = srf.mean(srf.h, srf.h1, s, np.abs(v) / self.rate_hz)
+        mu_local = p.mu_kinetic + p.mu_variation * mean_h / srf.rms
         grain = self._surface.grain(s, v, seen)
         # Normal force ripple: the roughness the moving mass cannot follow compresses the
         # contact, and single asperities/fibres load the rubber tip one by one (grain).
@@ -728,14 +788,17 @@ class PenSimulator:
         # asperity kicks are short (well above the grip's resonance), so the fingers absorb the
         # rotation they would cause; it still shows in the pressure and the acceleration.
         ripple_int = p.contact_stiffness * du_int * contact  # N*s
-        normal = np.maximum(steady + ripple, 0.0)
         slip = self._stick_slip(s, s_prev, v, steady)
+        # Stick-slip jerks the tip along the surface; the tilted rod turns part of each jerk
+        # into a load along its axis, so the chatter shows in the pressure as well.
+        tilt = math.radians(ses.tilt_deg)
+        chatter = -math.sin(tilt) * steady * slip * contact
+        normal = np.maximum(steady + ripple + chatter, 0.0)
         direction = np.tanh(v / FRICTION_V0)  # friction opposes motion; smooth through v = 0
         tangential = steady * (mu_local * direction + slip)  # N, friction as sampled
         # Fast forces rock the rod about the grip: the normal ripple acts on a lever arm
         # L sin(tilt), the friction ripple (mu on the normal ripple, plus the tip climbing the
         # short slopes) on L cos(tilt).
-        tilt = math.radians(ses.tilt_deg)
         moving = np.abs(v) > 1e-4
         climb_int = np.where(moving, du / np.where(moving, v, 1.0), 0.0)  # int of slope dt
         fast_t = p.mu_kinetic * direction * ripple + steady * dslope * contact
@@ -777,8 +840,9 @@ class PenSimulator:
 
     def _rigid_body(
         self, t: np.ndarray, s: np.ndarray, tip: _TipForces
-    ) -> tuple[np.ndarray, np.ndarray]:
-        """Body angular rate (n, 3) rad/s and specific force (n, 3) in g, IMU frame."""
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Body angular rate (n, 3) rad/s, specific force (n, 3) in g (IMU frame) and the rod's
+        pitch from vertical (n,) rad."""
         ses, fs = self.session, self.rate_hz
         # Slow friction bends the rod in the grip: a torque lever * F_t against the grip's
         # stiffness, through the rocking resonance (this is what rings at reversals).
@@ -789,7 +853,7 @@ class PenSimulator:
             + ses.rock_rad_per_m * s
             + self._pitch_wander(t)
             + gain * self._tremor[1](t)
-            - bend
+            + bend
         )
         lean = math.radians(ses.lean_deg) + self._lean_wander(t) + gain * self._tremor[2](t)
         yaw = ses.swing_rad_per_m * s + self._yaw_wander(t)
@@ -824,7 +888,7 @@ class PenSimulator:
         rates += tip.omega[:, None] * rot[:, 1, :]  # world Y in body coordinates = R^T e_Y
         specific = np.einsum("nji,nj->ni", rot, accel) / G0  # world -> body
         self._r_prev, self._p_prev = rot[-1], pos[-2:]
-        return rates, specific
+        return rates, specific, pitch
 
     def _sensors(self, force: np.ndarray, specific: np.ndarray, rates: np.ndarray) -> np.ndarray:
         """Noise, bias, quantisation and saturation: (n, 8) int16 raw counts."""

@@ -159,9 +159,10 @@ def _window_stats(x: np.ndarray, window: int = 200) -> np.ndarray:
 
 
 def test_textures_distinguishable_by_simple_statistics() -> None:
-    """Nearest centroid on 4 window statistics, trained on some sessions and tested on others,
-    is well above chance (1/7): the physics differs between textures. Mean pressure alone is
-    not enough, because the push varies from session to session."""
+    """Nearest centroid on 4 window statistics (2 s windows), trained on 8 sessions per texture
+    and tested on 8 others, reaches >= 0.55 over the 7 textures (chance 0.14; the current
+    physics gives ~0.65): texture shows across sessions. Mean pressure alone stays < 0.4,
+    because the push is a property of the person, not of the surface."""
 
     def dataset(seeds: range) -> tuple[np.ndarray, np.ndarray]:
         feats, labels = [], []
@@ -183,8 +184,8 @@ def test_textures_distinguishable_by_simple_statistics() -> None:
         return float((dist.argmin(axis=1) == test_y).mean())
 
     everything, pressure_level = accuracy([0, 1, 2, 3]), accuracy([0])
-    assert everything >= 0.35, everything  # chance is 0.14
-    assert pressure_level < everything - 0.1, (pressure_level, everything)
+    assert everything >= 0.55, everything  # chance is 0.14
+    assert pressure_level < 0.4, (pressure_level, everything)
 
 
 def test_vibration_frequency_scales_with_speed() -> None:
