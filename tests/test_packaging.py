@@ -11,7 +11,8 @@ from conftest import REPO
 
 def test_runtime_and_device_import_without_torch():
     code = (
-        "import sys, tactile.runtime, tactile.device, tactile.device.decoder, "
+        "import sys, tactile.runtime, tactile.runtime.cli, tactile.runtime.model, "
+        "tactile.runtime.stream, tactile.contract, tactile.device, tactile.device.decoder, "
         "tactile.device.recorder, tactile.device.simlink\n"
         "bad = sorted(m for m in sys.modules if m.split('.')[0] in ('torch', 'onnx', 'PyEMD'))\n"
         "print(','.join(bad))\n"

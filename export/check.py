@@ -1,0 +1,160 @@
+"""``tactile-check model.onnx [--run RUN] [--data DATA]``: is this file a model we can deploy?
+
+Validates the contract of any ONNX file (an ONNX model at all, ``onnx.checker``, opset, input
+and output names, dtypes, ranks, the dynamic batch axis, every required metadata key) and names
+what is wrong in one line (exit code 3). With ``--run`` it re-runs the parity comparison against
+the run's PyTorch model (on ``--data``'s test windows if given, else simulated or random ones)
+and prints the table; exit 3 on failure. With ``--data`` alone it runs the file on the data's
+windows and prints its accuracy beside the one recorded at export.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+
+import numpy as np
+import onnx
+import torch
+
+from tactile.cli import add_debug, run
+from tactile.contract import OPSET, ModelContract
+from tactile.errors import ModelContractError
+
+# onnx TensorProto element types as onnxruntime spells them (the contract's spelling)
+_TYPES = {1: "tensor(float)", 2: "tensor(uint8)", 3: "tensor(int8)", 6: "tensor(int32)",
+          7: "tensor(int64)", 9: "tensor(bool)", 10: "tensor(float16)", 11: "tensor(double)"}
+
+
+def load_contract(path: str | Path) -> tuple[onnx.ModelProto, ModelContract]:
+    """Load ``path`` and validate its contract; raises :class:`ModelContractError` naming the
+    first problem (prefixed with the file name)."""
+    path = Path(path)
+    data = path.read_bytes()  # OSError if missing: a usage error, not a contract one
+    try:
+        model = onnx.load_model_from_string(data)
+    except Exception as e:  # noqa: BLE001  (protobuf raises several types on garbage)
+        raise ModelContractError(f"{path}: not an ONNX model, or truncated ({type(e).__name__}: "
+                                 f"{str(e).splitlines()[0] if str(e) else 'unreadable'})") from None
+    if not model.graph.node or not model.opset_import:
+        raise ModelContractError(f"{path}: not an ONNX model (no graph or no opset; "
+                                 f"{len(data)} bytes)")
+    try:
+        onnx.checker.check_model(model, full_check=True)
+    except (onnx.checker.ValidationError, onnx.shape_inference.InferenceError) as e:
+        raise ModelContractError(f"{path}: fails onnx.checker: {str(e).splitlines()[0]}") from None
+    opset = {o.domain: o.version for o in model.opset_import}.get("", 0)
+    if opset != OPSET:
+        raise ModelContractError(f"{path}: opset {opset}, the contract needs {OPSET}")
+    try:
+        contract = ModelContract.from_metadata({p.key: p.value for p in model.metadata_props})
+        contract.check_signature(signature(model.graph.input, model.graph.initializer),
+                                 signature(model.graph.output))
+    except ModelContractError as e:
+        raise ModelContractError(f"{path}: {e}") from None
+    return model, contract
+
+
+def signature(values, initializers=()) -> list[tuple[str, str, list]]:
+    """(name, elem_type, shape) of graph inputs or outputs, initializers left out."""
+    skip = {i.name for i in initializers}
+    out = []
+    for vi in values:
+        if vi.name in skip:
+            continue
+        t = vi.type.tensor_type
+        dims = [d.dim_value if d.HasField("dim_value") else (d.dim_param or None)
+                for d in t.shape.dim]
+        out.append((vi.name, _TYPES.get(t.elem_type, f"elem_type {t.elem_type}"), dims))
+    return out
+
+
+def describe(path: Path, model: onnx.ModelProto, c: ModelContract) -> str:
+    emd = c.preprocessing.get("emd")
+    lines = [
+        f"{path}: contract ok (format {c.format_version}, opset {OPSET}, "
+        f"{path.stat().st_size / 1e3:.1f} kB, quantization {c.quantization})",
+        f"  classes   {', '.join(c.classes)}",
+        f"  channels  {', '.join(f'{n} [{u}]' for n, u in zip(c.channels, c.units))}",
+        f"  window    {c.window} samples, hop {c.hop}, {c.sample_rate_hz:g} Hz; "
+        f"state {c.state_mode}, {c.model} ({c.state_layers} x {c.state_hidden})",
+        f"  emd       {'none' if emd is None else emd}",
+        f"  exported  parity {'passed' if c.parity.get('passed') else 'FAILED'} "
+        f"(max |dp| {c.parity.get('max_abs_prob_diff')}); test accuracy "
+        f"{c.training_metrics.get('accuracy')}",
+    ]
+    return "\n".join(lines)
+
+
+def _reparity(path: Path, c: ModelContract, run_dir: Path, data: Path | None,
+              windows: int) -> bool:
+    from tactile.export.parity import compare
+    from tactile.export.windows import probe_windows
+    from tactile.training.train import load_checkpoint
+
+    model, ck = load_checkpoint(run_dir)
+    for key, mine in (("classes", c.classes), ("channels", c.channels)):
+        if tuple(ck[key]) != mine:
+            raise ModelContractError(f"{path} and {run_dir} differ in {key}: {list(mine)} vs "
+                                     f"{list(ck[key])}")
+    if ck["config"]["window"] != c.window or ck["config"]["state"] != c.state_mode:
+        raise ModelContractError(f"{path} and {run_dir} differ in window or state mode")
+    crit = "strict" if c.quantization == "none" else "int8"
+    p = compare(model, str(path), probe_windows(ck, data, windows), ck, criterion=crit)
+    print(p.table())
+    return p.passed
+
+
+def _accuracy(path: Path, c: ModelContract, data: Path) -> None:
+    from tactile.export.parity import session
+    from tactile.export.windows import from_dataset
+
+    ck = {"classes": list(c.classes), "channels": list(c.channels),
+          "config": {"window": c.window, "hop": c.hop}}
+    probe = from_dataset(ck, data)
+    sess = session(str(path))
+    labels = np.empty(len(probe), np.int64)
+    zero = np.zeros((c.state_layers, 1, c.state_hidden), np.float32)
+    for rows in probe.runs:  # each gap-free run in order, following the state mode
+        h, cc = zero, zero
+        for r in rows:
+            p, h2, c2 = sess.run(None, {"x": probe.x[r : r + 1], "h": h, "c": cc})
+            labels[r] = p.argmax(1)[0]
+            if c.state_mode == "carry":
+                h, cc = h2, c2
+    acc = float((labels == probe.y).mean())
+    print(f"windows checked  {len(probe)} ({probe.source})")
+    print(f"accuracy         {acc:.4f} (recorded at training: "
+          f"{c.training_metrics.get('accuracy')})")
+
+
+def build_parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(prog="tactile-check", description=__doc__.split("\n\n")[0])
+    p.add_argument("model", type=Path, help="ONNX file to check")
+    p.add_argument("--run", type=Path, help="run folder: re-run parity against its PyTorch model")
+    p.add_argument("--data", type=Path, help="dataset folder: windows to check on")
+    p.add_argument("--windows", type=int, default=256, help="at most this many windows")
+    add_debug(p)
+    return p
+
+
+def _main(args: argparse.Namespace) -> int:
+    torch.set_num_threads(1)  # one core's figures; also avoids contention on a small board
+    model, contract = load_contract(args.model)
+    print(describe(args.model, model, contract))
+    if args.run is not None:
+        if not _reparity(args.model, contract, args.run, args.data, args.windows):
+            raise ModelContractError(f"{args.model}: parity against {args.run} failed "
+                                     "(table above)")
+    elif args.data is not None:
+        _accuracy(args.model, contract, args.data)
+    return 0
+
+
+def main(argv: list[str] | None = None) -> int:
+    return run("tactile-check", _main, build_parser().parse_args(argv))
+
+
+if __name__ == "__main__":
+    sys.exit(main())

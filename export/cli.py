@@ -1,0 +1,130 @@
+"""``tactile-export RUN/ -o model.onnx [--int8] [--data DATA]``: a run's checkpoint to one file.
+
+Builds the graph (preprocessing + model + state), measures parity against PyTorch on the run's
+test windows (``--data``; else a simulated pen, else random windows), refuses to write a file
+that fails it, and writes the contract into the file's metadata. ``--int8`` writes an
+onnxruntime dynamic-int8 file instead and reports its size, latency and accuracy against the
+float32 one.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import onnx
+import torch
+
+from tactile.cli import add_debug, run
+from tactile.export.check import load_contract
+from tactile.export.graph import build_graph
+from tactile.export.metadata import attach, contract_for
+from tactile.export.parity import Parity, ParityError, compare
+from tactile.export.quantize import latency_ms, quantize_int8
+from tactile.export.windows import probe_windows
+from tactile.training.train import load_checkpoint
+
+
+def export_run(run_dir: Path, out: Path, data: Path | None = None, int8: bool = False,
+               max_windows: int = 256, log=print) -> dict:
+    """Export ``run_dir`` to ``out``; returns the figures (parity, sizes, seconds).
+
+    Raises :class:`ParityError` (after logging the figures) when parity fails.
+    """
+    t0 = time.perf_counter()
+    run_dir, out = Path(run_dir), Path(out)
+    model, ck = load_checkpoint(run_dir)
+    graph = build_graph(model)
+    t_build = time.perf_counter() - t0
+    probe = probe_windows(ck, data, max_windows)
+    parity = compare(model, graph.SerializeToString(), probe, ck)
+    log(parity.table())
+    _require(parity, "float32")
+    report = {"build_s": round(t_build, 2), "parity": parity.to_dict()}
+    final, quantization, figures = graph, "none", parity.to_dict()
+    if int8:
+        final = quantize_int8(graph)
+        q = compare(model, final.SerializeToString(), probe, ck, criterion="int8")
+        log("int8:\n" + q.table())
+        _require(q, "int8")
+        figures = {**q.to_dict(), "float32": parity.to_dict()}
+        quantization = "int8-dynamic"
+        report["int8"] = _tradeoff(graph, final, parity, q, ck)
+        log(_tradeoff_line(report["int8"]))
+    attach(final, contract_for(ck, figures, quantization, run_dir.resolve().name))
+    out.parent.mkdir(parents=True, exist_ok=True)
+    with tempfile.NamedTemporaryFile(dir=out.parent, suffix=".onnx", delete=False) as tmp:
+        tmp_path = Path(tmp.name)
+    try:
+        onnx.save(final, tmp_path)
+        load_contract(tmp_path)  # the written file honours the contract, or nothing is written
+        tmp_path.replace(out)
+    finally:
+        tmp_path.unlink(missing_ok=True)
+    report.update(seconds=round(time.perf_counter() - t0, 2), bytes=out.stat().st_size)
+    return report
+
+
+def _require(p: Parity, what: str) -> None:
+    if not p.passed:
+        raise ParityError(
+            f"{what} parity failed: max |dp| {p.max_abs_prob_diff:.3g} (limit {p.atol:g}), "
+            f"{p.labels_differ - p.labels_differ_excused} of {p.windows} labels differ "
+            f"(agreement {p.label_agreement:.4f}), longest carried run {p.longest_carry_run}"
+        )
+
+
+def _tradeoff(f32: onnx.ModelProto, q: onnx.ModelProto, pf: Parity, pq: Parity, ck: dict) -> dict:
+    cfg = ck["config"]
+    lstm = cfg["model"] == "lstm"
+    state = (cfg["layers"], cfg["hidden"]) if lstm else (1, 1)
+    args = (cfg["window"], len(ck["channels"]), state)
+    return {
+        "bytes_float32": f32.ByteSize(), "bytes_int8": q.ByteSize(),
+        "latency_float32": latency_ms(f32.SerializeToString(), *args),
+        "latency_int8": latency_ms(q.SerializeToString(), *args),
+        "label_agreement": pq.label_agreement, "max_abs_prob_diff": pq.max_abs_prob_diff,
+        "accuracy_float32": pf.accuracy_onnx, "accuracy_int8": pq.accuracy_onnx,
+    }
+
+
+def _tradeoff_line(t: dict) -> str:
+    acc = ""
+    if t["accuracy_int8"] is not None:
+        acc = f"; accuracy {t['accuracy_float32']:.4f} -> {t['accuracy_int8']:.4f}"
+    return (f"int8 trade-off: size {t['bytes_float32'] / 1e3:.1f} kB -> "
+            f"{t['bytes_int8'] / 1e3:.1f} kB; batch-1 latency p50 "
+            f"{t['latency_float32']['p50_ms']:.3f} -> {t['latency_int8']['p50_ms']:.3f} ms; "
+            f"label agreement with PyTorch {t['label_agreement']:.4f}{acc}")
+
+
+def build_parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(prog="tactile-export", description=__doc__.split("\n\n")[0])
+    p.add_argument("run", type=Path, help="run folder written by tactile-train")
+    p.add_argument("-o", "--out", type=Path, required=True, help="ONNX file to write")
+    p.add_argument("--data", type=Path, help="dataset folder holding the run's test takes")
+    p.add_argument("--int8", action="store_true",
+                   help="write an onnxruntime dynamic-int8 model (default: float32)")
+    p.add_argument("--windows", type=int, default=256,
+                   help="at most this many windows for the parity check (default 256)")
+    add_debug(p)
+    return p
+
+
+def _main(args: argparse.Namespace) -> int:
+    torch.set_num_threads(1)  # one core's figures; also avoids contention on a small board
+    r = export_run(args.run, args.out, args.data, args.int8, args.windows)
+    print(f"wrote {args.out}: {r['bytes'] / 1e3:.1f} kB; export took {r['seconds']:.1f} s "
+          f"(graph {r['build_s']:.1f} s)")
+    return 0
+
+
+def main(argv: list[str] | None = None) -> int:
+    return run("tactile-export", _main, build_parser().parse_args(argv))
+
+
+if __name__ == "__main__":
+    sys.exit(main())

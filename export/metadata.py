@@ -1,0 +1,88 @@
+"""The contract of an exported model, filled from its checkpoint, and written into the file."""
+
+from __future__ import annotations
+
+import math
+
+import onnx
+import torch
+
+import tactile
+from tactile.contract import ModelContract
+from tactile.export.graph import EXPORTER
+
+
+def contract_for(ck: dict, parity: dict, quantization: str = "none",
+                 source_run: str = "") -> ModelContract:
+    """The :class:`ModelContract` of checkpoint ``ck`` with the measured ``parity`` figures."""
+    cfg = ck["config"]
+    channels = list(ck["channels"])
+    lstm = cfg["model"] == "lstm"
+    emd = None
+    if cfg["emd_channels"]:
+        emd = {"channels": list(cfg["emd_channels"]), "imfs": cfg["emd_imfs"],
+               "sifts": cfg["emd_sifts"]}
+    extra = {
+        "exporter": f"{EXPORTER}; torch {torch.__version__}, onnx {onnx.__version__}",
+        "training_config": _json(cfg),
+    }
+    if source_run:
+        extra["source_run"] = source_run
+    return ModelContract(
+        classes=tuple(ck["classes"]),
+        channels=tuple(channels),
+        units=tuple(ck["units"]),
+        sample_rate_hz=float(ck["sample_rate_hz"]),
+        window=int(cfg["window"]),
+        hop=int(cfg["hop"]),
+        state_mode=cfg["state"],
+        model=cfg["model"],
+        state_layers=int(cfg["layers"]) if lstm else 1,
+        state_hidden=int(cfg["hidden"]) if lstm else 1,
+        preprocessing={
+            "mean": [float(v) for v in ck["mean"]],
+            "std": [float(v) for v in ck["std"]],
+            "center": [channels[i] for i in ck["center_index"]],
+            "emd": emd,
+        },
+        package_version=tactile.__version__,
+        training_metrics=_metrics(ck.get("metrics", {})),
+        parity=parity,
+        quantization=quantization,
+        extra=extra,
+    )
+
+
+def _metrics(m: dict) -> dict:
+    """The test figures worth carrying (the confusion matrix stays in the run folder)."""
+    keep = ("windows", "accuracy", "recall", "shifted", "split", "split_windows", "val_accuracy",
+            "best_epoch")
+    return {k: _finite(m[k]) for k in keep if k in m}
+
+
+def _finite(v):
+    """JSON-safe: NaN/inf become None (strict JSON readers reject them)."""
+    if isinstance(v, dict):
+        return {k: _finite(x) for k, x in v.items()}
+    if isinstance(v, list):
+        return [_finite(x) for x in v]
+    if isinstance(v, float) and not math.isfinite(v):
+        return None
+    return v
+
+
+def _json(d: dict) -> str:
+    import json
+
+    return json.dumps(_finite(d), sort_keys=True)
+
+
+def attach(model: onnx.ModelProto, contract: ModelContract) -> onnx.ModelProto:
+    """Replace ``model``'s ``metadata_props`` with the contract's keys (in place; returned)."""
+    del model.metadata_props[:]
+    onnx.helper.set_model_props(model, contract.to_metadata())
+    return model
+
+
+def metadata_of(model: onnx.ModelProto) -> dict[str, str]:
+    return {p.key: p.value for p in model.metadata_props}

@@ -1,0 +1,177 @@
+"""Parity: the ONNX graph in onnxruntime against the PyTorch model, on the same windows.
+
+The reference is ``TextureModel.forward`` in eager float32 torch (the model as trained and
+evaluated), never onnxruntime itself. Criterion (``strict``, float32 files): every probability
+within :data:`ATOL` and identical labels, except windows whose PyTorch top-two margin is below
+:data:`MARGIN` (a tie a rounding may break either way). Window mode runs every window from a zero
+state; carry mode feeds each output state back, window after window, along runs of at least
+:data:`MIN_CARRY` consecutive windows. An int8 file (``int8`` criterion) passes when at least
+:data:`INT8_AGREEMENT` of its labels equal PyTorch's.
+"""
+
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass
+
+import numpy as np
+import onnxruntime as ort
+import torch
+
+from tactile.errors import ModelContractError
+from tactile.export.windows import CARRY_STEPS, Probe, random_windows, simulated
+from tactile.training.model import TextureModel
+
+ATOL = 1e-4
+"""Largest allowed |p_onnx - p_torch| of any probability."""
+MARGIN = 1e-4
+"""Windows whose PyTorch top-two margin is below this may change label."""
+MIN_CARRY = 20
+"""Carried-state parity covers at least this many consecutive windows."""
+INT8_AGREEMENT = 0.9
+"""Least fraction of int8 labels equal to PyTorch's for an int8 export to pass."""
+BATCH = 64
+
+
+class ParityError(ModelContractError):
+    """The ONNX graph does not compute what the PyTorch model computes (within tolerance)."""
+
+
+def session(model: bytes | str, threads: int = 1) -> ort.InferenceSession:
+    """A CPU session: ``threads`` intra-op threads, sequential, no busy-wait spinning."""
+    so = ort.SessionOptions()
+    so.intra_op_num_threads = threads
+    so.inter_op_num_threads = 1
+    so.execution_mode = ort.ExecutionMode.ORT_SEQUENTIAL
+    so.add_session_config_entry("session.intra_op.allow_spinning", "0")
+    so.log_severity_level = 3
+    return ort.InferenceSession(model, so, providers=["CPUExecutionProvider"])
+
+
+@dataclass
+class Parity:
+    """The figures of one comparison (what the metadata's ``parity`` key holds)."""
+
+    passed: bool
+    criterion: str
+    source: str
+    windows: int
+    max_abs_prob_diff: float
+    max_abs_state_diff: float
+    label_agreement: float
+    labels_differ: int
+    labels_differ_excused: int
+    carry_runs: int
+    carry_steps: int
+    longest_carry_run: int
+    atol: float = ATOL
+    margin: float = MARGIN
+    accuracy_torch: float | None = None
+    accuracy_onnx: float | None = None
+    reference: str = "torch float32 eager, TextureModel.forward"
+
+    def to_dict(self) -> dict:
+        return {k: (round(v, 9) if isinstance(v, float) else v) for k, v in asdict(self).items()}
+
+    def table(self) -> str:
+        acc = "-" if self.accuracy_onnx is None else (
+            f"{self.accuracy_torch:.4f} torch, {self.accuracy_onnx:.4f} onnx")
+        rows = [
+            ("windows checked", f"{self.windows} ({self.source})"),
+            ("carried state", f"{self.carry_runs} runs, {self.carry_steps} steps, longest "
+             f"{self.longest_carry_run}" if self.carry_runs else "no (window mode)"),
+            ("max |dp|", f"{self.max_abs_prob_diff:.3g} (limit {self.atol:g})"
+             if self.criterion == "strict" else f"{self.max_abs_prob_diff:.3g}"),
+            ("max |d state|", f"{self.max_abs_state_diff:.3g}"),
+            ("label agreement", f"{self.label_agreement:.4f} ({self.labels_differ} differ, "
+                                f"{self.labels_differ_excused} within margin {self.margin:g})"),
+            ("accuracy", acc),
+            ("criterion", self.criterion if self.criterion == "strict"
+             else f"int8: agreement >= {INT8_AGREEMENT}"),
+            ("result", "PASS" if self.passed else "FAIL"),
+        ]
+        return "\n".join(f"{k:<17}{v}" for k, v in rows)
+
+
+@torch.no_grad()
+def compare(model: TextureModel, onnx_model: bytes | str, probe: Probe, ck: dict,
+            criterion: str = "strict") -> Parity:
+    """Run ``probe`` through both and measure (carry mode also along each run)."""
+    model = model.eval()
+    sess = session(onnx_model)
+    carry = model.cfg.state == "carry"
+    if carry:
+        probe = _with_long_run(probe, ck)
+    p_t, p_o, s_diff = _window_mode(model, sess, probe.x)
+    n_runs = steps = longest = 0
+    if carry:
+        c_t, c_o, c_diff, runs = _carry_mode(model, sess, probe)
+        p_t, p_o = np.concatenate([p_t, c_t]), np.concatenate([p_o, c_o])
+        s_diff = max(s_diff, c_diff)
+        n_runs, steps, longest = len(runs), sum(map(len, runs)), max(map(len, runs))
+    lab_t, lab_o = p_t.argmax(1), p_o.argmax(1)
+    top2 = np.sort(p_t, axis=1)[:, -2:]
+    differ = lab_t != lab_o
+    excused = differ & (top2[:, 1] - top2[:, 0] < MARGIN)
+    diff = float(np.abs(p_t - p_o).max())
+    agreement = float((~differ).mean())
+    if criterion == "strict":
+        passed = diff <= ATOL and not (differ & ~excused).any() and (not carry or longest
+                                                                      >= MIN_CARRY)
+    else:
+        passed = agreement >= INT8_AGREEMENT
+    acc_t = acc_o = None
+    if probe.y is not None:
+        n = len(probe)  # window-mode rows come first, in probe order
+        acc_t = float((lab_t[:n] == probe.y).mean())
+        acc_o = float((lab_o[:n] == probe.y).mean())
+    return Parity(passed, criterion, probe.source, len(p_t), diff, s_diff, agreement,
+                  int(differ.sum()), int(excused.sum()), n_runs, steps, longest,
+                  accuracy_torch=acc_t, accuracy_onnx=acc_o)
+
+
+def _window_mode(model: TextureModel, sess: ort.InferenceSession, x: np.ndarray):
+    """Every window from a zero state, in batches: probabilities (N, K) x2, max state diff."""
+    pt, po, sd = [], [], 0.0
+    for i in range(0, len(x), BATCH):
+        xb = torch.from_numpy(np.ascontiguousarray(x[i : i + BATCH]))
+        h, c = model.zero_state(len(xb))
+        p, h1, c1 = model(xb, h, c)
+        o = sess.run(None, {"x": xb.numpy(), "h": h.numpy(), "c": c.numpy()})
+        pt.append(p.numpy())
+        po.append(o[0])
+        sd = max(sd, float(np.abs(o[1] - h1.numpy()).max()), float(np.abs(o[2] - c1.numpy()).max()))
+    return np.concatenate(pt), np.concatenate(po), sd
+
+
+def _carry_mode(model: TextureModel, sess: ort.InferenceSession, probe: Probe):
+    """Each run window after window, each side feeding back its own state."""
+    pt, po, sd = [], [], 0.0
+    runs = [r for r in probe.runs if len(r) >= 2]
+    for rows in runs:
+        h, c = model.zero_state(1)
+        ho, co = h.numpy(), c.numpy()
+        for r in rows:
+            xb = torch.from_numpy(probe.x[r : r + 1])
+            p, h, c = model(xb, h, c)
+            o, ho, co = sess.run(None, {"x": xb.numpy(), "h": ho, "c": co})
+            pt.append(p.numpy())
+            po.append(o)
+            sd = max(sd, float(np.abs(ho - h.numpy()).max()), float(np.abs(co - c.numpy()).max()))
+    return np.concatenate(pt), np.concatenate(po), sd, runs
+
+
+def _with_long_run(probe: Probe, ck: dict) -> Probe:
+    """Add simulated (or random) runs when no run of ``probe`` is :data:`MIN_CARRY` long."""
+    if max(map(len, probe.runs)) >= MIN_CARRY:
+        return probe
+    try:
+        extra = simulated(ck)
+    except (ValueError, KeyError):
+        extra = random_windows(ck)
+    n = len(probe)
+    return Probe(
+        np.concatenate([probe.x, extra.x]),
+        None if probe.y is None or extra.y is None else np.concatenate([probe.y, extra.y]),
+        probe.runs + [r + n for r in extra.runs],
+        f"{probe.source} + {extra.source} (runs of {CARRY_STEPS})",
+    )

@@ -1,0 +1,50 @@
+"""int8: onnxruntime dynamic quantisation of a float32 export, and batch-1 latency."""
+
+from __future__ import annotations
+
+import logging
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+import onnx
+
+from tactile.export.parity import session
+
+
+def quantize_int8(model: onnx.ModelProto) -> onnx.ModelProto:
+    """Dynamic int8 quantisation (weights int8, activations quantised at run time).
+
+    ``quant_pre_process`` runs first (shape inference and graph clean-up that the quantiser
+    relies on); metadata is not carried over: the caller writes the contract afterwards.
+    """
+    from onnxruntime.quantization import QuantType, quantize_dynamic
+    from onnxruntime.quantization.shape_inference import quant_pre_process
+
+    logging.getLogger("root").setLevel(logging.ERROR)  # the quantiser's per-node chatter
+    with tempfile.TemporaryDirectory() as tmp:
+        src, pre, out = (Path(tmp) / n for n in ("f32.onnx", "pre.onnx", "int8.onnx"))
+        onnx.save(model, src)
+        quant_pre_process(str(src), str(pre), skip_symbolic_shape=True)
+        quantize_dynamic(str(pre), str(out), weight_type=QuantType.QInt8)
+        return onnx.load(out)
+
+
+def latency_ms(model: bytes | str, window: int, channels: int, state: tuple[int, int],
+               runs: int = 200, seed: int = 0) -> dict[str, float]:
+    """Batch-1 latency of one window on one thread: p50 and p99 in milliseconds."""
+    sess = session(model)
+    rng = np.random.default_rng(seed)
+    x = rng.standard_normal((1, window, channels)).astype(np.float32)
+    h = np.zeros((state[0], 1, state[1]), np.float32)
+    feed = {"x": x, "h": h, "c": h}
+    for _ in range(10):
+        sess.run(None, feed)
+    times = []
+    for _ in range(runs):
+        t = time.perf_counter()
+        sess.run(None, feed)
+        times.append((time.perf_counter() - t) * 1e3)
+    return {"p50_ms": round(float(np.percentile(times, 50)), 4),
+            "p99_ms": round(float(np.percentile(times, 99)), 4)}

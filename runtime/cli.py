@@ -1,0 +1,297 @@
+"""``tactile-run``: read the pen, print one label per window, keep going.
+
+    tactile-run --model model.onnx --port /dev/ttyACM0
+    tactile-run --model model.onnx --port "sim://?texture=paper&seed=3"
+    tactile-run --model model.onnx --replay data/paper-....csv      # offline, as fast as it can
+
+Labels go to stdout (JSON Lines by default; ``--format text|csv``), diagnostics to stderr: a
+status line every few seconds, gap and reconnect events, and a summary at the end. Exit codes:
+0 stopped cleanly (SIGINT/SIGTERM, end of replay or of ``--seconds``), 1 bad arguments, 2 port
+cannot be opened or no pen found, 3 the model or the device does not honour the contract.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import signal
+import sys
+import time
+from collections import Counter
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+import serial
+
+import tactile.device  # noqa: F401  (registers sim://)
+from tactile.cli import add_debug, run
+from tactile.device.decoder import Gap, Header, Samples, StreamDecoder
+from tactile.device.info import DeviceInfo
+from tactile.errors import DeviceError, ModelContractError
+from tactile.runtime.model import Model
+from tactile.runtime.stream import Label, Smoother, Stream
+
+FORMATS = ("jsonl", "text", "csv")
+
+
+@dataclass
+class Summary:
+    windows: int = 0
+    labels: Counter = field(default_factory=Counter)
+    gaps: int = 0
+    reconnects: int = 0
+    stalls: int = 0
+    started: float = field(default_factory=time.monotonic)
+    first_label_s: float | None = None
+
+    def to_dict(self, decoder_stats: dict) -> dict:
+        return {
+            "windows": self.windows,
+            "labels": dict(self.labels),
+            "gaps": self.gaps,
+            "reconnects": self.reconnects,
+            "stalls": self.stalls,
+            "first_label_s": self.first_label_s,
+            "seconds": round(time.monotonic() - self.started, 3),
+            "decoder": decoder_stats,
+        }
+
+
+class Printer:
+    """Writes labels and events in the chosen format, flushing each line."""
+
+    def __init__(self, fmt: str, classes: tuple[str, ...], out=sys.stdout) -> None:
+        self.fmt, self.classes, self.out = fmt, classes, out
+        if fmt == "csv":
+            cols = ["t", "seq", "label", "p", "latency_ms", "smoothed", *classes]
+            print(",".join(cols), file=out, flush=True)
+
+    def label(self, lab: Label) -> None:
+        if self.fmt == "jsonl":
+            line = json.dumps(lab.to_dict())
+        elif self.fmt == "text":
+            smooth = f" ({lab.smoothed})" if lab.smoothed else ""
+            line = f"{lab.t_us / 1e6:10.2f} s  #{lab.seq:<8d} {lab.label}{smooth}  " \
+                   f"p={lab.probability:.3f}"
+        else:
+            probs = ",".join(f"{lab.probabilities[c]:.6f}" for c in self.classes)
+            line = (f"{lab.t_us / 1e6:.6f},{lab.seq},{lab.label},{lab.probability:.6f},"
+                    f"{lab.latency_ms:.3f},{lab.smoothed or ''},{probs}")
+        print(line, file=self.out, flush=True)
+
+    def event(self, kind: str, **fields) -> None:
+        """Gaps and resets: a JSON object in jsonl mode, a comment line otherwise."""
+        if self.fmt == "jsonl":
+            print(json.dumps({"event": kind, **fields}), file=self.out, flush=True)
+        else:
+            print(f"# {kind} " + " ".join(f"{k}={v}" for k, v in fields.items()),
+                  file=self.out, flush=True)
+
+
+def check_device(model: Model, info: DeviceInfo) -> None:
+    """The device's header must give the model's channels, in order, at its rate."""
+    want = model.contract.channels
+    got = info.channel_names
+    if got != want:
+        raise ModelContractError(
+            f"device channels {list(got)} do not match the model's {list(want)} (names and order)"
+        )
+    if not math.isclose(info.sample_rate_hz, model.contract.sample_rate_hz, rel_tol=1e-3):
+        raise ModelContractError(
+            f"device rate {info.sample_rate_hz:g} Hz does not match the model's "
+            f"{model.contract.sample_rate_hz:g} Hz"
+        )
+
+
+def units(info: DeviceInfo, raw: np.ndarray) -> np.ndarray:
+    """(n, C) raw counts -> values in the channels' units, as the model expects."""
+    scale = np.array([c.scale for c in info.channels], np.float64)
+    offset = np.array([c.offset for c in info.channels], np.float64)
+    return (raw * scale + offset).astype(np.float32)
+
+
+class Runner:
+    """Decoder events -> stream -> labels. No I/O of its own beyond the printer."""
+
+    def __init__(self, model: Model, stream: Stream, printer: Printer, summary: Summary):
+        self.model, self.stream, self.printer, self.summary = model, stream, printer, summary
+        self.info: DeviceInfo | None = None
+
+    def handle(self, events: list) -> None:
+        for ev in events:
+            if isinstance(ev, Header):
+                check_device(self.model, ev.info)
+                if ev.changed:
+                    self.stream.reset()
+                self.info = ev.info
+            elif isinstance(ev, Gap):
+                self.summary.gaps += 1
+                self.stream.gap()
+                self.printer.event("gap", seq=ev.seq, missing=ev.missing, reason=ev.reason)
+            elif isinstance(ev, Samples):
+                if self.info is None:
+                    continue  # no header yet: we cannot check or scale these samples
+                period = 1e6 / self.info.sample_rate_hz
+                self.stream.accept(units(self.info, ev.raw), ev.seq, ev.t_us, period)
+                while self.stream.ready():
+                    lab = self.stream.classify()
+                    self.summary.windows += 1
+                    self.summary.labels[lab.label] += 1
+                    if self.summary.first_label_s is None:
+                        self.summary.first_label_s = round(
+                            time.monotonic() - self.summary.started, 3)
+                    self.printer.label(lab)
+
+
+def find_port() -> str:
+    """The one likely pen among the serial devices, or a DeviceError listing the candidates."""
+    from serial.tools import list_ports
+
+    ports = list(list_ports.comports())
+    likely = [p for p in ports if p.vid is not None or "ACM" in p.device or "USB" in p.device]
+    if len(likely) == 1:
+        return likely[0].device
+    listing = ", ".join(f"{p.device} ({p.description})" for p in ports) or "none"
+    raise DeviceError(
+        f"{'no' if not likely else 'more than one'} likely pen found; give --port "
+        f"(serial devices: {listing})"
+    )
+
+
+def open_port(port: str, baud: int) -> serial.SerialBase:
+    try:
+        return serial.serial_for_url(port, baudrate=baud, timeout=0.05)
+    except ValueError as e:
+        raise DeviceError(f"cannot open {port}: {e}") from None
+
+
+def serve(args: argparse.Namespace, runner: Runner, decoder: StreamDecoder,
+          stop: dict) -> None:
+    """The serial loop: read, decode, classify; reconnect with backoff when the port vanishes."""
+    summary = runner.summary
+    link = open_port(args.port, args.baud)
+    last_data = last_status = time.monotonic()
+    deadline = summary.started + args.seconds
+    try:
+        while not stop["flag"] and time.monotonic() < deadline:
+            try:
+                data = link.read(4096)
+            except serial.SerialException as e:
+                _say(f"port lost ({e}); reconnecting")
+                link.close()
+                link = _reconnect(args, stop)
+                if link is None:
+                    break
+                summary.reconnects += 1
+                decoder.reconnected()
+                runner.stream.reset()
+                runner.printer.event("reconnect", port=args.port)
+                last_data = time.monotonic()
+                continue
+            now = time.monotonic()
+            if data:
+                last_data = now
+                runner.handle(decoder.feed(data))
+            elif now - last_data > args.stall_timeout:
+                summary.stalls += 1
+                _say(f"no data for {now - last_data:.1f} s")
+                runner.printer.event("stall", seconds=round(now - last_data, 1))
+                last_data = now
+            if now - last_status >= args.status_every:
+                last_status = now
+                st = decoder.stats
+                _say(f"windows {summary.windows}  gaps {st.gaps} (lost {st.samples_lost})  "
+                     f"crc {st.crc_errors}  malformed {st.malformed}  "
+                     f"discarded {st.bytes_discarded} B  reconnects {summary.reconnects}")
+    finally:
+        link.close()
+
+
+def _reconnect(args: argparse.Namespace, stop: dict) -> serial.SerialBase | None:
+    delay = 0.1
+    while not stop["flag"]:
+        try:
+            link = open_port(args.port, args.baud)
+            _say(f"reconnected to {args.port}")
+            return link
+        except (serial.SerialException, DeviceError):
+            time.sleep(delay)
+            delay = min(delay * 2, 2.0)
+    return None
+
+
+def replay(path: Path, runner: Runner) -> None:
+    """Run a recorded take through the same stream, as fast as possible."""
+    from tactile.device.recording import read_take
+
+    take = read_take(path)
+    runner.handle([Header(take.info)])
+    for a, b in take.segments():
+        if a > 0:
+            runner.handle([Gap(int(take.seq[a]), int(take.seq[a] - take.seq[a - 1] - 1),
+                               "recorded")])
+        for i in range(a, b, 256):
+            j = min(i + 256, b)
+            runner.handle([Samples(int(take.seq[i]), int(take.t_us[i]), take.raw[i:j])])
+
+
+def _say(msg: str) -> None:
+    print(f"tactile-run: {msg}", file=sys.stderr, flush=True)
+
+
+def build_parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(prog="tactile-run", description=__doc__.split("\n\n")[0])
+    p.add_argument("--model", required=True, type=Path, help="the .onnx file from tactile-export")
+    src = p.add_mutually_exclusive_group()
+    src.add_argument("--port", help="device path or pyserial URL (sim://, socket://, ...); "
+                     "default: the one likely pen attached")
+    src.add_argument("--replay", type=Path, metavar="TAKE", help="a recorded take (.csv)")
+    p.add_argument("--baud", type=int, default=115200)
+    p.add_argument("--hop", type=int, help="samples between windows (default: the model's)")
+    p.add_argument("--format", choices=FORMATS, default="jsonl")
+    p.add_argument("--smooth", type=int, default=1, metavar="K",
+                   help="also report the label averaged over the last K windows")
+    p.add_argument("--hysteresis", type=float, default=0.0, metavar="MARGIN",
+                   help="the smoothed label changes only when beaten by MARGIN")
+    p.add_argument("--threads", type=int, default=1, help="onnxruntime threads (default 1)")
+    p.add_argument("--seconds", type=float, default=math.inf, help="stop after this long")
+    p.add_argument("--stall-timeout", type=float, default=2.0,
+                   help="report a stall after this many seconds without data")
+    p.add_argument("--status-every", type=float, default=5.0, help="status line period, s")
+    add_debug(p)
+    return p
+
+
+def _main(args: argparse.Namespace) -> int:
+    model = Model(args.model, threads=args.threads)
+    c = model.contract
+    hop = args.hop or c.hop
+    smoother = Smoother(args.smooth, args.hysteresis) if args.smooth > 1 or args.hysteresis \
+        else None
+    stream = Stream(model.classify, c.classes, c.window, hop, len(c.channels),
+                    c.state_mode == "carry", model.state_shape, smoother)
+    summary = Summary()
+    runner = Runner(model, stream, Printer(args.format, c.classes), summary)
+    decoder = StreamDecoder()
+    stop = {"flag": False}
+    for s in (signal.SIGINT, signal.SIGTERM):
+        signal.signal(s, lambda *_: stop.__setitem__("flag", True))
+    if args.replay:
+        replay(args.replay, runner)
+    else:
+        if args.port is None:
+            args.port = find_port()
+        serve(args, runner, decoder, stop)
+    print("tactile-run: summary " + json.dumps(summary.to_dict(decoder.stats.as_dict())),
+          file=sys.stderr, flush=True)
+    return 0
+
+
+def main(argv: list[str] | None = None) -> int:
+    return run("tactile-run", _main, build_parser().parse_args(argv))
+
+
+if __name__ == "__main__":
+    sys.exit(main())

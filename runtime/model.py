@@ -1,0 +1,87 @@
+"""The model object: loads an exported ``.onnx``, checks its contract, classifies windows.
+
+Stateless: the LSTM state lives in each :class:`~tactile.runtime.stream.Stream`, so one
+``Model`` serves any number of pens. Needs numpy and onnxruntime only.
+"""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import numpy as np
+import onnxruntime as ort
+
+from tactile.contract import ModelContract
+from tactile.errors import ModelContractError
+
+
+def session_options(threads: int = 1) -> ort.SessionOptions:
+    """onnxruntime settings for a small board: few threads, sequential, no busy-waiting.
+
+    Spinning threads burn a core while waiting for work and were seen to push the p99 latency
+    of a 50-sample window from ~0.25 ms to ~8 ms on a loaded board, so they are off.
+    """
+    so = ort.SessionOptions()
+    so.intra_op_num_threads = threads
+    so.inter_op_num_threads = 1
+    so.execution_mode = ort.ExecutionMode.ORT_SEQUENTIAL
+    so.add_session_config_entry("session.intra_op.allow_spinning", "0")
+    so.add_session_config_entry("session.inter_op.allow_spinning", "0")
+    so.log_severity_level = 3
+    return so
+
+
+class Model:
+    """An exported texture model.
+
+    Args:
+        path: the ``.onnx`` file written by ``tactile-export``.
+        threads: onnxruntime intra-op threads (1 suits a board running one pen).
+
+    Raises :class:`ModelContractError` (a one-line message naming the problem) if the file is
+    missing, not ONNX, not made by the exporter, or its graph does not match its metadata.
+    """
+
+    def __init__(self, path: str | os.PathLike, threads: int = 1) -> None:
+        path = Path(path)
+        if not path.is_file():
+            raise ModelContractError(f"{path}: no such model file")
+        try:
+            self.session = ort.InferenceSession(
+                str(path), session_options(threads), providers=["CPUExecutionProvider"]
+            )
+        except Exception as e:  # noqa: BLE001  (onnxruntime raises its own untyped errors)
+            first = str(e).strip().splitlines()[0] if str(e).strip() else type(e).__name__
+            raise ModelContractError(f"{path}: not a loadable ONNX model ({first})") from None
+        meta = self.session.get_modelmeta().custom_metadata_map
+        try:
+            self.contract = ModelContract.from_metadata(meta)
+            self.contract.check_signature(
+                [(i.name, i.type, i.shape) for i in self.session.get_inputs()],
+                [(o.name, o.type, o.shape) for o in self.session.get_outputs()],
+            )
+        except ModelContractError as e:
+            raise ModelContractError(f"{path}: {e}") from None
+        self.path = path
+
+    @property
+    def state_shape(self) -> tuple[int, int]:
+        return self.contract.state_layers, self.contract.state_hidden
+
+    def classify(
+        self, x: np.ndarray, h: np.ndarray, c: np.ndarray
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """x (B, window, channels) float32 in units; h, c (layers, B, hidden) float32.
+
+        Returns probabilities (B, classes) and the new h, c.
+        """
+        probs, h_out, c_out = self.session.run(
+            None, {"x": np.ascontiguousarray(x, np.float32), "h": h, "c": c}
+        )
+        return probs, h_out, c_out
+
+    def zero_state(self, batch: int = 1) -> tuple[np.ndarray, np.ndarray]:
+        layers, hidden = self.state_shape
+        z = np.zeros((layers, batch, hidden), np.float32)
+        return z, z.copy()

@@ -1,0 +1,178 @@
+"""The per-stream object: samples in, one label per window out.
+
+A :class:`Stream` holds one pen's ring buffer and LSTM state; the model object it calls is
+stateless and may be shared by many streams. Four verbs: :meth:`Stream.accept` samples,
+:meth:`Stream.ready`, :meth:`Stream.classify`, :meth:`Stream.reset` (plus :meth:`Stream.gap`
+when samples were lost). The serial loop is a few lines over it, and tests drive it with arrays.
+"""
+
+from __future__ import annotations
+
+import time
+from collections import deque
+from collections.abc import Callable
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from tactile.errors import ConfigError
+
+# (window (1, T, C) float32, h, c) -> (probabilities (1, K), h, c)
+ClassifyFn = Callable[[np.ndarray, np.ndarray, np.ndarray], tuple[np.ndarray, np.ndarray,
+                                                                   np.ndarray]]
+
+
+@dataclass(frozen=True)
+class Label:
+    """The result for one window."""
+
+    seq: int  # sequence number of the window's last sample
+    t_us: int  # device time of the window's last sample
+    label: str
+    probability: float
+    probabilities: dict[str, float]
+    latency_ms: float  # compute time of this window (preprocessing + model)
+    smoothed: str | None = None  # label after the optional smoother
+
+    def to_dict(self) -> dict:
+        d = {
+            "t": self.t_us / 1e6,
+            "seq": self.seq,
+            "label": self.label,
+            "p": round(self.probability, 6),
+            "probs": {k: round(v, 6) for k, v in self.probabilities.items()},
+            "latency_ms": round(self.latency_ms, 3),
+        }
+        if self.smoothed is not None:
+            d["smoothed"] = self.smoothed
+        return d
+
+
+@dataclass
+class Smoother:
+    """Average of the last ``k`` windows' probabilities, with optional hysteresis: the smoothed
+    label only changes when the new class beats the current one by ``margin``."""
+
+    k: int = 1
+    margin: float = 0.0
+    _history: deque = field(default_factory=deque)
+    _current: int | None = None
+
+    def __post_init__(self) -> None:
+        if self.k < 1 or not 0 <= self.margin < 1:
+            raise ConfigError(f"smoother k={self.k}, margin={self.margin}: need k >= 1, 0 <= "
+                              "margin < 1")
+
+    def __call__(self, probs: np.ndarray) -> int:
+        self._history.append(probs)
+        while len(self._history) > self.k:
+            self._history.popleft()
+        mean = np.mean(self._history, axis=0)
+        best = int(mean.argmax())
+        if self._current is None or mean[best] >= mean[self._current] + self.margin:
+            self._current = best
+        return self._current
+
+    def reset(self) -> None:
+        self._history.clear()
+        self._current = None
+
+
+class Stream:
+    """Ring buffer + state for one pen.
+
+    Args:
+        classify: the model's function (see :data:`ClassifyFn`).
+        classes: class names, in the model's output order.
+        window, hop: samples per window and between windows.
+        channels: channels per sample.
+        carry: carry the LSTM state from window to window (else a zero state per window).
+        state_shape: (layers, hidden) of the state tensors.
+        smoother: optional :class:`Smoother` whose label is reported beside the raw one.
+    """
+
+    def __init__(
+        self,
+        classify: ClassifyFn,
+        classes: tuple[str, ...],
+        window: int,
+        hop: int,
+        channels: int,
+        carry: bool,
+        state_shape: tuple[int, int],
+        smoother: Smoother | None = None,
+    ) -> None:
+        if window < 1 or hop < 1:
+            raise ConfigError(f"window {window} and hop {hop} must be >= 1")
+        if carry and hop != window:
+            raise ConfigError(
+                f"the model carries its state between windows, so hop must equal the window "
+                f"({window}); got hop {hop}"
+            )
+        self._classify = classify
+        self.classes = classes
+        self.window, self.hop, self.channels = window, hop, channels
+        self.carry = carry
+        self.state_shape = state_shape
+        self.smoother = smoother
+        self.reset()
+
+    def reset(self) -> None:
+        """Forget the buffered samples and the state (after a gap or on request)."""
+        self._buf = np.zeros((0, self.channels), np.float32)  # samples from index _base on
+        self._seq = np.zeros(0, np.int64)
+        self._t = np.zeros(0, np.int64)
+        self._base = 0  # index (since reset) of _buf[0]
+        self._next_end = self.window  # index one past the next window's last sample
+        layers, hidden = self.state_shape
+        self.h = np.zeros((layers, 1, hidden), np.float32)
+        self.c = np.zeros((layers, 1, hidden), np.float32)
+        if self.smoother is not None:
+            self.smoother.reset()
+
+    def gap(self) -> None:
+        """Samples were lost: no window may span the gap, and a carried state is void."""
+        self.reset()
+
+    def accept(self, values: np.ndarray, seq: int, t_us: int, period_us: float = 0.0) -> None:
+        """Append samples (n, channels) in the channels' units; ``seq``/``t_us`` of the first."""
+        values = np.asarray(values, dtype=np.float32)
+        if values.ndim != 2 or values.shape[1] != self.channels:
+            raise ConfigError(f"samples of shape {values.shape}: expected (n, {self.channels})")
+        n = len(values)
+        self._buf = np.concatenate([self._buf, values])
+        self._seq = np.concatenate([self._seq, seq + np.arange(n)])
+        self._t = np.concatenate([self._t, t_us + np.round(np.arange(n) * period_us)
+                                  .astype(np.int64)])
+
+    def ready(self) -> bool:
+        """True while a window is due: its last sample has arrived."""
+        return self._base + len(self._buf) >= self._next_end
+
+    def classify(self) -> Label:
+        """Run the model on the oldest due window and return its label (windows come in order)."""
+        if not self.ready():
+            raise ConfigError("no window is ready")
+        end = self._next_end - self._base
+        x = self._buf[end - self.window : end][None]  # (1, T, C)
+        last_seq, last_t = int(self._seq[end - 1]), int(self._t[end - 1])
+        if not self.carry:
+            self.h = np.zeros_like(self.h)
+            self.c = np.zeros_like(self.c)
+        t0 = time.perf_counter()
+        probs, h, c = self._classify(x, self.h, self.c)
+        latency = (time.perf_counter() - t0) * 1e3
+        if self.carry:
+            self.h, self.c = h, c
+        self._next_end += self.hop
+        drop = self._next_end - self.window - self._base  # samples no window needs any more
+        if drop > 0:
+            self._buf, self._seq, self._t = self._buf[drop:], self._seq[drop:], self._t[drop:]
+            self._base += drop
+        p = probs[0]
+        k = int(p.argmax())
+        smoothed = self.classes[self.smoother(p)] if self.smoother is not None else None
+        return Label(
+            last_seq, last_t, self.classes[k], float(p[k]),
+            {name: float(v) for name, v in zip(self.classes, p)}, latency, smoothed,
+        )

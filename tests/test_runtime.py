@@ -1,0 +1,272 @@
+"""Runtime: the stream object, parity from bytes to labels, fault injection, contract errors."""
+
+from __future__ import annotations
+
+import json
+import signal
+import subprocess
+import sys
+import time
+
+import numpy as np
+import pytest
+import torch
+
+from tactile.device.info import pen_info
+from tactile.device.protocol_sim import forget_unplugs
+from tactile.device.sim_cli import make_dataset
+from tactile.device.simulator import PenSimulator
+from tactile.errors import ConfigError, ModelContractError
+from tactile.runtime.model import Model
+from tactile.runtime.stream import Smoother, Stream
+from tactile.training.config import TrainConfig
+from tactile.training.train import load_checkpoint, train
+
+TEXTURES = ("paper", "desk", "non_contact")
+
+
+# -- the stream object, driven by arrays --------------------------------------------------------
+
+
+def fake_classify(x, h, c):
+    """'Probabilities' that encode the window: class 0 gets the window's first sample."""
+    p = np.array([[x[0, 0, 0], x[0, -1, 0], 1.0]], np.float32)
+    return p, h + 1, c + 1
+
+
+def make_stream(window=5, hop=2, carry=False, smoother=None):
+    return Stream(fake_classify, ("a", "b", "c"), window, hop, 1, carry, (1, 2), smoother)
+
+
+def drain(stream):
+    out = []
+    while stream.ready():
+        out.append(stream.classify())
+    return out
+
+
+def test_windows_every_hop_in_order_whatever_the_chunking(rng):
+    values = np.arange(40, dtype=np.float32)[:, None]
+    for chunks in ([40], [1] * 40, [3, 7, 1, 20, 9]):
+        s = make_stream()
+        labels, i = [], 0
+        for n in chunks:
+            s.accept(values[i : i + n], seq=100 + i, t_us=i * 10_000, period_us=10_000)
+            i += n
+            labels += drain(s)
+        # windows end at samples 4, 6, 8, ..., 38
+        assert [lab.seq for lab in labels] == [100 + e for e in range(4, 40, 2)]
+        assert [lab.probabilities["a"] for lab in labels] == [float(e - 4) for e in range(4, 40, 2)]
+        assert labels[0].t_us == 40_000
+
+
+def test_gap_restarts_the_window():
+    s = make_stream(window=5, hop=5)
+    s.accept(np.zeros((7, 1)), 0, 0)
+    assert len(drain(s)) == 1
+    s.gap()
+    s.accept(np.ones((4, 1)), 20, 0)
+    assert not s.ready()  # 4 samples after the gap: no window may reach back across it
+    s.accept(np.ones((1, 1)), 24, 0)
+    assert [lab.seq for lab in drain(s)] == [24]
+
+
+def test_state_is_carried_only_in_carry_mode():
+    s = make_stream(window=2, hop=2, carry=True)
+    s.accept(np.zeros((6, 1)), 0, 0)
+    drain(s)
+    assert float(s.h[0, 0, 0]) == 3.0  # three windows, each adds 1 to the state
+    s.gap()
+    assert float(s.h[0, 0, 0]) == 0.0
+    w = make_stream(window=2, hop=2, carry=False)
+    w.accept(np.zeros((6, 1)), 0, 0)
+    drain(w)
+    assert float(w.h[0, 0, 0]) == 0.0
+    with pytest.raises(ConfigError, match="hop must equal the window"):
+        make_stream(window=4, hop=2, carry=True)
+
+
+def test_smoother_averages_and_hysteresis():
+    sm = Smoother(k=3, margin=0.2)
+    assert sm(np.array([0.6, 0.4])) == 0
+    assert sm(np.array([0.3, 0.7])) == 0  # mean [0.45, 0.55]: not beaten by 0.2
+    assert sm(np.array([0.1, 0.9])) == 1  # mean [0.33, 0.67]
+    with pytest.raises(ConfigError):
+        Smoother(k=0)
+
+
+# -- exported models ----------------------------------------------------------------------------
+
+
+@pytest.fixture(scope="module")
+def models(tmp_path_factory):
+    """Two tiny exported models (window and carried state) and their runs."""
+    from tactile.export.cli import export_run
+
+    root = tmp_path_factory.mktemp("rt")
+    data = root / "data"
+    make_dataset(data, takes=4, textures=TEXTURES, seconds=6, seed=2)
+    out = {}
+    for mode, kw in (("window", dict(hop=25)), ("carry", dict(hop=50, state="carry",
+                                                               carry_steps=2))):
+        cfg = TrainConfig(epochs=2, hidden=12, layers=2, threads=1, **kw)
+        train(data, root / mode, cfg, progress=False)
+        export_run(root / mode, root / f"{mode}.onnx", log=lambda *_: None)
+        out[mode] = (root / mode, root / f"{mode}.onnx")
+    out["data"] = data
+    return out
+
+
+def run_cli(args, timeout=60):
+    proc = subprocess.run([sys.executable, "-m", "tactile.runtime.cli", *args],
+                          capture_output=True, text=True, timeout=timeout)
+    return proc.returncode, proc.stdout, proc.stderr
+
+
+def torch_labels(run_dir, raw: np.ndarray) -> np.ndarray:
+    """What the PyTorch model says for the stream's windows, computed offline: (N, K)."""
+    model, ck = load_checkpoint(run_dir)
+    cfg = model.cfg
+    info = pen_info()
+    values = (raw * np.array([c.scale for c in info.channels])).astype(np.float32)
+    ends = np.arange(cfg.window, len(values) + 1, cfg.hop)
+    x = torch.from_numpy(np.stack([values[e - cfg.window : e] for e in ends]))
+    with torch.no_grad():
+        if cfg.state == "window":
+            h, c = model.zero_state(len(x))
+            return model(x, h, c)[0].numpy()
+        h, c = model.zero_state(1)
+        out = []
+        for w in x:
+            p, h, c = model(w[None], h, c)
+            out.append(p[0].numpy())
+        return np.array(out)
+
+
+@pytest.mark.parametrize("mode", ["window", "carry"])
+def test_parity_from_bytes_to_labels(models, mode):
+    """sim:// bytes -> decoder -> stream -> onnxruntime equals PyTorch on the same samples."""
+    run_dir, onnx_path = models[mode]
+    url = "sim://?texture=desk&seed=11&speed=max&seconds=8"
+    code, out, err = run_cli(["--model", str(onnx_path), "--port", url, "--seconds", "20",
+                              "--stall-timeout", "0.5"])
+    assert code == 0, err
+    labels = [json.loads(line) for line in out.splitlines() if '"label"' in line]
+    raw = PenSimulator("desk", seed=11).read(800)
+    ref = torch_labels(run_dir, raw)
+    assert len(labels) == len(ref) >= 15
+    classes = list(labels[0]["probs"])
+    got = np.array([[lab["probs"][k] for k in classes] for lab in labels])
+    _, ck = load_checkpoint(run_dir)
+    ref = ref[:, [ck["classes"].index(k) for k in classes]]
+    np.testing.assert_allclose(got, ref, atol=1e-4, rtol=0)
+    assert [lab["label"] for lab in labels] == [classes[i] for i in ref.argmax(1)]
+    window, hop = (50, 25) if mode == "window" else (50, 50)
+    assert [lab["seq"] for lab in labels] == list(range(window - 1, 800, hop))
+
+
+def test_library_api_in_a_few_lines(models):
+    model = Model(models["window"][1])
+    c = model.contract
+    stream = Stream(model.classify, c.classes, c.window, c.hop, len(c.channels),
+                    c.state_mode == "carry", model.state_shape)
+    stream.accept(np.zeros((120, len(c.channels)), np.float32), seq=0, t_us=0)
+    labels = drain(stream)
+    assert [lab.seq for lab in labels] == [49, 74, 99]
+    assert all(lab.label in c.classes and 0 <= lab.probability <= 1 for lab in labels)
+
+
+def test_faults_are_survived_and_counted(models):
+    forget_unplugs()
+    _, onnx_path = models["window"]
+    url = ("sim://?texture=paper&seed=4&speed=max&seconds=12&garbage=0.02&flip=0.0003"
+           "&drop=0.01&stall=3:0.6&unplug=6:0.5")
+    code, out, err = run_cli(["--model", str(onnx_path), "--port", url, "--seconds", "8",
+                              "--stall-timeout", "0.4", "--status-every", "0.5"])
+    forget_unplugs()
+    assert code == 0, err
+    lines = [json.loads(line) for line in out.splitlines()]
+    events = [x["event"] for x in lines if "event" in x]
+    assert "reconnect" in events and "stall" in events and "gap" in events
+    summary = json.loads(err.split("tactile-run: summary ", 1)[1].splitlines()[0])
+    assert summary["reconnects"] == 1 and summary["stalls"] >= 1
+    dec = summary["decoder"]
+    assert dec["restarts"] == 1 and dec["bytes_discarded"] > 0
+    assert dec["crc_errors"] + dec["malformed"] > 0
+    # the 0.6 s stall is a 60-sample gap, drops are 1-sample gaps
+    assert any(x.get("missing") == 60 for x in lines if x.get("event") == "gap")
+    # labels resume after the replug: the restarted pen's windows are labelled
+    replug = next(i for i, x in enumerate(lines) if x.get("event") == "reconnect")
+    assert len([x for x in lines[replug:] if "label" in x]) >= 5
+    assert "status" not in out and "windows" in err  # status lines go to stderr
+
+
+def test_sigterm_gives_a_summary_and_exit_0(models):
+    _, onnx_path = models["window"]
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "tactile.runtime.cli", "--model", str(onnx_path), "--port",
+         "sim://?texture=paper&seed=1&speed=2", "--format", "text"],
+        stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+    )
+    time.sleep(3)
+    proc.send_signal(signal.SIGTERM)
+    out, err = proc.communicate(timeout=10)
+    assert proc.returncode == 0, err
+    summary = json.loads(err.split("tactile-run: summary ", 1)[1].splitlines()[0])
+    assert summary["windows"] >= 3 and sum(summary["labels"].values()) == summary["windows"]
+    assert len([ln for ln in out.splitlines() if " p=" in ln]) == summary["windows"]
+
+
+def test_replay_and_csv_output(models):
+    _, onnx_path = models["window"]
+    take = next((models["data"]).glob("paper-*.csv"))
+    code, out, err = run_cli(["--model", str(onnx_path), "--replay", str(take), "--format",
+                              "csv", "--smooth", "3"])
+    assert code == 0, err
+    rows = out.splitlines()
+    assert rows[0].startswith("t,seq,label,p,latency_ms,smoothed,")
+    assert len(rows) - 1 == (600 - 50) // 25 + 1
+    assert all(r.split(",")[5] for r in rows[1:])  # smoothed label present
+
+
+def test_contract_errors_have_clear_messages_and_exit_codes(models, tmp_path):
+    import onnx
+    from onnx import TensorProto, helper
+
+    _, onnx_path = models["window"]
+    code, _, err = run_cli(["--model", str(tmp_path / "none.onnx"), "--port", "loop://"])
+    assert code == 3 and "no such model file" in err and len(err.strip().splitlines()) == 1
+    junk = tmp_path / "junk.onnx"
+    junk.write_bytes(b"not onnx at all")
+    code, _, err = run_cli(["--model", str(junk), "--port", "loop://"])
+    assert code == 3 and "not a loadable ONNX model" in err
+    node = helper.make_node("Identity", ["x"], ["y"])
+    graph = helper.make_graph([node], "g", [helper.make_tensor_value_info("x", 1, [1])],
+                              [helper.make_tensor_value_info("y", TensorProto.FLOAT, [1])])
+    foreign = tmp_path / "foreign.onnx"
+    onnx.save(helper.make_model(graph, ir_version=8, opset_imports=[helper.make_opsetid("", 18)]),
+              foreign)
+    code, _, err = run_cli(["--model", str(foreign), "--port", "loop://"])
+    assert code == 3 and "not a model made by tactile-export" in err
+    code, _, err = run_cli(["--model", str(onnx_path), "--port", "/dev/no-such-pen"])
+    assert code == 2 and "no-such-pen" in err
+    with pytest.raises(ModelContractError, match="no such model file"):
+        Model(tmp_path / "none.onnx")
+
+
+def test_device_contract_mismatch_names_both_sides(models, tmp_path):
+    """A pen that sends other channels than the model was trained on is refused before the
+    first window, naming both sides."""
+    from tactile.export.cli import export_run
+
+    data = tmp_path / "imu"
+    make_dataset(data, takes=4, textures=("paper", "desk"), seconds=4, seed=3)
+    cfg = TrainConfig(epochs=1, hidden=4, layers=1, threads=1, hop=25,
+                      channels=("accel_x", "accel_y", "accel_z"))
+    train(data, tmp_path / "run", cfg, progress=False)
+    export_run(tmp_path / "run", tmp_path / "imu.onnx", log=lambda *_: None)
+    code, out, err = run_cli(["--model", str(tmp_path / "imu.onnx"), "--port",
+                              "sim://?texture=paper&speed=max&seconds=2"])
+    assert code == 3
+    assert "device channels ['pressure_0'" in err and "model's ['accel_x'" in err
+    assert '"label"' not in out
