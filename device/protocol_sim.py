@@ -48,7 +48,7 @@ class Serial(SerialBase):
         self.link = PenLink(self.config, restart_at_s=restart_at)
         self._buf = bytearray()
         self._t0 = time.monotonic()
-        self._sent_s = 0.0  # stream seconds handed to the reader
+        self._stream0 = self.link.stream_time  # after a replug the motion has moved on
         self._silent_until = 0.0
         self._stalls_seen = 0
         self.is_open = True
@@ -89,7 +89,7 @@ class Serial(SerialBase):
         if math.isinf(cfg.speed):
             want = max(0, 4096 - len(self._buf)) // 16 + 1
         else:
-            due_s = (now - self._t0) * cfg.speed
+            due_s = self._stream0 + (now - self._t0) * cfg.speed
             want = int((due_s - self.link.stream_time) * cfg.rate)
         if want > 0:
             self._buf += self.link.produce(want)

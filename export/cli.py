@@ -10,6 +10,7 @@ float32 one.
 from __future__ import annotations
 
 import argparse
+import os
 import sys
 import tempfile
 import time
@@ -61,6 +62,9 @@ def export_run(run_dir: Path, out: Path, data: Path | None = None, int8: bool = 
     try:
         onnx.save(final, tmp_path)
         load_contract(tmp_path)  # the written file honours the contract, or nothing is written
+        mask = os.umask(0)
+        os.umask(mask)
+        os.chmod(tmp_path, 0o666 & ~mask)  # a temp file is private; the model is not
         tmp_path.replace(out)
     finally:
         tmp_path.unlink(missing_ok=True)

@@ -1,22 +1,14 @@
 #!/usr/bin/env bash
-# The main job, end to end on the simulated pen: set up, then record takes from a simulated pen
-# over its serial URL through a noisy link (garbage bytes, bit flips, dropped frames, a stall),
-# and read them back. (When the runtime lands, this becomes tactile-run on the simulated pen.)
+# The main job: the runtime on the simulated pen. Sets up .venv, then runs tactile-run with the
+# shipped model (models/pen-exp2.onnx: non-contact, paper, non-woven cloth, plastic folder,
+# mouse pad) on simulated pens over a noisy link (garbage bytes, bit flips, dropped frames, a
+# stall and an unplug), printing one label per window. Extra arguments go to tactile-run.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 ./scripts/setup.sh
-out=${1:-data/demo}
-rm -rf "$out"
-for texture in paper desk; do
-  .venv/bin/tactile-record --label "$texture" --seconds 20 --out "$out" \
-    --port "sim://?texture=$texture&seed=3&speed=max&garbage=0.01&flip=0.0005&drop=0.01&stall=8:0.5"
+model=models/pen-exp2.onnx
+for texture in plastic_folder mouse_pad; do
+  echo "== a simulated user strokes: $texture (16 s of strokes at 2x real time) ==" >&2
+  .venv/bin/tactile-run --model "$model" --format text --seconds 8 --status-every 2 "$@" \
+    --port "sim://?texture=$texture&seed=8&speed=2&garbage=0.01&flip=0.0002&drop=0.005&stall=3:0.5&unplug=6:0.5"
 done
-.venv/bin/python - "$out" <<'PY'
-import sys
-from tactile.device.recording import load_dataset
-for take in load_dataset(sys.argv[1]):
-    v = take.values()
-    print(f"{take.path.name}: label={take.label} samples={len(v)} segments={len(take.segments())} "
-          f"gaps={len(take.meta['gaps'])} mean pressure={v[:, 0].mean():.2f} N "
-          f"mean |accel|={abs(v[:, 2:5]).mean():.2f} g")
-PY

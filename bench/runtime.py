@@ -1,0 +1,181 @@
+"""Runtime benchmark: the deployed path against a PyTorch + PyEMD pipeline, in the same run.
+
+    python bench/runtime.py [--model model.onnx --run RUN]
+
+Without --model it trains and exports a small model with EMD features on (the pen's 8 channels,
+50-sample windows, 4 IMFs x 10 sifts of pressure_0 and accel_x/y/z) on simulated data first.
+Prints, with one thread: per-window latency p50/p99 at batch 1 (onnxruntime) and of the
+reference pipeline (PyEMD EMD per channel + PyTorch LSTM), the highest sustained sample rate of
+the whole path (decode bytes -> window -> inference), resident memory of a tactile-run process,
+and the time from start to the first label.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+
+def build_model(work: Path) -> tuple[Path, Path]:
+    from tactile.device.sim_cli import make_dataset
+    from tactile.export.cli import export_run
+    from tactile.training.config import TrainConfig
+    from tactile.training.train import train
+
+    data = work / "data"
+    make_dataset(data, takes=4, textures=("paper", "desk", "mouse_pad"), seconds=10, seed=5)
+    cfg = TrainConfig(epochs=1, threads=1, hop=25,
+                      emd_channels=("pressure_0", "accel_x", "accel_y", "accel_z"))
+    train(data, work / "run", cfg, progress=False)
+    export_run(work / "run", work / "model.onnx", log=lambda *_: None)
+    return work / "model.onnx", work / "run"
+
+
+def percentiles(ms: list[float]) -> tuple[float, float]:
+    return float(np.percentile(ms, 50)), float(np.percentile(ms, 99))
+
+
+def onnx_latency(model_path: Path, windows: np.ndarray) -> list[float]:
+    from tactile.runtime.model import Model
+
+    model = Model(model_path)
+    h, c = model.zero_state()
+    for w in windows[:20]:  # warm-up
+        model.classify(w[None], h, c)
+    out = []
+    for w in windows:
+        t0 = time.perf_counter()
+        model.classify(w[None], h, c)
+        out.append((time.perf_counter() - t0) * 1e3)
+    return out
+
+
+def reference_latency(run: Path, windows: np.ndarray) -> list[float]:
+    """PyEMD (FIXE=10, max_imf=4) per EMD channel, then the PyTorch head, per window."""
+    import torch
+    from PyEMD import EMD
+
+    from tactile.training.train import load_checkpoint
+
+    torch.set_num_threads(1)
+    model, ck = load_checkpoint(run)
+    cfg = model.cfg
+    emd = EMD(FIXE=cfg.emd_sifts, spline_kind="cubic", nbsym=2, extrema_detection="simple")
+    idx = list(ck["emd_index"])
+    mean, std = np.array(ck["mean"]), np.array(ck["std"])
+    mask = np.zeros(len(mean))
+    mask[list(ck["center_index"])] = 1
+    h, c = model.zero_state(1)
+    out = []
+    with torch.no_grad():
+        for w in windows[:200]:
+            t0 = time.perf_counter()
+            z = (w - mean) / std
+            z = z - z.mean(0) * mask
+            feats = []
+            for i in idx:
+                rows = emd.emd(z[:, i].astype(np.float64), max_imf=cfg.emd_imfs)
+                imfs = rows[:-1][: cfg.emd_imfs]  # PyEMD appends the residue as the last row
+                k = np.zeros((cfg.emd_imfs, len(z)))
+                k[: len(imfs)] = imfs
+                feats.append(k)
+            f = np.concatenate([z.T, *feats]).T[None].astype(np.float32)
+            model.head(torch.from_numpy(f), h, c)
+            out.append((time.perf_counter() - t0) * 1e3)
+    return out
+
+
+def sustained_rate(model_path: Path, seconds: float = 60.0) -> float:
+    """Samples per second the whole path keeps up with: bytes -> decoder -> stream -> model."""
+    from tactile.device.decoder import StreamDecoder
+    from tactile.device.simlink import LinkConfig, PenLink
+    from tactile.runtime.cli import Printer, Runner, Summary
+    from tactile.runtime.model import Model
+    from tactile.runtime.stream import Stream
+
+    link = PenLink(LinkConfig(texture="paper", seed=1))
+    data = link.produce(int(seconds * 100))
+    model = Model(model_path)
+    c = model.contract
+    stream = Stream(model.classify, c.classes, c.window, c.hop, len(c.channels),
+                    c.state_mode == "carry", model.state_shape)
+    with open(os.devnull, "w") as null:
+        runner = Runner(model, stream, Printer("jsonl", c.classes, null), Summary())
+        dec = StreamDecoder()
+        t0 = time.perf_counter()
+        for i in range(0, len(data), 1024):
+            runner.handle(dec.feed(data[i : i + 1024]))
+        dt = time.perf_counter() - t0
+    return dec.stats.samples / dt
+
+
+def process_figures(model_path: Path) -> tuple[float, float]:
+    """(resident MB of a tactile-run process after 5 s, seconds from launch to first label)."""
+    cmd = [sys.executable, "-m", "tactile.runtime.cli", "--model", str(model_path), "--port",
+           "sim://?texture=paper&seed=2", "--seconds", "5"]
+    t0 = time.perf_counter()
+    proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, text=True)
+    proc.stdout.readline()
+    first = time.perf_counter() - t0
+    rss = 0.0
+    while proc.poll() is None:
+        try:
+            with open(f"/proc/{proc.pid}/status") as f:
+                for line in f:
+                    if line.startswith("VmRSS:"):
+                        rss = max(rss, int(line.split()[1]) / 1024)
+        except FileNotFoundError:
+            break
+        time.sleep(0.2)
+    proc.wait()
+    return rss, first
+
+
+def main() -> None:
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    p.add_argument("--model", type=Path)
+    p.add_argument("--run", type=Path, help="the run the model came from (for the reference)")
+    p.add_argument("--windows", type=int, default=1000)
+    args = p.parse_args()
+    os.environ.setdefault("OMP_NUM_THREADS", "1")
+    with tempfile.TemporaryDirectory() as tmp:
+        model_path, run = (args.model, args.run) if args.model else build_model(Path(tmp))
+        from tactile.device.info import pen_info
+        from tactile.device.simulator import PenSimulator
+
+        info = pen_info()
+        scale = np.array([ch.scale for ch in info.channels], np.float32)
+        raw = PenSimulator("paper", seed=9).read(args.windows * 25 + 50)
+        values = raw * scale
+        windows = np.stack([values[i : i + 50] for i in range(0, args.windows * 25, 25)])
+        onnx_p50, onnx_p99 = percentiles(onnx_latency(model_path, windows))
+        ref_p50, ref_p99 = percentiles(reference_latency(run, windows))
+        rate = sustained_rate(model_path)
+        rss, first = process_figures(model_path)
+        print(f"model: {model_path.name}, {model_path.stat().st_size / 1e3:.0f} kB")
+        print("| figure | tactile-run (onnxruntime) | PyTorch + PyEMD | ratio |")
+        print("|---|---|---|---|")
+        print(f"| latency p50, ms/window | {onnx_p50:.2f} | {ref_p50:.2f} | "
+              f"{ref_p50 / onnx_p50:.1f}x |")
+        print(f"| latency p99, ms/window | {onnx_p99:.2f} | {ref_p99:.2f} | "
+              f"{ref_p99 / onnx_p99:.1f}x |")
+        print(f"| sustained sample rate (hop 25) | {rate:,.0f} Hz ({rate / 100:.0f}x the pen's "
+              f"100 Hz) | | |")
+        print(f"| resident memory | {rss:.0f} MB | | |")
+        print(f"| start to first label | {first:.2f} s (0.49 s of it is the first window's "
+              "samples at 100 Hz) | | |")
+        print(json.dumps({"p50_ms": onnx_p50, "p99_ms": onnx_p99, "ref_p50_ms": ref_p50,
+                          "ref_p99_ms": ref_p99, "rate_hz": rate, "rss_mb": rss,
+                          "first_label_s": first}))
+
+
+if __name__ == "__main__":
+    main()
