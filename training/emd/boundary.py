@@ -1,0 +1,102 @@
+"""Boundary knots: PyEMD's port of Rilling's ``boundary_conditions.m`` (EMD_SPEC §1.5).
+
+Each envelope gets up to two mirrored knots beyond each end. The right end is the left end
+seen backwards, and the minima's rule is the maxima's rule with the signal negated, so the
+code works in *side coordinates* (distance from the end in question) and in *roles*: ``F`` is
+the envelope whose first extremum comes first from that end, ``G`` the other one. All
+quantities are computed for both envelopes and both ends at once, shape (2, R, 2, .).
+
+With ``F0 < G0`` the first positions, ``vG0`` the value at ``G0`` and ``sigma = +1`` when F
+holds the maxima (``-1`` for minima), the spec's eight cases collapse to three:
+
+* case 1 (A1/B1/C1/D1), ``sigma * (S[end] - vG0) > 0``: mirror about ``F0``; F sources
+  ``F[1:3]``, G sources ``G[0:2]``;
+* fallback, case 1 whose outermost mirrored knot does not reach past the end: mirror about
+  the end; F sources ``F[0:2]``, G sources ``G[0:2]``;
+* case 2 (A2/B2/C2/D2): mirror about the end; F sources ``F[0:2]``, G sources the end sample
+  and ``G0``.
+
+So each envelope takes two consecutive sources from ``[end sample, E0, E1, E2]``, shifted by
+0, 1 or 2. A knot landing on the envelope's first interior extremum is the duplicate PyEMD
+deletes; it is marked invalid (the only place a duplicate can occur).
+"""
+
+from __future__ import annotations
+
+import torch
+from torch import Tensor
+
+
+def end_extrema(x: Tensor, y: Tensor, n: Tensor) -> tuple[Tensor, Tensor]:
+    """The first and last three extrema of each envelope, in side coordinates.
+
+    Args:
+        x, y: (2, R, K + 1) compacted extrema (slots 2 .. n+1) from
+            :func:`knots.compact_extrema`; n: (2, R, 1) counts.
+
+    Returns:
+        p: (2, R, 2, 3) positions ``[[E0, E1, E2], [E[n-1], E[n-2], E[n-3]]]`` (entries past
+            the list are dummies).
+        v: (2, R, 2, 3) the signal values there.
+    """
+    dt, dev = x.dtype, x.device
+    w = torch.tensor([0.0, 0.0, 0.0, 1.0, 1.0, 1.0], dtype=dt, device=dev)
+    b = torch.tensor([2.0, 3.0, 4.0, 1.0, 0.0, -1.0], dtype=dt, device=dev)
+    idx = torch.clamp(n * w + b, min=0.0).long()  # (2, R, 6) slots
+    p = torch.gather(x, -1, idx).reshape(2, -1, 2, 3)  # (2, R, side, 3)
+    v = torch.gather(y, -1, idx).reshape(2, -1, 2, 3)
+    return p, v
+
+
+def boundary_knots(h: Tensor, p: Tensor, v: Tensor, n: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+    """The mirrored knots of both envelopes at both ends.
+
+    Args:
+        h: (R, N) signals.
+        p, v: (2, R, 2, 3) end extrema positions (sample indices) and values
+            (:func:`end_extrema`); n: (2, R, 1) extrema counts.
+
+    Returns:
+        x, y: (2, R, 4) knot positions and values, ordered
+            ``[left far, left near, right near, right far]`` (ascending when valid).
+        valid: (2, R, 4) 0/1 floats. Rows with fewer than 3 extrema get meaningless knots.
+    """
+    n_time = int(h.shape[-1])
+    dt, dev = h.dtype, h.device
+    last = float(n_time - 1)
+    side_sign = torch.tensor([[1.0], [-1.0]], dtype=dt, device=dev)  # (side, 1)
+    side_off = torch.tensor([[0.0], [last]], dtype=dt, device=dev)  # (side, 1)
+    env_sign = torch.tensor([1.0, -1.0], dtype=dt, device=dev).reshape(2, 1, 1, 1)
+    # Left side gathers [far, near], right side [near, far]: ascending positions at once.
+    kvec = torch.tensor([[1, 0], [0, 1]], device=dev)  # (side, k)
+    ends = torch.index_select(h, 1, torch.tensor([0, n_time - 1], device=dev))  # (R, side)
+    ends = ends.reshape(1, -1, 2, 1)  # (1, R, side, 1)
+    q = p * side_sign + side_off  # (2, R, side, 3): distance from the end
+    n4 = n.unsqueeze(-1)  # (2, R, 1, 1)
+
+    first = q[..., 0:1]  # (2, R, side, 1)
+    other = first.flip(0)  # the other envelope's first extremum
+    is_f = first < other  # (2, R, side, 1): this envelope plays F
+    f0 = torch.minimum(first, other)
+    v0 = v[..., 0:1]
+    # Case 1 seen from either envelope: sigma_F * (S[end] - vG0) > 0.
+    dv = torch.where(is_f, ends - v0.flip(0), v0 - ends)  # (2, R, side, 1)
+    case1 = dv * env_sign > 0
+    # Fallback: the outermost case-1 knot of F (source F[min(2, nF-1)]) or of G (source
+    # G[min(1, nG-1)]) would not reach past the end.
+    own_last = torch.gather(q, -1, torch.minimum(is_f.long() + 1, n4.long() - 1).clamp(min=0))
+    short = own_last < 2.0 * f0  # (2, R, side, 1)
+    mirror_f0 = case1 & ~(short | short.flip(0))
+    shift = torch.where(is_f, mirror_f0.long() + 1, case1.long())  # (2, R, side, 1) in 0..2
+    centre = f0 * mirror_f0.to(dt)  # symmetry point, side coordinates
+
+    raw = shift - 1 + kvec  # (2, R, side, k): source index in [E0, E1, E2], -1 = end sample
+    src = raw.clamp(min=0)
+    at_end = raw < 0
+    pos = torch.where(at_end, 0.0, torch.gather(q, -1, src))  # (2, R, side, k)
+    val = torch.where(at_end, ends, torch.gather(v, -1, src))
+    kx = 2.0 * centre - pos
+    # A source exists when the list is long enough; a knot on E0 duplicates it.
+    valid = (raw < n4) & (kx < first)
+    kx = kx * side_sign + side_off  # back to sample positions
+    return kx.reshape(2, -1, 4), val.reshape(2, -1, 4), valid.to(dt).reshape(2, -1, 4)

@@ -1,0 +1,69 @@
+"""Extrema of a batch of signals, exactly as PyEMD's ``'simple'`` detection finds them.
+
+PyEMD marks sample ``i`` a maximum when the slope changes from rising to falling there, and
+handles flat runs (ties, common in integer pen data) with a plateau rule: a flat run that is
+entered rising and left falling gives one maximum at the rounded middle of the run. Three
+quirks of its port of the MATLAB code are reproduced (EMD_SPEC §1.4):
+
+1. a flat run starting at difference index 1 is dropped;
+2. a flat run starting at index 0 takes the *last* difference as its entry slope (wrap-around);
+3. a flat run reaching the end is dropped.
+
+Fixed-shape formulation: both cases are one rule over pairs of consecutive *non-zero*
+differences ``(j, e)``: if their signs differ there is an extremum at sample
+``round((j + 1 + e) / 2)`` (``e == j + 1`` is the strict case). The non-zero differences are
+compacted with a cumulative sum and a scatter-add, so "the next non-zero difference" is one
+gather. A virtual pair at ``j = -1`` carrying the last difference implements quirk 2.
+"""
+
+from __future__ import annotations
+
+import torch
+import torch.nn.functional as F
+from torch import Tensor
+
+_BIG = 1e9
+
+
+def find_extrema(h: Tensor) -> Tensor:
+    """Signed extremum marks of each row.
+
+    Args:
+        h: (R, N) signals, N >= 3, finite.
+
+    Returns:
+        (R, N) tensor of h's dtype: +1 at maxima, -1 at minima, 0 elsewhere. End samples are
+        never extrema, except through quirk 2, as in PyEMD.
+    """
+    n = int(h.shape[-1])
+    dt, dev = h.dtype, h.device
+    d = h[:, 1:] - h[:, :-1]  # (R, N-1)
+    sg = torch.sign(d)  # (R, N-1) in {-1, 0, 1}
+    # Column c holds the pair starting at difference j = c - 1; column 0 is the virtual pair.
+    sgp = torch.cat([sg[:, -1:], sg], dim=-1)  # (R, N)
+    # rank[c]: number of non-zero differences before column c's own (its 1-based rank).
+    rank = torch.cumsum(F.pad(sg.abs(), (1, 0)), dim=-1)  # (R, N)
+    ri = rank.long()
+    col = torch.arange(n, dtype=dt, device=dev)  # (N,) = j + 1
+    # code[r] = sign * (j + 1) of the r-th non-zero difference: zero differences add 0 and the
+    # virtual column adds sign * 0, so a scatter-add compacts without any select.
+    zeros = rank * 0.0  # (R, N)
+    code = F.pad(zeros, (0, 1)).scatter_add(-1, ri, sgp * col)  # (R, N+1)
+    nxt = torch.gather(code, -1, ri + 1)  # (R, N): next non-zero difference, 0 if none (quirk 3)
+    a = nxt.abs()  # (R, N) = e + 1
+    # Column 0 counts only if d[0] == 0 (e > 0); column 1 (j = 0) only without a gap (quirk 1).
+    lo = torch.zeros(n, dtype=dt, device=dev)
+    lo[0] = 1.0
+    hi = torch.full((n,), _BIG, dtype=dt, device=dev)
+    hi[1] = 2.0
+    ok = (sgp * torch.sign(nxt) < 0) & (a > lo) & (a <= hi)  # (R, N)
+    val = torch.where(ok, sgp, zeros)  # (R, N): +1 rising into a maximum, -1 into a minimum
+    mid = torch.round((a + (col - 1.0)) * 0.5).long()  # (R, N) in [0, N-1], half to even
+    # Midpoints of different pairs are distinct and non-extrema add 0: no dump slot needed.
+    return zeros.scatter_add(-1, mid, val)  # (R, N)
+
+
+def extrema_marks(h: Tensor) -> Tensor:
+    """(R, N) signals -> (2, R, N) 0/1 marks, envelope axis first: [maxima, minima]."""
+    sign = torch.tensor([1.0, -1.0], dtype=h.dtype, device=h.device).reshape(2, 1, 1)
+    return (find_extrema(h) * sign > 0).to(h.dtype)

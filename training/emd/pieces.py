@@ -1,0 +1,44 @@
+"""The EMD pipeline's pieces, by name, with example inputs: for node-count budgets and tests."""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+
+import torch
+from torch import Tensor
+
+from .boundary import boundary_knots, end_extrema
+from .envelope import evaluate, segment_index
+from .extrema import extrema_marks
+from .knots import compact_extrema, place_boundary
+from .sift import sift
+from .spline import pcr_solve, spline_system
+
+
+def piece_examples(
+    rows: int = 6, n_time: int = 50, dtype: torch.dtype = torch.float64
+) -> dict[str, tuple[Callable[..., object], tuple[Tensor, ...]]]:
+    """Each piece of one sift with real example inputs (from a random batch)."""
+    gen = torch.Generator().manual_seed(0)
+    h = torch.randn(rows, n_time, generator=gen, dtype=dtype)
+    marks = extrema_marks(h)
+    cnt, n, x, y = compact_extrema(h, marks)
+    p, v = end_extrema(x, y, n)
+    bx, by, bv = boundary_knots(h, p, v, n)
+    xk, yk, j0, j1, kx, kv = place_boundary(x, y, n, bx, by, bv)
+    system = spline_system(xk, yk, j0, j1)
+    m = pcr_solve(system)
+    seg = segment_index(cnt, kx, kv, j0, j1)
+    active = torch.ones(rows, dtype=torch.bool)
+    return {
+        "extrema": (extrema_marks, (h,)),
+        "compact": (compact_extrema, (h, marks)),
+        "end_extrema": (end_extrema, (x, y, n)),
+        "boundary": (boundary_knots, (h, p, v, n)),
+        "place": (place_boundary, (x, y, n, bx, by, bv)),
+        "system": (spline_system, (xk, yk, j0, j1)),
+        "solve": (pcr_solve, (system,)),
+        "segment": (segment_index, (cnt, kx, kv, j0, j1)),
+        "evaluate": (evaluate, (h, xk, yk, m, seg)),
+        "sift": (sift, (h, active)),
+    }

@@ -1,0 +1,89 @@
+"""Cubic-spline second derivatives for batches of knot sets, solved without a solver op.
+
+PyEMD interpolates with ``scipy.interpolate.CubicSpline`` (not-a-knot) when an envelope has
+more than 3 knots, and with a natural spline for exactly 3 (EMD_SPEC §1.6). With the real
+knots in slots ``j0 .. j1``, spacings ``h`` and secant slopes ``s``, the rows for the second
+derivatives ``M`` are
+
+    h[j-1] M[j-1] + 2 (h[j-1] + h[j]) M[j] + h[j] M[j+1] = 6 (s[j] - s[j-1]),  j0 < j < j1.
+
+Not-a-knot eliminates ``M[j0]`` into row ``j0+1`` and ``M[j1]`` into row ``j1-1``; natural sets
+them to 0. The eliminated system is strictly diagonally dominant, so parallel cyclic reduction
+(PCR) without pivoting is stable: each step couples every row to rows twice as far away, and
+``ceil(log2 K)`` steps decouple all rows. Rows outside ``j0+1 .. j1-1`` are identity rows with
+right-hand side 0; ``M[j0]`` and ``M[j1]`` are never needed because the envelope evaluates the
+outer segments with their neighbour's cubic (not-a-knot: the same polynomial).
+"""
+
+from __future__ import annotations
+
+import math
+
+import torch
+import torch.nn.functional as F
+from torch import Tensor
+
+
+def spline_system(x: Tensor, y: Tensor, j0: Tensor, j1: Tensor) -> Tensor:
+    """Tridiagonal rows for the knots' second derivatives, each divided by its diagonal.
+
+    Args:
+        x, y: (2, R, K) knot positions (strictly increasing over all K slots) and values.
+        j0, j1: (2, R, 1) first and last real knot slot (``j1 - j0 >= 2`` for real rows).
+
+    Returns:
+        (3, 2, R, K): sub-diagonal, super-diagonal and right-hand side of the unit-diagonal rows.
+    """
+    k = int(x.shape[-1])
+    j = torch.arange(k, dtype=x.dtype, device=x.device)  # (K,)
+    hk = x[..., 1:] - x[..., :-1]  # (2, R, K-1) spacings, all > 0
+    sl = (y[..., 1:] - y[..., :-1]) / hk  # (2, R, K-1) secant slopes
+    hm = F.pad(hk, (1, 0), value=1.0)  # (2, R, K): h[j-1]
+    hp = F.pad(hk, (0, 1), value=1.0)  # (2, R, K): h[j]
+    rhs = F.pad(sl[..., 1:] - sl[..., :-1], (1, 1)) * 6.0  # (2, R, K)
+    dl, dr = j - j0, j1 - j  # (2, R, K) distance from the first / last knot
+    inner = (torch.minimum(dl, dr) >= 1.0).to(x.dtype)  # rows j0+1 .. j1-1
+    lf = (dl == 1.0).to(x.dtype)  # row j0+1: M[j0] eliminated (or natural)
+    rf = (dr == 1.0).to(x.dtype)  # row j1-1: M[j1] eliminated (or natural)
+    # With u = h[j-1]/h[j] the not-a-knot rows are (EMD_SPEC §4.6)
+    #   left:  a = 0, b = s (2 + u), c = h[j] - h[j-1] u
+    #   right: a = h[j-1] - h[j]/u, b = s (2 + 1/u), c = 0
+    # and a natural 3-knot row (lf = rf = 1) is a = c = 0, b = 2 s.
+    u = hm / hp
+    s = hm + hp
+    a = (1.0 - lf) * (hm - rf * hp / u)
+    c = (1.0 - rf) * (hp - lf * hm * u)
+    b = s * (2.0 + lf * (1.0 - rf) * u + rf * (1.0 - lf) / u)
+    return torch.stack([a, c, rhs]) * (inner / b)  # (3, 2, R, K); zero on identity rows
+
+
+def pcr_steps(k: int) -> int:
+    """Number of PCR steps that decouple a K-row system."""
+    return max(1, math.ceil(math.log2(k)))
+
+
+def pcr_solve(sys: Tensor) -> Tensor:
+    """Solve unit-diagonal tridiagonal systems by parallel cyclic reduction.
+
+    Args:
+        sys: (3, ..., K) sub-diagonal ``a``, super-diagonal ``c`` and right-hand side ``r``;
+            ``a[..., 0]`` and ``c[..., K-1]`` must be 0. Strict diagonal dominance keeps it
+            stable.
+
+    Returns:
+        (..., K) solution.
+    """
+    k = int(sys.shape[-1])
+    for step in range(pcr_steps(k)):
+        st = 1 << step
+        padded = F.pad(sys, (st, st))  # rows beyond the ends: zero coupling, zero rhs
+        dn = padded[..., :k]  # (3, ..., K): [a, c, r] of row j - st
+        up = padded[..., 2 * st :]  # (3, ..., K): [a, c, r] of row j + st
+        a, c, r = sys.split(1)  # (1, ..., K) each
+        lo_a, lo_c, lo_r = (a * dn).split(1)  # a_j [a, c, r]_{j-st}
+        hi_a, hi_c, hi_r = (c * up).split(1)  # c_j [a, c, r]_{j+st}
+        # Eliminate rows j -/+ st from row j; the new diagonal is 1 - a c_{j-st} - c a_{j+st},
+        # and -1/diagonal folds the signs of the new off-diagonals into one factor.
+        neg_inv = 1.0 / (lo_c + hi_a - 1.0)  # (1, ..., K)
+        sys = torch.cat([lo_a, hi_c, lo_r + hi_r - r]) * neg_inv
+    return sys[2]
