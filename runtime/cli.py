@@ -181,7 +181,7 @@ def serve(args: argparse.Namespace, runner: Runner, decoder: StreamDecoder,
             except serial.SerialException as e:
                 _say(f"port lost ({e}); reconnecting")
                 link.close()
-                link = _reconnect(args, stop)
+                link = _reconnect(args, stop, deadline)
                 if link is None:
                     break
                 summary.reconnects += 1
@@ -209,9 +209,10 @@ def serve(args: argparse.Namespace, runner: Runner, decoder: StreamDecoder,
         link.close()
 
 
-def _reconnect(args: argparse.Namespace, stop: dict) -> serial.SerialBase | None:
+def _reconnect(args: argparse.Namespace, stop: dict,
+               deadline: float = math.inf) -> serial.SerialBase | None:
     delay = 0.1
-    while not stop["flag"]:
+    while not stop["flag"] and time.monotonic() < deadline:
         try:
             link = open_port(args.port, args.baud)
             _say(f"reconnected to {args.port}")
