@@ -10,5 +10,5 @@ model=models/pen-exp2.onnx
 for texture in plastic_folder mouse_pad; do
   echo "== a simulated user strokes: $texture (16 s of strokes at 2x real time) ==" >&2
   .venv/bin/tactile-run --model "$model" --format text --seconds 8 --status-every 2 "$@" \
-    --port "sim://?texture=$texture&seed=8&speed=2&garbage=0.01&flip=0.0002&drop=0.005&stall=3:0.5&unplug=6:0.5"
+    --port "sim://?texture=$texture&seed=8&speed=2&garbage=0.005&flip=0.00005&drop=0.002&stall=3:0.5&unplug=6:0.5"
 done
