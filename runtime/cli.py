@@ -43,6 +43,7 @@ class Summary:
     gaps: int = 0
     reconnects: int = 0
     stalls: int = 0
+    before_header: int = 0  # samples that arrived before the first header (not classified)
     started: float = field(default_factory=time.monotonic)
     first_label_s: float | None = None
 
@@ -53,6 +54,7 @@ class Summary:
             "gaps": self.gaps,
             "reconnects": self.reconnects,
             "stalls": self.stalls,
+            "samples_before_header": self.before_header,
             "first_label_s": self.first_label_s,
             "seconds": round(time.monotonic() - self.started, 3),
             "decoder": decoder_stats,
@@ -131,8 +133,9 @@ class Runner:
                 self.stream.gap()
                 self.printer.event("gap", seq=ev.seq, missing=ev.missing, reason=ev.reason)
             elif isinstance(ev, Samples):
-                if self.info is None:
-                    continue  # no header yet: we cannot check or scale these samples
+                if self.info is None:  # no header yet: we cannot check or scale these samples
+                    self.summary.before_header += len(ev.raw)
+                    continue
                 period = 1e6 / self.info.sample_rate_hz
                 self.stream.accept(units(self.info, ev.raw), ev.seq, ev.t_us, period)
                 while self.stream.ready():
@@ -243,13 +246,18 @@ def _say(msg: str) -> None:
 
 
 def build_parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(prog="tactile-run", description=__doc__.split("\n\n")[0])
+    p = argparse.ArgumentParser(
+        prog="tactile-run",
+        description="Read the pen, print one label per window (stdout), keep going.",
+        epilog="exit codes: 0 stopped cleanly, 1 bad arguments, 2 port cannot be opened or no "
+        "pen found, 3 model or device does not honour the contract",
+    )
     p.add_argument("--model", required=True, type=Path, help="the .onnx file from tactile-export")
     src = p.add_mutually_exclusive_group()
     src.add_argument("--port", help="device path or pyserial URL (sim://, socket://, ...); "
                      "default: the one likely pen attached")
     src.add_argument("--replay", type=Path, metavar="TAKE", help="a recorded take (.csv)")
-    p.add_argument("--baud", type=int, default=115200)
+    p.add_argument("--baud", type=int, default=115200, help="UART baud rate (default 115200)")
     p.add_argument("--hop", type=int, help="samples between windows (default: the model's)")
     p.add_argument("--format", choices=FORMATS, default="jsonl")
     p.add_argument("--smooth", type=int, default=1, metavar="K",
