@@ -286,11 +286,7 @@ class StreamDecoder:
         n = raw.shape[0]
         if self._restart_pending:  # first frame after a reconnection
             self._restart_pending = False
-            host = self._host_next
-            self.stats.restarts += 1
-            self.stats.gaps += 1
-            events.append(Gap(host, 0, "restart"))
-            self._t_last = None
+            host = self._restart(events)
             self._t_host += self._dt(parsed.t_us)
         elif self._dev_next is None:  # first frame: host seq starts at the device's count
             host = parsed.seq
@@ -319,18 +315,22 @@ class StreamDecoder:
                         (parsed.t_us + back * period) % SEQ_MODULO,
                         raw,
                     )
-                else:  # the device rebooted: continue the host count, mark the break
-                    host = self._host_next
-                    self.stats.restarts += 1
-                    self.stats.gaps += 1
-                    events.append(Gap(host, 0, "restart"))
-                    self._t_last = None
+                else:  # the device rebooted
+                    host = self._restart(events)
             self._t_host += self._dt(parsed.t_us)
         self._t_last = parsed.t_us
         self._dev_next = (parsed.seq + n) % SEQ_MODULO
         self._host_next = host + n
         self.stats.samples += n
         events.append(Samples(host, self._t_host, raw))
+
+    def _restart(self, events: list[Event]) -> int:
+        """The device restarted: continue the host count, mark the break, forget its clock."""
+        self.stats.restarts += 1
+        self.stats.gaps += 1
+        events.append(Gap(self._host_next, 0, "restart"))
+        self._t_last = None
+        return self._host_next
 
     def _dt(self, t_us: int) -> int:
         if self._t_last is None:  # restart: no relation to the old clock; advance one period
