@@ -20,10 +20,6 @@ and the training code fails the export.
 
 from __future__ import annotations
 
-import io
-import warnings
-from collections.abc import Sequence
-
 import onnx
 import torch
 from torch import Tensor, nn
@@ -31,7 +27,7 @@ from torch import Tensor, nn
 import tactile
 from tactile.contract import BATCH, INPUTS, OPSET, OUTPUTS
 from tactile.export.compose import join, renamed, value_info
-from tactile.training.emd.onnx_export import build_emd_model
+from tactile.training.emd.onnx_export import build_emd_model, export_traced
 from tactile.training.model import Preprocess, TextureModel
 
 EXAMPLE_BATCH = 3
@@ -82,23 +78,7 @@ def split_forward(model: TextureModel, x: Tensor, h: Tensor, c: Tensor):
     return _Post(model)(z, imfs, h, c)
 
 
-def trace(
-    module: nn.Module,
-    args: Sequence[Tensor],
-    inputs: Sequence[str],
-    outputs: Sequence[str],
-    dynamic: dict[str, dict[int, str]],
-) -> onnx.ModelProto:
-    """``module`` traced to ONNX by the pinned exporter path."""
-    buf = io.BytesIO()
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore")  # the TorchScript exporter's deprecation notices
-        torch.onnx.export(
-            module, tuple(args), buf, dynamo=False, opset_version=OPSET,
-            input_names=list(inputs), output_names=list(outputs), dynamic_axes=dynamic,
-            do_constant_folding=True,
-        )
-    return onnx.load_from_string(buf.getvalue())
+trace = export_traced  # the pinned exporter path, shared with the EMD graph
 
 
 def build_graph(model: TextureModel) -> onnx.ModelProto:

@@ -51,19 +51,23 @@ class _Fn(nn.Module):
         return self.fn(*args)
 
 
-def trace_graph(
-    fn: Callable[..., tuple[Tensor, ...]],
+def export_traced(
+    module: nn.Module,
     args: Sequence[Tensor],
     inputs: Sequence[str],
     outputs: Sequence[str],
     dynamic: dict[str, dict[int, str]],
 ) -> onnx.ModelProto:
-    """Trace ``fn`` to a constant-folded ONNX model (the pinned exporter path)."""
+    """``module`` traced to ONNX by the pinned exporter path (TorchScript, opset :data:`OPSET`).
+
+    The one place the project calls ``torch.onnx.export``: the EMD pieces and the deployable
+    graph (``tactile.export.graph``) are both traced here.
+    """
     buf = io.BytesIO()
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")  # the TorchScript exporter's deprecation notice
         torch.onnx.export(
-            _Fn(fn),
+            module,
             tuple(args),
             buf,
             dynamo=False,
@@ -73,7 +77,18 @@ def trace_graph(
             dynamic_axes=dynamic,
             do_constant_folding=True,
         )
-    model = onnxscript.optimizer.optimize(onnx.load_from_string(buf.getvalue()))
+    return onnx.load_from_string(buf.getvalue())
+
+
+def trace_graph(
+    fn: Callable[..., tuple[Tensor, ...]],
+    args: Sequence[Tensor],
+    inputs: Sequence[str],
+    outputs: Sequence[str],
+    dynamic: dict[str, dict[int, str]],
+) -> onnx.ModelProto:
+    """Trace ``fn`` to a constant-folded ONNX model (the pinned exporter path)."""
+    model = onnxscript.optimizer.optimize(export_traced(_Fn(fn), args, inputs, outputs, dynamic))
     return _drop_update_slices(_fold_constants(model))
 
 
