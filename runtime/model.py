@@ -19,8 +19,8 @@ from tactile.errors import ModelContractError
 def session_options(threads: int = 1) -> ort.SessionOptions:
     """onnxruntime settings for a small board: few threads, sequential, no busy-waiting.
 
-    Spinning threads burn a core while waiting for work and were seen to push the p99 latency
-    of a 50-sample window from ~0.25 ms to ~8 ms on a loaded board, so they are off.
+    Spinning threads burn a core while waiting for work; on a loaded board they were reported to
+    push the p99 latency of a 50-sample window from ~0.25 ms to ~8 ms, so they are off.
     """
     so = ort.SessionOptions()
     so.intra_op_num_threads = threads
