@@ -31,6 +31,7 @@ from torch import Tensor, nn
 from tactile.errors import ConfigError
 
 from .decompose import imf_update
+from .extrema import differences, has_tie, plateau_marks, strict_marks
 from .module import EMDConfig
 from .sift import sift
 
@@ -220,6 +221,79 @@ def _inline(
     return nodes, inits
 
 
+def _head(h: Tensor) -> tuple[Tensor, Tensor]:
+    d = differences(h)
+    return d, has_tie(d)
+
+
+def _sift_graph(
+    h: Tensor, act: Tensor, elem: int, n_time: int, rows: dict[int, str]
+) -> tuple[onnx.GraphProto, list[onnx.TensorProto]]:
+    """The Loop body of one sift: differences, an ``If`` choosing the extremum rule, the rest.
+
+    Loop-carried names: ``s_h``, ``s_a`` in, ``s_h_out``, ``s_a_out`` out.
+    """
+    d = differences(h)
+    marks = strict_marks(d)
+    head = trace_graph(_head, [h], ["h"], ["d", "tie"], {"h": rows, "d": rows})
+    strict = trace_graph(strict_marks, [d], ["d"], ["marks"], {"d": rows, "marks": {1: "rows"}})
+    plateau = trace_graph(plateau_marks, [d], ["d"], ["marks"], {"d": rows, "marks": {1: "rows"}})
+    tail = trace_graph(
+        sift,
+        [h, act, marks],
+        ["h", "act", "marks"],
+        ["h_out", "act_out"],
+        {"h": rows, "act": rows, "marks": {1: "rows"}, "h_out": rows, "act_out": rows},
+    )
+
+    def t(name: str, el: int, shape: list) -> onnx.ValueInfoProto:
+        return helper.make_tensor_value_info(name, el, shape)
+
+    inits: list[onnx.TensorProto] = []
+    nodes, more = _inline(head, "head/", {"h": "s_h", "d": "s_d", "tie": "s_tie"})
+    inits += more
+    branches = {}
+    for name, part in (("plateau", plateau), ("strict", strict)):
+        b_nodes, more = _inline(part, f"{name}/", {"d": "s_d", "marks": f"{name}/marks"})
+        inits += more
+        branches[name] = helper.make_graph(
+            b_nodes, name, [], [t(f"{name}/marks", elem, [2, "rows", n_time])]
+        )
+    nodes.append(
+        helper.make_node(
+            "If",
+            ["s_tie"],
+            ["s_marks"],
+            then_branch=branches["plateau"],
+            else_branch=branches["strict"],
+        )
+    )
+    more_nodes, more = _inline(
+        tail,
+        "sift/",
+        {"h": "s_h", "act": "s_a", "marks": "s_marks", "h_out": "s_h_out", "act_out": "s_a_out"},
+    )
+    nodes += more_nodes
+    inits += more
+    nodes.append(helper.make_node("Identity", ["s_c"], ["s_c_out"]))
+    graph = helper.make_graph(
+        nodes,
+        "sift",
+        [
+            t("s_i", TensorProto.INT64, []),
+            t("s_c", TensorProto.BOOL, []),
+            t("s_h", elem, ["rows", n_time]),
+            t("s_a", TensorProto.BOOL, ["rows"]),
+        ],
+        [
+            t("s_c_out", TensorProto.BOOL, []),
+            t("s_h_out", elem, ["rows", n_time]),
+            t("s_a_out", TensorProto.BOOL, ["rows"]),
+        ],
+    )
+    return graph, inits
+
+
 def _init(x3: Tensor) -> tuple[Tensor, Tensor, Tensor, Tensor]:
     x = x3.reshape(-1, x3.shape[-1])  # (R, N)
     alive = x[:, 0] == x[:, 0]  # (R,) all true for finite input
@@ -243,13 +317,8 @@ def build_emd_model(
     n_channels: int,
     n_time: int,
     dtype: torch.dtype = torch.float32,
-    unroll_sifts: bool = False,
 ) -> onnx.ModelProto:
-    """The EMD graph for windows of ``n_channels`` x ``n_time`` (dynamic batch).
-
-    ``unroll_sifts`` chains ``n_sifts`` copies of the sift body inside the IMF loop instead of
-    an inner ``Loop`` (a larger file, no per-sift loop overhead).
-    """
+    """The EMD graph for windows of ``n_channels`` x ``n_time`` (dynamic batch)."""
     EMDConfig(n_imfs=n_imfs, n_sifts=n_sifts)  # validates
     if n_time < 3:
         raise ConfigError(f"EMD export needs windows of at least 3 samples, got {n_time}")
@@ -266,13 +335,6 @@ def build_emd_model(
     rows = {0: "rows"}
 
     init = trace_graph(_init, [x3], ["x3"], ["x", "acc", "alive", "nv"], {"x3": {0: "batch"}})
-    body = trace_graph(
-        sift,
-        [h, act],
-        ["h", "act"],
-        ["h_out", "act_out"],
-        {"h": rows, "act": rows, "h_out": rows, "act_out": rows},
-    )
     close = trace_graph(
         _close,
         [h, h, h, act, nv],
@@ -302,24 +364,9 @@ def build_emd_model(
     def t(name: str, el: int, shape: list) -> onnx.ValueInfoProto:
         return helper.make_tensor_value_info(name, el, shape)
 
-    scalar_b = [t("s_i", TensorProto.INT64, []), t("s_c", TensorProto.BOOL, [])]
     # Inner loop: one sift per iteration.
-    s_nodes, s_inits = _inline(
-        body, "sift/", {"h": "s_h", "act": "s_a", "h_out": "s_h_out", "act_out": "s_a_out"}
-    )
+    sift_graph, s_inits = _sift_graph(h, act, elem, n_time, rows)
     inits += s_inits
-    init_names = {i.name for i in s_inits}
-    s_nodes.append(helper.make_node("Identity", ["s_c"], ["s_c_out"]))
-    sift_graph = helper.make_graph(
-        s_nodes,
-        "sift",
-        scalar_b + [t("s_h", elem, ["rows", n_time]), t("s_a", TensorProto.BOOL, ["rows"])],
-        [
-            t("s_c_out", TensorProto.BOOL, []),
-            t("s_h_out", elem, ["rows", n_time]),
-            t("s_a_out", TensorProto.BOOL, ["rows"]),
-        ],
-    )
     # Outer loop: one IMF per iteration.
     c_nodes, c_inits = _inline(
         close,
@@ -337,30 +384,11 @@ def build_emd_model(
         },
     )
     inits += c_inits
-    if unroll_sifts:  # n_sifts copies of the sift body, chained
-        sifts = []
-        for k in range(n_sifts):
-            src_h, src_a = ("i_h0", "i_alive") if k == 0 else (f"u{k - 1}_h", f"u{k - 1}_a")
-            dst_h, dst_a = ("i_h", "i_act") if k == n_sifts - 1 else (f"u{k}_h", f"u{k}_a")
-            nodes_k, _ = _inline(
-                body, "sift/", {"h": src_h, "act": src_a, "h_out": dst_h, "act_out": dst_a}
-            )
-            for node in nodes_k:  # keep initializer names shared, values per copy
-                node.output[:] = [o if o in (dst_h, dst_a) else f"u{k}/" + o for o in node.output]
-                node.input[:] = [
-                    v
-                    if (not v or v in (src_h, src_a, dst_h, dst_a) or v in init_names)
-                    else f"u{k}/" + v
-                    for v in node.input
-                ]
-                node.name = f"u{k}/" + node.name
-            sifts += nodes_k
-    else:
-        sifts = [
-            helper.make_node(
-                "Loop", ["n_sifts", "", "i_h0", "i_alive"], ["i_h", "i_act"], body=sift_graph
-            )
-        ]
+    sifts = [
+        helper.make_node(
+            "Loop", ["n_sifts", "", "i_h0", "i_alive"], ["i_h", "i_act"], body=sift_graph
+        )
+    ]
     imf_nodes = [
         helper.make_node("Sub", ["x", "i_acc"], ["i_h0"]),  # PyEMD restarts from S - sum(IMF)
         *sifts,

@@ -9,7 +9,7 @@ from torch import Tensor
 
 from .boundary import boundary_knots, end_extrema
 from .envelope import evaluate, segment_index
-from .extrema import extrema_marks
+from .extrema import differences, extrema_marks, has_tie, plateau_marks, strict_marks
 from .knots import compact_extrema, place_boundary
 from .sift import sift
 from .spline import pcr_solve, spline_system
@@ -21,6 +21,7 @@ def piece_examples(
     """Each piece of one sift with real example inputs (from a random batch)."""
     gen = torch.Generator().manual_seed(0)
     h = torch.randn(rows, n_time, generator=gen, dtype=dtype)
+    d = differences(h)
     marks = extrema_marks(h)
     cnt, n, x, y = compact_extrema(h, marks)
     p, v = end_extrema(x, y, n)
@@ -31,7 +32,9 @@ def piece_examples(
     seg = segment_index(cnt, kx, kv, j0, j1)
     active = torch.ones(rows, dtype=torch.bool)
     return {
-        "extrema": (extrema_marks, (h,)),
+        "head": (lambda h: (d := differences(h), has_tie(d)), (h,)),
+        "strict": (strict_marks, (d,)),
+        "plateau": (plateau_marks, (d,)),
         "compact": (compact_extrema, (h, marks)),
         "end_extrema": (end_extrema, (x, y, n)),
         "boundary": (boundary_knots, (h, p, v, n)),
@@ -40,5 +43,5 @@ def piece_examples(
         "solve": (pcr_solve, (system,)),
         "segment": (segment_index, (cnt, kx, kv, j0, j1)),
         "evaluate": (evaluate, (h, xk, yk, m, seg)),
-        "sift": (sift, (h, active)),
+        "sift": (sift, (h, active, marks)),
     }

@@ -12,17 +12,20 @@ from .knots import compact_extrema, place_boundary
 from .spline import pcr_solve, spline_system
 
 
-def envelopes(h: Tensor) -> tuple[Tensor, Tensor]:
+def envelopes(h: Tensor, marks: Tensor | None = None) -> tuple[Tensor, Tensor]:
     """Upper and lower envelopes of each row, as PyEMD's cubic-spline envelopes.
 
     Args:
         h: (R, N) signals, N >= 3, finite.
+        marks: (2, R, N) extremum marks of ``h`` (:func:`extrema.extrema_marks`), computed
+            here when not given.
 
     Returns:
         env: (2, R, N) [upper, lower]; meaningless in rows with fewer than 3 extrema.
         n_ext: (R,) number of extrema (PyEMD's ``extNo``).
     """
-    marks = extrema_marks(h)  # (2, R, N)
+    if marks is None:
+        marks = extrema_marks(h)  # (2, R, N)
     cnt, n, x, y = compact_extrema(h, marks)  # (2, R, N), (2, R, 1), (2, R, K+1) x2
     p, v = end_extrema(x, y, n)  # (2, R, 2, 3) x2
     bx, by, bv = boundary_knots(h, p, v, n)  # (2, R, 4) x3
@@ -32,19 +35,21 @@ def envelopes(h: Tensor) -> tuple[Tensor, Tensor]:
     return evaluate(h, x, y, m, seg), (n[0] + n[1])[:, 0]
 
 
-def sift(h: Tensor, active: Tensor) -> tuple[Tensor, Tensor]:
+def sift(h: Tensor, active: Tensor, marks: Tensor | None = None) -> tuple[Tensor, Tensor]:
     """One sift of every active row; rows with fewer than 3 extrema become inactive.
 
     Args:
         h: (R, N) current proto-IMFs.
         active: (R,) bool, rows still being sifted.
+        marks: (2, R, N) extremum marks of ``h``, computed here when not given (the exported
+            graph computes them in an ``If`` before the rest of the sift).
 
     Returns:
         h: (R, N) ``h - (upper + lower) / 2`` where active, unchanged elsewhere.
         active: (R,) ``active`` and the row had more than 2 extrema (PyEMD stops the whole
             decomposition of a row the first time a sift finds ``extNo <= 2``).
     """
-    env, n_ext = envelopes(h)  # (2, R, N), (R,)
+    env, n_ext = envelopes(h, marks)  # (2, R, N), (R,)
     active = active & (n_ext > 2.0)  # (R,)
     mean = 0.5 * (env[0] + env[1])  # (R, N): same arithmetic as PyEMD
     return torch.where(active.unsqueeze(-1), h - mean, h), active
