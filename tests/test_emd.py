@@ -180,7 +180,7 @@ def test_spline_pieces_match_scipy_not_a_knot_and_natural_3_point(n_knots):
         if n_knots >= 4:  # outer segments evaluate their neighbour's cubic (same polynomial)
             seg = np.clip(seg, 1, n_knots - 3)
         seg_t = torch.tensor(seg).reshape(1, 1, -1).repeat(2, 1, 1)
-        got = evaluate(torch.zeros(1, n_time), xt, yt, m, seg_t)[0, 0].numpy()
+        got = evaluate(torch.zeros(1, n_time), xt, yt, m, seg_t)[0, 0, 0].numpy()
         if n_knots > 3:
             want = CubicSpline(xs, ys)(t)
         else:

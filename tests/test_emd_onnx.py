@@ -43,11 +43,11 @@ BUDGET = {
     "end_extrema": 8,
     "boundary": 55,
     "place": 22,
-    "system": 48,
-    "solve": 76,
-    "segment": 23,
-    "evaluate": 38,
-    "sift": 297,
+    "system": 43,
+    "solve": 69,
+    "segment": 19,
+    "evaluate": 26,
+    "sift": 265,
 }
 
 

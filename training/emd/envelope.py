@@ -11,7 +11,6 @@ samples that are knots then get the knot value written back exactly, as scipy re
 from __future__ import annotations
 
 import torch
-import torch.nn.functional as F
 from torch import Tensor
 
 
@@ -29,13 +28,13 @@ def segment_index(cnt: Tensor, kx: Tensor, kv: Tensor, j0: Tensor, j1: Tensor) -
         ``[j0, j1-1]`` for 3-knot natural ones.
     """
     n_time = int(cnt.shape[-1])
-    # Mirrored knots on a padded sample grid: slot 0 counts the knots left of the window,
-    # slots 1..N the knots on samples, slot N + 1 the rest (right of the window, or invalid).
-    slot = torch.where(kv > 0, torch.clamp(kx, -1.0, float(n_time)) + 1.0, n_time + 1.0).long()
-    grid = F.pad(cnt * 0.0, (1, 1)).scatter_add(-1, slot, kv)  # (2, R, N + 2)
+    t = torch.arange(n_time, dtype=cnt.dtype, device=cnt.device)  # (N,)
+    # Valid mirrored knots at or before t (an invalid one is moved past every sample).
+    kxv = torch.where(kv > 0, kx, 2.0 * n_time)  # (2, R, 4)
+    mirrored = (kxv.unsqueeze(-1) <= t).to(cnt.dtype).sum(-2)  # (2, R, N)
     knot4 = (j1 - j0 >= 3.0).to(cnt.dtype)  # (2, R, 1)
     # Slot of the last knot at or before t: j0 - 1 + (knots <= t).
-    count = cnt + torch.cumsum(grid, dim=-1)[..., 1 : n_time + 1] + (j0 - 1.0)  # (2, R, N)
+    count = cnt + mirrored + (j0 - 1.0)  # (2, R, N)
     seg = torch.minimum(torch.maximum(count, j0 + knot4), j1 - 1.0 - knot4)
     return seg.clamp(min=0.0).long()  # clamp: rows without an envelope stay in range
 
@@ -45,28 +44,24 @@ def evaluate(h: Tensor, x: Tensor, y: Tensor, m: Tensor, seg: Tensor) -> Tensor:
 
     Args:
         h: (R, N) signals (only the length is used).
-        x, y, m: (2, R, K) knot positions, values, second derivatives.
+        x, y: (2, R, K) knot positions and values; m: (2, R, K) second derivatives over 6.
         seg: (2, R, N) int64 segment slot per sample (:func:`segment_index`).
 
     Returns:
-        (2, R, N) envelopes.
+        (1, 2, R, N) envelopes.
     """
     n_time = int(h.shape[-1])
     xym = torch.stack([x, y, m])  # (3, 2, R, K)
-    p0, p1 = xym[..., :-1], xym[..., 1:]  # segment start / end
-    x0, y0, m0 = p0.split(1)  # (1, 2, R, K-1) each
-    hk, dy, dm = (p1 - p0).split(1)
-    m1 = p1[2:3]
-    # scipy's PPoly form of the cubic on [x_k, x_k+1]: y_k + B (c1 + B (c2 + B c3)).
-    c1 = dy / hk - hk * (2.0 * m0 + m1) / 6.0
-    c3 = dm / (6.0 * hk)
-    coef = torch.cat([x0, y0, c1, m0 * 0.5, c3])  # (5, 2, R, K-1)
+    p0 = xym[..., :-1]  # segment starts
+    hk, dy, dm = (xym[..., 1:] - p0).split(1)  # (1, 2, R, K-1) each
+    x0, y0, m0 = p0.split(1)
+    # scipy's PPoly form of the cubic on [x_k, x_k+1]: y_k + B (c1 + B (c2 + B c3)), with
+    # c2 = M_k / 2 = 3 m_k, c3 = (M_k+1 - M_k) / (6 h) and c1 = slope - h (2 M_k + M_k+1) / 6.
+    c2 = 3.0 * m0
+    c1 = dy / hk - hk * (c2 + dm)
+    coef = torch.cat([x0, y0, c1, c2, dm / hk])  # (5, 2, R, K-1)
     idx = seg + torch.zeros(5, 1, 1, 1, dtype=seg.dtype, device=seg.device)  # (5, 2, R, N)
     gx, gy, g1, g2, g3 = torch.gather(coef, -1, idx).split(1)  # (1, 2, R, N) each
     t = torch.arange(n_time, dtype=x.dtype, device=x.device)  # (N,)
     b = t - gx
-    env = (gy + b * (g1 + b * (g2 + b * g3)))[0]  # (2, R, N)
-    # Knots on samples get their exact values (scipy has B = 0 there): slot x + 1, with slots
-    # 0 and N + 1 catching the knots outside the window.
-    slot = (torch.clamp(x, -1.0, float(n_time)) + 1.0).long()  # (2, R, K)
-    return F.pad(env, (1, 1)).scatter(-1, slot, y)[..., 1 : n_time + 1]
+    return gy + b * (g1 + b * (g2 + b * g3))  # (1, 2, R, N)

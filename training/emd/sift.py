@@ -26,13 +26,19 @@ def envelopes(h: Tensor, marks: Tensor | None = None) -> tuple[Tensor, Tensor]:
     """
     if marks is None:
         marks = extrema_marks(h)  # (2, R, N)
+    env, n_ext = _envelopes(h, marks)
+    return env[0], n_ext
+
+
+def _envelopes(h: Tensor, marks: Tensor) -> tuple[Tensor, Tensor]:
+    """:func:`envelopes` with env (1, 2, R, N), as the sift consumes it."""
     cnt, n, x, y = compact_extrema(h, marks)  # (2, R, N), (2, R, 1), (2, R, K+1) x2
     p, v = end_extrema(x, y, n)  # (2, R, 2, 3) x2
     bx, by, bv = boundary_knots(h, p, v, n)  # (2, R, 4) x3
     x, y, j0, j1, kx, kv = place_boundary(x, y, n, bx, by, bv)  # (2, R, K) x2, (2, R, 1) x2
     m = pcr_solve(spline_system(x, y, j0, j1))  # (2, R, K)
     seg = segment_index(cnt, kx, kv, j0, j1)  # (2, R, N)
-    return evaluate(h, x, y, m, seg), (n[0] + n[1])[:, 0]
+    return evaluate(h, x, y, m, seg), n.sum(dim=(0, 2))
 
 
 def sift(h: Tensor, active: Tensor, marks: Tensor | None = None) -> tuple[Tensor, Tensor]:
@@ -49,7 +55,9 @@ def sift(h: Tensor, active: Tensor, marks: Tensor | None = None) -> tuple[Tensor
         active: (R,) ``active`` and the row had more than 2 extrema (PyEMD stops the whole
             decomposition of a row the first time a sift finds ``extNo <= 2``).
     """
-    env, n_ext = envelopes(h, marks)  # (2, R, N), (R,)
+    if marks is None:
+        marks = extrema_marks(h)  # (2, R, N)
+    env, n_ext = _envelopes(h, marks)  # (1, 2, R, N), (R,)
     active = active & (n_ext > 2.0)  # (R,)
-    mean = 0.5 * (env[0] + env[1])  # (R, N): same arithmetic as PyEMD
+    mean = env.sum(dim=(0, 1)) * 0.5  # (R, N): (upper + lower) / 2, as PyEMD
     return torch.where(active.unsqueeze(-1), h - mean, h), active

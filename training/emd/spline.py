@@ -25,14 +25,15 @@ from torch import Tensor
 
 
 def spline_system(x: Tensor, y: Tensor, j0: Tensor, j1: Tensor) -> Tensor:
-    """Tridiagonal rows for the knots' second derivatives, each divided by its diagonal.
+    """Tridiagonal rows for the knots' second derivatives over 6, each divided by its diagonal.
 
     Args:
         x, y: (2, R, K) knot positions (strictly increasing over all K slots) and values.
         j0, j1: (2, R, 1) first and last real knot slot (``j1 - j0 >= 2`` for real rows).
 
     Returns:
-        (3, 2, R, K): sub-diagonal, super-diagonal and right-hand side of the unit-diagonal rows.
+        (3, 2, R, K): sub-diagonal, super-diagonal and right-hand side of the unit-diagonal rows
+        whose solution is ``M / 6`` (the right-hand side is the slope change, without the 6).
     """
     k = int(x.shape[-1])
     j = torch.arange(k, dtype=x.dtype, device=x.device)  # (K,)
@@ -40,21 +41,22 @@ def spline_system(x: Tensor, y: Tensor, j0: Tensor, j1: Tensor) -> Tensor:
     sl = (y[..., 1:] - y[..., :-1]) / hk  # (2, R, K-1) secant slopes
     hm = F.pad(hk, (1, 0), value=1.0)  # (2, R, K): h[j-1]
     hp = F.pad(hk, (0, 1), value=1.0)  # (2, R, K): h[j]
-    rhs = F.pad(sl[..., 1:] - sl[..., :-1], (1, 1)) * 6.0  # (2, R, K)
+    rhs = F.pad(sl[..., 1:] - sl[..., :-1], (1, 1))  # (2, R, K)
     dl, dr = j - j0, j1 - j  # (2, R, K) distance from the first / last knot
     inner = (torch.minimum(dl, dr) >= 1.0).to(x.dtype)  # rows j0+1 .. j1-1
     lf = (dl == 1.0).to(x.dtype)  # row j0+1: M[j0] eliminated (or natural)
     rf = (dr == 1.0).to(x.dtype)  # row j1-1: M[j1] eliminated (or natural)
-    # With u = h[j-1]/h[j] the not-a-knot rows are (EMD_SPEC §4.6)
-    #   left:  a = 0, b = s (2 + u), c = h[j] - h[j-1] u
-    #   right: a = h[j-1] - h[j]/u, b = s (2 + 1/u), c = 0
-    # and a natural 3-knot row (lf = rf = 1) is a = c = 0, b = 2 s.
+    # Every row is [h[j-1], 2 s, h[j]] + w [-h[j], s, -h[j-1]] with s = h[j-1] + h[j]:
+    # w = 0 inside and for the natural 3-knot row, w = h[j-1]/h[j] for the left not-a-knot row
+    # and h[j]/h[j-1] for the right one (EMD_SPEC §4.6, times h[j]/s or h[j-1]/s). There the
+    # coefficient towards the eliminated knot vanishes up to rounding, and that knot's identity
+    # row (M = 0, right-hand side 0) makes its value irrelevant.
     u = hm / hp
+    w = torch.relu(lf - rf) * u + torch.relu(rf - lf) / u
     s = hm + hp
-    a = (1.0 - lf) * (hm - rf * hp / u)
-    c = (1.0 - rf) * (hp - lf * hm * u)
-    b = s * (2.0 + lf * (1.0 - rf) * u + rf * (1.0 - lf) / u)
-    return torch.stack([a, c, rhs]) * (inner / b)  # (3, 2, R, K); zero on identity rows
+    a = hm - w * hp
+    c = hp - w * hm
+    return torch.stack([a, c, rhs]) * (inner / ((2.0 + w) * s))  # (3, 2, R, K)
 
 
 def pcr_steps(k: int) -> int:
@@ -74,16 +76,18 @@ def pcr_solve(sys: Tensor) -> Tensor:
         (..., K) solution.
     """
     k = int(sys.shape[-1])
-    for step in range(pcr_steps(k)):
+    steps = pcr_steps(k)
+    for step in range(steps):
         st = 1 << step
-        padded = F.pad(sys, (st, st))  # rows beyond the ends: zero coupling, zero rhs
-        dn = padded[..., :k]  # (3, ..., K): [a, c, r] of row j - st
-        up = padded[..., 2 * st :]  # (3, ..., K): [a, c, r] of row j + st
+        dn = F.pad(sys, (st, -st))  # (3, ..., K): [a, c, r] of row j - st (zero beyond the ends)
+        up = F.pad(sys, (-st, st))  # (3, ..., K): [a, c, r] of row j + st
         a, c, r = sys.split(1)  # (1, ..., K) each
         lo_a, lo_c, lo_r = (a * dn).split(1)  # a_j [a, c, r]_{j-st}
         hi_a, hi_c, hi_r = (c * up).split(1)  # c_j [a, c, r]_{j+st}
         # Eliminate rows j -/+ st from row j; the new diagonal is 1 - a c_{j-st} - c a_{j+st},
         # and -1/diagonal folds the signs of the new off-diagonals into one factor.
-        neg_inv = 1.0 / (lo_c + hi_a - 1.0)  # (1, ..., K)
-        sys = torch.cat([lo_a, hi_c, lo_r + hi_r - r]) * neg_inv
-    return sys[2]
+        neg_diag = lo_c + hi_a - 1.0  # (1, ..., K)
+        if step == steps - 1:  # rows are decoupled now: only the right-hand side is needed
+            return ((lo_r + hi_r - r) / neg_diag)[0]
+        sys = torch.cat([lo_a, hi_c, lo_r + hi_r - r]) * (1.0 / neg_diag)
+    raise AssertionError("unreachable")  # pcr_steps() >= 1
