@@ -17,10 +17,10 @@ from scipy.interpolate import CubicSpline
 
 from tactile.errors import ConfigError
 from tactile.training.emd import EMD, EMDConfig
-from tactile.training.emd.boundary import boundary_knots, end_extrema
+from tactile.training.emd.boundary import boundary_knots
 from tactile.training.emd.envelope import evaluate
 from tactile.training.emd.extrema import extrema_marks, find_extrema
-from tactile.training.emd.knots import compact_extrema, n_slots, place_boundary
+from tactile.training.emd.knots import assemble, end_extrema, extrema_counts, n_slots
 from tactile.training.emd.sift import envelopes, sift
 from tactile.training.emd.spline import pcr_solve, spline_system
 
@@ -126,14 +126,14 @@ def test_boundary_knots_match_pyemd_in_every_case():
         ref_max, ref_min = REF.prepare_points_simple(t, x, pmax, vmax, pmin, vmin)
         h = torch.tensor(x)[None]
         marks = extrema_marks(h)  # (2, 1, N)
-        _, n, cx, cy = compact_extrema(h, marks)
-        p, v = end_extrema(cx, cy, n)
+        cnt, n = extrema_counts(marks)
+        p, v = end_extrema(h, cnt, n)
         bx, by, bv = boundary_knots(h, p, v, n)
-        kx, ky, j0, j1, _, _ = place_boundary(cx, cy, n, bx, by, bv)
+        (kx, ky), j1, _ = assemble(h, marks, bx, by, bv)
         for env, ref in ((0, ref_max), (1, ref_min)):
-            lo, hi = int(j0[env, 0, 0]), int(j1[env, 0, 0]) + 1
-            assert np.array_equal(kx[env, 0, lo:hi].numpy(), ref[0]), (x, env)
-            assert np.array_equal(ky[env, 0, lo:hi].numpy(), ref[1]), (x, env)
+            hi = int(j1[env, 0, 0]) + 1
+            assert np.array_equal(kx[env, 0, :hi].numpy(), ref[0]), (x, env)
+            assert np.array_equal(ky[env, 0, :hi].numpy(), ref[1]), (x, env)
             assert np.all(np.diff(kx[env, 0].numpy()) > 0)  # dummies keep spacings positive
         seen.update(_case(x, pmax.astype(int), pmin.astype(int)))
         checked += 1
@@ -154,7 +154,7 @@ def test_pcr_solves_diagonally_dominant_tridiagonal_systems():
     c[:, -1] = 0
     b = np.abs(a) + np.abs(c) + rng.uniform(0.05, 1, (50, k))
     r = rng.standard_normal((50, k))
-    got = pcr_solve(torch.tensor(np.stack([a / b, c / b, r / b]))).numpy()  # (50, K)
+    got = pcr_solve(torch.tensor(np.stack([a / b, c / b, r / b])))[0].numpy()  # (50, K)
     for i in range(50):
         mat = np.diag(b[i]) + np.diag(a[i, 1:], -1) + np.diag(c[i, :-1], 1)
         np.testing.assert_allclose(got[i], np.linalg.solve(mat, r[i]), rtol=1e-12, atol=1e-12)
@@ -172,15 +172,15 @@ def test_spline_pieces_match_scipy_not_a_knot_and_natural_3_point(n_knots):
         ys = rng.standard_normal(n_knots)
         x = np.concatenate([xs, 4 * n_time + np.arange(k - n_knots)]).astype(np.float64)
         y = np.concatenate([ys, np.zeros(k - n_knots)])
-        xt, yt = (torch.tensor(v).reshape(1, 1, k).repeat(2, 1, 1) for v in (x, y))  # (2, 1, K)
-        j0 = torch.zeros(2, 1, 1, dtype=torch.float64)
-        m = pcr_solve(spline_system(xt, yt, j0, j0 + n_knots - 1))
+        xy = torch.tensor(np.stack([x, y])).reshape(2, 1, 1, k).repeat(1, 2, 1, 1)  # (2, 2, 1, K)
+        j1 = torch.full((2, 1, 1), n_knots - 1.0, dtype=torch.float64)
+        m = pcr_solve(spline_system(xy, j1))
         t = np.arange(n_time, dtype=np.float64)
         seg = np.clip(np.searchsorted(xs, t, side="right") - 1, 0, n_knots - 2)
         if n_knots >= 4:  # outer segments evaluate their neighbour's cubic (same polynomial)
             seg = np.clip(seg, 1, n_knots - 3)
         seg_t = torch.tensor(seg).reshape(1, 1, -1).repeat(2, 1, 1)
-        got = evaluate(torch.zeros(1, n_time), xt, yt, m, seg_t)[0, 0, 0].numpy()
+        got = evaluate(torch.zeros(1, n_time), xy, m, seg_t)[0, 0, 0].numpy()
         if n_knots > 3:
             want = CubicSpline(xs, ys)(t)
         else:

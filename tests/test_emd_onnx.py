@@ -39,15 +39,15 @@ BUDGET = {
     "head": 7,
     "strict": 7,
     "plateau": 30,
-    "compact": 16,
-    "end_extrema": 8,
+    "counts": 2,
+    "end_extrema": 14,
     "boundary": 55,
-    "place": 22,
-    "system": 43,
-    "solve": 69,
-    "segment": 19,
-    "evaluate": 26,
-    "sift": 265,
+    "assemble": 27,
+    "system": 35,
+    "solve": 68,
+    "segment": 14,
+    "evaluate": 23,
+    "sift": 246,
 }
 
 

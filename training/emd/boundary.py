@@ -27,34 +27,13 @@ import torch
 from torch import Tensor
 
 
-def end_extrema(x: Tensor, y: Tensor, n: Tensor) -> tuple[Tensor, Tensor]:
-    """The first and last three extrema of each envelope, in side coordinates.
-
-    Args:
-        x, y: (2, R, K + 1) compacted extrema (slots 2 .. n+1) from
-            :func:`knots.compact_extrema`; n: (2, R, 1) counts.
-
-    Returns:
-        p: (2, R, 2, 3) positions ``[[E0, E1, E2], [E[n-1], E[n-2], E[n-3]]]`` (entries past
-            the list are dummies).
-        v: (2, R, 2, 3) the signal values there.
-    """
-    dt, dev = x.dtype, x.device
-    w = torch.tensor([0.0, 0.0, 0.0, 1.0, 1.0, 1.0], dtype=dt, device=dev)
-    b = torch.tensor([2.0, 3.0, 4.0, 1.0, 0.0, -1.0], dtype=dt, device=dev)
-    idx = torch.clamp(n * w + b, min=0.0).long()  # (2, R, 6) slots
-    p = torch.gather(x, -1, idx).reshape(2, -1, 2, 3)  # (2, R, side, 3)
-    v = torch.gather(y, -1, idx).reshape(2, -1, 2, 3)
-    return p, v
-
-
 def boundary_knots(h: Tensor, p: Tensor, v: Tensor, n: Tensor) -> tuple[Tensor, Tensor, Tensor]:
     """The mirrored knots of both envelopes at both ends.
 
     Args:
         h: (R, N) signals.
         p, v: (2, R, 2, 3) end extrema positions (sample indices) and values
-            (:func:`end_extrema`); n: (2, R, 1) extrema counts.
+            (:func:`knots.end_extrema`); n: (2, R, 1) extrema counts.
 
     Returns:
         x, y: (2, R, 4) knot positions and values, ordered

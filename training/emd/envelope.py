@@ -14,44 +14,42 @@ import torch
 from torch import Tensor
 
 
-def segment_index(cnt: Tensor, kx: Tensor, kv: Tensor, j0: Tensor, j1: Tensor) -> Tensor:
+def segment_index(cnt: Tensor, kx: Tensor, j1: Tensor) -> Tensor:
     """Segment of every sample.
 
     Args:
         cnt: (2, R, N) running count of interior extrema (interior knots among samples <= t).
-        kx, kv: (2, R, 4) mirrored knot positions and 0/1 validity.
-        j0, j1: (2, R, 1) first and last real knot slot.
+        kx: (2, R, 4) mirrored knot positions, invalid ones past the window
+            (:func:`knots.assemble`).
+        j1: (2, R, 1) last real knot slot.
 
     Returns:
         (2, R, N) int64 slot ``k`` of the segment ``[x_k, x_{k+1}]`` evaluated at ``t``: the last
-        knot at or before ``t``, clamped to ``[j0+1, j1-2]`` for not-a-knot splines and to
-        ``[j0, j1-1]`` for 3-knot natural ones.
+        knot at or before ``t``, clamped to ``[1, j1-2]`` for not-a-knot splines and to
+        ``[0, j1-1]`` for 3-knot natural ones.
     """
     n_time = int(cnt.shape[-1])
     t = torch.arange(n_time, dtype=cnt.dtype, device=cnt.device)  # (N,)
-    # Valid mirrored knots at or before t (an invalid one is moved past every sample).
-    kxv = torch.where(kv > 0, kx, 2.0 * n_time)  # (2, R, 4)
-    mirrored = (kxv.unsqueeze(-1) <= t).to(cnt.dtype).sum(-2)  # (2, R, N)
-    knot4 = (j1 - j0 >= 3.0).to(cnt.dtype)  # (2, R, 1)
-    # Slot of the last knot at or before t: j0 - 1 + (knots <= t).
-    count = cnt + mirrored + (j0 - 1.0)  # (2, R, N)
-    seg = torch.minimum(torch.maximum(count, j0 + knot4), j1 - 1.0 - knot4)
+    mirrored = (kx.unsqueeze(-1) <= t).to(cnt.dtype).sum(-2)  # (2, R, N) mirrored knots <= t
+    knot4 = (j1 >= 3.0).to(cnt.dtype)  # (2, R, 1)
+    # Slot of the last knot at or before t: (knots <= t) - 1.
+    seg = torch.minimum(torch.maximum(cnt + mirrored - 1.0, knot4), j1 - 1.0 - knot4)
     return seg.clamp(min=0.0).long()  # clamp: rows without an envelope stay in range
 
 
-def evaluate(h: Tensor, x: Tensor, y: Tensor, m: Tensor, seg: Tensor) -> Tensor:
+def evaluate(h: Tensor, xy: Tensor, m: Tensor, seg: Tensor) -> Tensor:
     """Evaluate the splines at t = 0..N-1.
 
     Args:
         h: (R, N) signals (only the length is used).
-        x, y: (2, R, K) knot positions and values; m: (2, R, K) second derivatives over 6.
+        xy: (2, 2, R, K) knot positions and values; m: (1, 2, R, K) second derivatives over 6.
         seg: (2, R, N) int64 segment slot per sample (:func:`segment_index`).
 
     Returns:
         (1, 2, R, N) envelopes.
     """
     n_time = int(h.shape[-1])
-    xym = torch.stack([x, y, m])  # (3, 2, R, K)
+    xym = torch.cat([xy, m])  # (3, 2, R, K)
     p0 = xym[..., :-1]  # segment starts
     hk, dy, dm = (xym[..., 1:] - p0).split(1)  # (1, 2, R, K-1) each
     x0, y0, m0 = p0.split(1)
@@ -62,6 +60,6 @@ def evaluate(h: Tensor, x: Tensor, y: Tensor, m: Tensor, seg: Tensor) -> Tensor:
     coef = torch.cat([x0, y0, c1, c2, dm / hk])  # (5, 2, R, K-1)
     idx = seg + torch.zeros(5, 1, 1, 1, dtype=seg.dtype, device=seg.device)  # (5, 2, R, N)
     gx, gy, g1, g2, g3 = torch.gather(coef, -1, idx).split(1)  # (1, 2, R, N) each
-    t = torch.arange(n_time, dtype=x.dtype, device=x.device)  # (N,)
+    t = torch.arange(n_time, dtype=xy.dtype, device=xy.device)  # (N,)
     b = t - gx
     return gy + b * (g1 + b * (g2 + b * g3))  # (1, 2, R, N)

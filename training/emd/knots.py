@@ -1,13 +1,11 @@
-"""Knot slots: interior extrema and mirrored knots, ascending, in fixed-size arrays.
+"""Knots: the interior extrema and the mirrored knots of each envelope, ascending, in fixed slots.
 
-Per envelope (axis 0: [upper, lower]) and row, knots live in ``K = N // 2 + 5`` slots:
-
-* slots 0, 1: left mirrored knots, right-aligned (a single valid one sits in slot 1);
-* slots 2 .. n+1: the n interior extrema, compacted by a cumulative count and one scatter;
-* slots n+2, n+3: right mirrored knots, left-aligned.
-
-The real knots are slots ``j0 .. j1``. Every other slot holds a dummy position below or above
-all knots, so all spacings are positive and nothing in the spline system divides by zero.
+Per envelope (axis 0: [upper, lower]) and row, knots live in ``K = N // 2 + 5`` slots. The
+valid knots, in ascending order ``[left far, left near, interior extrema..., right near,
+right far]``, take slots ``0 .. j1``: each knot's slot is the running count of valid knots
+before it, so one cumulative sum and one scatter place them all. Every slot after ``j1`` holds
+a dummy position above all knots, so all spacings are positive and nothing in the spline
+system divides by zero.
 """
 
 from __future__ import annotations
@@ -21,74 +19,74 @@ def n_slots(n_time: int) -> int:
     return n_time // 2 + 5
 
 
-def _dummy_positions(n_time: int, dt: torch.dtype, dev: torch.device) -> Tensor:
-    """(K + 1,) initial slot positions: two far left, the rest far right (last = dump)."""
-    k = n_slots(n_time)
-    pos = torch.arange(k + 1, dtype=dt, device=dev) + 16.0 * n_time
-    pos[:2] = torch.tensor([-8.0 * n_time, -8.0 * n_time + 1.0], dtype=dt)
-    return pos
+def extrema_counts(marks: Tensor) -> tuple[Tensor, Tensor]:
+    """Running and total counts of the extrema.
+
+    Args:
+        marks: (2, R, N) 0/1 extremum marks.
+
+    Returns:
+        cnt: (2, R, N) extrema at samples <= t; n: (2, R, 1) extrema in the row.
+    """
+    cnt = torch.cumsum(marks, dim=-1)
+    return cnt, cnt[..., -1:]
 
 
-def compact_extrema(h: Tensor, marks: Tensor) -> tuple[Tensor, Tensor, Tensor, Tensor]:
-    """Interior extrema into slots 2 .. n+1.
+def end_extrema(h: Tensor, cnt: Tensor, n: Tensor) -> tuple[Tensor, Tensor]:
+    """The first and last three extrema of each envelope, without compacting them.
+
+    The k-th extremum (1-based) sits at the number of samples whose running count is below k.
+
+    Args:
+        h: (R, N) signals; cnt, n: (2, R, N) and (2, R, 1) from :func:`extrema_counts`.
+
+    Returns:
+        p: (2, R, 2, 3) positions ``[[E0, E1, E2], [E[n-1], E[n-2], E[n-3]]]``; entries past
+            the list hold 0 or N (finite placeholders, never used as knots).
+        v: (2, R, 2, 3) the signal values there (clamped to the window for placeholders).
+    """
+    n_time = int(h.shape[-1])
+    dt, dev = h.dtype, h.device
+    w = torch.tensor([0.0, 0.0, 0.0, 1.0, 1.0, 1.0], dtype=dt, device=dev)
+    b = torch.tensor([1.0, 2.0, 3.0, 0.0, -1.0, -2.0], dtype=dt, device=dev)
+    rank = n * w + b  # (2, R, 6): ranks 1, 2, 3, n, n-1, n-2
+    p = (cnt.unsqueeze(-2) < rank.unsqueeze(-1)).to(dt).sum(-1)  # (2, R, 6)
+    src = torch.clamp(p, 0.0, n_time - 1.0).long()
+    v = torch.gather(h.unsqueeze(0).expand(2, -1, -1), -1, src)  # (2, R, 6)
+    return p.reshape(2, -1, 2, 3), v.reshape(2, -1, 2, 3)
+
+
+def assemble(
+    h: Tensor, marks: Tensor, bx: Tensor, by: Tensor, bv: Tensor
+) -> tuple[Tensor, Tensor, Tensor]:
+    """All knots of each envelope in slots ``0 .. j1``, by one cumulative count and one scatter.
 
     Args:
         h: (R, N) signals; marks: (2, R, N) 0/1 extremum marks.
+        bx, by, bv: (2, R, 4) mirrored knots ``[left far, left near, right near, right far]``
+            (positions, values, 0/1 validity) from :func:`boundary.boundary_knots`.
 
     Returns:
-        cnt: (2, R, N) running count of extrema (knots among samples <= t).
-        n: (2, R, 1) number of extrema.
-        x, y: (2, R, K + 1) slot positions and values; slot K is a dump slot. Dummy slots
-            carry finite meaningless values.
+        xy: (2, 2, R, K) knot positions and values, stacked on axis 0 (dummies after ``j1``).
+        j1: (2, R, 1) last real slot (``j1 + 1`` knots).
+        kx: (2, R, 4) the mirrored knots' positions, invalid ones moved past the window (for
+            :func:`envelope.segment_index`).
     """
     n_time = int(h.shape[-1])
     k = n_slots(n_time)
     dt, dev = h.dtype, h.device
-    cnt = torch.cumsum(marks, dim=-1)  # (2, R, N)
-    n = cnt[..., -1:]  # (2, R, 1)
-    slot = torch.where(marks > 0, cnt + 1.0, float(k)).long()  # (2, R, N)
-    t = torch.arange(n_time, dtype=dt, device=dev)  # (N,)
-    init = n * 0.0 + _dummy_positions(n_time, dt, dev)  # (2, R, K + 1)
-    x = init.scatter(-1, slot, marks * 0.0 + t)  # (2, R, K + 1)
-    # Values by gather (cheaper than a second scatter); dummy slots read a clamped sample.
-    src = torch.clamp(x, 0.0, n_time - 1.0).long()  # (2, R, K + 1)
-    y = torch.gather(h.unsqueeze(0).expand(2, -1, -1), -1, src)  # (2, R, K + 1)
-    return cnt, n, x, y
-
-
-def place_boundary(
-    x: Tensor, y: Tensor, n: Tensor, bx: Tensor, by: Tensor, bv: Tensor
-) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor]:
-    """Write the mirrored knots next to the interior ones.
-
-    Args:
-        x, y: (2, R, K + 1) from :func:`compact_extrema`; n: (2, R, 1).
-        bx, by, bv: (2, R, 4) mirrored knots ``[left far, left near, right near, right far]``
-            (positions, values, 0/1 validity).
-
-    Returns:
-        x, y: (2, R, K) all knots; j0, j1: (2, R, 1) first and last real slot.
-        kx, kv: (2, R, 4) the mirrored knots as placed (positions, 0/1 validity), for
-            :func:`envelope.segment_index`.
-    """
-    k = int(x.shape[-1]) - 1
-    idx = torch.tensor([0, 0, 3, 3], device=x.device)
-    # Right-align the left pair and left-align the right pair: where the inner knot of a side
-    # is missing, its outer knot takes the inner slot.
-    inner = torch.index_select(bv, -1, torch.tensor([1, 1, 2, 2], device=x.device)) > 0
-    kx = torch.where(inner, bx, torch.index_select(bx, -1, idx))  # (2, R, 4)
-    ky = torch.where(inner, by, torch.index_select(by, -1, idx))  # (2, R, 4)
-    keep = torch.tensor([0.0, 1.0, 1.0, 0.0], dtype=x.dtype, device=x.device)
-    kv = torch.where(inner, bv, torch.index_select(bv, -1, idx) * keep)  # (2, R, 4)
-    w = torch.tensor([0.0, 0.0, 1.0, 1.0], dtype=x.dtype, device=x.device)
-    b = torch.tensor([0.0, 1.0, 2.0, 3.0], dtype=x.dtype, device=x.device)
-    slot = torch.where(kv > 0, n * w + b, float(k)).long()  # (2, R, 4): dump when invalid
-    x = x.scatter(-1, slot, kx)[..., :k]  # (2, R, K)
-    y = y.scatter(-1, slot, ky)[..., :k]  # (2, R, K)
-    # j0 = 2 - (valid left knots), j1 = n + 1 + (valid right knots), as one small product.
-    w = torch.tensor(
-        [[-1.0, 0.0], [-1.0, 0.0], [0.0, 1.0], [0.0, 1.0]], dtype=x.dtype, device=x.device
-    )
-    j0, j1 = (kv @ w + torch.tensor([2.0, 1.0], dtype=x.dtype, device=x.device)).split(1, -1)
-    j1 = j1 + n  # (2, R, 1)
-    return x, y, j0, j1, kx, kv
+    left, right = bv.split(2, dim=-1)
+    valid = torch.cat([left, marks, right], dim=-1)  # (2, R, N + 4), ascending knot order
+    cum = torch.cumsum(valid, dim=-1)
+    slot = (valid * (cum - (k + 1.0)) + k).long()  # valid: cum - 1; invalid: dump slot K
+    t = marks * 0.0 + torch.arange(n_time, dtype=dt, device=dev)  # (2, R, N)
+    lx, rx = bx.split(2, dim=-1)
+    ly, ry = by.split(2, dim=-1)
+    upd = torch.stack(
+        [torch.cat([lx, t, rx], dim=-1), torch.cat([ly, h.expand(2, -1, -1), ry], dim=-1)]
+    )  # (2, 2, R, N + 4): [positions, values]
+    dummy = torch.arange(k + 1, dtype=dt, device=dev) + 16.0 * n_time  # above every knot
+    init = cum[..., :1] * 0.0 + torch.stack([dummy, dummy * 0.0]).reshape(2, 1, 1, k + 1)
+    xy = init.scatter(-1, slot.expand(2, -1, -1, -1), upd)[..., :k]  # (2, 2, R, K)
+    kx = torch.where(bv > 0, bx, 2.0 * n_time)
+    return xy, cum[..., -1:] - 1.0, kx

@@ -7,10 +7,10 @@ from collections.abc import Callable
 import torch
 from torch import Tensor
 
-from .boundary import boundary_knots, end_extrema
+from .boundary import boundary_knots
 from .envelope import evaluate, segment_index
 from .extrema import differences, extrema_marks, has_tie, plateau_marks, strict_marks
-from .knots import compact_extrema, place_boundary
+from .knots import assemble, end_extrema, extrema_counts
 from .sift import sift
 from .spline import pcr_solve, spline_system
 
@@ -23,25 +23,25 @@ def piece_examples(
     h = torch.randn(rows, n_time, generator=gen, dtype=dtype)
     d = differences(h)
     marks = extrema_marks(h)
-    cnt, n, x, y = compact_extrema(h, marks)
-    p, v = end_extrema(x, y, n)
+    cnt, n = extrema_counts(marks)
+    p, v = end_extrema(h, cnt, n)
     bx, by, bv = boundary_knots(h, p, v, n)
-    xk, yk, j0, j1, kx, kv = place_boundary(x, y, n, bx, by, bv)
-    system = spline_system(xk, yk, j0, j1)
+    xy, j1, kx = assemble(h, marks, bx, by, bv)
+    system = spline_system(xy, j1)
     m = pcr_solve(system)
-    seg = segment_index(cnt, kx, kv, j0, j1)
+    seg = segment_index(cnt, kx, j1)
     active = torch.ones(rows, dtype=torch.bool)
     return {
         "head": (lambda h: (d := differences(h), has_tie(d)), (h,)),
         "strict": (strict_marks, (d,)),
         "plateau": (plateau_marks, (d,)),
-        "compact": (compact_extrema, (h, marks)),
-        "end_extrema": (end_extrema, (x, y, n)),
+        "counts": (extrema_counts, (marks,)),
+        "end_extrema": (end_extrema, (h, cnt, n)),
         "boundary": (boundary_knots, (h, p, v, n)),
-        "place": (place_boundary, (x, y, n, bx, by, bv)),
-        "system": (spline_system, (xk, yk, j0, j1)),
+        "assemble": (assemble, (h, marks, bx, by, bv)),
+        "system": (spline_system, (xy, j1)),
         "solve": (pcr_solve, (system,)),
-        "segment": (segment_index, (cnt, kx, kv, j0, j1)),
-        "evaluate": (evaluate, (h, xk, yk, m, seg)),
+        "segment": (segment_index, (cnt, kx, j1)),
+        "evaluate": (evaluate, (h, xy, m, seg)),
         "sift": (sift, (h, active, marks)),
     }

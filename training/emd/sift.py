@@ -5,10 +5,10 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
-from .boundary import boundary_knots, end_extrema
+from .boundary import boundary_knots
 from .envelope import evaluate, segment_index
 from .extrema import extrema_marks
-from .knots import compact_extrema, place_boundary
+from .knots import assemble, end_extrema, extrema_counts
 from .spline import pcr_solve, spline_system
 
 
@@ -32,13 +32,13 @@ def envelopes(h: Tensor, marks: Tensor | None = None) -> tuple[Tensor, Tensor]:
 
 def _envelopes(h: Tensor, marks: Tensor) -> tuple[Tensor, Tensor]:
     """:func:`envelopes` with env (1, 2, R, N), as the sift consumes it."""
-    cnt, n, x, y = compact_extrema(h, marks)  # (2, R, N), (2, R, 1), (2, R, K+1) x2
-    p, v = end_extrema(x, y, n)  # (2, R, 2, 3) x2
+    cnt, n = extrema_counts(marks)  # (2, R, N), (2, R, 1)
+    p, v = end_extrema(h, cnt, n)  # (2, R, 2, 3) x2
     bx, by, bv = boundary_knots(h, p, v, n)  # (2, R, 4) x3
-    x, y, j0, j1, kx, kv = place_boundary(x, y, n, bx, by, bv)  # (2, R, K) x2, (2, R, 1) x2
-    m = pcr_solve(spline_system(x, y, j0, j1))  # (2, R, K)
-    seg = segment_index(cnt, kx, kv, j0, j1)  # (2, R, N)
-    return evaluate(h, x, y, m, seg), n.sum(dim=(0, 2))
+    xy, j1, kx = assemble(h, marks, bx, by, bv)  # (2, 2, R, K), (2, R, 1), (2, R, 4)
+    m = pcr_solve(spline_system(xy, j1))  # (1, 2, R, K)
+    seg = segment_index(cnt, kx, j1)  # (2, R, N)
+    return evaluate(h, xy, m, seg), n.sum(dim=(0, 2))
 
 
 def sift(h: Tensor, active: Tensor, marks: Tensor | None = None) -> tuple[Tensor, Tensor]:

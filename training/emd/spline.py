@@ -2,17 +2,18 @@
 
 PyEMD interpolates with ``scipy.interpolate.CubicSpline`` (not-a-knot) when an envelope has
 more than 3 knots, and with a natural spline for exactly 3 (EMD_SPEC §1.6). With the real
-knots in slots ``j0 .. j1``, spacings ``h`` and secant slopes ``s``, the rows for the second
+knots in slots ``0 .. j1``, spacings ``h`` and secant slopes ``s``, the rows for the second
 derivatives ``M`` are
 
-    h[j-1] M[j-1] + 2 (h[j-1] + h[j]) M[j] + h[j] M[j+1] = 6 (s[j] - s[j-1]),  j0 < j < j1.
+    h[j-1] M[j-1] + 2 (h[j-1] + h[j]) M[j] + h[j] M[j+1] = 6 (s[j] - s[j-1]),  0 < j < j1.
 
-Not-a-knot eliminates ``M[j0]`` into row ``j0+1`` and ``M[j1]`` into row ``j1-1``; natural sets
-them to 0. The eliminated system is strictly diagonally dominant, so parallel cyclic reduction
-(PCR) without pivoting is stable: each step couples every row to rows twice as far away, and
-``ceil(log2 K)`` steps decouple all rows. Rows outside ``j0+1 .. j1-1`` are identity rows with
-right-hand side 0; ``M[j0]`` and ``M[j1]`` are never needed because the envelope evaluates the
-outer segments with their neighbour's cubic (not-a-knot: the same polynomial).
+Not-a-knot eliminates ``M[0]`` into row 1 and ``M[j1]`` into row ``j1-1``; natural sets them
+to 0. The rows are solved for ``M / 6``, which spares the factor 6. The eliminated system is
+strictly diagonally dominant, so parallel cyclic reduction (PCR) without pivoting is stable:
+each step couples every row to rows twice as far away, and ``ceil(log2 K)`` steps decouple all
+rows. Rows outside ``1 .. j1-1`` are identity rows with right-hand side 0; ``M[0]`` and
+``M[j1]`` are never needed because the envelope evaluates the outer segments with their
+neighbour's cubic (not-a-knot: the same polynomial).
 """
 
 from __future__ import annotations
@@ -24,28 +25,30 @@ import torch.nn.functional as F
 from torch import Tensor
 
 
-def spline_system(x: Tensor, y: Tensor, j0: Tensor, j1: Tensor) -> Tensor:
+def spline_system(xy: Tensor, j1: Tensor) -> Tensor:
     """Tridiagonal rows for the knots' second derivatives over 6, each divided by its diagonal.
 
     Args:
-        x, y: (2, R, K) knot positions (strictly increasing over all K slots) and values.
-        j0, j1: (2, R, 1) first and last real knot slot (``j1 - j0 >= 2`` for real rows).
+        xy: (2, ..., K) knot positions (strictly increasing over all K slots) and values; the
+            real knots are slots ``0 .. j1``.
+        j1: (..., 1) last real knot slot (``j1 >= 2`` for real rows).
 
     Returns:
-        (3, 2, R, K): sub-diagonal, super-diagonal and right-hand side of the unit-diagonal rows
+        (3, ..., K): sub-diagonal, super-diagonal and right-hand side of the unit-diagonal rows
         whose solution is ``M / 6`` (the right-hand side is the slope change, without the 6).
     """
-    k = int(x.shape[-1])
-    j = torch.arange(k, dtype=x.dtype, device=x.device)  # (K,)
-    hk = x[..., 1:] - x[..., :-1]  # (2, R, K-1) spacings, all > 0
-    sl = (y[..., 1:] - y[..., :-1]) / hk  # (2, R, K-1) secant slopes
-    hm = F.pad(hk, (1, 0), value=1.0)  # (2, R, K): h[j-1]
-    hp = F.pad(hk, (0, 1), value=1.0)  # (2, R, K): h[j]
-    rhs = F.pad(sl[..., 1:] - sl[..., :-1], (1, 1))  # (2, R, K)
-    dl, dr = j - j0, j1 - j  # (2, R, K) distance from the first / last knot
-    inner = (torch.minimum(dl, dr) >= 1.0).to(x.dtype)  # rows j0+1 .. j1-1
-    lf = (dl == 1.0).to(x.dtype)  # row j0+1: M[j0] eliminated (or natural)
-    rf = (dr == 1.0).to(x.dtype)  # row j1-1: M[j1] eliminated (or natural)
+    k = int(xy.shape[-1])
+    dt, dev = xy.dtype, xy.device
+    j = torch.arange(k, dtype=dt, device=dev)  # (K,)
+    hk, dy = (xy[..., 1:] - xy[..., :-1]).split(1)  # (1, ..., K-1) spacings (all > 0), rises
+    sl = dy / hk  # secant slopes
+    hm = F.pad(hk, (1, 0), value=1.0)  # (1, ..., K): h[j-1]
+    hp = F.pad(hk, (0, 1), value=1.0)  # (1, ..., K): h[j]
+    rhs = F.pad(sl[..., 1:] - sl[..., :-1], (1, 1))  # (1, ..., K)
+    dr = j1 - j  # (..., K) distance from the last knot
+    inner = ((dr >= 1.0).to(dt) * (j >= 1.0).to(dt))  # rows 1 .. j1-1
+    lf = (j == 1.0).to(dt)  # (K,) row 1: M[0] eliminated (or natural)
+    rf = (dr == 1.0).to(dt)  # row j1-1: M[j1] eliminated (or natural)
     # Every row is [h[j-1], 2 s, h[j]] + w [-h[j], s, -h[j-1]] with s = h[j-1] + h[j]:
     # w = 0 inside and for the natural 3-knot row, w = h[j-1]/h[j] for the left not-a-knot row
     # and h[j]/h[j-1] for the right one (EMD_SPEC §4.6, times h[j]/s or h[j-1]/s). There the
@@ -56,7 +59,7 @@ def spline_system(x: Tensor, y: Tensor, j0: Tensor, j1: Tensor) -> Tensor:
     s = hm + hp
     a = hm - w * hp
     c = hp - w * hm
-    return torch.stack([a, c, rhs]) * (inner / ((2.0 + w) * s))  # (3, 2, R, K)
+    return torch.cat([a, c, rhs]) * (inner / ((2.0 + w) * s))  # (3, ..., K)
 
 
 def pcr_steps(k: int) -> int:
@@ -73,7 +76,7 @@ def pcr_solve(sys: Tensor) -> Tensor:
             stable.
 
     Returns:
-        (..., K) solution.
+        (1, ..., K) solution.
     """
     k = int(sys.shape[-1])
     steps = pcr_steps(k)
@@ -88,6 +91,6 @@ def pcr_solve(sys: Tensor) -> Tensor:
         # and -1/diagonal folds the signs of the new off-diagonals into one factor.
         neg_diag = lo_c + hi_a - 1.0  # (1, ..., K)
         if step == steps - 1:  # rows are decoupled now: only the right-hand side is needed
-            return ((lo_r + hi_r - r) / neg_diag)[0]
+            return (lo_r + hi_r - r) / neg_diag
         sys = torch.cat([lo_a, hi_c, lo_r + hi_r - r]) * (1.0 / neg_diag)
     raise AssertionError("unreachable")  # pcr_steps() >= 1
