@@ -20,21 +20,24 @@ from emd_cases import compare, near_tie_gap, parity_set, run_torch
 
 from tactile.errors import ConfigError
 from tactile.training.emd import EMD
+from tactile.training.emd.knots import n_slots
 from tactile.training.emd.onnx_export import (
     OPSET,
+    PCR_ALWAYS,
     build_emd_model,
     count_nodes,
     export_emd_onnx,
     trace_graph,
 )
 from tactile.training.emd.pieces import piece_examples
+from tactile.training.emd.spline import pcr_steps
 
 TOL = 1e-4  # x window std
 MIN_PASS = 0.995
 NEAR_TIE = 1e-5  # x window std
-# Node budgets per piece (opset 18, traced as exported). The sift body is "head", an If that
-# runs "strict" (no ties) or "plateau", then "sift" (the pieces from "compact" on). Lower them
-# when a piece gets leaner; a rise means a change added kernel launches to every sift.
+# Node budgets per piece (opset 18, traced as exported); a sift runs them in this order ("head",
+# then "strict" without ties or "plateau" with them, ...). Lower them when a piece gets leaner;
+# a rise means a change added kernel launches to every sift.
 BUDGET = {
     "head": 7,
     "strict": 7,
@@ -47,8 +50,10 @@ BUDGET = {
     "solve": 68,
     "segment": 14,
     "evaluate": 23,
-    "sift": 246,
+    "finish": 44,
 }
+SIFT_SHORTEST = 226  # nodes run by one sift with few knots (later IMFs)
+SIFT_LONGEST = 265  # ... and with many knots (every PCR step)
 
 
 def _session(model: onnx.ModelProto) -> ort.InferenceSession:
@@ -85,6 +90,22 @@ def test_graph_contract(default_model):
     assert "Loop" in ops
 
 
+def test_skipped_solver_steps_and_plateau_branch_change_nothing(default_model):
+    """Per window, later IMFs skip PCR steps and windows without ties skip the plateau rule;
+    in one batch every step and (with quantised windows) the plateau branch run. Bit for bit
+    the same outputs."""
+    from emd_cases import windows
+
+    x = np.concatenate([windows(kind, 50, 16, 3) for kind in ("tones", "chirp", "quantised")])
+    x = x.reshape(-1, 8, 50).astype(np.float32)  # (6, 8, 50): two windows of each kind
+    sess = _session(default_model[0])
+    whole = sess.run(None, {"x_in": x})
+    for i in range(len(x)):
+        single = sess.run(None, {"x_in": x[i : i + 1]})
+        for a, b in zip(single, whole):
+            np.testing.assert_array_equal(a[0], b[i])
+
+
 @pytest.mark.parametrize("batch", [1, 7])
 def test_dynamic_batch_and_output_shapes(default_model, batch):
     model, _ = default_model
@@ -112,21 +133,26 @@ def test_piece_node_budgets():
 
 def test_sift_body_and_total_node_counts(default_model):
     model, _ = default_model
-    loops = {}
+    graphs = {}
 
     def walk(graph):
         for node in graph.node:
             for attr in node.attribute:
                 if attr.type == onnx.AttributeProto.GRAPH:
-                    loops[attr.g.name] = len(attr.g.node)
+                    graphs[attr.g.name] = len(attr.g.node)
                     walk(attr.g)
 
     walk(model.graph)
-    # Body: head, the If, the rest of the sift, and the loop condition's Identity.
-    assert loops["sift"] <= BUDGET["head"] + BUDGET["sift"] + 2
-    assert loops["strict"] <= BUDGET["strict"] and loops["plateau"] <= BUDGET["plateau"]
-    sifts = loops["sift"] + loops["strict"] + loops["plateau"]
-    assert count_nodes(model.graph) <= sifts + 60  # IMF loop and set-up stay small
+    assert graphs["strict"] <= BUDGET["strict"] and graphs["plateau"] <= BUDGET["plateau"]
+    # Nodes one sift runs without ties: the body (head, knots, system, the first PCR steps,
+    # envelopes, update), the strict branch, then either the solution as it stands (few knots)
+    # or every remaining PCR step, each in its If.
+    later = range(PCR_ALWAYS, pcr_steps(n_slots(50)))
+    shortest = graphs["sift"] + graphs["strict"] + graphs[f"solved{PCR_ALWAYS}"]
+    longest = graphs["sift"] + graphs["strict"] + sum(graphs[f"step{s}"] for s in later)
+    assert shortest <= SIFT_SHORTEST and longest <= SIFT_LONGEST, (shortest, longest)
+    branches = sum(v for k, v in graphs.items() if k.startswith(("step", "solved", "plateau")))
+    assert count_nodes(model.graph) <= graphs["sift"] + graphs["strict"] + branches + 60
 
 
 def test_float64_graph_matches_torch_float64():

@@ -32,8 +32,10 @@ from tactile.errors import ConfigError
 
 from .decompose import imf_update
 from .extrema import differences, has_tie, plateau_marks, strict_marks
+from .knots import n_slots
 from .module import EMDConfig
-from .sift import sift
+from .sift import finish, prepare
+from .spline import decoupled_after, pcr_last, pcr_step, pcr_steps
 
 OPSET = 18
 """ONNX opset of the exported graph (ScatterElements with reduction needs >= 16)."""
@@ -226,55 +228,128 @@ def _head(h: Tensor) -> tuple[Tensor, Tensor]:
     return d, has_tie(d)
 
 
+PCR_ALWAYS = 2
+"""PCR steps every sift runs; each later step sits in an ``If`` and runs only while some system
+is still coupled (:func:`spline.decoupled_after`): the few-knot envelopes of later IMFs skip
+them, with bit-identical results."""
+
+
 def _sift_graph(
     h: Tensor, act: Tensor, elem: int, n_time: int, rows: dict[int, str]
 ) -> tuple[onnx.GraphProto, list[onnx.TensorProto]]:
-    """The Loop body of one sift: differences, an ``If`` choosing the extremum rule, the rest.
+    """The Loop body of one sift.
 
+    Differences; an ``If`` choosing the extremum rule; knots and spline system with the first
+    :data:`PCR_ALWAYS` solver steps; nested ``If`` nodes for the remaining steps, each taking
+    the solution as it stands once every system is decoupled; envelopes and the update.
     Loop-carried names: ``s_h``, ``s_a`` in, ``s_h_out``, ``s_a_out`` out.
     """
+    k = n_slots(n_time)
+    steps = pcr_steps(k)
+    always = min(PCR_ALWAYS, steps - 1)
     d = differences(h)
     marks = strict_marks(d)
+    sys, xy, j1, cnt, kx, n_ext = prepare(h, marks)
+    m = sys[2:3]
+    r1 = {1: "rows"}
+    r2 = {2: "rows"}
+
+    def pre(h: Tensor, marks: Tensor) -> tuple[Tensor, ...]:
+        sys, *rest = prepare(h, marks)
+        for step in range(always):
+            sys = pcr_step(sys, 1 << step)
+        done = [decoupled_after(rest[1], step) for step in range(always, steps)]
+        return (sys, *rest, *done)
+
+    done_names = [f"done{s}" for s in range(always, steps)]
     head = trace_graph(_head, [h], ["h"], ["d", "tie"], {"h": rows, "d": rows})
-    strict = trace_graph(strict_marks, [d], ["d"], ["marks"], {"d": rows, "marks": {1: "rows"}})
-    plateau = trace_graph(plateau_marks, [d], ["d"], ["marks"], {"d": rows, "marks": {1: "rows"}})
+    strict = trace_graph(strict_marks, [d], ["d"], ["marks"], {"d": rows, "marks": r1})
+    plateau = trace_graph(plateau_marks, [d], ["d"], ["marks"], {"d": rows, "marks": r1})
+    prep = trace_graph(
+        pre,
+        [h, marks],
+        ["h", "marks"],
+        ["sys", "xy", "j1", "cnt", "kx", "n_ext", *done_names],
+        {"h": rows, "marks": r1, "sys": r2, "xy": r2, "j1": r1, "cnt": r1, "kx": r1,
+         "n_ext": {0: "rows"}},
+    )
+    solved = trace_graph(lambda sys: sys[2:3], [sys], ["sys"], ["m"], {"sys": r2, "m": r2})
+    step_models = {
+        s: trace_graph(
+            lambda sys, st=1 << s: pcr_step(sys, st),
+            [sys], ["sys"], ["out"], {"sys": r2, "out": r2},
+        )
+        for s in range(always, steps - 1)
+    }
+    last = trace_graph(
+        lambda sys: pcr_last(sys, 1 << (steps - 1)), [sys], ["sys"], ["m"], {"sys": r2, "m": r2}
+    )
     tail = trace_graph(
-        sift,
-        [h, act, marks],
-        ["h", "act", "marks"],
+        finish,
+        [h, act, xy, m, j1, cnt, kx, n_ext],
+        ["h", "act", "xy", "m", "j1", "cnt", "kx", "n_ext"],
         ["h_out", "act_out"],
-        {"h": rows, "act": rows, "marks": {1: "rows"}, "h_out": rows, "act_out": rows},
+        {"h": rows, "act": rows, "xy": r2, "m": r2, "j1": r1, "cnt": r1, "kx": r1,
+         "n_ext": {0: "rows"}, "h_out": rows, "act_out": rows},
     )
 
     def t(name: str, el: int, shape: list) -> onnx.ValueInfoProto:
         return helper.make_tensor_value_info(name, el, shape)
 
     inits: list[onnx.TensorProto] = []
-    nodes, more = _inline(head, "head/", {"h": "s_h", "d": "s_d", "tie": "s_tie"})
-    inits += more
+
+    def add(model: onnx.ModelProto, prefix: str, rename: dict[str, str]) -> list[onnx.NodeProto]:
+        nodes, more = _inline(model, prefix, rename)
+        inits.extend(more)
+        return nodes
+
+    m_info = [1, 2, "rows", k]
+    nodes = add(head, "head/", {"h": "s_h", "d": "s_d", "tie": "s_tie"})
     branches = {}
     for name, part in (("plateau", plateau), ("strict", strict)):
-        b_nodes, more = _inline(part, f"{name}/", {"d": "s_d", "marks": f"{name}/marks"})
-        inits += more
+        b_nodes = add(part, f"{name}/", {"d": "s_d", "marks": f"{name}/marks"})
         branches[name] = helper.make_graph(
             b_nodes, name, [], [t(f"{name}/marks", elem, [2, "rows", n_time])]
         )
     nodes.append(
         helper.make_node(
-            "If",
-            ["s_tie"],
-            ["s_marks"],
-            then_branch=branches["plateau"],
-            else_branch=branches["strict"],
+            "If", ["s_tie"], ["s_marks"],
+            then_branch=branches["plateau"], else_branch=branches["strict"],
         )
     )
-    more_nodes, more = _inline(
+    outer = {"h": "s_h", "marks": "s_marks", "sys": f"s_sys{always}"}
+    outer.update({v: f"s_{v}" for v in ["xy", "j1", "cnt", "kx", "n_ext", *done_names]})
+    nodes += add(prep, "prep/", outer)
+
+    def solve_from(step: int, out: str) -> list[onnx.NodeProto]:
+        """Nodes that write the solution to ``out`` from ``s_sys{step}`` (``step`` done)."""
+        sys_name = f"s_sys{step}"
+        done = helper.make_graph(
+            add(solved, f"solved{step}/", {"sys": sys_name, "m": f"solved{step}/m"}),
+            f"solved{step}", [], [t(f"solved{step}/m", elem, m_info)],
+        )
+        if step == steps - 1:
+            more = add(last, "last/", {"sys": sys_name, "m": "last/m"})
+            more_out = "last/m"
+        else:
+            rename = {"sys": sys_name, "out": f"s_sys{step + 1}"}
+            more = add(step_models[step], f"step{step}/", rename)
+            more_out = f"m{step + 1}"
+            more += solve_from(step + 1, more_out)
+        go_on = helper.make_graph(more, f"step{step}", [], [t(more_out, elem, m_info)])
+        return [
+            helper.make_node(
+                "If", [f"s_done{step}"], [out], then_branch=done, else_branch=go_on
+            )
+        ]
+
+    nodes += solve_from(always, "s_m")
+    nodes += add(
         tail,
         "sift/",
-        {"h": "s_h", "act": "s_a", "marks": "s_marks", "h_out": "s_h_out", "act_out": "s_a_out"},
+        {"h": "s_h", "act": "s_a", "m": "s_m", "h_out": "s_h_out", "act_out": "s_a_out",
+         **{v: f"s_{v}" for v in ["xy", "j1", "cnt", "kx", "n_ext"]}},
     )
-    nodes += more_nodes
-    inits += more
     nodes.append(helper.make_node("Identity", ["s_c"], ["s_c_out"]))
     graph = helper.make_graph(
         nodes,

@@ -11,7 +11,7 @@ from .boundary import boundary_knots
 from .envelope import evaluate, segment_index
 from .extrema import differences, extrema_marks, has_tie, plateau_marks, strict_marks
 from .knots import assemble, end_extrema, extrema_counts
-from .sift import sift
+from .sift import finish
 from .spline import pcr_solve, spline_system
 
 
@@ -30,6 +30,7 @@ def piece_examples(
     system = spline_system(xy, j1)
     m = pcr_solve(system)
     seg = segment_index(cnt, kx, j1)
+    n_ext = n.sum(dim=(0, 2))
     active = torch.ones(rows, dtype=torch.bool)
     return {
         "head": (lambda h: (d := differences(h), has_tie(d)), (h,)),
@@ -43,5 +44,5 @@ def piece_examples(
         "solve": (pcr_solve, (system,)),
         "segment": (segment_index, (cnt, kx, j1)),
         "evaluate": (evaluate, (h, xy, m, seg)),
-        "sift": (sift, (h, active, marks)),
+        "finish": (finish, (h, active, xy, m, j1, cnt, kx, n_ext)),
     }

@@ -1,4 +1,9 @@
-"""One sift: subtract the mean of the upper and lower envelopes (EMD_SPEC §1.3, §4.1-4.8)."""
+"""One sift: subtract the mean of the upper and lower envelopes (EMD_SPEC §1.3, §4.1-4.8).
+
+A sift is three stages, so that the exported graph can put the spline solve's later steps in
+``If`` nodes: :func:`prepare` (extrema to the spline system), :func:`spline.pcr_solve`, and
+:func:`finish` (envelopes and the update).
+"""
 
 from __future__ import annotations
 
@@ -10,6 +15,37 @@ from .envelope import evaluate, segment_index
 from .extrema import extrema_marks
 from .knots import assemble, end_extrema, extrema_counts
 from .spline import pcr_solve, spline_system
+
+
+def prepare(h: Tensor, marks: Tensor) -> tuple[Tensor, ...]:
+    """Knots and spline system of both envelopes of every row.
+
+    Args:
+        h: (R, N) signals, N >= 3, finite; marks: (2, R, N) their extremum marks.
+
+    Returns:
+        sys: (3, 2, R, K) the unit-diagonal system (:func:`spline.spline_system`).
+        xy: (2, 2, R, K) knots; j1: (2, R, 1) last real slot; cnt: (2, R, N) running extremum
+        count; kx: (2, R, 4) mirrored knot positions; n_ext: (R,) extrema per row (PyEMD's
+        ``extNo``).
+    """
+    cnt, n = extrema_counts(marks)  # (2, R, N), (2, R, 1)
+    p, v = end_extrema(h, cnt, n)  # (2, R, 2, 3) x2
+    bx, by, bv = boundary_knots(h, p, v, n)  # (2, R, 4) x3
+    xy, j1, kx = assemble(h, marks, bx, by, bv)  # (2, 2, R, K), (2, R, 1), (2, R, 4)
+    return spline_system(xy, j1), xy, j1, cnt, kx, n.sum(dim=(0, 2))
+
+
+def finish(
+    h: Tensor, active: Tensor, xy: Tensor, m: Tensor, j1: Tensor, cnt: Tensor, kx: Tensor,
+    n_ext: Tensor,
+) -> tuple[Tensor, Tensor]:
+    """Evaluate the envelopes and subtract their mean (the arguments as :func:`prepare` gives
+    them, ``m`` (1, 2, R, K) from :func:`spline.pcr_solve`); returns as :func:`sift`."""
+    env = evaluate(h, xy, m, segment_index(cnt, kx, j1))  # (1, 2, R, N)
+    active = active & (n_ext > 2.0)  # (R,)
+    mean = env.sum(dim=(0, 1)) * 0.5  # (R, N): (upper + lower) / 2, as PyEMD
+    return torch.where(active.unsqueeze(-1), h - mean, h), active
 
 
 def envelopes(h: Tensor, marks: Tensor | None = None) -> tuple[Tensor, Tensor]:
@@ -26,19 +62,9 @@ def envelopes(h: Tensor, marks: Tensor | None = None) -> tuple[Tensor, Tensor]:
     """
     if marks is None:
         marks = extrema_marks(h)  # (2, R, N)
-    env, n_ext = _envelopes(h, marks)
-    return env[0], n_ext
-
-
-def _envelopes(h: Tensor, marks: Tensor) -> tuple[Tensor, Tensor]:
-    """:func:`envelopes` with env (1, 2, R, N), as the sift consumes it."""
-    cnt, n = extrema_counts(marks)  # (2, R, N), (2, R, 1)
-    p, v = end_extrema(h, cnt, n)  # (2, R, 2, 3) x2
-    bx, by, bv = boundary_knots(h, p, v, n)  # (2, R, 4) x3
-    xy, j1, kx = assemble(h, marks, bx, by, bv)  # (2, 2, R, K), (2, R, 1), (2, R, 4)
-    m = pcr_solve(spline_system(xy, j1))  # (1, 2, R, K)
-    seg = segment_index(cnt, kx, j1)  # (2, R, N)
-    return evaluate(h, xy, m, seg), n.sum(dim=(0, 2))
+    sys, xy, j1, cnt, kx, n_ext = prepare(h, marks)
+    m = pcr_solve(sys, j1)
+    return evaluate(h, xy, m, segment_index(cnt, kx, j1))[0], n_ext
 
 
 def sift(h: Tensor, active: Tensor, marks: Tensor | None = None) -> tuple[Tensor, Tensor]:
@@ -57,7 +83,5 @@ def sift(h: Tensor, active: Tensor, marks: Tensor | None = None) -> tuple[Tensor
     """
     if marks is None:
         marks = extrema_marks(h)  # (2, R, N)
-    env, n_ext = _envelopes(h, marks)  # (1, 2, R, N), (R,)
-    active = active & (n_ext > 2.0)  # (R,)
-    mean = env.sum(dim=(0, 1)) * 0.5  # (R, N): (upper + lower) / 2, as PyEMD
-    return torch.where(active.unsqueeze(-1), h - mean, h), active
+    sys, xy, j1, cnt, kx, n_ext = prepare(h, marks)
+    return finish(h, active, xy, pcr_solve(sys, j1), j1, cnt, kx, n_ext)

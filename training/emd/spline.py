@@ -67,30 +67,66 @@ def pcr_steps(k: int) -> int:
     return max(1, math.ceil(math.log2(k)))
 
 
-def pcr_solve(sys: Tensor) -> Tensor:
+def pcr_step(sys: Tensor, st: int) -> Tensor:
+    """One PCR step: couple every row to the rows ``2 st`` away instead of ``st``.
+
+    Args:
+        sys: (3, ..., K) unit-diagonal rows [sub-diagonal, super-diagonal, right-hand side],
+            coupling row j to rows j -/+ st.
+
+    Returns:
+        (3, ..., K) the same kind of rows, coupling row j to rows j -/+ 2 st.
+    """
+    dn = F.pad(sys, (st, -st))  # (3, ..., K): [a, c, r] of row j - st (zero beyond the ends)
+    up = F.pad(sys, (-st, st))  # (3, ..., K): [a, c, r] of row j + st
+    a, c, r = sys.split(1)  # (1, ..., K) each
+    lo_a, lo_c, lo_r = (a * dn).split(1)  # a_j [a, c, r]_{j-st}
+    hi_a, hi_c, hi_r = (c * up).split(1)  # c_j [a, c, r]_{j+st}
+    # Eliminate rows j -/+ st from row j; the new diagonal is 1 - a c_{j-st} - c a_{j+st},
+    # and dividing by its negative folds the signs of the new off-diagonals in.
+    return torch.cat([lo_a, hi_c, lo_r + hi_r - r]) / (lo_c + hi_a - 1.0)
+
+
+def pcr_last(sys: Tensor, st: int) -> Tensor:
+    """The final PCR step, computing only the solution: (3, ..., K) -> (1, ..., K)."""
+    dn = F.pad(sys, (st, -st))
+    up = F.pad(sys, (-st, st))
+    a, c, r = sys.split(1)
+    _, lo_c, lo_r = (a * dn).split(1)
+    hi_a, _, hi_r = (c * up).split(1)
+    return (lo_r + hi_r - r) / (lo_c + hi_a - 1.0)
+
+
+def decoupled_after(j1: Tensor, steps: int) -> Tensor:
+    """True (0-d bool) when ``steps`` PCR steps leave every real row of every system decoupled.
+
+    After ``s`` steps row j couples to rows j -/+ 2^s; the real rows are 1 .. j1-1 and every
+    other row is an identity row with solution 0, so once ``2^s >= j1 - 1`` for all systems the
+    right-hand side is the solution, and further steps would leave it bit for bit unchanged.
+    """
+    return j1.amax() - 1.0 <= float(1 << steps)
+
+
+def pcr_solve(sys: Tensor, j1: Tensor | None = None) -> Tensor:
     """Solve unit-diagonal tridiagonal systems by parallel cyclic reduction.
 
     Args:
         sys: (3, ..., K) sub-diagonal ``a``, super-diagonal ``c`` and right-hand side ``r``;
             ``a[..., 0]`` and ``c[..., K-1]`` must be 0. Strict diagonal dominance keeps it
             stable.
+        j1: (..., 1) last real row of each system (rows past it are identity rows with
+            right-hand side 0, as :func:`spline_system` makes them); when given, the solve
+            stops as soon as :func:`decoupled_after` allows, with the same result.
 
     Returns:
         (1, ..., K) solution.
     """
     k = int(sys.shape[-1])
     steps = pcr_steps(k)
-    for step in range(steps):
-        st = 1 << step
-        dn = F.pad(sys, (st, -st))  # (3, ..., K): [a, c, r] of row j - st (zero beyond the ends)
-        up = F.pad(sys, (-st, st))  # (3, ..., K): [a, c, r] of row j + st
-        a, c, r = sys.split(1)  # (1, ..., K) each
-        lo_a, lo_c, lo_r = (a * dn).split(1)  # a_j [a, c, r]_{j-st}
-        hi_a, hi_c, hi_r = (c * up).split(1)  # c_j [a, c, r]_{j+st}
-        # Eliminate rows j -/+ st from row j; the new diagonal is 1 - a c_{j-st} - c a_{j+st},
-        # and -1/diagonal folds the signs of the new off-diagonals into one factor.
-        neg_diag = lo_c + hi_a - 1.0  # (1, ..., K)
-        if step == steps - 1:  # rows are decoupled now: only the right-hand side is needed
-            return (lo_r + hi_r - r) / neg_diag
-        sys = torch.cat([lo_a, hi_c, lo_r + hi_r - r]) * (1.0 / neg_diag)
-    raise AssertionError("unreachable")  # pcr_steps() >= 1
+    for step in range(steps - 1):
+        if j1 is not None and j1.numel() and bool(decoupled_after(j1, step)):
+            return sys[2:3]
+        sys = pcr_step(sys, 1 << step)
+    if j1 is not None and j1.numel() and bool(decoupled_after(j1, steps - 1)):
+        return sys[2:3]
+    return pcr_last(sys, 1 << (steps - 1))
