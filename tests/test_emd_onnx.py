@@ -44,7 +44,7 @@ BUDGET = {
     "plateau": 30,
     "counts": 2,
     "end_extrema": 14,
-    "boundary": 55,
+    "boundary": 46,
     "assemble": 27,
     "system": 35,
     "solve": 68,
@@ -52,8 +52,8 @@ BUDGET = {
     "evaluate": 23,
     "finish": 44,
 }
-SIFT_SHORTEST = 226  # nodes run by one sift with few knots (later IMFs)
-SIFT_LONGEST = 265  # ... and with many knots (every PCR step)
+SIFT_SHORTEST = 217  # nodes run by one sift with few knots (later IMFs)
+SIFT_LONGEST = 256  # ... and with many knots (every PCR step)
 
 
 def _session(model: onnx.ModelProto) -> ort.InferenceSession:

@@ -31,9 +31,9 @@ def boundary_knots(h: Tensor, p: Tensor, v: Tensor, n: Tensor) -> tuple[Tensor, 
     """The mirrored knots of both envelopes at both ends.
 
     Args:
-        h: (R, N) signals.
-        p, v: (2, R, 2, 3) end extrema positions (sample indices) and values
-            (:func:`knots.end_extrema`); n: (2, R, 1) extrema counts.
+        h: (R, N) signals (only the length is used).
+        p, v: (2, R, 2, 4) positions (sample indices) and values of ``[end sample, E0, E1, E2]``
+            seen from each end (:func:`knots.end_extrema`); n: (2, R, 1) extrema counts.
 
     Returns:
         x, y: (2, R, 4) knot positions and values, ordered
@@ -46,36 +46,30 @@ def boundary_knots(h: Tensor, p: Tensor, v: Tensor, n: Tensor) -> tuple[Tensor, 
     side_sign = torch.tensor([[1.0], [-1.0]], dtype=dt, device=dev)  # (side, 1)
     side_off = torch.tensor([[0.0], [last]], dtype=dt, device=dev)  # (side, 1)
     env_sign = torch.tensor([1.0, -1.0], dtype=dt, device=dev).reshape(2, 1, 1, 1)
-    # Left side gathers [far, near], right side [near, far]: ascending positions at once.
-    kvec = torch.tensor([[1, 0], [0, 1]], device=dev)  # (side, k)
-    ends = torch.index_select(h, 1, torch.tensor([0, n_time - 1], device=dev))  # (R, side)
-    ends = ends.reshape(1, -1, 2, 1)  # (1, R, side, 1)
-    q = p * side_sign + side_off  # (2, R, side, 3): distance from the end
+    # Left side takes sources [far, near], right side [near, far]: ascending positions at once.
+    kvec = torch.tensor([[1.0, 0.0], [0.0, 1.0]], dtype=dt, device=dev)  # (side, k)
+    q = p * side_sign + side_off  # (2, R, side, 4): distance from the end (the end sample: 0)
     n4 = n.unsqueeze(-1)  # (2, R, 1, 1)
 
-    first = q[..., 0:1]  # (2, R, side, 1)
+    first = q[..., 1:2]  # (2, R, side, 1)
     other = first.flip(0)  # the other envelope's first extremum
     is_f = first < other  # (2, R, side, 1): this envelope plays F
     f0 = torch.minimum(first, other)
-    v0 = v[..., 0:1]
+    ends, v0 = v[..., 0:1], v[..., 1:2]
     # Case 1 seen from either envelope: sigma_F * (S[end] - vG0) > 0.
     dv = torch.where(is_f, ends - v0.flip(0), v0 - ends)  # (2, R, side, 1)
     case1 = dv * env_sign > 0
     # Fallback: the outermost case-1 knot of F (source F[min(2, nF-1)]) or of G (source
-    # G[min(1, nG-1)]) would not reach past the end.
-    own_last = torch.gather(q, -1, torch.minimum(is_f.long() + 1, n4.long() - 1).clamp(min=0))
+    # G[min(1, nG-1)]) would not reach past the end (list index + 1: the end sample is first).
+    own_last = torch.gather(q, -1, torch.minimum(is_f.to(dt) + 2.0, n4).long())
     short = own_last < 2.0 * f0  # (2, R, side, 1)
-    mirror_f0 = case1 & ~(short | short.flip(0))
-    shift = torch.where(is_f, mirror_f0.long() + 1, case1.long())  # (2, R, side, 1) in 0..2
-    centre = f0 * mirror_f0.to(dt)  # symmetry point, side coordinates
-
-    raw = shift - 1 + kvec  # (2, R, side, k): source index in [E0, E1, E2], -1 = end sample
-    src = raw.clamp(min=0)
-    at_end = raw < 0
-    pos = torch.where(at_end, 0.0, torch.gather(q, -1, src))  # (2, R, side, k)
-    val = torch.where(at_end, ends, torch.gather(v, -1, src))
-    kx = 2.0 * centre - pos
+    mirror_f0 = (case1 & ~(short | short.flip(0))).to(dt)
+    shift = torch.where(is_f, mirror_f0 + 1.0, case1.to(dt))  # (2, R, side, 1) in 0..2
+    src = shift + kvec  # (2, R, side, k): index in [end sample, E0, E1, E2]
+    idx = src.long()
+    kx = (f0 * mirror_f0) * 2.0 - torch.gather(q, -1, idx)  # mirrored, side coordinates
+    val = torch.gather(v, -1, idx)
     # A source exists when the list is long enough; a knot on E0 duplicates it.
-    valid = (raw < n4) & (kx < first)
+    valid = (src <= n4) & (kx < first)
     kx = kx * side_sign + side_off  # back to sample positions
     return kx.reshape(2, -1, 4), val.reshape(2, -1, 4), valid.to(dt).reshape(2, -1, 4)

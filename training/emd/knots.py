@@ -33,27 +33,28 @@ def extrema_counts(marks: Tensor) -> tuple[Tensor, Tensor]:
 
 
 def end_extrema(h: Tensor, cnt: Tensor, n: Tensor) -> tuple[Tensor, Tensor]:
-    """The first and last three extrema of each envelope, without compacting them.
+    """The end samples and the first and last three extrema of each envelope, uncompacted.
 
-    The k-th extremum (1-based) sits at the number of samples whose running count is below k.
+    The k-th extremum (1-based) sits at the number of samples whose running count is below k;
+    rank 0 gives sample 0 and rank n + 1 the last sample (after clamping).
 
     Args:
         h: (R, N) signals; cnt, n: (2, R, N) and (2, R, 1) from :func:`extrema_counts`.
 
     Returns:
-        p: (2, R, 2, 3) positions ``[[E0, E1, E2], [E[n-1], E[n-2], E[n-3]]]``; entries past
-            the list hold 0 or N (finite placeholders, never used as knots).
-        v: (2, R, 2, 3) the signal values there (clamped to the window for placeholders).
+        p: (2, R, 2, 4) positions ``[[0, E0, E1, E2], [N-1, E[n-1], E[n-2], E[n-3]]]``;
+            entries past the list hold 0 or N-1 (placeholders, never used as knots).
+        v: (2, R, 2, 4) the signal values there.
     """
     n_time = int(h.shape[-1])
     dt, dev = h.dtype, h.device
-    w = torch.tensor([0.0, 0.0, 0.0, 1.0, 1.0, 1.0], dtype=dt, device=dev)
-    b = torch.tensor([1.0, 2.0, 3.0, 0.0, -1.0, -2.0], dtype=dt, device=dev)
-    rank = n * w + b  # (2, R, 6): ranks 1, 2, 3, n, n-1, n-2
-    p = (cnt.unsqueeze(-2) < rank.unsqueeze(-1)).to(dt).sum(-1)  # (2, R, 6)
-    src = torch.clamp(p, 0.0, n_time - 1.0).long()
-    v = torch.gather(h.unsqueeze(0).expand(2, -1, -1), -1, src)  # (2, R, 6)
-    return p.reshape(2, -1, 2, 3), v.reshape(2, -1, 2, 3)
+    w = torch.tensor([0.0, 0.0, 0.0, 0.0, 1.0, 1.0, 1.0, 1.0], dtype=dt, device=dev)
+    b = torch.tensor([0.0, 1.0, 2.0, 3.0, 1.0, 0.0, -1.0, -2.0], dtype=dt, device=dev)
+    rank = n * w + b  # (2, R, 8): ranks 0..3 and n+1, n, n-1, n-2
+    p = (cnt.unsqueeze(-2) < rank.unsqueeze(-1)).to(dt).sum(-1)  # (2, R, 8)
+    p = torch.clamp(p, max=n_time - 1.0)
+    v = torch.gather(h.unsqueeze(0).expand(2, -1, -1), -1, p.long())  # (2, R, 8)
+    return p.reshape(2, -1, 2, 4), v.reshape(2, -1, 2, 4)
 
 
 def assemble(

@@ -30,7 +30,7 @@ def prepare(h: Tensor, marks: Tensor) -> tuple[Tensor, ...]:
         ``extNo``).
     """
     cnt, n = extrema_counts(marks)  # (2, R, N), (2, R, 1)
-    p, v = end_extrema(h, cnt, n)  # (2, R, 2, 3) x2
+    p, v = end_extrema(h, cnt, n)  # (2, R, 2, 4) x2
     bx, by, bv = boundary_knots(h, p, v, n)  # (2, R, 4) x3
     xy, j1, kx = assemble(h, marks, bx, by, bv)  # (2, 2, R, K), (2, R, 1), (2, R, 4)
     return spline_system(xy, j1), xy, j1, cnt, kx, n.sum(dim=(0, 2))
