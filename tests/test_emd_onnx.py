@@ -46,14 +46,14 @@ BUDGET = {
     "end_extrema": 14,
     "boundary": 46,
     "assemble": 27,
-    "system": 35,
+    "system": 32,
     "solve": 68,
     "segment": 14,
     "evaluate": 23,
     "finish": 44,
 }
-SIFT_SHORTEST = 217  # nodes run by one sift with few knots (later IMFs)
-SIFT_LONGEST = 256  # ... and with many knots (every PCR step)
+SIFT_SHORTEST = 214  # nodes run by one sift with few knots (later IMFs)
+SIFT_LONGEST = 253  # ... and with many knots (every PCR step)
 
 
 def _session(model: onnx.ModelProto) -> ort.InferenceSession:

@@ -40,14 +40,14 @@ def spline_system(xy: Tensor, j1: Tensor) -> Tensor:
     k = int(xy.shape[-1])
     dt, dev = xy.dtype, xy.device
     j = torch.arange(k, dtype=dt, device=dev)  # (K,)
+    row1 = (j == 1.0).to(dt)  # (K,) row 1: M[0] eliminated (or natural)
     hk, dy = (xy[..., 1:] - xy[..., :-1]).split(1)  # (1, ..., K-1) spacings (all > 0), rises
     sl = dy / hk  # secant slopes
     hm = F.pad(hk, (1, 0), value=1.0)  # (1, ..., K): h[j-1]
     hp = F.pad(hk, (0, 1), value=1.0)  # (1, ..., K): h[j]
-    rhs = F.pad(sl[..., 1:] - sl[..., :-1], (1, 1))  # (1, ..., K)
+    rhs = F.pad(sl, (0, 1)) - F.pad(sl, (1, 0))  # (1, ..., K); rows 0 and K-1 are masked
     dr = j1 - j  # (..., K) distance from the last knot
-    inner = ((dr >= 1.0).to(dt) * (j >= 1.0).to(dt))  # rows 1 .. j1-1
-    lf = (j == 1.0).to(dt)  # (K,) row 1: M[0] eliminated (or natural)
+    inner = torch.clamp(dr, 0.0, 1.0) * (j >= 1.0).to(dt)  # rows 1 .. j1-1
     rf = (dr == 1.0).to(dt)  # row j1-1: M[j1] eliminated (or natural)
     # Every row is [h[j-1], 2 s, h[j]] + w [-h[j], s, -h[j-1]] with s = h[j-1] + h[j]:
     # w = 0 inside and for the natural 3-knot row, w = h[j-1]/h[j] for the left not-a-knot row
@@ -55,7 +55,7 @@ def spline_system(xy: Tensor, j1: Tensor) -> Tensor:
     # coefficient towards the eliminated knot vanishes up to rounding, and that knot's identity
     # row (M = 0, right-hand side 0) makes its value irrelevant.
     u = hm / hp
-    w = torch.relu(lf - rf) * u + torch.relu(rf - lf) / u
+    w = torch.relu(row1 - rf) * u + rf * (1.0 - row1) / u
     s = hm + hp
     a = hm - w * hp
     c = hp - w * hm
