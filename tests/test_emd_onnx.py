@@ -43,17 +43,17 @@ BUDGET = {
     "strict": 7,
     "plateau": 30,
     "counts": 2,
-    "end_extrema": 14,
-    "boundary": 46,
-    "assemble": 27,
+    "end_extrema": 13,
+    "boundary": 48,
+    "assemble": 22,
     "system": 32,
     "solve": 68,
     "segment": 14,
     "evaluate": 23,
-    "finish": 44,
+    "finish": 43,
 }
-SIFT_SHORTEST = 214  # nodes run by one sift with few knots (later IMFs)
-SIFT_LONGEST = 253  # ... and with many knots (every PCR step)
+SIFT_SHORTEST = 209  # nodes run by one sift with few knots (later IMFs)
+SIFT_LONGEST = 248  # ... and with many knots (every PCR step)
 
 
 def _session(model: onnx.ModelProto) -> ort.InferenceSession:

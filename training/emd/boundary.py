@@ -27,7 +27,7 @@ import torch
 from torch import Tensor
 
 
-def boundary_knots(h: Tensor, p: Tensor, v: Tensor, n: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+def boundary_knots(h: Tensor, p: Tensor, v: Tensor, n: Tensor) -> tuple[Tensor, Tensor]:
     """The mirrored knots of both envelopes at both ends.
 
     Args:
@@ -36,7 +36,7 @@ def boundary_knots(h: Tensor, p: Tensor, v: Tensor, n: Tensor) -> tuple[Tensor, 
             seen from each end (:func:`knots.end_extrema`); n: (2, R, 1) extrema counts.
 
     Returns:
-        x, y: (2, R, 4) knot positions and values, ordered
+        xy: (2, 2, R, 4) knot positions and values (scaled as ``v``), ordered
             ``[left far, left near, right near, right far]`` (ascending when valid).
         valid: (2, R, 4) 0/1 floats. Rows with fewer than 3 extrema get meaningless knots.
     """
@@ -72,4 +72,4 @@ def boundary_knots(h: Tensor, p: Tensor, v: Tensor, n: Tensor) -> tuple[Tensor, 
     # A source exists when the list is long enough; a knot on E0 duplicates it.
     valid = (src <= n4) & (kx < first)
     kx = kx * side_sign + side_off  # back to sample positions
-    return kx.reshape(2, -1, 4), val.reshape(2, -1, 4), valid.to(dt).reshape(2, -1, 4)
+    return torch.stack([kx, val]).reshape(2, 2, -1, 4), valid.to(dt).reshape(2, -1, 4)

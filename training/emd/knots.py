@@ -44,7 +44,7 @@ def end_extrema(h: Tensor, cnt: Tensor, n: Tensor) -> tuple[Tensor, Tensor]:
     Returns:
         p: (2, R, 2, 4) positions ``[[0, E0, E1, E2], [N-1, E[n-1], E[n-2], E[n-3]]]``;
             entries past the list hold 0 or N-1 (placeholders, never used as knots).
-        v: (2, R, 2, 4) the signal values there.
+        v: (2, R, 2, 4) half the signal values there (see :func:`assemble`).
     """
     n_time = int(h.shape[-1])
     dt, dev = h.dtype, h.device
@@ -53,22 +53,23 @@ def end_extrema(h: Tensor, cnt: Tensor, n: Tensor) -> tuple[Tensor, Tensor]:
     rank = n * w + b  # (2, R, 8): ranks 0..3 and n+1, n, n-1, n-2
     p = (cnt.unsqueeze(-2) < rank.unsqueeze(-1)).to(dt).sum(-1)  # (2, R, 8)
     p = torch.clamp(p, max=n_time - 1.0)
-    v = torch.gather(h.unsqueeze(0).expand(2, -1, -1), -1, p.long())  # (2, R, 8)
+    half = torch.full((2, 1, 1), 0.5, dtype=dt, device=dev)
+    v = torch.gather(h * half, -1, p.long())  # (2, R, 8)
     return p.reshape(2, -1, 2, 4), v.reshape(2, -1, 2, 4)
 
 
-def assemble(
-    h: Tensor, marks: Tensor, bx: Tensor, by: Tensor, bv: Tensor
-) -> tuple[Tensor, Tensor, Tensor]:
+def assemble(h: Tensor, marks: Tensor, bxy: Tensor, bv: Tensor) -> tuple[Tensor, Tensor, Tensor]:
     """All knots of each envelope in slots ``0 .. j1``, by one cumulative count and one scatter.
 
     Args:
         h: (R, N) signals; marks: (2, R, N) 0/1 extremum marks.
-        bx, by, bv: (2, R, 4) mirrored knots ``[left far, left near, right near, right far]``
-            (positions, values, 0/1 validity) from :func:`boundary.boundary_knots`.
+        bxy: (2, 2, R, 4) mirrored knots ``[left far, left near, right near, right far]``
+            (positions, half values) and bv: (2, R, 4) their 0/1 validity, from
+            :func:`boundary.boundary_knots`.
 
     Returns:
-        xy: (2, 2, R, K) knot positions and values, stacked on axis 0 (dummies after ``j1``).
+        xy: (2, 2, R, K) knot positions and **half** values (``h / 2``: the two envelopes
+            then sum to their mean), stacked on axis 0; dummies after ``j1``.
         j1: (2, R, 1) last real slot (``j1 + 1`` knots).
         kx: (2, R, 4) the mirrored knots' positions, invalid ones moved past the window (for
             :func:`envelope.segment_index`).
@@ -80,14 +81,14 @@ def assemble(
     valid = torch.cat([left, marks, right], dim=-1)  # (2, R, N + 4), ascending knot order
     cum = torch.cumsum(valid, dim=-1)
     slot = (valid * (cum - (k + 1.0)) + k).long()  # valid: cum - 1; invalid: dump slot K
-    t = marks * 0.0 + torch.arange(n_time, dtype=dt, device=dev)  # (2, R, N)
-    lx, rx = bx.split(2, dim=-1)
-    ly, ry = by.split(2, dim=-1)
-    upd = torch.stack(
-        [torch.cat([lx, t, rx], dim=-1), torch.cat([ly, h.expand(2, -1, -1), ry], dim=-1)]
-    )  # (2, 2, R, N + 4): [positions, values]
+    # Interior candidates [t, h[t] / 2] for both envelopes: (2, 1, R, N) + (2, 2, 1, N).
+    t = torch.arange(n_time, dtype=dt, device=dev)
+    scale = torch.tensor([0.0, 0.5], dtype=dt, device=dev).reshape(2, 1, 1, 1)
+    grid = torch.stack([t, t * 0.0]).reshape(2, 1, 1, n_time).expand(2, 2, 1, n_time)
+    lb, rb = bxy.split(2, dim=-1)
+    upd = torch.cat([lb, h * scale + grid, rb], dim=-1)  # (2, 2, R, N + 4): [positions, values]
     dummy = torch.arange(k + 1, dtype=dt, device=dev) + 16.0 * n_time  # above every knot
     init = cum[..., :1] * 0.0 + torch.stack([dummy, dummy * 0.0]).reshape(2, 1, 1, k + 1)
     xy = init.scatter(-1, slot.expand(2, -1, -1, -1), upd)[..., :k]  # (2, 2, R, K)
-    kx = torch.where(bv > 0, bx, 2.0 * n_time)
+    kx = torch.where(bv > 0, bxy[0], 2.0 * n_time)
     return xy, cum[..., -1:] - 1.0, kx

@@ -25,8 +25,8 @@ def piece_examples(
     marks = extrema_marks(h)
     cnt, n = extrema_counts(marks)
     p, v = end_extrema(h, cnt, n)
-    bx, by, bv = boundary_knots(h, p, v, n)
-    xy, j1, kx = assemble(h, marks, bx, by, bv)
+    bxy, bv = boundary_knots(h, p, v, n)
+    xy, j1, kx = assemble(h, marks, bxy, bv)
     system = spline_system(xy, j1)
     m = pcr_solve(system)
     seg = segment_index(cnt, kx, j1)
@@ -39,7 +39,7 @@ def piece_examples(
         "counts": (extrema_counts, (marks,)),
         "end_extrema": (end_extrema, (h, cnt, n)),
         "boundary": (boundary_knots, (h, p, v, n)),
-        "assemble": (assemble, (h, marks, bx, by, bv)),
+        "assemble": (assemble, (h, marks, bxy, bv)),
         "system": (spline_system, (xy, j1)),
         "solve": (pcr_solve, (system,)),
         "segment": (segment_index, (cnt, kx, j1)),

@@ -31,8 +31,8 @@ def prepare(h: Tensor, marks: Tensor) -> tuple[Tensor, ...]:
     """
     cnt, n = extrema_counts(marks)  # (2, R, N), (2, R, 1)
     p, v = end_extrema(h, cnt, n)  # (2, R, 2, 4) x2
-    bx, by, bv = boundary_knots(h, p, v, n)  # (2, R, 4) x3
-    xy, j1, kx = assemble(h, marks, bx, by, bv)  # (2, 2, R, K), (2, R, 1), (2, R, 4)
+    bxy, bv = boundary_knots(h, p, v, n)  # (2, 2, R, 4), (2, R, 4)
+    xy, j1, kx = assemble(h, marks, bxy, bv)  # (2, 2, R, K) (half values), (2, R, 1), (2, R, 4)
     return spline_system(xy, j1), xy, j1, cnt, kx, n.sum(dim=(0, 2))
 
 
@@ -42,9 +42,9 @@ def finish(
 ) -> tuple[Tensor, Tensor]:
     """Evaluate the envelopes and subtract their mean (the arguments as :func:`prepare` gives
     them, ``m`` (1, 2, R, K) from :func:`spline.pcr_solve`); returns as :func:`sift`."""
-    env = evaluate(h, xy, m, segment_index(cnt, kx, j1))  # (1, 2, R, N)
+    half = evaluate(h, xy, m, segment_index(cnt, kx, j1))  # (1, 2, R, N) envelopes / 2
     active = active & (n_ext > 2.0)  # (R,)
-    mean = env.sum(dim=(0, 1)) * 0.5  # (R, N): (upper + lower) / 2, as PyEMD
+    mean = half.sum(dim=(0, 1))  # (R, N): (upper + lower) / 2, bit for bit as PyEMD's
     return torch.where(active.unsqueeze(-1), h - mean, h), active
 
 
@@ -64,7 +64,7 @@ def envelopes(h: Tensor, marks: Tensor | None = None) -> tuple[Tensor, Tensor]:
         marks = extrema_marks(h)  # (2, R, N)
     sys, xy, j1, cnt, kx, n_ext = prepare(h, marks)
     m = pcr_solve(sys, j1)
-    return evaluate(h, xy, m, segment_index(cnt, kx, j1))[0], n_ext
+    return evaluate(h, xy, m, segment_index(cnt, kx, j1))[0] * 2.0, n_ext
 
 
 def sift(h: Tensor, active: Tensor, marks: Tensor | None = None) -> tuple[Tensor, Tensor]:
