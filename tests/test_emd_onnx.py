@@ -44,7 +44,7 @@ BUDGET = {
     "plateau": 30,
     "counts": 2,
     "end_extrema": 13,
-    "boundary": 48,
+    "boundary": 47,
     "assemble": 22,
     "system": 32,
     "solve": 68,
@@ -52,8 +52,8 @@ BUDGET = {
     "evaluate": 23,
     "finish": 43,
 }
-SIFT_SHORTEST = 209  # nodes run by one sift with few knots (later IMFs)
-SIFT_LONGEST = 248  # ... and with many knots (every PCR step)
+SIFT_SHORTEST = 208  # nodes run by one sift with few knots (later IMFs)
+SIFT_LONGEST = 247  # ... and with many knots (every PCR step)
 
 
 def _session(model: onnx.ModelProto) -> ort.InferenceSession:

@@ -62,12 +62,13 @@ def boundary_knots(h: Tensor, p: Tensor, v: Tensor, n: Tensor) -> tuple[Tensor, 
     # Fallback: the outermost case-1 knot of F (source F[min(2, nF-1)]) or of G (source
     # G[min(1, nG-1)]) would not reach past the end (list index + 1: the end sample is first).
     own_last = torch.gather(q, -1, torch.minimum(is_f.to(dt) + 2.0, n4).long())
-    short = own_last < 2.0 * f0  # (2, R, side, 1)
+    two_f0 = 2.0 * f0
+    short = own_last < two_f0  # (2, R, side, 1)
     mirror_f0 = (case1 & ~(short | short.flip(0))).to(dt)
     shift = torch.where(is_f, mirror_f0 + 1.0, case1.to(dt))  # (2, R, side, 1) in 0..2
     src = shift + kvec  # (2, R, side, k): index in [end sample, E0, E1, E2]
     idx = src.long()
-    kx = (f0 * mirror_f0) * 2.0 - torch.gather(q, -1, idx)  # mirrored, side coordinates
+    kx = two_f0 * mirror_f0 - torch.gather(q, -1, idx)  # mirrored, side coordinates
     val = torch.gather(v, -1, idx)
     # A source exists when the list is long enough; a knot on E0 duplicates it.
     valid = (src <= n4) & (kx < first)
