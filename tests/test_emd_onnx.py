@@ -20,17 +20,16 @@ from emd_cases import compare, near_tie_gap, parity_set, run_torch
 
 from tactile.errors import ConfigError
 from tactile.training.emd import EMD
-from tactile.training.emd.knots import n_slots
 from tactile.training.emd.onnx_export import (
     OPSET,
-    PCR_ALWAYS,
     build_emd_model,
     count_nodes,
     export_emd_onnx,
+    sift_path_nodes,
+    subgraph_nodes,
     trace_graph,
 )
 from tactile.training.emd.pieces import piece_examples
-from tactile.training.emd.spline import pcr_steps
 
 TOL = 1e-4  # x window std
 MIN_PASS = 0.995
@@ -133,23 +132,12 @@ def test_piece_node_budgets():
 
 def test_sift_body_and_total_node_counts(default_model):
     model, _ = default_model
-    graphs = {}
-
-    def walk(graph):
-        for node in graph.node:
-            for attr in node.attribute:
-                if attr.type == onnx.AttributeProto.GRAPH:
-                    graphs[attr.g.name] = len(attr.g.node)
-                    walk(attr.g)
-
-    walk(model.graph)
+    graphs = subgraph_nodes(model.graph)
     assert graphs["strict"] <= BUDGET["strict"] and graphs["plateau"] <= BUDGET["plateau"]
     # Nodes one sift runs without ties: the body (head, knots, system, the first PCR steps,
     # envelopes, update), the strict branch, then either the solution as it stands (few knots)
     # or every remaining PCR step, each in its If.
-    later = range(PCR_ALWAYS, pcr_steps(n_slots(50)))
-    shortest = graphs["sift"] + graphs["strict"] + graphs[f"solved{PCR_ALWAYS}"]
-    longest = graphs["sift"] + graphs["strict"] + sum(graphs[f"step{s}"] for s in later)
+    shortest, longest = sift_path_nodes(model, 50)
     assert shortest <= SIFT_SHORTEST and longest <= SIFT_LONGEST, (shortest, longest)
     branches = sum(v for k, v in graphs.items() if k.startswith(("step", "solved", "plateau")))
     assert count_nodes(model.graph) <= graphs["sift"] + graphs["strict"] + branches + 60

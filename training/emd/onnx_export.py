@@ -551,6 +551,31 @@ def export_emd_onnx(
     return model
 
 
+def subgraph_nodes(graph: onnx.GraphProto) -> dict[str, int]:
+    """Node count of every subgraph (Loop bodies, If branches) by name, nested ones included."""
+    out: dict[str, int] = {}
+    for node in graph.node:
+        for attr in node.attribute:
+            if attr.type == onnx.AttributeProto.GRAPH:
+                out[attr.g.name] = len(attr.g.node)
+                out.update(subgraph_nodes(attr.g))
+    return out
+
+
+def sift_path_nodes(model: onnx.ModelProto, n_time: int) -> tuple[int, int]:
+    """Nodes one sift runs on input without ties: (fewest, most).
+
+    Fewest: the loop body, the strict extremum branch and the solution taken after the
+    :data:`PCR_ALWAYS` steps; most: every remaining PCR step as well.
+    """
+    graphs = subgraph_nodes(model.graph)
+    steps = pcr_steps(n_slots(n_time))
+    always = min(PCR_ALWAYS, steps - 1)
+    base = graphs["sift"] + graphs["strict"]
+    later = sum(graphs[f"step{s}"] for s in range(always, steps))
+    return base + graphs[f"solved{always}"], base + later
+
+
 def count_nodes(graph: onnx.GraphProto) -> int:
     """Nodes in ``graph`` and all its subgraphs (each Loop body counted once)."""
     total = 0
