@@ -47,12 +47,12 @@ BUDGET = {
     "assemble": 22,
     "system": 32,
     "solve": 68,
-    "segment": 14,
+    "segment": 12,
     "evaluate": 23,
-    "finish": 43,
+    "finish": 41,
 }
-SIFT_SHORTEST = 208  # nodes run by one sift with few knots (later IMFs)
-SIFT_LONGEST = 247  # ... and with many knots (every PCR step)
+SIFT_SHORTEST = 206  # nodes run by one sift with few knots (later IMFs)
+SIFT_LONGEST = 245  # ... and with many knots (every PCR step)
 
 
 def _session(model: onnx.ModelProto) -> ort.InferenceSession:

@@ -31,10 +31,13 @@ def segment_index(cnt: Tensor, kx: Tensor, j1: Tensor) -> Tensor:
     n_time = int(cnt.shape[-1])
     t = torch.arange(n_time, dtype=cnt.dtype, device=cnt.device)  # (N,)
     mirrored = (kx.unsqueeze(-1) <= t).to(cnt.dtype).sum(-2)  # (2, R, N) mirrored knots <= t
-    knot4 = (j1 >= 3.0).to(cnt.dtype)  # (2, R, 1)
+    # Not-a-knot (j1 >= 3) clamps to [1, j1-2], natural 3-knot (j1 = 2) to [0, 1]; rows
+    # without an envelope (j1 < 2) stay inside [0, 1].
+    j2 = j1 - 2.0  # (2, R, 1)
+    lo = torch.clamp(j2, 0.0, 1.0)
+    hi = torch.clamp(j2, min=1.0)
     # Slot of the last knot at or before t: (knots <= t) - 1.
-    seg = torch.minimum(torch.maximum(cnt + mirrored - 1.0, knot4), j1 - 1.0 - knot4)
-    return seg.clamp(min=0.0).long()  # clamp: rows without an envelope stay in range
+    return torch.minimum(torch.maximum(cnt + mirrored - 1.0, lo), hi).long()
 
 
 def evaluate(h: Tensor, xy: Tensor, m: Tensor, seg: Tensor) -> Tensor:
