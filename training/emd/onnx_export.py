@@ -1,14 +1,16 @@
 """ONNX export of :class:`EMD`: the sifts run inside ONNX ``Loop`` nodes.
 
-Exporter path (pinned): each small step (one sift, closing an IMF, the set-up and the final
-reshapes) is traced with ``torch.onnx.export(..., dynamo=False)`` at opset
+Exporter path (pinned): each small step (the parts of one sift, closing an IMF, the set-up
+and the final reshapes) is traced with ``torch.onnx.export(..., dynamo=False)`` at opset
 :data:`OPSET` with a dynamic row axis, constant-folded by ``onnxscript.optimizer``, and the
-pieces are wired together here with two nested ``Loop`` nodes (IMFs outside, sifts inside).
-onnxruntime then runs the ~200-node sift body 40 times instead of holding 40 unrolled copies:
-the file stays small and session creation fast. The same torch functions run in eager mode,
-so the graph computes exactly what :func:`decompose.decompose` computes.
+pieces are wired together here with two nested ``Loop`` nodes (IMFs outside, sifts inside)
+and ``If`` nodes inside the sift (the plateau rule only when there are ties; PCR steps only
+while a system is still coupled). onnxruntime runs the ~200-node sift body 40 times instead
+of holding 40 unrolled copies: the file stays small and session creation fast. The same torch
+functions run in eager mode, so the graph computes exactly what :func:`decompose.decompose`
+computes.
 
-Graph contract: input ``x`` (batch, channels, time) float32/float64 with a dynamic batch axis;
+Graph contract: input ``x_in`` (batch, channels, time) float32/float64 with a dynamic batch axis;
 outputs ``imfs`` (batch, channels, n_imfs, time), ``residue`` (batch, channels, time) and
 ``n_valid`` (batch, channels) int64.
 """
