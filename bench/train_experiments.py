@@ -1,8 +1,11 @@
 """The pen paper's two experiments on the simulated pen, and the HapMat recordings, with and
 without EMD features. Prints markdown tables (ours beside the paper's) for docs/results.md.
 
+HapMat runs every LSTM once per ``--seeds`` seed and, on the very same windows, two baselines: a
+linear classifier on EMD energies and a logistic regression on per-window spectral band energies.
+
     python bench/train_experiments.py --out runs/experiments          # the full runs
-    python bench/train_experiments.py --out /tmp/x --users 8 --seconds 20 --epochs 3   # a smoke run
+    python bench/train_experiments.py --out runs/smoke --users 8 --seconds 20 --epochs 3  # smoke
 
 Each simulated take is one user session of 60 s; users are split into train, validation and test,
 so the test users are never seen in training. Training uses every core given by --threads.
@@ -15,10 +18,13 @@ import time
 from pathlib import Path
 
 import numpy as np
+import torch
 
 from tactile.device.hapmat import import_hapmat
+from tactile.device.recording import load_dataset
 from tactile.device.sim_cli import make_dataset
 from tactile.training.config import TrainConfig
+from tactile.training.data import channel_index, classes_of, cut, split_takes
 from tactile.training.train import train
 
 HAPMAT = (Path(__file__).resolve().parents[2] / "shared" / "datasets" / "hapmat"
@@ -44,6 +50,7 @@ PAPER = {
 }
 EMD_CHANNELS_PEN = ("pressure_0", "accel_x", "accel_y", "accel_z")
 EMD_CHANNELS_HAPMAT = ("accel_x", "accel_y", "accel_z")
+BAND_HZ = 5.0  # the logistic baseline's band width: 0-5, 5-10, ... up to the Nyquist frequency
 
 
 def paper_order(metrics: dict, order: tuple[str, ...]) -> np.ndarray:
@@ -77,17 +84,84 @@ def run_one(name: str, data: Path, out: Path, cfg: TrainConfig) -> dict:
     return m
 
 
+def band_energies(x: np.ndarray, rate: float) -> np.ndarray:
+    """(N, T, C) windows -> (N, C * bands) log energies of the mean-free, Hann-tapered window in
+    bands of :data:`BAND_HZ` from 0 Hz to the Nyquist frequency."""
+    z = x.astype(np.float64)
+    z = (z - z.mean(axis=1, keepdims=True)) * np.hanning(z.shape[1])[None, :, None]
+    power = np.abs(np.fft.rfft(z, axis=1)) ** 2  # (N, F, C)
+    freqs = np.fft.rfftfreq(z.shape[1], 1.0 / rate)
+    edges = np.arange(0.0, rate / 2 + BAND_HZ, BAND_HZ)
+    edges[-1] = np.inf
+    bands = [power[:, (freqs >= lo) & (freqs < hi)].sum(axis=1)
+             for lo, hi in zip(edges[:-1], edges[1:], strict=True)]
+    return np.log(np.concatenate([b for b in bands if b.size], axis=1) + 1e-12)
+
+
+def band_logistic(data: Path, cfg: TrainConfig, l2: float = 1e-3) -> dict:
+    """Baseline: multinomial logistic regression (standardised band energies, L2 ``l2``, full-batch
+    L-BFGS) trained on the windows ``cfg`` gives the LSTM's training split; test accuracy."""
+    t0 = time.perf_counter()
+    torch.manual_seed(cfg.seed)
+    takes = load_dataset(data)
+    classes = classes_of(takes)
+    channels = tuple(takes[0].channels[i] for i in channel_index(takes[0], cfg.channels))
+    rate = takes[0].info.sample_rate_hz
+    split = split_takes(takes, cfg)
+    parts = {name: cut(takes, classes, channels, cfg.window, cfg.hop, rows)
+             for name, rows in (("train", split.train), ("val", split.val), ("test", split.test))}
+    feats = {k: band_energies(w.x, rate) for k, w in parts.items()}
+    mu, sd = feats["train"].mean(axis=0), feats["train"].std(axis=0) + 1e-9
+    x = {k: torch.tensor((f - mu) / sd, dtype=torch.float32) for k, f in feats.items()}
+    y = torch.from_numpy(parts["train"].y).long()
+    model = torch.nn.Linear(x["train"].shape[1], len(classes))
+    opt = torch.optim.LBFGS(model.parameters(), max_iter=300, line_search_fn="strong_wolfe")
+
+    def closure() -> torch.Tensor:
+        opt.zero_grad()
+        loss = torch.nn.functional.cross_entropy(model(x["train"]), y)
+        loss = loss + l2 * (model.weight**2).sum()
+        loss.backward()
+        return loss
+
+    opt.step(closure)
+    with torch.no_grad():
+        acc = {k: float((model(x[k]).argmax(1).numpy() == parts[k].y).mean())
+               for k in ("val", "test")}
+    return {"accuracy": acc["test"], "val_accuracy": acc["val"],
+            "split_windows": {k: len(w) for k, w in parts.items()},
+            "wall_seconds": round(time.perf_counter() - t0, 1)}
+
+
+def _slug(label: str) -> str:
+    return "".join(c for c in label.replace(" ", "-") if c.isalnum() or c in "-=")
+
+
+def _seeds(text: str) -> tuple[int, ...]:
+    try:
+        seeds = tuple(int(v) for v in text.split(",") if v.strip())
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r}: expected seeds such as 0,1,2") from None
+    if not seeds:
+        raise argparse.ArgumentTypeError("give at least one seed")
+    return seeds
+
+
 def main() -> None:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("--out", type=Path, required=True)
     p.add_argument("--users", type=int, default=36, help="simulated users (takes per texture)")
     p.add_argument("--seconds", type=float, default=60.0, help="seconds per take")
-    p.add_argument("--epochs", type=int, default=60)
+    p.add_argument("--epochs", type=int, help="most epochs per run (default: TrainConfig's)")
     p.add_argument("--threads", type=int, default=2)
     p.add_argument("--hapmat", type=Path, default=HAPMAT)
     p.add_argument("--only", choices=("exp1", "exp2", "hapmat"), action="append")
+    p.add_argument("--seeds", type=_seeds, default=(0, 1, 2),
+                   help="HapMat: comma-separated seeds, one LSTM run each (default 0,1,2)")
     args = p.parse_args()
-    base = TrainConfig(epochs=args.epochs, threads=args.threads)
+    base = TrainConfig(threads=args.threads)
+    if args.epochs is not None:
+        base = base.replace(epochs=args.epochs)
     todo = args.only or ["exp1", "exp2", "hapmat"]
     for exp in ("exp1", "exp2"):
         if exp not in todo:
@@ -109,29 +183,45 @@ def main() -> None:
                   f"{args.threads} threads. Ours (paper's in brackets):\n")
             print(md_table(order, paper_order(m, order), paper) + "\n")
     if "hapmat" in todo:
-        data = args.out / "data-hapmat"
-        if not data.exists():
-            import_hapmat(args.hapmat, data)
-        print("\n### HapMat (real stick IMU, 5 materials; first 70% of each take trains, last "
-              "30% tests)\n")
-        hap = base.replace(split="time")
-        rows = []
-        for label, cfg in (("LSTM, without EMD", hap),
-                           ("LSTM, with EMD", hap.replace(emd_channels=list(EMD_CHANNELS_HAPMAT))),
-                           ("linear on EMD energies", hap.replace(
-                               model="linear", emd_channels=list(EMD_CHANNELS_HAPMAT)))):
-            m = run_one("hapmat-" + label.replace(" ", "-").replace(",", ""), data, args.out, cfg)
-            rows.append((label, m))
-        print("| model | test accuracy | shifted +/-0.2 s | windows (train/val/test) | time |")
-        print("|---|---|---|---|---|")
-        for label, m in rows:
-            w = m["split_windows"]
-            print(f"| {label} | {m['accuracy']:.3f} | {m['shifted']['mean']:.3f} | "
-                  f"{w['train']}/{w['val']}/{w['test']} | {m['wall_seconds']} s |")
-        order = tuple(rows[0][1]["classes"])
-        print("\nLSTM without EMD, confusion on the test part:\n")
-        print(md_table(order, paper_order(rows[0][1], order), None))
+        hapmat(args, base)
 
+
+def hapmat(args: argparse.Namespace, base: TrainConfig) -> None:
+    """HapMat split in time: the LSTMs once per seed, then the two baselines."""
+    data = args.out / "data-hapmat"
+    if not data.exists():
+        import_hapmat(args.hapmat, data)
+    print("\n### HapMat (real stick IMU, 5 materials; first 70% of each take trains, last "
+          "30% tests)\n")
+    hap = base.replace(split="time")
+    lstms = (("LSTM, without EMD", hap),
+             ("LSTM, with EMD", hap.replace(emd_channels=list(EMD_CHANNELS_HAPMAT))),
+             ("LSTM, without EMD, `refit=off`", hap.replace(refit="off")))
+    rows = []
+    for label, cfg in lstms:
+        runs = [run_one(f"hapmat-{_slug(label)}-seed{seed}", data,
+                        args.out, cfg.replace(seed=seed)) for seed in args.seeds]
+        rows.append((label, runs))
+    linear = hap.replace(model="linear", emd_channels=list(EMD_CHANNELS_HAPMAT))
+    rows.append(("linear on EMD energies", [run_one("hapmat-linear-EMD", data, args.out, linear)]))
+    m = band_logistic(data, hap)
+    print(f"<!-- logistic: accuracy {m['accuracy']:.3f}, {m['wall_seconds']} s -->", flush=True)
+    rows.append((f"logistic regression on {BAND_HZ:g} Hz band energies", [m]))
+    print(f"| model | test accuracy (seed {', '.join(map(str, args.seeds))}) | mean | "
+          "validation accuracy (mean) | windows (train/val/test) | time per run |")
+    print("|---|---|---|---|---|---|")
+    for label, runs in rows:
+        acc = [r["accuracy"] for r in runs]
+        w = runs[0]["split_windows"]
+        print(f"| {label} | {', '.join(f'{a:.3f}' for a in acc)} | {np.mean(acc):.3f} | "
+              f"{np.mean([r['val_accuracy'] for r in runs]):.3f} | "
+              f"{w['train']}/{w['val']}/{w['test']} | "
+              f"{np.mean([r['wall_seconds'] for r in runs]):.1f} s |")
+    first = rows[0][1][0]
+    order = tuple(first["classes"])
+    print(f"\nLSTM without EMD (seed {args.seeds[0]}), confusion on the test part (shifted "
+          f"+/-0.2 s: {first['shifted']['mean']:.3f}):\n")
+    print(md_table(order, paper_order(first, order), None))
 
 if __name__ == "__main__":
     main()

@@ -13,7 +13,7 @@ from tactile.device.recording import TakeWriter, load_dataset, read_take
 from tactile.device.sim_cli import make_dataset
 from tactile.errors import ConfigError, RecordingError
 from tactile.training.config import TrainConfig
-from tactile.training.data import channel_stats, classes_of, cut, split_takes
+from tactile.training.data import channel_stats, classes_of, concat, cut, split_takes
 from tactile.training.evaluate import main as eval_main
 from tactile.training.evaluate import predict
 from tactile.training.train import load_checkpoint, parse_sets, train
@@ -49,11 +49,22 @@ def test_config_rejects_unknown_keys_and_bad_values(tmp_path):
         TrainConfig(state="carry", hop=25)
     with pytest.raises(ConfigError, match="emd_channels"):
         TrainConfig(model="linear")
+    with pytest.raises(ConfigError, match="schedule must be one of constant, plateau, cosine"):
+        TrainConfig(schedule="step")
+    with pytest.raises(ConfigError, match=r"label_smoothing must be in \[0, 1\)"):
+        TrainConfig(label_smoothing=1.0)
+    with pytest.raises(ConfigError, match=r"ema must be in \[0, 1\)"):
+        TrainConfig(ema=-0.1)
+    with pytest.raises(ConfigError, match="refit must be one of auto, on, off"):
+        TrainConfig(refit="yes")
+    assert TrainConfig(split="time").refits and not TrainConfig(split="user").refits
+    assert TrainConfig(refit="on").refits and not TrainConfig(split="time", refit="off").refits
     toml = tmp_path / "c.toml"
     toml.write_text('hidden = 16\nemd_channels = ["accel_z"]\n')
     cfg = TrainConfig.from_toml(toml)
     assert cfg.hidden == 16 and cfg.emd_channels == ("accel_z",)
     assert parse_sets(["layers=3", "emd_channels=a,b"], cfg).emd_channels == ("a", "b")
+    assert parse_sets(["refit=on", "label_smoothing=0.1"], cfg).refits
     with pytest.raises(ConfigError, match="unknown setting"):
         parse_sets(["nope=1"], cfg)
     assert TrainConfig.from_dict(cfg.to_dict()) == cfg
@@ -198,3 +209,47 @@ def test_center_removes_the_window_mean_of_matching_channels_only():
     torch.testing.assert_close(z[:, :, [0, 3]], x[:, :, [0, 3]] / 2)
     torch.testing.assert_close(z[:, :, 1:3].mean(1), torch.zeros(3, 2), atol=1e-6, rtol=0)
     torch.testing.assert_close(z[:, :, 1:3], (x[:, :, 1:3] - x[:, :, 1:3].mean(1, True)) / 2)
+
+
+def test_concat_keeps_runs_apart(dataset):
+    takes = load_dataset(dataset)
+    s = split_takes(takes, TrainConfig(split="time"))
+    a = cut(takes, classes_of(takes), (), 50, 25, s.train)
+    b = cut(takes, classes_of(takes), (), 50, 25, s.val)
+    both = concat(a, b)
+    assert len(both) == len(a) + len(b)
+    np.testing.assert_array_equal(both.x[len(a):], b.x)
+    assert not set(both.run[: len(a)]) & set(both.run[len(a):])
+    assert len(np.unique(both.run)) == len(np.unique(a.run)) + len(np.unique(b.run))
+
+
+def test_refit_trains_on_train_and_validation_for_the_best_epoch_count(dataset, tmp_path,
+                                                                        monkeypatch):
+    """With a time split (refit='auto'), a second training on train + validation windows."""
+    import tactile.training.train as tr
+
+    seen = []
+    real = tr._train
+
+    def spy(model, w, f_all, n_epochs, progress, val=None):
+        seen.append((len(w), n_epochs, val is None))
+        return real(model, w, f_all, n_epochs, progress, val)
+
+    monkeypatch.setattr(tr, "_train", spy)
+    cfg = TrainConfig(epochs=3, hidden=8, layers=1, threads=1, split="time",
+                      label_smoothing=0.1, schedule="cosine", ema=0.9)  # refit: auto
+    m = train(dataset, tmp_path / "refit", cfg, progress=False)
+    (n_train, epochs, no_val), (n_both, refit_epochs, refit_no_val) = seen
+    assert epochs == 3 and not no_val
+    assert n_both == n_train + m["split_windows"]["val"] and refit_no_val
+    assert refit_epochs == m["best_epoch"] + 1 == m["refit_epochs"]
+    model, ck = load_checkpoint(tmp_path / "refit")
+    assert ck["config"]["refit"] == "auto" and 0 <= m["accuracy"] <= 1
+    seen.clear()  # refit off: one training, the best validation epoch's weights
+    m = train(dataset, tmp_path / "plain", cfg.replace(refit="off", schedule="plateau"),
+              progress=False)
+    assert [n for _, n, _ in seen] == [3] and m["refit_epochs"] == 0
+    seen.clear()  # a plateau schedule refits at a constant rate (no validation loss to watch)
+    m = train(dataset, tmp_path / "plateau", cfg.replace(refit="on", split="user",
+                                                         schedule="plateau"), progress=False)
+    assert len(seen) == 2 and m["refit_epochs"] == m["best_epoch"] + 1

@@ -17,6 +17,8 @@ from tactile.errors import ConfigError
 MODELS = ("lstm", "linear")
 STATE_MODES = ("window", "carry")
 SPLITS = ("user", "take", "time")
+SCHEDULES = ("constant", "plateau", "cosine")
+REFITS = ("auto", "on", "off")
 
 
 @dataclass(frozen=True)
@@ -34,7 +36,15 @@ class TrainConfig:
     of each of ``emd_channels`` (``emd_sifts`` sifts per IMF), as extra inputs at every step.
 
     Training multiplies each window's channels by random gains in ``1 +/- augment_gain`` (0: off),
-    so that the model does not key on one user's signal levels.
+    so that the model does not key on one user's signal levels, and stops when the validation
+    loss has not improved for ``patience`` epochs (at most ``epochs``). Options: ``schedule``
+    of the learning rate (``constant``, ``plateau``: halved when the validation loss stalls for
+    ``patience // 4`` epochs, ``cosine``: down to ``lr / 100`` over ``epochs``),
+    ``label_smoothing`` of the training targets, ``ema`` (the decay per step of an exponential
+    moving average of the weights, which is what is validated and kept; 0: off) and ``refit``:
+    ``on`` trains again from scratch on training + validation windows for the best epoch count,
+    ``auto`` (default) does so with ``split='time'`` only, where the validation block is the
+    recording just before the test block; ``off`` never.
 
     Model: ``lstm`` (``layers`` x ``hidden``, ``dropout``) or ``linear`` (a linear classifier on
     the log energies of the IMFs, the granular-media paper's baseline; needs ``emd_channels``).
@@ -56,11 +66,15 @@ class TrainConfig:
     dropout: float = 0.4
     state: str = "window"
     carry_steps: int = 8
-    epochs: int = 60
+    epochs: int = 150
     batch_size: int = 128
     lr: float = 3e-3
     weight_decay: float = 1e-4
-    patience: int = 10
+    patience: int = 25
+    schedule: str = "constant"
+    label_smoothing: float = 0.0
+    ema: float = 0.0
+    refit: str = "auto"
     augment_gain: float = 0.3
     split: str = "user"
     test_fraction: float = 0.3
@@ -76,6 +90,10 @@ class TrainConfig:
             (self.model in MODELS, f"model must be one of {', '.join(MODELS)}"),
             (self.state in STATE_MODES, f"state must be one of {', '.join(STATE_MODES)}"),
             (self.split in SPLITS, f"split must be one of {', '.join(SPLITS)}"),
+            (self.schedule in SCHEDULES, f"schedule must be one of {', '.join(SCHEDULES)}"),
+            (0 <= self.label_smoothing < 1, "label_smoothing must be in [0, 1)"),
+            (0 <= self.ema < 1, "ema must be in [0, 1) (0: off)"),
+            (self.refit in REFITS, f"refit must be one of {', '.join(REFITS)}"),
             (self.layers >= 1 and self.hidden >= 1, "layers and hidden must be >= 1"),
             (0 <= self.dropout < 1, "dropout must be in [0, 1)"),
             (self.epochs >= 1 and self.batch_size >= 1, "epochs and batch_size must be >= 1"),
@@ -100,6 +118,11 @@ class TrainConfig:
             raise ConfigError("state='carry' needs model='lstm'")
         if self.model == "linear" and not self.emd_channels:
             raise ConfigError("model='linear' classifies EMD features: give emd_channels")
+
+    @property
+    def refits(self) -> bool:
+        """Whether training ends with a refit on training + validation windows."""
+        return self.refit == "on" or (self.refit == "auto" and self.split == "time")
 
     def _short(self) -> str:
         return ", ".join(f"{k}={v!r}" for k, v in self.to_dict().items()
@@ -146,4 +169,4 @@ def _check_types(cfg: TrainConfig) -> None:
             raise ConfigError(f"config {f.name}={value!r}: must be {want}")
 
 
-__all__ = ["TrainConfig", "MODELS", "STATE_MODES", "SPLITS"]
+__all__ = ["TrainConfig", "MODELS", "STATE_MODES", "SPLITS", "SCHEDULES", "REFITS"]

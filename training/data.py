@@ -38,6 +38,13 @@ class Windows:
         return Windows(w.x[mask], w.y[mask], w.take[mask], w.start[mask], w.run[mask])
 
 
+def concat(a: Windows, b: Windows) -> Windows:
+    """The windows of ``a`` then ``b``; ``b``'s run ids are moved past ``a``'s."""
+    run = b.run + (int(a.run.max()) + 1 if len(a) else 0)
+    return Windows(*(np.concatenate([u, v]) for u, v in (
+        (a.x, b.x), (a.y, b.y), (a.take, b.take), (a.start, b.start), (a.run, run))))
+
+
 def classes_of(takes: list[Take]) -> tuple[str, ...]:
     return tuple(sorted({t.label for t in takes}))
 

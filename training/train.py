@@ -23,6 +23,7 @@ from pathlib import Path
 import numpy as np
 import torch
 from torch import nn
+from torch.optim.lr_scheduler import ReduceLROnPlateau
 from tqdm import tqdm
 
 import tactile
@@ -35,6 +36,7 @@ from tactile.training.data import (
     channel_index,
     channel_stats,
     classes_of,
+    concat,
     cut,
     split_takes,
 )
@@ -86,6 +88,7 @@ def train(data: Path, out: Path, cfg: TrainConfig, progress: bool = True) -> dic
         classes=list(classes), channels=list(channels), split=split.description,
         split_windows={k: len(w) for k, w in parts.items()}, best_epoch=history["best_epoch"],
         val_accuracy=history["val_acc"][history["best_epoch"]],
+        refit_epochs=history.get("refit_epochs", 0),
         feature_seconds=round(feature_s, 1),
         train_seconds=round(time.perf_counter() - t_start, 1),
         threads=cfg.threads, seed=cfg.seed,
@@ -144,17 +147,44 @@ def _sequences(w: Windows, steps: int) -> np.ndarray:
 
 
 def _fit(model: TextureModel, parts: dict, feats: dict, progress: bool) -> dict:
+    """Train with early stopping on the validation split; with ``refit``, then train the head
+    again from a fresh start on the training and validation windows together, for as many
+    epochs as the best validation epoch took (the final model has seen the validation data)."""
+    cfg = model.cfg
+    history = _train(model, parts["train"], feats["train"], cfg.epochs, progress,
+                     val=(parts["val"], feats["val"]))
+    if cfg.refits:
+        epochs = history["best_epoch"] + 1
+        _log(progress, f"refit on training + validation windows for {epochs} epochs")
+        torch.manual_seed(cfg.seed)
+        for m in model.head.modules():
+            if m is not model.head and hasattr(m, "reset_parameters"):
+                m.reset_parameters()
+        _train(model, concat(parts["train"], parts["val"]),
+               torch.cat([feats["train"], feats["val"]]), epochs, progress)
+        history["refit_epochs"] = epochs
+    return history
+
+
+def _train(model: TextureModel, w: Windows, f_all: torch.Tensor, n_epochs: int, progress: bool,
+           val: tuple[Windows, torch.Tensor] | None = None) -> dict:
+    """Adam on the windows ``w`` (features ``f_all``) for at most ``n_epochs``. With ``val``:
+    early stopping on its loss, and the best epoch's weights are kept; without: the last's."""
     cfg = model.cfg
     head = model.head
     opt = torch.optim.Adam(head.parameters(), lr=cfg.lr, weight_decay=cfg.weight_decay)
-    loss_fn = nn.CrossEntropyLoss()
-    y = {k: torch.from_numpy(w.y).long() for k, w in parts.items()}
+    sched = _scheduler(opt, cfg, n_epochs)
+    loss_fn = nn.CrossEntropyLoss(label_smoothing=cfg.label_smoothing)
+    val_loss_fn = nn.CrossEntropyLoss()  # unsmoothed: early stopping compares true fits
+    y_train = torch.from_numpy(w.y).long()
     carry = cfg.state == "carry"
-    units = _sequences(parts["train"], cfg.carry_steps) if carry else np.arange(len(y["train"]))
+    units = _sequences(w, cfg.carry_steps) if carry else np.arange(len(w))
     gen = torch.Generator().manual_seed(cfg.seed)
     history = {"train_loss": [], "val_loss": [], "val_acc": [], "best_epoch": 0}
     best, best_state, stale = math.inf, None, 0
-    epochs = tqdm(range(cfg.epochs), desc="epochs", disable=not progress, file=sys.stderr)
+    # exponential moving average of the weights, updated every step (None: off)
+    ema = {k: v.detach().clone() for k, v in head.state_dict().items()} if cfg.ema else None
+    epochs = tqdm(range(n_epochs), desc="epochs", disable=not progress, file=sys.stderr)
     for epoch in epochs:
         model.train()
         order = units[torch.randperm(len(units), generator=gen).numpy()]
@@ -163,7 +193,6 @@ def _fit(model: TextureModel, parts: dict, feats: dict, progress: bool) -> dict:
                       disable=not progress, leave=False, file=sys.stderr):
             rows = order[i : i + cfg.batch_size]
             h, c = model.zero_state(len(rows))
-            f_all = feats["train"]
             if cfg.augment_gain:  # a random gain per window and feature (B, 1, F)
                 shape = (*rows.shape, 1, f_all.shape[-1])
                 gain = 1 + cfg.augment_gain * (2 * torch.rand(shape, generator=gen) - 1)
@@ -174,37 +203,81 @@ def _fit(model: TextureModel, parts: dict, feats: dict, progress: bool) -> dict:
                     if cfg.augment_gain:
                         f = f * gain[:, s]
                     logits, h, c = head(f, h, c)
-                    loss = loss + loss_fn(logits, y["train"][rows[:, s]])
+                    loss = loss + loss_fn(logits, y_train[rows[:, s]])
                 loss = loss / rows.shape[1]
             else:
                 f = f_all[rows] * gain if cfg.augment_gain else f_all[rows]
                 logits, _, _ = head(f, h, c)
-                loss = loss_fn(logits, y["train"][rows])
+                loss = loss_fn(logits, y_train[rows])
             opt.zero_grad()
             loss.backward()
             nn.utils.clip_grad_norm_(head.parameters(), 5.0)
             opt.step()
+            if ema is not None:
+                with torch.no_grad():
+                    for k, v in head.state_dict().items():
+                        ema[k].mul_(cfg.ema).add_(v, alpha=1 - cfg.ema)
             total += float(loss.detach()) * len(rows)
             count += len(rows)
-        probs = predict(model, parts["val"])
-        val_loss = float(loss_fn(torch.log(torch.from_numpy(probs) + 1e-9), y["val"]))
-        val_acc = float((probs.argmax(1) == parts["val"].y).mean())
         history["train_loss"].append(total / count)
+        if val is None:  # (a plateau schedule needs a validation loss: the rate stays)
+            if sched is not None and not isinstance(sched, ReduceLROnPlateau):
+                sched.step()
+            continue
+        if ema is not None:  # validate (and keep) the averaged weights
+            live = {k: v.clone() for k, v in head.state_dict().items()}
+            head.load_state_dict(ema)
+        probs = _predict_features(model, *val)
+        val_loss = float(val_loss_fn(torch.log(torch.from_numpy(probs) + 1e-9),
+                                     torch.from_numpy(val[0].y).long()))
+        val_acc = float((probs.argmax(1) == val[0].y).mean())
         history["val_loss"].append(val_loss)
         history["val_acc"].append(val_acc)
         epochs.set_postfix(loss=f"{total / count:.3f}", val_loss=f"{val_loss:.3f}",
                            val_acc=f"{val_acc:.3f}")
+        if isinstance(sched, ReduceLROnPlateau):
+            sched.step(val_loss)
+        elif sched is not None:
+            sched.step()
         if val_loss < best - 1e-4:
             best, stale, history["best_epoch"] = val_loss, 0, epoch
             best_state = {k: v.clone() for k, v in head.state_dict().items()}
         else:
             stale += 1
-            if stale >= cfg.patience:
-                _log(progress, f"early stop after epoch {epoch + 1}: best epoch "
-                     f"{history['best_epoch'] + 1}")
-                break
-    head.load_state_dict(best_state)
+        if ema is not None:
+            head.load_state_dict(live)
+        if stale >= cfg.patience:
+            _log(progress, f"early stop after epoch {epoch + 1}: best epoch "
+                 f"{history['best_epoch'] + 1}")
+            break
+    if val is not None:
+        head.load_state_dict(best_state)
+    elif ema is not None:
+        head.load_state_dict(ema)
     return history
+
+
+def _predict_features(model: TextureModel, w: Windows, f: torch.Tensor) -> np.ndarray:
+    """Like :func:`predict`, from precomputed features ``f`` of ``w`` (no EMD per epoch)."""
+    if model.cfg.state != "window":
+        return predict(model, w)
+    model.eval()
+    out = []
+    with torch.no_grad():
+        for i in range(0, len(f), 512):
+            h, c = model.zero_state(len(f[i : i + 512]))
+            out.append(torch.softmax(model.head(f[i : i + 512], h, c)[0], dim=1).numpy())
+    return np.concatenate(out)
+
+
+def _scheduler(opt: torch.optim.Optimizer, cfg: TrainConfig, n_epochs: int):
+    """The learning-rate schedule of ``cfg.schedule`` (None: constant ``lr``)."""
+    if cfg.schedule == "plateau":  # halve the rate when validation loss stalls
+        return ReduceLROnPlateau(
+            opt, factor=0.5, patience=max(1, cfg.patience // 4))
+    if cfg.schedule == "cosine":  # from lr down to lr / 100 over the epochs
+        return torch.optim.lr_scheduler.CosineAnnealingLR(opt, n_epochs, eta_min=cfg.lr / 100)
+    return None
 
 
 def load_checkpoint(run_dir: Path) -> tuple[TextureModel, dict]:
