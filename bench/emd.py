@@ -1,13 +1,14 @@
 """Benchmark: EMD as tensor ops (torch eager, onnxruntime) against PyEMD, one thread.
 
-    python bench/emd.py [--repeats 3]
+    python bench/emd.py [--repeats 3] [--pieces]
 
 Prints, for 8-channel 50-sample windows and 1-channel 1000-sample windows (4 IMFs x 10 sifts,
 the same windows for every implementation, measured in this run): milliseconds per window and
 the speed-up over PyEMD ``EMD(FIXE=10).emd(x, max_imf=4)`` looping over channels; then the ONNX
 graph's export time, node counts, file size and session creation time. Each timing is the
 fastest of ``--repeats`` runs (PyEMD's too): on a shared machine, interference only ever adds
-time, so the minimum is the steadiest estimate of what the code costs.
+time, so the minimum is the steadiest estimate of what the code costs. ``--pieces`` instead
+times each piece of one sift on its own at batch 1 (where the sift's time goes).
 """
 
 from __future__ import annotations
@@ -117,12 +118,53 @@ def bench_shape(n_channels: int, n_time: int, n_ref: int, repeats: int, tmp: Pat
     return lines
 
 
+def bench_pieces(repeats: int, rows: int = 8) -> list[str]:
+    """Each piece of one sift traced alone (float32, ``rows`` rows of 50 samples), run by
+    onnxruntime: microseconds per run, less the cost of running an empty graph."""
+    from tactile.training.emd.onnx_export import trace_graph
+    from tactile.training.emd.pieces import piece_examples
+
+    def per_run(sess: ort.InferenceSession, feed: dict) -> float:
+        return timed(lambda: [sess.run(None, feed) for _ in range(200)], repeats) / 200 * 1e6
+
+    opts = ort.SessionOptions()
+    opts.intra_op_num_threads = opts.inter_op_num_threads = 1
+    opts.log_severity_level = 3
+    lines = ["## Pieces of one sift, traced alone (8 rows x 50 samples, batch 1)", "",
+             "| piece | nodes | us per run |", "|---|---:|---:|"]
+    empty = None
+    for name, (fn, args) in piece_examples(rows=rows, dtype=torch.float32).items():
+        outs = fn(*args)
+        names = [f"i{i}" for i in range(len(args))]
+        n_out = len(outs) if isinstance(outs, tuple) else 1
+        model = trace_graph(fn, args, names, [f"o{i}" for i in range(n_out)], {})
+        model.ir_version = 8
+        sess = ort.InferenceSession(model.SerializeToString(), opts,
+                                    providers=["CPUExecutionProvider"])
+        used = {i.name for i in sess.get_inputs()}
+        feed = {k: a.numpy() for k, a in zip(names, args) if k in used}
+        if empty is None:  # the fixed cost of one run, from a one-node graph on the same input
+            first = next(iter(feed))
+            ident = trace_graph(lambda x: x * 2.0, [args[0]], ["i0"], ["o0"], {})
+            ident.ir_version = 8
+            probe = ort.InferenceSession(ident.SerializeToString(), opts,
+                                         providers=["CPUExecutionProvider"])
+            empty = per_run(probe, {"i0": feed[first]})
+        lines.append(f"| {name} | {len(model.graph.node)} | {per_run(sess, feed) - empty:.1f} |")
+    return [*lines, ""]
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--repeats", type=int, default=3, help="timed runs per measurement")
+    parser.add_argument("--pieces", action="store_true",
+                        help="only time each piece of one sift on its own (batch 1)")
     args = parser.parse_args(argv)
     torch.set_num_threads(1)
     print(f"torch {torch.__version__}, onnxruntime {ort.__version__}, one thread", file=sys.stderr)
+    if args.pieces:
+        print("\n".join(bench_pieces(args.repeats)))
+        return 0
     with tempfile.TemporaryDirectory() as tmp:
         lines = bench_shape(8, 50, 20, args.repeats, Path(tmp))
         lines += bench_shape(1, 1000, 20, args.repeats, Path(tmp))
