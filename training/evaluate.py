@@ -28,22 +28,26 @@ SHIFTS_S = (-0.2, -0.1, 0.1, 0.2)  # the "novel" set: windows moved by up to +/-
 
 
 @torch.no_grad()
-def predict(model: TextureModel, w: Windows, batch: int = 512) -> np.ndarray:
+def predict(
+    model: TextureModel, w: Windows, batch: int = 512, feats: torch.Tensor | None = None
+) -> np.ndarray:
     """(N, classes) probabilities, following the model's state mode.
 
     ``window``: every window from a zero state. ``carry``: the state is carried from each window
     to the next one of the same gap-free run (ordered by start), reset at every run's start,
-    exactly as the runtime does on a stream.
+    exactly as the runtime does on a stream. ``feats``: the windows' features
+    (``model.pre``), when already computed (training validates every epoch without redoing EMD).
     """
     model.eval()
-    x = torch.from_numpy(w.x)
+    if feats is None:
+        feats = _features(model, torch.from_numpy(w.x), batch)
     out = np.zeros((len(w), model.head.out.out_features), np.float32)
     if model.cfg.state == "window":
         for i in range(0, len(w), batch):
-            h, c = model.zero_state(len(x[i : i + batch]))
-            out[i : i + batch] = model(x[i : i + batch], h, c)[0].numpy()
+            h, c = model.zero_state(len(feats[i : i + batch]))
+            logits = model.head(feats[i : i + batch], h, c)[0]
+            out[i : i + batch] = torch.softmax(logits, dim=1).numpy()
         return out
-    feats = _features(model, x, batch)
     for rows in _runs(w):  # carry: one run at a time, window after window
         h, c = model.zero_state(1)
         for r in rows:

@@ -227,7 +227,7 @@ def _train(model: TextureModel, w: Windows, f_all: torch.Tensor, n_epochs: int, 
         if ema is not None:  # validate (and keep) the averaged weights
             live = {k: v.clone() for k, v in head.state_dict().items()}
             head.load_state_dict(ema)
-        probs = _predict_features(model, *val)
+        probs = predict(model, val[0], feats=val[1])
         val_loss = float(val_loss_fn(torch.log(torch.from_numpy(probs) + 1e-9),
                                      torch.from_numpy(val[0].y).long()))
         val_acc = float((probs.argmax(1) == val[0].y).mean())
@@ -255,19 +255,6 @@ def _train(model: TextureModel, w: Windows, f_all: torch.Tensor, n_epochs: int, 
     elif ema is not None:
         head.load_state_dict(ema)
     return history
-
-
-def _predict_features(model: TextureModel, w: Windows, f: torch.Tensor) -> np.ndarray:
-    """Like :func:`predict`, from precomputed features ``f`` of ``w`` (no EMD per epoch)."""
-    if model.cfg.state != "window":
-        return predict(model, w)
-    model.eval()
-    out = []
-    with torch.no_grad():
-        for i in range(0, len(f), 512):
-            h, c = model.zero_state(len(f[i : i + 512]))
-            out.append(torch.softmax(model.head(f[i : i + 512], h, c)[0], dim=1).numpy())
-    return np.concatenate(out)
 
 
 def _scheduler(opt: torch.optim.Optimizer, cfg: TrainConfig, n_epochs: int):

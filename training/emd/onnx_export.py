@@ -225,6 +225,34 @@ def _inline(
     return nodes, inits
 
 
+def _t(name: str, elem: int, shape: list) -> onnx.ValueInfoProto:
+    return helper.make_tensor_value_info(name, elem, shape)
+
+
+def _loop_body(
+    name: str,
+    prefix: str,
+    nodes: list[onnx.NodeProto],
+    carried: list[tuple[str, int, list]],
+    scans: Sequence[tuple[str, int, list]] = (),
+) -> onnx.GraphProto:
+    """An ONNX ``Loop`` body around ``nodes``.
+
+    Inputs: ``{prefix}_i`` (iteration), ``{prefix}_c`` (condition), then the ``carried``
+    values (name, element type, shape); outputs: the condition passed through, each carried
+    value as ``{name}_out``, then the ``scans`` (one entry per iteration).
+    """
+    cond = f"{prefix}_c"
+    return helper.make_graph(
+        [*nodes, helper.make_node("Identity", [cond], [f"{cond}_out"])],
+        name,
+        [_t(f"{prefix}_i", TensorProto.INT64, []), _t(cond, TensorProto.BOOL, []),
+         *[_t(*v) for v in carried]],
+        [_t(f"{cond}_out", TensorProto.BOOL, []),
+         *[_t(f"{n}_out", e, shape) for n, e, shape in carried], *[_t(*v) for v in scans]],
+    )
+
+
 def _head(h: Tensor) -> tuple[Tensor, Tensor]:
     d = differences(h)
     return d, has_tie(d)
@@ -295,9 +323,6 @@ def _sift_graph(
          "n_ext": {0: "rows"}, "h_out": rows, "act_out": rows},
     )
 
-    def t(name: str, el: int, shape: list) -> onnx.ValueInfoProto:
-        return helper.make_tensor_value_info(name, el, shape)
-
     inits: list[onnx.TensorProto] = []
 
     def add(model: onnx.ModelProto, prefix: str, rename: dict[str, str]) -> list[onnx.NodeProto]:
@@ -311,7 +336,7 @@ def _sift_graph(
     for name, part in (("plateau", plateau), ("strict", strict)):
         b_nodes = add(part, f"{name}/", {"d": "s_d", "marks": f"{name}/marks"})
         branches[name] = helper.make_graph(
-            b_nodes, name, [], [t(f"{name}/marks", elem, [2, "rows", n_time])]
+            b_nodes, name, [], [_t(f"{name}/marks", elem, [2, "rows", n_time])]
         )
     nodes.append(
         helper.make_node(
@@ -328,7 +353,7 @@ def _sift_graph(
         sys_name = f"s_sys{step}"
         done = helper.make_graph(
             add(solved, f"solved{step}/", {"sys": sys_name, "m": f"solved{step}/m"}),
-            f"solved{step}", [], [t(f"solved{step}/m", elem, m_info)],
+            f"solved{step}", [], [_t(f"solved{step}/m", elem, m_info)],
         )
         if step == steps - 1:
             more = add(last, "last/", {"sys": sys_name, "m": "last/m"})
@@ -338,7 +363,7 @@ def _sift_graph(
             more = add(step_models[step], f"step{step}/", rename)
             more_out = f"m{step + 1}"
             more += solve_from(step + 1, more_out)
-        go_on = helper.make_graph(more, f"step{step}", [], [t(more_out, elem, m_info)])
+        go_on = helper.make_graph(more, f"step{step}", [], [_t(more_out, elem, m_info)])
         return [
             helper.make_node(
                 "If", [f"s_done{step}"], [out], then_branch=done, else_branch=go_on
@@ -352,22 +377,8 @@ def _sift_graph(
         {"h": "s_h", "act": "s_a", "m": "s_m", "h_out": "s_h_out", "act_out": "s_a_out",
          **{v: f"s_{v}" for v in ["xy", "j1", "cnt", "kx", "n_ext"]}},
     )
-    nodes.append(helper.make_node("Identity", ["s_c"], ["s_c_out"]))
-    graph = helper.make_graph(
-        nodes,
-        "sift",
-        [
-            t("s_i", TensorProto.INT64, []),
-            t("s_c", TensorProto.BOOL, []),
-            t("s_h", elem, ["rows", n_time]),
-            t("s_a", TensorProto.BOOL, ["rows"]),
-        ],
-        [
-            t("s_c_out", TensorProto.BOOL, []),
-            t("s_h_out", elem, ["rows", n_time]),
-            t("s_a_out", TensorProto.BOOL, ["rows"]),
-        ],
-    )
+    carried = [("s_h", elem, ["rows", n_time]), ("s_a", TensorProto.BOOL, ["rows"])]
+    graph = _loop_body("sift", "s", nodes, carried)
     return graph, inits
 
 
@@ -437,10 +448,6 @@ def build_emd_model(
     )
 
     inits: list[onnx.TensorProto] = []
-
-    def t(name: str, el: int, shape: list) -> onnx.ValueInfoProto:
-        return helper.make_tensor_value_info(name, el, shape)
-
     # Inner loop: one sift per iteration.
     sift_graph, s_inits = _sift_graph(h, act, elem, n_time, rows)
     inits += s_inits
@@ -470,25 +477,14 @@ def build_emd_model(
         helper.make_node("Sub", ["x", "i_acc"], ["i_h0"]),  # PyEMD restarts from S - sum(IMF)
         *sifts,
         *c_nodes,
-        helper.make_node("Identity", ["i_c"], ["i_c_out"]),
     ]
-    imf_graph = helper.make_graph(
-        imf_nodes,
+    imf_graph = _loop_body(
         "imf",
-        [
-            t("i_i", TensorProto.INT64, []),
-            t("i_c", TensorProto.BOOL, []),
-            t("i_acc", elem, ["rows", n_time]),
-            t("i_alive", TensorProto.BOOL, ["rows"]),
-            t("i_nv", TensorProto.INT64, ["rows"]),
-        ],
-        [
-            t("i_c_out", TensorProto.BOOL, []),
-            t("i_acc_out", elem, ["rows", n_time]),
-            t("i_alive_out", TensorProto.BOOL, ["rows"]),
-            t("i_nv_out", TensorProto.INT64, ["rows"]),
-            t("i_imf", elem, ["rows", n_time]),
-        ],
+        "i",
+        imf_nodes,
+        [("i_acc", elem, ["rows", n_time]), ("i_alive", TensorProto.BOOL, ["rows"]),
+         ("i_nv", TensorProto.INT64, ["rows"])],
+        scans=[("i_imf", elem, ["rows", n_time])],
     )
     # The graph input is `x_in`; the loop bodies read its (R, N) view `x` from the outer scope.
     i_nodes, i_inits = _inline(
@@ -523,11 +519,11 @@ def build_emd_model(
     graph = helper.make_graph(
         main_nodes,
         "emd",
-        [t("x_in", elem, ["batch", n_channels, n_time])],
+        [_t("x_in", elem, ["batch", n_channels, n_time])],
         [
-            t("imfs", elem, ["batch", n_channels, n_imfs, n_time]),
-            t("residue", elem, ["batch", n_channels, n_time]),
-            t("n_valid", TensorProto.INT64, ["batch", n_channels]),
+            _t("imfs", elem, ["batch", n_channels, n_imfs, n_time]),
+            _t("residue", elem, ["batch", n_channels, n_time]),
+            _t("n_valid", TensorProto.INT64, ["batch", n_channels]),
         ],
         initializer=inits,
     )

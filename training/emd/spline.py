@@ -67,6 +67,21 @@ def pcr_steps(k: int) -> int:
     return max(1, math.ceil(math.log2(k)))
 
 
+def _eliminate(sys: Tensor, st: int) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+    """One PCR elimination of rows j -/+ st from every row j.
+
+    Returns the new rows' unnormalised sub-diagonal, super-diagonal and right-hand side and the
+    negated new diagonal, each (1, ..., K): the new diagonal is 1 - a c_{j-st} - c a_{j+st},
+    and dividing by its negative folds the signs of the new off-diagonals in.
+    """
+    dn = F.pad(sys, (st, -st))  # (3, ..., K): [a, c, r] of row j - st (zero beyond the ends)
+    up = F.pad(sys, (-st, st))  # (3, ..., K): [a, c, r] of row j + st
+    a, c, r = sys.split(1)  # (1, ..., K) each
+    lo_a, lo_c, lo_r = (a * dn).split(1)  # a_j [a, c, r]_{j-st}
+    hi_a, hi_c, hi_r = (c * up).split(1)  # c_j [a, c, r]_{j+st}
+    return lo_a, hi_c, lo_r + hi_r - r, lo_c + hi_a - 1.0
+
+
 def pcr_step(sys: Tensor, st: int) -> Tensor:
     """One PCR step: couple every row to the rows ``2 st`` away instead of ``st``.
 
@@ -77,24 +92,14 @@ def pcr_step(sys: Tensor, st: int) -> Tensor:
     Returns:
         (3, ..., K) the same kind of rows, coupling row j to rows j -/+ 2 st.
     """
-    dn = F.pad(sys, (st, -st))  # (3, ..., K): [a, c, r] of row j - st (zero beyond the ends)
-    up = F.pad(sys, (-st, st))  # (3, ..., K): [a, c, r] of row j + st
-    a, c, r = sys.split(1)  # (1, ..., K) each
-    lo_a, lo_c, lo_r = (a * dn).split(1)  # a_j [a, c, r]_{j-st}
-    hi_a, hi_c, hi_r = (c * up).split(1)  # c_j [a, c, r]_{j+st}
-    # Eliminate rows j -/+ st from row j; the new diagonal is 1 - a c_{j-st} - c a_{j+st},
-    # and dividing by its negative folds the signs of the new off-diagonals in.
-    return torch.cat([lo_a, hi_c, lo_r + hi_r - r]) / (lo_c + hi_a - 1.0)
+    a, c, r, neg_diag = _eliminate(sys, st)
+    return torch.cat([a, c, r]) / neg_diag
 
 
 def pcr_last(sys: Tensor, st: int) -> Tensor:
     """The final PCR step, computing only the solution: (3, ..., K) -> (1, ..., K)."""
-    dn = F.pad(sys, (st, -st))
-    up = F.pad(sys, (-st, st))
-    a, c, r = sys.split(1)
-    _, lo_c, lo_r = (a * dn).split(1)
-    hi_a, _, hi_r = (c * up).split(1)
-    return (lo_r + hi_r - r) / (lo_c + hi_a - 1.0)
+    _, _, r, neg_diag = _eliminate(sys, st)
+    return r / neg_diag
 
 
 def decoupled_after(j1: Tensor, steps: int) -> Tensor:
@@ -121,12 +126,11 @@ def pcr_solve(sys: Tensor, j1: Tensor | None = None) -> Tensor:
     Returns:
         (1, ..., K) solution.
     """
-    k = int(sys.shape[-1])
-    steps = pcr_steps(k)
-    for step in range(steps - 1):
+    steps = pcr_steps(int(sys.shape[-1]))
+    for step in range(steps):
         if j1 is not None and j1.numel() and bool(decoupled_after(j1, step)):
             return sys[2:3]
+        if step == steps - 1:
+            return pcr_last(sys, 1 << step)
         sys = pcr_step(sys, 1 << step)
-    if j1 is not None and j1.numel() and bool(decoupled_after(j1, steps - 1)):
-        return sys[2:3]
-    return pcr_last(sys, 1 << (steps - 1))
+    raise AssertionError("unreachable: pcr_steps() >= 1")
