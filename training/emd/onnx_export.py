@@ -5,10 +5,11 @@ and the final reshapes) is traced with ``torch.onnx.export(..., dynamo=False)`` 
 :data:`OPSET` with a dynamic row axis, constant-folded by ``onnxscript.optimizer``, and the
 pieces are wired together here with two nested ``Loop`` nodes (IMFs outside, sifts inside)
 and ``If`` nodes inside the sift (the plateau rule only when there are ties; PCR steps only
-while a system is still coupled). onnxruntime runs the ~200-node sift body 40 times instead
-of holding 40 unrolled copies: the file stays small and session creation fast. The same torch
-functions run in eager mode, so the graph computes exactly what :func:`decompose.decompose`
-computes.
+while a system is still coupled). onnxruntime runs the ~200-node sift body up to 40 times
+instead of holding 40 unrolled copies: the file stays small and session creation fast. The
+sift loop stops as soon as no row is active (a stopped row is left unchanged, so the skipped
+sifts would change nothing). The same torch functions run in eager mode, so the graph
+computes exactly what :func:`decompose.decompose` computes.
 
 Graph contract: input ``x_in`` (batch, channels, time) float32/float64 with a dynamic batch axis;
 outputs ``imfs`` (batch, channels, n_imfs, time), ``residue`` (batch, channels, time) and
@@ -235,16 +236,19 @@ def _loop_body(
     nodes: list[onnx.NodeProto],
     carried: list[tuple[str, int, list]],
     scans: Sequence[tuple[str, int, list]] = (),
+    cond_out: bool = False,
 ) -> onnx.GraphProto:
     """An ONNX ``Loop`` body around ``nodes``.
 
     Inputs: ``{prefix}_i`` (iteration), ``{prefix}_c`` (condition), then the ``carried``
-    values (name, element type, shape); outputs: the condition passed through, each carried
-    value as ``{name}_out``, then the ``scans`` (one entry per iteration).
+    values (name, element type, shape); outputs: the condition (passed through unless
+    ``cond_out``: then ``nodes`` compute ``{prefix}_c_out``), each carried value as
+    ``{name}_out``, then the ``scans`` (one entry per iteration).
     """
     cond = f"{prefix}_c"
+    keep = [] if cond_out else [helper.make_node("Identity", [cond], [f"{cond}_out"])]
     return helper.make_graph(
-        [*nodes, helper.make_node("Identity", [cond], [f"{cond}_out"])],
+        [*nodes, *keep],
         name,
         [_t(f"{prefix}_i", TensorProto.INT64, []), _t(cond, TensorProto.BOOL, []),
          *[_t(*v) for v in carried]],
@@ -315,10 +319,10 @@ def _sift_graph(
         lambda sys: pcr_last(sys, 1 << (steps - 1)), [sys], ["sys"], ["m"], {"sys": r2, "m": r2}
     )
     tail = trace_graph(
-        finish,
+        _finish_sift,
         [h, act, xy, m, j1, cnt, kx, n_ext],
         ["h", "act", "xy", "m", "j1", "cnt", "kx", "n_ext"],
-        ["h_out", "act_out"],
+        ["h_out", "act_out", "go"],
         {"h": rows, "act": rows, "xy": r2, "m": r2, "j1": r1, "cnt": r1, "kx": r1,
          "n_ext": {0: "rows"}, "h_out": rows, "act_out": rows},
     )
@@ -375,11 +379,18 @@ def _sift_graph(
         tail,
         "sift/",
         {"h": "s_h", "act": "s_a", "m": "s_m", "h_out": "s_h_out", "act_out": "s_a_out",
-         **{v: f"s_{v}" for v in ["xy", "j1", "cnt", "kx", "n_ext"]}},
+         "go": "s_c_out", **{v: f"s_{v}" for v in ["xy", "j1", "cnt", "kx", "n_ext"]}},
     )
     carried = [("s_h", elem, ["rows", n_time]), ("s_a", TensorProto.BOOL, ["rows"])]
-    graph = _loop_body("sift", "s", nodes, carried)
+    graph = _loop_body("sift", "s", nodes, carried, cond_out=True)
     return graph, inits
+
+
+def _finish_sift(*args: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+    """:func:`sift.finish`, and whether any row is still active (the sift loop's condition:
+    a row that stopped stays unchanged, so the remaining sifts can be skipped exactly)."""
+    h, active = finish(*args)
+    return h, active, active.any()
 
 
 def _init(x3: Tensor) -> tuple[Tensor, Tensor, Tensor, Tensor]:
@@ -470,11 +481,15 @@ def build_emd_model(
     inits += c_inits
     sifts = [
         helper.make_node(
-            "Loop", ["n_sifts", "", "i_h0", "i_alive"], ["i_h", "i_act"], body=sift_graph
+            "Loop", ["n_sifts", "i_go", "i_h0", "i_alive"], ["i_h", "i_act"], body=sift_graph
         )
     ]
+    # Rows that stopped are left as they are, so no sift runs once no row is alive.
     imf_nodes = [
         helper.make_node("Sub", ["x", "i_acc"], ["i_h0"]),  # PyEMD restarts from S - sum(IMF)
+        helper.make_node("Cast", ["i_alive"], ["i_alive_f"], to=TensorProto.FLOAT),
+        helper.make_node("ReduceMax", ["i_alive_f"], ["i_alive_max"], keepdims=0),
+        helper.make_node("Cast", ["i_alive_max"], ["i_go"], to=TensorProto.BOOL),
         *sifts,
         *c_nodes,
     ]
