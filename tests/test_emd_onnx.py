@@ -44,15 +44,15 @@ BUDGET = {
     "counts": 2,
     "end_extrema": 13,
     "boundary": 47,
-    "assemble": 22,
-    "system": 32,
+    "assemble": 19,
+    "system": 28,
     "solve": 68,
     "segment": 12,
     "evaluate": 23,
     "finish": 41,
 }
-SIFT_SHORTEST = 208  # nodes run by one sift with few knots (later IMFs)
-SIFT_LONGEST = 247  # ... and with many knots (every PCR step)
+SIFT_SHORTEST = 201  # nodes run by one sift with few knots (later IMFs)
+SIFT_LONGEST = 240  # ... and with many knots (every PCR step)
 
 
 def _session(model: onnx.ModelProto) -> ort.InferenceSession:

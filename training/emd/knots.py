@@ -58,7 +58,20 @@ def end_extrema(h: Tensor, cnt: Tensor, n: Tensor) -> tuple[Tensor, Tensor]:
     return p.reshape(2, -1, 2, 4), v.reshape(2, -1, 2, 4)
 
 
-def assemble(h: Tensor, marks: Tensor, bxy: Tensor, bv: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+def slot_base(h: Tensor) -> Tensor:
+    """(R, N) signals -> (2, 2, R, K + 1) what the knot slots hold before the scatter: dummy
+    positions above every knot (increasing) and zero values; the last slot takes the invalid
+    candidates. It depends only on the shape, so the exported graph makes it once."""
+    n_time = int(h.shape[-1])
+    k = n_slots(n_time)
+    dummy = torch.arange(k + 1, dtype=h.dtype, device=h.device) + 16.0 * n_time
+    zero = (h[:, :1] * 0.0).expand(2, -1, -1)  # (2, R, 1): [upper, lower]
+    return zero + torch.stack([dummy, dummy * 0.0]).reshape(2, 1, 1, k + 1)
+
+
+def assemble(
+    h: Tensor, marks: Tensor, bxy: Tensor, bv: Tensor, base: Tensor | None = None
+) -> tuple[Tensor, Tensor, Tensor]:
     """All knots of each envelope in slots ``0 .. j1``, by one cumulative count and one scatter.
 
     Args:
@@ -66,6 +79,7 @@ def assemble(h: Tensor, marks: Tensor, bxy: Tensor, bv: Tensor) -> tuple[Tensor,
         bxy: (2, 2, R, 4) mirrored knots ``[left far, left near, right near, right far]``
             (positions, half values) and bv: (2, R, 4) their 0/1 validity, from
             :func:`boundary.boundary_knots`.
+        base: :func:`slot_base` of ``h``, computed here when not given.
 
     Returns:
         xy: (2, 2, R, K) knot positions and **half** values (``h / 2``: the two envelopes
@@ -87,8 +101,8 @@ def assemble(h: Tensor, marks: Tensor, bxy: Tensor, bv: Tensor) -> tuple[Tensor,
     grid = torch.stack([t, t * 0.0]).reshape(2, 1, 1, n_time).expand(2, 2, 1, n_time)
     lb, rb = bxy.split(2, dim=-1)
     upd = torch.cat([lb, h * scale + grid, rb], dim=-1)  # (2, 2, R, N + 4): [positions, values]
-    dummy = torch.arange(k + 1, dtype=dt, device=dev) + 16.0 * n_time  # above every knot
-    init = cum[..., :1] * 0.0 + torch.stack([dummy, dummy * 0.0]).reshape(2, 1, 1, k + 1)
-    xy = init.scatter(-1, slot.expand(2, -1, -1, -1), upd)[..., :k]  # (2, 2, R, K)
+    if base is None:
+        base = slot_base(h)
+    xy = base.scatter(-1, slot.expand(2, -1, -1, -1), upd)[..., :k]  # (2, 2, R, K)
     kx = torch.where(bv > 0, bxy[0], 2.0 * n_time)
     return xy, cum[..., -1:] - 1.0, kx

@@ -35,7 +35,7 @@ from tactile.errors import ConfigError
 
 from .decompose import imf_update
 from .extrema import differences, has_tie, plateau_marks, strict_marks
-from .knots import n_slots
+from .knots import n_slots, slot_base
 from .module import EMDConfig
 from .sift import finish, prepare
 from .spline import decoupled_after, pcr_last, pcr_step, pcr_steps
@@ -283,13 +283,14 @@ def _sift_graph(
     always = min(PCR_ALWAYS, steps - 1)
     d = differences(h)
     marks = strict_marks(d)
-    sys, xy, j1, cnt, kx, n_ext = prepare(h, marks)
+    base = slot_base(h)
+    sys, xy, j1, cnt, kx, n_ext = prepare(h, marks, base)
     m = sys[2:3]
     r1 = {1: "rows"}
     r2 = {2: "rows"}
 
-    def pre(h: Tensor, marks: Tensor) -> tuple[Tensor, ...]:
-        sys, *rest = prepare(h, marks)
+    def pre(h: Tensor, marks: Tensor, base: Tensor) -> tuple[Tensor, ...]:
+        sys, *rest = prepare(h, marks, base)
         for step in range(always):
             sys = pcr_step(sys, 1 << step)
         done = [decoupled_after(rest[1], step) for step in range(always, steps)]
@@ -301,11 +302,11 @@ def _sift_graph(
     plateau = trace_graph(plateau_marks, [d], ["d"], ["marks"], {"d": rows, "marks": r1})
     prep = trace_graph(
         pre,
-        [h, marks],
-        ["h", "marks"],
+        [h, marks, base],
+        ["h", "marks", "base"],
         ["sys", "xy", "j1", "cnt", "kx", "n_ext", *done_names],
-        {"h": rows, "marks": r1, "sys": r2, "xy": r2, "j1": r1, "cnt": r1, "kx": r1,
-         "n_ext": {0: "rows"}},
+        {"h": rows, "marks": r1, "base": r2, "sys": r2, "xy": r2, "j1": r1, "cnt": r1,
+         "kx": r1, "n_ext": {0: "rows"}},
     )
     solved = trace_graph(lambda sys: sys[2:3], [sys], ["sys"], ["m"], {"sys": r2, "m": r2})
     step_models = {
@@ -348,7 +349,8 @@ def _sift_graph(
             then_branch=branches["plateau"], else_branch=branches["strict"],
         )
     )
-    outer = {"h": "s_h", "marks": "s_marks", "sys": f"s_sys{always}"}
+    # The slots' starting content depends only on the shape: made once, outside the loops.
+    outer = {"h": "s_h", "marks": "s_marks", "base": "slot_base", "sys": f"s_sys{always}"}
     outer.update({v: f"s_{v}" for v in ["xy", "j1", "cnt", "kx", "n_ext", *done_names]})
     nodes += add(prep, "prep/", outer)
 
@@ -393,10 +395,10 @@ def _finish_sift(*args: Tensor) -> tuple[Tensor, Tensor, Tensor]:
     return h, active, active.any()
 
 
-def _init(x3: Tensor) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+def _init(x3: Tensor) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor]:
     x = x3.reshape(-1, x3.shape[-1])  # (R, N)
     alive = x[:, 0] == x[:, 0]  # (R,) all true for finite input
-    return x, x * 0.0, alive, torch.zeros_like(x[:, 0], dtype=torch.int64)
+    return x, x * 0.0, alive, torch.zeros_like(x[:, 0], dtype=torch.int64), slot_base(x)
 
 
 def _close(x: Tensor, acc: Tensor, h: Tensor, active: Tensor, n_valid: Tensor):
@@ -433,7 +435,9 @@ def build_emd_model(
     x3 = torch.randn(3, n_channels, n_time, dtype=dtype)
     rows = {0: "rows"}
 
-    init = trace_graph(_init, [x3], ["x3"], ["x", "acc", "alive", "nv"], {"x3": {0: "batch"}})
+    init = trace_graph(
+        _init, [x3], ["x3"], ["x", "acc", "alive", "nv", "base"], {"x3": {0: "batch"}}
+    )
     close = trace_graph(
         _close,
         [h, h, h, act, nv],
@@ -503,7 +507,10 @@ def build_emd_model(
     )
     # The graph input is `x_in`; the loop bodies read its (R, N) view `x` from the outer scope.
     i_nodes, i_inits = _inline(
-        init, "init/", {"x3": "x_in", "x": "x", "acc": "acc0", "alive": "alive0", "nv": "nv0"}
+        init,
+        "init/",
+        {"x3": "x_in", "x": "x", "acc": "acc0", "alive": "alive0", "nv": "nv0",
+         "base": "slot_base"},
     )
     f_nodes, f_inits = _inline(
         finish,

@@ -10,7 +10,7 @@ from torch import Tensor
 from .boundary import boundary_knots
 from .envelope import evaluate, segment_index
 from .extrema import differences, extrema_marks, has_tie, plateau_marks, strict_marks
-from .knots import assemble, end_extrema, extrema_counts
+from .knots import assemble, end_extrema, extrema_counts, slot_base
 from .sift import finish
 from .spline import pcr_solve, spline_system
 
@@ -39,7 +39,7 @@ def piece_examples(
         "counts": (extrema_counts, (marks,)),
         "end_extrema": (end_extrema, (h, cnt, n)),
         "boundary": (boundary_knots, (h, p, v, n)),
-        "assemble": (assemble, (h, marks, bxy, bv)),
+        "assemble": (assemble, (h, marks, bxy, bv, slot_base(h))),
         "system": (spline_system, (xy, j1)),
         "solve": (pcr_solve, (system,)),
         "segment": (segment_index, (cnt, kx, j1)),

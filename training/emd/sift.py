@@ -17,11 +17,12 @@ from .knots import assemble, end_extrema, extrema_counts
 from .spline import pcr_solve, spline_system
 
 
-def prepare(h: Tensor, marks: Tensor) -> tuple[Tensor, ...]:
+def prepare(h: Tensor, marks: Tensor, base: Tensor | None = None) -> tuple[Tensor, ...]:
     """Knots and spline system of both envelopes of every row.
 
     Args:
         h: (R, N) signals, N >= 3, finite; marks: (2, R, N) their extremum marks.
+        base: :func:`knots.slot_base` of ``h`` (computed when not given).
 
     Returns:
         sys: (3, 2, R, K) the unit-diagonal system (:func:`spline.spline_system`).
@@ -32,7 +33,8 @@ def prepare(h: Tensor, marks: Tensor) -> tuple[Tensor, ...]:
     cnt, n = extrema_counts(marks)  # (2, R, N), (2, R, 1)
     p, v = end_extrema(h, cnt, n)  # (2, R, 2, 4) x2
     bxy, bv = boundary_knots(h, p, v, n)  # (2, 2, R, 4), (2, R, 4)
-    xy, j1, kx = assemble(h, marks, bxy, bv)  # (2, 2, R, K) (half values), (2, R, 1), (2, R, 4)
+    # (2, 2, R, K) knots (half values), (2, R, 1), (2, R, 4):
+    xy, j1, kx = assemble(h, marks, bxy, bv, base)
     return spline_system(xy, j1), xy, j1, cnt, kx, n.sum(dim=(0, 2))
 
 

@@ -48,14 +48,13 @@ def spline_system(xy: Tensor, j1: Tensor) -> Tensor:
     rhs = F.pad(sl, (0, 1)) - F.pad(sl, (1, 0))  # (1, ..., K); rows 0 and K-1 are masked
     dr = j1 - j  # (..., K) distance from the last knot
     inner = torch.clamp(dr, 0.0, 1.0) * (j >= 1.0).to(dt)  # rows 1 .. j1-1
-    rf = (dr == 1.0).to(dt)  # row j1-1: M[j1] eliminated (or natural)
     # Every row is [h[j-1], 2 s, h[j]] + w [-h[j], s, -h[j-1]] with s = h[j-1] + h[j]:
     # w = 0 inside and for the natural 3-knot row, w = h[j-1]/h[j] for the left not-a-knot row
-    # and h[j]/h[j-1] for the right one (EMD_SPEC §4.6, times h[j]/s or h[j-1]/s). There the
-    # coefficient towards the eliminated knot vanishes up to rounding, and that knot's identity
-    # row (M = 0, right-hand side 0) makes its value irrelevant.
+    # and h[j]/h[j-1] for the right one, row j1-1 (EMD_SPEC §4.6, times h[j]/s or h[j-1]/s).
+    # There the coefficient towards the eliminated knot vanishes up to rounding, and that knot's
+    # identity row (M = 0, right-hand side 0) makes its value irrelevant.
     u = hm / hp
-    w = torch.relu(row1 - rf) * u + rf * (1.0 - row1) / u
+    w = torch.where(dr == 1.0, (1.0 - row1) / u, row1 * u)
     s = hm + hp
     a = hm - w * hp
     c = hp - w * hm
