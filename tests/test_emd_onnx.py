@@ -38,21 +38,21 @@ NEAR_TIE = 1e-5  # x window std
 # then "strict" without ties or "plateau" with them, ...). Lower them when a piece gets leaner;
 # a rise means a change added kernel launches to every sift.
 BUDGET = {
-    "head": 7,
-    "strict": 7,
-    "plateau": 30,
-    "counts": 2,
-    "end_extrema": 13,
-    "boundary": 47,
-    "assemble": 19,
+    "head": 8,
+    "strict": 6,
+    "plateau": 29,
+    "counts": 3,
+    "end_extrema": 12,
+    "boundary": 45,
+    "assemble": 18,
     "system": 28,
     "solve": 68,
-    "segment": 12,
+    "segment": 11,
     "evaluate": 23,
-    "finish": 41,
+    "finish": 40,
 }
-SIFT_SHORTEST = 201  # nodes run by one sift with few knots (later IMFs)
-SIFT_LONGEST = 240  # ... and with many knots (every PCR step)
+SIFT_SHORTEST = 196  # nodes run by one sift with few knots (later IMFs)
+SIFT_LONGEST = 235  # ... and with many knots (every PCR step)
 
 
 def _session(model: onnx.ModelProto) -> ort.InferenceSession:

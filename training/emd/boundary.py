@@ -33,11 +33,12 @@ def boundary_knots(h: Tensor, p: Tensor, v: Tensor, n: Tensor) -> tuple[Tensor, 
     Args:
         h: (R, N) signals (only the length is used).
         p, v: (2, R, 2, 4) positions (sample indices) and values of ``[end sample, E0, E1, E2]``
-            seen from each end (:func:`knots.end_extrema`); n: (2, R, 1) extrema counts.
+            seen from each end (:func:`knots.end_extrema`); n: (2, R, 1, 1) extrema counts.
 
     Returns:
         xy: (2, 2, R, 4) knot positions and values (scaled as ``v``), ordered
-            ``[left far, left near, right near, right far]`` (ascending when valid).
+            ``[left far, left near, right near, right far]`` (ascending when valid); an invalid
+            knot's position is ``4 N`` or more, past the window.
         valid: (2, R, 4) 0/1 floats. Rows with fewer than 3 extrema get meaningless knots.
     """
     n_time = int(h.shape[-1])
@@ -49,7 +50,6 @@ def boundary_knots(h: Tensor, p: Tensor, v: Tensor, n: Tensor) -> tuple[Tensor, 
     # Left side takes sources [far, near], right side [near, far]: ascending positions at once.
     kvec = torch.tensor([[1.0, 0.0], [0.0, 1.0]], dtype=dt, device=dev)  # (side, k)
     q = p * side_sign + side_off  # (2, R, side, 4): distance from the end (the end sample: 0)
-    n4 = n.unsqueeze(-1)  # (2, R, 1, 1)
 
     first = q[..., 1:2]  # (2, R, side, 1)
     other = first.flip(0)  # the other envelope's first extremum
@@ -61,7 +61,7 @@ def boundary_knots(h: Tensor, p: Tensor, v: Tensor, n: Tensor) -> tuple[Tensor, 
     case1 = dv * env_sign > 0
     # Fallback: the outermost case-1 knot of F (source F[min(2, nF-1)]) or of G (source
     # G[min(1, nG-1)]) would not reach past the end (list index + 1: the end sample is first).
-    own_last = torch.gather(q, -1, torch.minimum(is_f.to(dt) + 2.0, n4).long())
+    own_last = torch.gather(q, -1, torch.minimum(is_f.to(dt) + 2.0, n).long())
     two_f0 = 2.0 * f0
     short = own_last < two_f0  # (2, R, side, 1)
     mirror_f0 = (case1 & ~(short | short.flip(0))).to(dt)
@@ -71,6 +71,7 @@ def boundary_knots(h: Tensor, p: Tensor, v: Tensor, n: Tensor) -> tuple[Tensor, 
     kx = two_f0 * mirror_f0 - torch.gather(q, -1, idx)  # mirrored, side coordinates
     val = torch.gather(v, -1, idx)
     # A source exists when the list is long enough; a knot on E0 duplicates it.
-    valid = (src <= n4) & (kx < first)
+    valid = (src <= n) & (kx < first)
+    kx = torch.where(valid, kx, (4.0 * n_time) * side_sign)  # invalid: past the window
     kx = kx * side_sign + side_off  # back to sample positions
-    return torch.stack([kx, val]).reshape(2, 2, -1, 4), valid.to(dt).reshape(2, -1, 4)
+    return torch.cat([kx, val]).reshape(2, 2, -1, 4), valid.to(dt).reshape(2, -1, 4)

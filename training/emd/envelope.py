@@ -19,7 +19,7 @@ def segment_index(cnt: Tensor, kx: Tensor, j1: Tensor) -> Tensor:
 
     Args:
         cnt: (2, R, N) running count of interior extrema (interior knots among samples <= t).
-        kx: (2, R, 4) mirrored knot positions, invalid ones past the window
+        kx: (2, R, 4, 1) mirrored knot positions, invalid ones past the window
             (:func:`knots.assemble`).
         j1: (2, R, 1) last real knot slot.
 
@@ -30,7 +30,7 @@ def segment_index(cnt: Tensor, kx: Tensor, j1: Tensor) -> Tensor:
     """
     n_time = int(cnt.shape[-1])
     t = torch.arange(n_time, dtype=cnt.dtype, device=cnt.device)  # (N,)
-    mirrored = (kx.unsqueeze(-1) <= t).to(cnt.dtype).sum(-2)  # (2, R, N) mirrored knots <= t
+    mirrored = (kx <= t).to(cnt.dtype).sum(-2)  # (2, R, N) mirrored knots <= t
     # Not-a-knot (j1 >= 3) clamps to [1, j1-2], natural 3-knot (j1 = 2) to [0, 1]; rows
     # without an envelope (j1 < 2) stay inside [0, 1].
     j2 = j1 - 2.0  # (2, R, 1)

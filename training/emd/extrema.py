@@ -30,38 +30,39 @@ def differences(h: Tensor) -> Tensor:
     return h[:, 1:] - h[:, :-1]
 
 
-def has_tie(d: Tensor) -> Tensor:
+def has_tie(sg: Tensor) -> Tensor:
     """True (a 0-d bool tensor) when any difference is exactly zero: a flat run somewhere.
+
+    ``sg`` is ``sign`` of the differences (R, N-1); both extremum rules start from it.
 
     Without ties the plateau rule reduces to the strict rule, so the exported sift takes the
     cheap branch (:func:`strict_marks`) in an ONNX ``If`` whenever this is false. Quantised
     data have ties in the first sift; once a mean envelope has been subtracted they are rare.
     """
-    return torch.abs(d).amin() == 0.0
+    return torch.abs(sg).amin() == 0.0
 
 
-def strict_marks(d: Tensor) -> Tensor:
-    """Extremum marks for differences without zeros (R, N-1) -> (2, R, N) 0/1 [max, min].
+def strict_marks(sg: Tensor) -> Tensor:
+    """Extremum marks from the differences' signs, none zero: (R, N-1) -> (2, R, N) 0/1
+    [max, min].
 
     A sample is a maximum where the slope turns from rising to falling: the sign of the
     differences drops by 2 there (rises by 2 at a minimum). End samples are never extrema.
     """
-    sg = torch.sign(d)  # (R, N-1) in {-1, 1}
     turn = F.pad(sg[:, :-1] - sg[:, 1:], (1, 1))  # (R, N): +2 at maxima, -2 at minima
-    half = torch.tensor([0.5, -0.5], dtype=d.dtype, device=d.device).reshape(2, 1, 1)
+    half = torch.tensor([0.5, -0.5], dtype=sg.dtype, device=sg.device).reshape(2, 1, 1)
     return torch.relu(turn * half)  # (2, R, N)
 
 
-def plateau_signed(d: Tensor) -> Tensor:
-    """Signed extremum marks from the differences (R, N-1), with the plateau rule.
+def plateau_signed(sg: Tensor) -> Tensor:
+    """Signed extremum marks from the differences' signs (R, N-1), with the plateau rule.
 
     Returns:
         (R, N) tensor of d's dtype: +1 at maxima, -1 at minima, 0 elsewhere. End samples are
         never extrema, except through quirk 2, as in PyEMD.
     """
-    n = int(d.shape[-1]) + 1
-    dt, dev = d.dtype, d.device
-    sg = torch.sign(d)  # (R, N-1) in {-1, 0, 1}
+    n = int(sg.shape[-1]) + 1
+    dt, dev = sg.dtype, sg.device
     # Column c holds the pair starting at difference j = c - 1; column 0 is the virtual pair.
     sgp = torch.cat([sg[:, -1:], sg], dim=-1)  # (R, N)
     # rank[c]: number of non-zero differences before column c's own (its 1-based rank).
@@ -86,15 +87,16 @@ def plateau_signed(d: Tensor) -> Tensor:
     return zeros.scatter_add(-1, mid, val)  # (R, N)
 
 
-def plateau_marks(d: Tensor) -> Tensor:
-    """(R, N-1) differences -> (2, R, N) 0/1 marks [maxima, minima], plateau rule included."""
-    sign = torch.tensor([1.0, -1.0], dtype=d.dtype, device=d.device).reshape(2, 1, 1)
-    return (plateau_signed(d) * sign > 0).to(d.dtype)
+def plateau_marks(sg: Tensor) -> Tensor:
+    """(R, N-1) signs of the differences -> (2, R, N) 0/1 marks [maxima, minima], plateau
+    rule included."""
+    sign = torch.tensor([1.0, -1.0], dtype=sg.dtype, device=sg.device).reshape(2, 1, 1)
+    return (plateau_signed(sg) * sign > 0).to(sg.dtype)
 
 
 def find_extrema(h: Tensor) -> Tensor:
     """(R, N) signals, N >= 3 -> (R, N) signed marks: +1 at maxima, -1 at minima."""
-    return plateau_signed(differences(h))
+    return plateau_signed(torch.sign(differences(h)))
 
 
 def extrema_marks(h: Tensor) -> Tensor:
@@ -102,5 +104,5 @@ def extrema_marks(h: Tensor) -> Tensor:
 
     Eager form of the exported ``If``: the plateau rule only when some difference is zero.
     """
-    d = differences(h)
-    return plateau_marks(d) if d.numel() and bool(has_tie(d)) else strict_marks(d)
+    sg = torch.sign(differences(h))
+    return plateau_marks(sg) if sg.numel() and bool(has_tie(sg)) else strict_marks(sg)

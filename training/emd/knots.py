@@ -26,10 +26,11 @@ def extrema_counts(marks: Tensor) -> tuple[Tensor, Tensor]:
         marks: (2, R, N) 0/1 extremum marks.
 
     Returns:
-        cnt: (2, R, N) extrema at samples <= t; n: (2, R, 1) extrema in the row.
+        cnt: (2, R, N) extrema at samples <= t; n: (2, R, 1, 1) extrema in the row (shaped
+        for :func:`end_extrema` and :func:`boundary.boundary_knots`).
     """
     cnt = torch.cumsum(marks, dim=-1)
-    return cnt, cnt[..., -1:]
+    return cnt, cnt[..., -1:].unsqueeze(-1)
 
 
 def end_extrema(h: Tensor, cnt: Tensor, n: Tensor) -> tuple[Tensor, Tensor]:
@@ -39,7 +40,7 @@ def end_extrema(h: Tensor, cnt: Tensor, n: Tensor) -> tuple[Tensor, Tensor]:
     rank 0 gives sample 0 and rank n + 1 the last sample (after clamping).
 
     Args:
-        h: (R, N) signals; cnt, n: (2, R, N) and (2, R, 1) from :func:`extrema_counts`.
+        h: (R, N) signals; cnt, n: (2, R, N) and (2, R, 1, 1) from :func:`extrema_counts`.
 
     Returns:
         p: (2, R, 2, 4) positions ``[[0, E0, E1, E2], [N-1, E[n-1], E[n-2], E[n-3]]]``;
@@ -50,8 +51,8 @@ def end_extrema(h: Tensor, cnt: Tensor, n: Tensor) -> tuple[Tensor, Tensor]:
     dt, dev = h.dtype, h.device
     w = torch.tensor([0.0, 0.0, 0.0, 0.0, 1.0, 1.0, 1.0, 1.0], dtype=dt, device=dev)
     b = torch.tensor([0.0, 1.0, 2.0, 3.0, 1.0, 0.0, -1.0, -2.0], dtype=dt, device=dev)
-    rank = n * w + b  # (2, R, 8): ranks 0..3 and n+1, n, n-1, n-2
-    p = (cnt.unsqueeze(-2) < rank.unsqueeze(-1)).to(dt).sum(-1)  # (2, R, 8)
+    rank = n * w.unsqueeze(-1) + b.unsqueeze(-1)  # (2, R, 8, 1): ranks 0..3, n+1, n, n-1, n-2
+    p = (cnt.unsqueeze(-2) < rank).to(dt).sum(-1)  # (2, R, 8)
     p = torch.clamp(p, max=n_time - 1.0)
     half = torch.full((2, 1, 1), 0.5, dtype=dt, device=dev)
     v = torch.gather(h * half, -1, p.long())  # (2, R, 8)
@@ -85,7 +86,7 @@ def assemble(
         xy: (2, 2, R, K) knot positions and **half** values (``h / 2``: the two envelopes
             then sum to their mean), stacked on axis 0; dummies after ``j1``.
         j1: (2, R, 1) last real slot (``j1 + 1`` knots).
-        kx: (2, R, 4) the mirrored knots' positions, invalid ones moved past the window (for
+        kx: (2, R, 4, 1) the mirrored knots' positions, invalid ones past the window (for
             :func:`envelope.segment_index`).
     """
     n_time = int(h.shape[-1])
@@ -104,5 +105,4 @@ def assemble(
     if base is None:
         base = slot_base(h)
     xy = base.scatter(-1, slot.expand(2, -1, -1, -1), upd)[..., :k]  # (2, 2, R, K)
-    kx = torch.where(bv > 0, bxy[0], 2.0 * n_time)
-    return xy, cum[..., -1:] - 1.0, kx
+    return xy, cum[..., -1:] - 1.0, bxy[:1].reshape(2, -1, 4, 1)

@@ -258,8 +258,8 @@ def _loop_body(
 
 
 def _head(h: Tensor) -> tuple[Tensor, Tensor]:
-    d = differences(h)
-    return d, has_tie(d)
+    sg = torch.sign(differences(h))
+    return sg, has_tie(sg)
 
 
 PCR_ALWAYS = 2
@@ -281,8 +281,8 @@ def _sift_graph(
     k = n_slots(n_time)
     steps = pcr_steps(k)
     always = min(PCR_ALWAYS, steps - 1)
-    d = differences(h)
-    marks = strict_marks(d)
+    sg = torch.sign(differences(h))
+    marks = strict_marks(sg)
     base = slot_base(h)
     sys, xy, j1, cnt, kx, n_ext = prepare(h, marks, base)
     m = sys[2:3]
@@ -297,9 +297,9 @@ def _sift_graph(
         return (sys, *rest, *done)
 
     done_names = [f"done{s}" for s in range(always, steps)]
-    head = trace_graph(_head, [h], ["h"], ["d", "tie"], {"h": rows, "d": rows})
-    strict = trace_graph(strict_marks, [d], ["d"], ["marks"], {"d": rows, "marks": r1})
-    plateau = trace_graph(plateau_marks, [d], ["d"], ["marks"], {"d": rows, "marks": r1})
+    head = trace_graph(_head, [h], ["h"], ["sg", "tie"], {"h": rows, "sg": rows})
+    strict = trace_graph(strict_marks, [sg], ["sg"], ["marks"], {"sg": rows, "marks": r1})
+    plateau = trace_graph(plateau_marks, [sg], ["sg"], ["marks"], {"sg": rows, "marks": r1})
     prep = trace_graph(
         pre,
         [h, marks, base],
@@ -336,10 +336,10 @@ def _sift_graph(
         return nodes
 
     m_info = [1, 2, "rows", k]
-    nodes = add(head, "head/", {"h": "s_h", "d": "s_d", "tie": "s_tie"})
+    nodes = add(head, "head/", {"h": "s_h", "sg": "s_sg", "tie": "s_tie"})
     branches = {}
     for name, part in (("plateau", plateau), ("strict", strict)):
-        b_nodes = add(part, f"{name}/", {"d": "s_d", "marks": f"{name}/marks"})
+        b_nodes = add(part, f"{name}/", {"sg": "s_sg", "marks": f"{name}/marks"})
         branches[name] = helper.make_graph(
             b_nodes, name, [], [_t(f"{name}/marks", elem, [2, "rows", n_time])]
         )

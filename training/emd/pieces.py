@@ -21,7 +21,7 @@ def piece_examples(
     """Each piece of one sift with real example inputs (from a random batch)."""
     gen = torch.Generator().manual_seed(0)
     h = torch.randn(rows, n_time, generator=gen, dtype=dtype)
-    d = differences(h)
+    d = torch.sign(differences(h))
     marks = extrema_marks(h)
     cnt, n = extrema_counts(marks)
     p, v = end_extrema(h, cnt, n)
@@ -30,10 +30,10 @@ def piece_examples(
     system = spline_system(xy, j1)
     m = pcr_solve(system)
     seg = segment_index(cnt, kx, j1)
-    n_ext = n.sum(dim=(0, 2))
+    n_ext = n.sum(dim=(0, 2, 3))
     active = torch.ones(rows, dtype=torch.bool)
     return {
-        "head": (lambda h: (d := differences(h), has_tie(d)), (h,)),
+        "head": (lambda h: (d := torch.sign(differences(h)), has_tie(d)), (h,)),
         "strict": (strict_marks, (d,)),
         "plateau": (plateau_marks, (d,)),
         "counts": (extrema_counts, (marks,)),

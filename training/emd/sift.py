@@ -27,15 +27,15 @@ def prepare(h: Tensor, marks: Tensor, base: Tensor | None = None) -> tuple[Tenso
     Returns:
         sys: (3, 2, R, K) the unit-diagonal system (:func:`spline.spline_system`).
         xy: (2, 2, R, K) knots; j1: (2, R, 1) last real slot; cnt: (2, R, N) running extremum
-        count; kx: (2, R, 4) mirrored knot positions; n_ext: (R,) extrema per row (PyEMD's
+        count; kx: (2, R, 4, 1) mirrored knot positions; n_ext: (R,) extrema per row (PyEMD's
         ``extNo``).
     """
-    cnt, n = extrema_counts(marks)  # (2, R, N), (2, R, 1)
+    cnt, n = extrema_counts(marks)  # (2, R, N), (2, R, 1, 1)
     p, v = end_extrema(h, cnt, n)  # (2, R, 2, 4) x2
     bxy, bv = boundary_knots(h, p, v, n)  # (2, 2, R, 4), (2, R, 4)
     # (2, 2, R, K) knots (half values), (2, R, 1), (2, R, 4):
     xy, j1, kx = assemble(h, marks, bxy, bv, base)
-    return spline_system(xy, j1), xy, j1, cnt, kx, n.sum(dim=(0, 2))
+    return spline_system(xy, j1), xy, j1, cnt, kx, n.sum(dim=(0, 2, 3))
 
 
 def finish(
