@@ -43,7 +43,7 @@ BUDGET = {
     "plateau": 29,
     "counts": 3,
     "end_extrema": 12,
-    "boundary": 45,
+    "boundary": 43,
     "assemble": 18,
     "system": 28,
     "solve": 68,
@@ -51,8 +51,8 @@ BUDGET = {
     "evaluate": 23,
     "finish": 40,
 }
-SIFT_SHORTEST = 196  # nodes run by one sift with few knots (later IMFs)
-SIFT_LONGEST = 235  # ... and with many knots (every PCR step)
+SIFT_SHORTEST = 194  # nodes run by one sift with few knots (later IMFs)
+SIFT_LONGEST = 233  # ... and with many knots (every PCR step)
 
 
 def _session(model: onnx.ModelProto) -> ort.InferenceSession:

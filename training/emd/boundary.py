@@ -56,15 +56,16 @@ def boundary_knots(h: Tensor, p: Tensor, v: Tensor, n: Tensor) -> tuple[Tensor, 
     is_f = first < other  # (2, R, side, 1): this envelope plays F
     f0 = torch.minimum(first, other)
     ends, v0 = v[..., 0:1], v[..., 1:2]
-    # Case 1 seen from either envelope: sigma_F * (S[end] - vG0) > 0.
-    dv = torch.where(is_f, ends - v0.flip(0), v0 - ends)  # (2, R, side, 1)
-    case1 = dv * env_sign > 0
+    # Case 1 seen from either envelope: sigma_F * (S[end] - vG0) > 0, i.e. G's own
+    # sigma_G * (vG0 - S[end]) > 0 (sigma_G = -sigma_F), read from G's row when this one is F.
+    own = (v0 - ends) * env_sign  # (2, R, side, 1)
+    case1 = torch.where(is_f, own.flip(0), own) > 0
     # Fallback: the outermost case-1 knot of F (source F[min(2, nF-1)]) or of G (source
     # G[min(1, nG-1)]) would not reach past the end (list index + 1: the end sample is first).
     own_last = torch.gather(q, -1, torch.minimum(is_f.to(dt) + 2.0, n).long())
     two_f0 = 2.0 * f0
-    short = own_last < two_f0  # (2, R, side, 1)
-    mirror_f0 = (case1 & ~(short | short.flip(0))).to(dt)
+    reach = own_last >= two_f0  # (2, R, side, 1): not the fallback for this envelope
+    mirror_f0 = (case1 & reach & reach.flip(0)).to(dt)
     shift = torch.where(is_f, mirror_f0 + 1.0, case1.to(dt))  # (2, R, side, 1) in 0..2
     src = shift + kvec  # (2, R, side, k): index in [end sample, E0, E1, E2]
     idx = src.long()
