@@ -43,16 +43,16 @@ BUDGET = {
     "plateau": 29,
     "counts": 3,
     "end_extrema": 12,
-    "boundary": 43,
-    "assemble": 18,
+    "boundary": 42,
+    "assemble": 17,
     "system": 28,
     "solve": 68,
-    "segment": 11,
+    "segment": 7,
     "evaluate": 23,
-    "finish": 40,
+    "finish": 36,
 }
-SIFT_SHORTEST = 194  # nodes run by one sift with few knots (later IMFs)
-SIFT_LONGEST = 233  # ... and with many knots (every PCR step)
+SIFT_SHORTEST = 188  # nodes run by one sift with few knots (later IMFs)
+SIFT_LONGEST = 227  # ... and with many knots (every PCR step)
 
 
 def _session(model: onnx.ModelProto) -> ort.InferenceSession:

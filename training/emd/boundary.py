@@ -37,8 +37,7 @@ def boundary_knots(h: Tensor, p: Tensor, v: Tensor, n: Tensor) -> tuple[Tensor, 
 
     Returns:
         xy: (2, 2, R, 4) knot positions and values (scaled as ``v``), ordered
-            ``[left far, left near, right near, right far]`` (ascending when valid); an invalid
-            knot's position is ``4 N`` or more, past the window.
+            ``[left far, left near, right near, right far]`` (ascending when valid).
         valid: (2, R, 4) 0/1 floats. Rows with fewer than 3 extrema get meaningless knots.
     """
     n_time = int(h.shape[-1])
@@ -73,6 +72,5 @@ def boundary_knots(h: Tensor, p: Tensor, v: Tensor, n: Tensor) -> tuple[Tensor, 
     val = torch.gather(v, -1, idx)
     # A source exists when the list is long enough; a knot on E0 duplicates it.
     valid = (src <= n) & (kx < first)
-    kx = torch.where(valid, kx, (4.0 * n_time) * side_sign)  # invalid: past the window
     kx = kx * side_sign + side_off  # back to sample positions
     return torch.cat([kx, val]).reshape(2, 2, -1, 4), valid.to(dt).reshape(2, -1, 4)

@@ -4,8 +4,9 @@ All knots sit at integer positions, so the segment holding sample ``t`` is a cou
 or before ``t``) rather than a search. Each segment's cubic is written in the local power basis
 scipy's ``PPoly`` uses, ``y_k + B (c1 + B (c2 + B c3))`` with ``B = t - x_k``, and one gather
 fetches the five numbers per sample. Not-a-knot splines evaluate their outer segments with the
-neighbouring segment's cubic (the same polynomial), so ``M`` at the end knots is never needed;
-samples that are knots then get the knot value written back exactly, as scipy returns it.
+neighbouring segment's cubic (the same polynomial), so ``M`` at the end knots is never needed.
+A sample on a knot that starts its segment gets the knot's value exactly (``B = 0``), as scipy
+returns it; on the two outer knots of a not-a-knot spline, up to rounding.
 """
 
 from __future__ import annotations
@@ -14,30 +15,36 @@ import torch
 from torch import Tensor
 
 
-def segment_index(cnt: Tensor, kx: Tensor, j1: Tensor) -> Tensor:
+def segment_index(kc: Tensor, j1: Tensor) -> Tensor:
     """Segment of every sample.
 
     Args:
-        cnt: (2, R, N) running count of interior extrema (interior knots among samples <= t).
-        kx: (2, R, 4, 1) mirrored knot positions, invalid ones past the window
-            (:func:`knots.assemble`).
+        kc: (2, R, N) the left end's valid mirrored knots plus the interior extrema at or
+            before each sample (:func:`knots.assemble`).
         j1: (2, R, 1) last real knot slot.
 
     Returns:
         (2, R, N) int64 slot ``k`` of the segment ``[x_k, x_{k+1}]`` evaluated at ``t``: the last
         knot at or before ``t``, clamped to ``[1, j1-2]`` for not-a-knot splines and to
         ``[0, j1-1]`` for 3-knot natural ones.
+
+    ``kc`` counts the left knots at every sample and the right knots at none, though either
+    kind can sit inside the window (mirrored about an extremum, or on the end sample). After
+    clamping this changes nothing: a left knot is missed only before the left knots end, where
+    the count - 1 is at most 1 and the true value at most 0, and both clamp to the low end
+    unless the spline is the natural 3-knot one with two left knots; a right knot is missed
+    only after the interior ends, where both clamp to the high end unless the spline is the
+    natural one with two right knots. Those two cases cannot occur: an envelope with one
+    interior extremum always has a valid near knot at each end (its first source, the end
+    sample or E0, always exists), so its three knots are one left, E0 and one right.
     """
-    n_time = int(cnt.shape[-1])
-    t = torch.arange(n_time, dtype=cnt.dtype, device=cnt.device)  # (N,)
-    mirrored = (kx <= t).to(cnt.dtype).sum(-2)  # (2, R, N) mirrored knots <= t
     # Not-a-knot (j1 >= 3) clamps to [1, j1-2], natural 3-knot (j1 = 2) to [0, 1]; rows
     # without an envelope (j1 < 2) stay inside [0, 1].
     j2 = j1 - 2.0  # (2, R, 1)
     lo = torch.clamp(j2, 0.0, 1.0)
     hi = torch.clamp(j2, min=1.0)
     # Slot of the last knot at or before t: (knots <= t) - 1.
-    return torch.minimum(torch.maximum(cnt + mirrored - 1.0, lo), hi).long()
+    return torch.minimum(torch.maximum(kc - 1.0, lo), hi).long()
 
 
 def evaluate(h: Tensor, xy: Tensor, m: Tensor, seg: Tensor) -> Tensor:

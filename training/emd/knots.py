@@ -86,7 +86,8 @@ def assemble(
         xy: (2, 2, R, K) knot positions and **half** values (``h / 2``: the two envelopes
             then sum to their mean), stacked on axis 0; dummies after ``j1``.
         j1: (2, R, 1) last real slot (``j1 + 1`` knots).
-        kx: (2, R, 4, 1) the mirrored knots' positions, invalid ones past the window (for
+        kc: (2, R, N) valid knots up to each sample's own candidate: the mirrored knots of
+            the left end plus the interior extrema at or before it (for
             :func:`envelope.segment_index`).
     """
     n_time = int(h.shape[-1])
@@ -105,4 +106,4 @@ def assemble(
     if base is None:
         base = slot_base(h)
     xy = base.scatter(-1, slot.expand(2, -1, -1, -1), upd)[..., :k]  # (2, 2, R, K)
-    return xy, cum[..., -1:] - 1.0, bxy[:1].reshape(2, -1, 4, 1)
+    return xy, cum[..., -1:] - 1.0, cum[..., 2 : n_time + 2]

@@ -26,10 +26,10 @@ def piece_examples(
     cnt, n = extrema_counts(marks)
     p, v = end_extrema(h, cnt, n)
     bxy, bv = boundary_knots(h, p, v, n)
-    xy, j1, kx = assemble(h, marks, bxy, bv)
+    xy, j1, kc = assemble(h, marks, bxy, bv)
     system = spline_system(xy, j1)
     m = pcr_solve(system)
-    seg = segment_index(cnt, kx, j1)
+    seg = segment_index(kc, j1)
     n_ext = n.sum(dim=(0, 2, 3))
     active = torch.ones(rows, dtype=torch.bool)
     return {
@@ -42,7 +42,7 @@ def piece_examples(
         "assemble": (assemble, (h, marks, bxy, bv, slot_base(h))),
         "system": (spline_system, (xy, j1)),
         "solve": (pcr_solve, (system,)),
-        "segment": (segment_index, (cnt, kx, j1)),
+        "segment": (segment_index, (kc, j1)),
         "evaluate": (evaluate, (h, xy, m, seg)),
-        "finish": (finish, (h, active, xy, m, j1, cnt, kx, n_ext)),
+        "finish": (finish, (h, active, xy, m, j1, kc, n_ext)),
     }

@@ -26,25 +26,23 @@ def prepare(h: Tensor, marks: Tensor, base: Tensor | None = None) -> tuple[Tenso
 
     Returns:
         sys: (3, 2, R, K) the unit-diagonal system (:func:`spline.spline_system`).
-        xy: (2, 2, R, K) knots; j1: (2, R, 1) last real slot; cnt: (2, R, N) running extremum
-        count; kx: (2, R, 4, 1) mirrored knot positions; n_ext: (R,) extrema per row (PyEMD's
-        ``extNo``).
+        xy: (2, 2, R, K) knots; j1: (2, R, 1) last real slot; kc: (2, R, N) knots counted at
+        each sample (:func:`knots.assemble`); n_ext: (R,) extrema per row (PyEMD's ``extNo``).
     """
     cnt, n = extrema_counts(marks)  # (2, R, N), (2, R, 1, 1)
     p, v = end_extrema(h, cnt, n)  # (2, R, 2, 4) x2
     bxy, bv = boundary_knots(h, p, v, n)  # (2, 2, R, 4), (2, R, 4)
     # (2, 2, R, K) knots (half values), (2, R, 1), (2, R, 4):
-    xy, j1, kx = assemble(h, marks, bxy, bv, base)
-    return spline_system(xy, j1), xy, j1, cnt, kx, n.sum(dim=(0, 2, 3))
+    xy, j1, kc = assemble(h, marks, bxy, bv, base)
+    return spline_system(xy, j1), xy, j1, kc, n.sum(dim=(0, 2, 3))
 
 
 def finish(
-    h: Tensor, active: Tensor, xy: Tensor, m: Tensor, j1: Tensor, cnt: Tensor, kx: Tensor,
-    n_ext: Tensor,
+    h: Tensor, active: Tensor, xy: Tensor, m: Tensor, j1: Tensor, kc: Tensor, n_ext: Tensor
 ) -> tuple[Tensor, Tensor]:
     """Evaluate the envelopes and subtract their mean (the arguments as :func:`prepare` gives
     them, ``m`` (1, 2, R, K) from :func:`spline.pcr_solve`); returns as :func:`sift`."""
-    half = evaluate(h, xy, m, segment_index(cnt, kx, j1))  # (1, 2, R, N) envelopes / 2
+    half = evaluate(h, xy, m, segment_index(kc, j1))  # (1, 2, R, N) envelopes / 2
     active = active & (n_ext > 2.0)  # (R,)
     mean = half.sum(dim=(0, 1))  # (R, N): (upper + lower) / 2, bit for bit as PyEMD's
     return torch.where(active.unsqueeze(-1), h - mean, h), active
@@ -64,9 +62,9 @@ def envelopes(h: Tensor, marks: Tensor | None = None) -> tuple[Tensor, Tensor]:
     """
     if marks is None:
         marks = extrema_marks(h)  # (2, R, N)
-    sys, xy, j1, cnt, kx, n_ext = prepare(h, marks)
+    sys, xy, j1, kc, n_ext = prepare(h, marks)
     m = pcr_solve(sys, j1)
-    return evaluate(h, xy, m, segment_index(cnt, kx, j1))[0] * 2.0, n_ext
+    return evaluate(h, xy, m, segment_index(kc, j1))[0] * 2.0, n_ext
 
 
 def sift(h: Tensor, active: Tensor, marks: Tensor | None = None) -> tuple[Tensor, Tensor]:
@@ -85,5 +83,5 @@ def sift(h: Tensor, active: Tensor, marks: Tensor | None = None) -> tuple[Tensor
     """
     if marks is None:
         marks = extrema_marks(h)  # (2, R, N)
-    sys, xy, j1, cnt, kx, n_ext = prepare(h, marks)
-    return finish(h, active, xy, pcr_solve(sys, j1), j1, cnt, kx, n_ext)
+    sys, xy, j1, kc, n_ext = prepare(h, marks)
+    return finish(h, active, xy, pcr_solve(sys, j1), j1, kc, n_ext)
