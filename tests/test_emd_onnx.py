@@ -45,14 +45,15 @@ BUDGET = {
     "end_extrema": 12,
     "boundary": 42,
     "assemble": 17,
-    "system": 28,
+    "spacings": 5,
+    "system": 23,
     "solve": 68,
-    "segment": 7,
-    "evaluate": 23,
-    "finish": 36,
+    "segment": 6,
+    "evaluate": 20,
+    "finish": 32,
 }
-SIFT_SHORTEST = 188  # nodes run by one sift with few knots (later IMFs)
-SIFT_LONGEST = 227  # ... and with many knots (every PCR step)
+SIFT_SHORTEST = 184  # nodes run by one sift with few knots (later IMFs)
+SIFT_LONGEST = 223  # ... and with many knots (every PCR step)
 
 
 def _session(model: onnx.ModelProto) -> ort.InferenceSession:

@@ -14,13 +14,15 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
+from .spline import spacings
 
-def segment_index(kc: Tensor, j1: Tensor) -> Tensor:
+
+def segment_index(ks: Tensor, j1: Tensor) -> Tensor:
     """Segment of every sample.
 
     Args:
-        kc: (2, R, N) the left end's valid mirrored knots plus the interior extrema at or
-            before each sample (:func:`knots.assemble`).
+        ks: (2, R, N) the left end's valid mirrored knots plus the interior extrema at or
+            before each sample, minus 1 (:func:`knots.assemble`).
         j1: (2, R, 1) last real knot slot.
 
     Returns:
@@ -28,7 +30,7 @@ def segment_index(kc: Tensor, j1: Tensor) -> Tensor:
         knot at or before ``t``, clamped to ``[1, j1-2]`` for not-a-knot splines and to
         ``[0, j1-1]`` for 3-knot natural ones.
 
-    ``kc`` counts the left knots at every sample and the right knots at none, though either
+    ``ks`` counts the left knots at every sample and the right knots at none, though either
     kind can sit inside the window (mirrored about an extremum, or on the end sample). After
     clamping this changes nothing: a left knot is missed only before the left knots end, where
     the count - 1 is at most 1 and the true value at most 0, and both clamp to the low end
@@ -44,30 +46,34 @@ def segment_index(kc: Tensor, j1: Tensor) -> Tensor:
     lo = torch.clamp(j2, 0.0, 1.0)
     hi = torch.clamp(j2, min=1.0)
     # Slot of the last knot at or before t: (knots <= t) - 1.
-    return torch.minimum(torch.maximum(kc - 1.0, lo), hi).long()
+    return torch.minimum(torch.maximum(ks, lo), hi).long()
 
 
-def evaluate(h: Tensor, xy: Tensor, m: Tensor, seg: Tensor) -> Tensor:
+def evaluate(
+    h: Tensor, xy: Tensor, m: Tensor, seg: Tensor, hk: Tensor | None = None,
+    sl: Tensor | None = None,
+) -> Tensor:
     """Evaluate the splines at t = 0..N-1.
 
     Args:
         h: (R, N) signals (only the length is used).
         xy: (2, 2, R, K) knot positions and values; m: (1, 2, R, K) second derivatives over 6.
         seg: (2, R, N) int64 segment slot per sample (:func:`segment_index`).
+        hk, sl: (1, 2, R, K-1) :func:`spline.spacings` of ``xy``, computed here when not given.
 
     Returns:
         (1, 2, R, N) envelopes.
     """
     n_time = int(h.shape[-1])
-    xym = torch.cat([xy, m])  # (3, 2, R, K)
-    p0 = xym[..., :-1]  # segment starts
-    hk, dy, dm = (xym[..., 1:] - p0).split(1)  # (1, 2, R, K-1) each
-    x0, y0, m0 = p0.split(1)
+    if hk is None or sl is None:
+        hk, sl = spacings(xy)
+    m0 = m[..., :-1]
+    dm = m[..., 1:] - m0  # (1, 2, R, K-1)
     # scipy's PPoly form of the cubic on [x_k, x_k+1]: y_k + B (c1 + B (c2 + B c3)), with
     # c2 = M_k / 2 = 3 m_k, c3 = (M_k+1 - M_k) / (6 h) and c1 = slope - h (2 M_k + M_k+1) / 6.
     c2 = 3.0 * m0
-    c1 = dy / hk - hk * (c2 + dm)
-    coef = torch.cat([x0, y0, c1, c2, dm / hk])  # (5, 2, R, K-1)
+    c1 = sl - hk * (c2 + dm)
+    coef = torch.cat([xy[..., :-1], c1, c2, dm / hk])  # (5, 2, R, K-1): x_k, y_k, c1, c2, c3
     idx = seg + torch.zeros(5, 1, 1, 1, dtype=seg.dtype, device=seg.device)  # (5, 2, R, N)
     gx, gy, g1, g2, g3 = torch.gather(coef, -1, idx).split(1)  # (1, 2, R, N) each
     t = torch.arange(n_time, dtype=xy.dtype, device=xy.device)  # (N,)

@@ -86,8 +86,8 @@ def assemble(
         xy: (2, 2, R, K) knot positions and **half** values (``h / 2``: the two envelopes
             then sum to their mean), stacked on axis 0; dummies after ``j1``.
         j1: (2, R, 1) last real slot (``j1 + 1`` knots).
-        kc: (2, R, N) valid knots up to each sample's own candidate: the mirrored knots of
-            the left end plus the interior extrema at or before it (for
+        ks: (2, R, N) slot of the last knot counted at each sample: the mirrored knots of
+            the left end plus the interior extrema at or before it, minus 1 (for
             :func:`envelope.segment_index`).
     """
     n_time = int(h.shape[-1])
@@ -95,8 +95,8 @@ def assemble(
     dt, dev = h.dtype, h.device
     left, right = bv.split(2, dim=-1)
     valid = torch.cat([left, marks, right], dim=-1)  # (2, R, N + 4), ascending knot order
-    cum = torch.cumsum(valid, dim=-1)
-    slot = (valid * (cum - (k + 1.0)) + k).long()  # valid: cum - 1; invalid: dump slot K
+    last = torch.cumsum(valid, dim=-1) - 1.0  # slot of the last valid knot so far
+    slot = (valid * (last - k) + k).long()  # valid: its own slot; invalid: dump slot K
     # Interior candidates [t, h[t] / 2] for both envelopes: (2, 1, R, N) + (2, 2, 1, N).
     t = torch.arange(n_time, dtype=dt, device=dev)
     scale = torch.tensor([0.0, 0.5], dtype=dt, device=dev).reshape(2, 1, 1, 1)
@@ -106,4 +106,4 @@ def assemble(
     if base is None:
         base = slot_base(h)
     xy = base.scatter(-1, slot.expand(2, -1, -1, -1), upd)[..., :k]  # (2, 2, R, K)
-    return xy, cum[..., -1:] - 1.0, cum[..., 2 : n_time + 2]
+    return xy, last[..., -1:], last[..., 2 : n_time + 2]

@@ -284,7 +284,7 @@ def _sift_graph(
     sg = torch.sign(differences(h))
     marks = strict_marks(sg)
     base = slot_base(h)
-    sys, xy, j1, kc, n_ext = prepare(h, marks, base)
+    sys, xy, j1, ks, n_ext, hk, sl = prepare(h, marks, base)
     m = sys[2:3]
     r1 = {1: "rows"}
     r2 = {2: "rows"}
@@ -304,9 +304,9 @@ def _sift_graph(
         pre,
         [h, marks, base],
         ["h", "marks", "base"],
-        ["sys", "xy", "j1", "kc", "n_ext", *done_names],
-        {"h": rows, "marks": r1, "base": r2, "sys": r2, "xy": r2, "j1": r1, "kc": r1,
-         "n_ext": {0: "rows"}},
+        ["sys", "xy", "j1", "ks", "n_ext", "hk", "sl", *done_names],
+        {"h": rows, "marks": r1, "base": r2, "sys": r2, "xy": r2, "j1": r1, "ks": r1,
+         "n_ext": {0: "rows"}, "hk": r2, "sl": r2},
     )
     solved = trace_graph(lambda sys: sys[2:3], [sys], ["sys"], ["m"], {"sys": r2, "m": r2})
     step_models = {
@@ -321,11 +321,11 @@ def _sift_graph(
     )
     tail = trace_graph(
         _finish_sift,
-        [h, act, xy, m, j1, kc, n_ext],
-        ["h", "act", "xy", "m", "j1", "kc", "n_ext"],
+        [h, act, xy, m, j1, ks, n_ext, hk, sl],
+        ["h", "act", "xy", "m", "j1", "ks", "n_ext", "hk", "sl"],
         ["h_out", "act_out", "go"],
-        {"h": rows, "act": rows, "xy": r2, "m": r2, "j1": r1, "kc": r1,
-         "n_ext": {0: "rows"}, "h_out": rows, "act_out": rows},
+        {"h": rows, "act": rows, "xy": r2, "m": r2, "j1": r1, "ks": r1,
+         "n_ext": {0: "rows"}, "hk": r2, "sl": r2, "h_out": rows, "act_out": rows},
     )
 
     inits: list[onnx.TensorProto] = []
@@ -351,7 +351,7 @@ def _sift_graph(
     )
     # The slots' starting content depends only on the shape: made once, outside the loops.
     outer = {"h": "s_h", "marks": "s_marks", "base": "slot_base", "sys": f"s_sys{always}"}
-    outer.update({v: f"s_{v}" for v in ["xy", "j1", "kc", "n_ext", *done_names]})
+    outer.update({v: f"s_{v}" for v in ["xy", "j1", "ks", "n_ext", "hk", "sl", *done_names]})
     nodes += add(prep, "prep/", outer)
 
     def solve_from(step: int, out: str) -> list[onnx.NodeProto]:
@@ -381,7 +381,7 @@ def _sift_graph(
         tail,
         "sift/",
         {"h": "s_h", "act": "s_a", "m": "s_m", "h_out": "s_h_out", "act_out": "s_a_out",
-         "go": "s_c_out", **{v: f"s_{v}" for v in ["xy", "j1", "kc", "n_ext"]}},
+         "go": "s_c_out", **{v: f"s_{v}" for v in ["xy", "j1", "ks", "n_ext", "hk", "sl"]}},
     )
     carried = [("s_h", elem, ["rows", n_time]), ("s_a", TensorProto.BOOL, ["rows"])]
     graph = _loop_body("sift", "s", nodes, carried, cond_out=True)

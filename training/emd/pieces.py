@@ -12,7 +12,7 @@ from .envelope import evaluate, segment_index
 from .extrema import differences, extrema_marks, has_tie, plateau_marks, strict_marks
 from .knots import assemble, end_extrema, extrema_counts, slot_base
 from .sift import finish
-from .spline import pcr_solve, spline_system
+from .spline import pcr_solve, spacings, spline_system
 
 
 def piece_examples(
@@ -26,10 +26,11 @@ def piece_examples(
     cnt, n = extrema_counts(marks)
     p, v = end_extrema(h, cnt, n)
     bxy, bv = boundary_knots(h, p, v, n)
-    xy, j1, kc = assemble(h, marks, bxy, bv)
-    system = spline_system(xy, j1)
+    xy, j1, ks = assemble(h, marks, bxy, bv)
+    hk, sl = spacings(xy)
+    system = spline_system(xy, j1, hk, sl)
     m = pcr_solve(system)
-    seg = segment_index(kc, j1)
+    seg = segment_index(ks, j1)
     n_ext = n.sum(dim=(0, 2, 3))
     active = torch.ones(rows, dtype=torch.bool)
     return {
@@ -40,9 +41,10 @@ def piece_examples(
         "end_extrema": (end_extrema, (h, cnt, n)),
         "boundary": (boundary_knots, (h, p, v, n)),
         "assemble": (assemble, (h, marks, bxy, bv, slot_base(h))),
-        "system": (spline_system, (xy, j1)),
+        "spacings": (spacings, (xy,)),
+        "system": (spline_system, (xy, j1, hk, sl)),
         "solve": (pcr_solve, (system,)),
-        "segment": (segment_index, (kc, j1)),
-        "evaluate": (evaluate, (h, xy, m, seg)),
-        "finish": (finish, (h, active, xy, m, j1, kc, n_ext)),
+        "segment": (segment_index, (ks, j1)),
+        "evaluate": (evaluate, (h, xy, m, seg, hk, sl)),
+        "finish": (finish, (h, active, xy, m, j1, ks, n_ext, hk, sl)),
     }

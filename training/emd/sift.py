@@ -14,7 +14,7 @@ from .boundary import boundary_knots
 from .envelope import evaluate, segment_index
 from .extrema import extrema_marks
 from .knots import assemble, end_extrema, extrema_counts
-from .spline import pcr_solve, spline_system
+from .spline import pcr_solve, spacings, spline_system
 
 
 def prepare(h: Tensor, marks: Tensor, base: Tensor | None = None) -> tuple[Tensor, ...]:
@@ -26,23 +26,26 @@ def prepare(h: Tensor, marks: Tensor, base: Tensor | None = None) -> tuple[Tenso
 
     Returns:
         sys: (3, 2, R, K) the unit-diagonal system (:func:`spline.spline_system`).
-        xy: (2, 2, R, K) knots; j1: (2, R, 1) last real slot; kc: (2, R, N) knots counted at
-        each sample (:func:`knots.assemble`); n_ext: (R,) extrema per row (PyEMD's ``extNo``).
+        xy: (2, 2, R, K) knots; j1: (2, R, 1) last real slot; ks: (2, R, N) slot of the last
+        knot counted at each sample (:func:`knots.assemble`); n_ext: (R,) extrema per row
+        (PyEMD's ``extNo``); hk, sl: (1, 2, R, K-1) knot spacings and secant slopes.
     """
     cnt, n = extrema_counts(marks)  # (2, R, N), (2, R, 1, 1)
     p, v = end_extrema(h, cnt, n)  # (2, R, 2, 4) x2
     bxy, bv = boundary_knots(h, p, v, n)  # (2, 2, R, 4), (2, R, 4)
     # (2, 2, R, K) knots (half values), (2, R, 1), (2, R, 4):
-    xy, j1, kc = assemble(h, marks, bxy, bv, base)
-    return spline_system(xy, j1), xy, j1, kc, n.sum(dim=(0, 2, 3))
+    xy, j1, ks = assemble(h, marks, bxy, bv, base)
+    hk, sl = spacings(xy)  # shared by the system and the envelopes' coefficients
+    return spline_system(xy, j1, hk, sl), xy, j1, ks, n.sum(dim=(0, 2, 3)), hk, sl
 
 
 def finish(
-    h: Tensor, active: Tensor, xy: Tensor, m: Tensor, j1: Tensor, kc: Tensor, n_ext: Tensor
+    h: Tensor, active: Tensor, xy: Tensor, m: Tensor, j1: Tensor, ks: Tensor, n_ext: Tensor,
+    hk: Tensor, sl: Tensor,
 ) -> tuple[Tensor, Tensor]:
     """Evaluate the envelopes and subtract their mean (the arguments as :func:`prepare` gives
     them, ``m`` (1, 2, R, K) from :func:`spline.pcr_solve`); returns as :func:`sift`."""
-    half = evaluate(h, xy, m, segment_index(kc, j1))  # (1, 2, R, N) envelopes / 2
+    half = evaluate(h, xy, m, segment_index(ks, j1), hk, sl)  # (1, 2, R, N) envelopes / 2
     active = active & (n_ext > 2.0)  # (R,)
     mean = half.sum(dim=(0, 1))  # (R, N): (upper + lower) / 2, bit for bit as PyEMD's
     return torch.where(active.unsqueeze(-1), h - mean, h), active
@@ -62,9 +65,9 @@ def envelopes(h: Tensor, marks: Tensor | None = None) -> tuple[Tensor, Tensor]:
     """
     if marks is None:
         marks = extrema_marks(h)  # (2, R, N)
-    sys, xy, j1, kc, n_ext = prepare(h, marks)
+    sys, xy, j1, ks, n_ext, hk, sl = prepare(h, marks)
     m = pcr_solve(sys, j1)
-    return evaluate(h, xy, m, segment_index(kc, j1))[0] * 2.0, n_ext
+    return evaluate(h, xy, m, segment_index(ks, j1), hk, sl)[0] * 2.0, n_ext
 
 
 def sift(h: Tensor, active: Tensor, marks: Tensor | None = None) -> tuple[Tensor, Tensor]:
@@ -83,5 +86,5 @@ def sift(h: Tensor, active: Tensor, marks: Tensor | None = None) -> tuple[Tensor
     """
     if marks is None:
         marks = extrema_marks(h)  # (2, R, N)
-    sys, xy, j1, kc, n_ext = prepare(h, marks)
-    return finish(h, active, xy, pcr_solve(sys, j1), j1, kc, n_ext)
+    sys, xy, j1, ks, n_ext, hk, sl = prepare(h, marks)
+    return finish(h, active, xy, pcr_solve(sys, j1), j1, ks, n_ext, hk, sl)

@@ -25,13 +25,25 @@ import torch.nn.functional as F
 from torch import Tensor
 
 
-def spline_system(xy: Tensor, j1: Tensor) -> Tensor:
+def spacings(xy: Tensor) -> tuple[Tensor, Tensor]:
+    """(2, ..., K) knot positions and values -> (1, ..., K-1) spacings and secant slopes.
+
+    The spline system and the envelope's coefficients both use them (computed once a sift).
+    """
+    hk, dy = (xy[..., 1:] - xy[..., :-1]).split(1)  # spacings (all > 0), rises
+    return hk, dy / hk
+
+
+def spline_system(
+    xy: Tensor, j1: Tensor, hk: Tensor | None = None, sl: Tensor | None = None
+) -> Tensor:
     """Tridiagonal rows for the knots' second derivatives over 6, each divided by its diagonal.
 
     Args:
         xy: (2, ..., K) knot positions (strictly increasing over all K slots) and values; the
             real knots are slots ``0 .. j1``.
         j1: (..., 1) last real knot slot (``j1 >= 2`` for real rows).
+        hk, sl: :func:`spacings` of ``xy``, computed here when not given.
 
     Returns:
         (3, ..., K): sub-diagonal, super-diagonal and right-hand side of the unit-diagonal rows
@@ -41,8 +53,8 @@ def spline_system(xy: Tensor, j1: Tensor) -> Tensor:
     dt, dev = xy.dtype, xy.device
     j = torch.arange(k, dtype=dt, device=dev)  # (K,)
     row1 = (j == 1.0).to(dt)  # (K,) row 1: M[0] eliminated (or natural)
-    hk, dy = (xy[..., 1:] - xy[..., :-1]).split(1)  # (1, ..., K-1) spacings (all > 0), rises
-    sl = dy / hk  # secant slopes
+    if hk is None or sl is None:
+        hk, sl = spacings(xy)  # (1, ..., K-1) each
     hm = F.pad(hk, (1, 0), value=1.0)  # (1, ..., K): h[j-1]
     hp = F.pad(hk, (0, 1), value=1.0)  # (1, ..., K): h[j]
     rhs = F.pad(sl, (0, 1)) - F.pad(sl, (1, 0))  # (1, ..., K); rows 0 and K-1 are masked
