@@ -18,7 +18,7 @@ from scipy.interpolate import CubicSpline
 from tactile.errors import ConfigError
 from tactile.training.emd import EMD, EMDConfig
 from tactile.training.emd.boundary import boundary_knots
-from tactile.training.emd.envelope import evaluate
+from tactile.training.emd.envelope import evaluate, segment_index
 from tactile.training.emd.extrema import extrema_marks, find_extrema
 from tactile.training.emd.knots import assemble, end_extrema, extrema_counts, n_slots
 from tactile.training.emd.sift import envelopes, sift
@@ -143,6 +143,40 @@ def test_boundary_knots_match_pyemd_in_every_case():
 
 
 # -- spline solve and evaluation ------------------------------------------------------------
+
+
+def test_segment_from_running_count_equals_a_search_over_the_knots():
+    """segment_index reads the placement's running count (left mirrored knots counted at every
+    sample, right ones at none); after clamping it must equal a search over the actual knot
+    positions for every envelope of every row that is still sifted (> 2 extrema)."""
+    rng = np.random.default_rng(11)
+    wins = _small_windows(12, 2000) + [rng.standard_normal(int(rng.integers(5, 60)))
+                                        for _ in range(1000)]
+    for _ in range(1500):  # one to two periods: envelopes of 1-2 extrema (natural splines)
+        n_time = int(rng.integers(6, 60))
+        ph = 2 * np.pi * (rng.uniform(0.8, 2.0) * np.arange(n_time) / n_time + rng.uniform())
+        wins.append(np.sin(ph) + 0.05 * rng.standard_normal(n_time))
+    checked = natural = 0
+    for x in wins:
+        h = torch.tensor(x)[None]
+        marks = extrema_marks(h)
+        cnt, n = extrema_counts(marks)
+        if int(n.sum()) <= 2:
+            continue
+        p, v = end_extrema(h, cnt, n)
+        bxy, bv = boundary_knots(h, p, v, n)
+        xy, j1, ks = assemble(h, marks, bxy, bv)
+        got = segment_index(ks, j1)[:, 0].numpy()  # (2, N)
+        t = np.arange(len(x))
+        for env in range(2):
+            last = int(j1[env, 0, 0])
+            xs = xy[0, env, 0, : last + 1].numpy()
+            lo, hi = (1, last - 2) if last >= 3 else (0, 1)
+            want = np.clip(np.searchsorted(xs, t, side="right") - 1, lo, hi)
+            assert np.array_equal(got[env], want), (x, env)
+            checked += 1
+            natural += last == 2
+    assert checked > 5000 and natural > 100, (checked, natural)  # both spline kinds seen
 
 
 def test_pcr_solves_diagonally_dominant_tridiagonal_systems():
