@@ -58,7 +58,7 @@ def plateau_signed(sg: Tensor) -> Tensor:
     """Signed extremum marks from the differences' signs (R, N-1), with the plateau rule.
 
     Returns:
-        (R, N) tensor of d's dtype: +1 at maxima, -1 at minima, 0 elsewhere. End samples are
+        (R, N) tensor of sg's dtype: +1 at maxima, -1 at minima, 0 elsewhere. End samples are
         never extrema, except through quirk 2, as in PyEMD.
     """
     n = int(sg.shape[-1]) + 1
