@@ -2,11 +2,13 @@
 
 All knots sit at integer positions, so the segment holding sample ``t`` is a count (knots at
 or before ``t``) rather than a search. Each segment's cubic is written in the local power basis
-scipy's ``PPoly`` uses, ``y_k + B (c1 + B (c2 + B c3))`` with ``B = t - x_k``, and one gather
-fetches the five numbers per sample. Not-a-knot splines evaluate their outer segments with the
-neighbouring segment's cubic (the same polynomial), so ``M`` at the end knots is never needed.
-A sample on a knot that starts its segment gets the knot's value exactly (``B = 0``), as scipy
-returns it; on the two outer knots of a not-a-knot spline, up to rounding.
+scipy's ``PPoly`` uses, ``y_k + B (c1 + B (c2 + B c3))`` with ``B = t - x_k``, and five gathers
+with the same index fetch the five numbers per sample (cheaper in onnxruntime than one gather
+of the five stacked, whose index must be broadcast and whose result must be split).
+Not-a-knot splines evaluate their outer segments with the neighbouring segment's cubic (the
+same polynomial), so ``M`` at the end knots is never needed. A sample on a knot that starts
+its segment gets the knot's value exactly (``B = 0``), as scipy returns it; on the two outer
+knots of a not-a-knot spline, up to rounding.
 """
 
 from __future__ import annotations
@@ -73,9 +75,9 @@ def evaluate(
     # c2 = M_k / 2 = 3 m_k, c3 = (M_k+1 - M_k) / (6 h) and c1 = slope - h (2 M_k + M_k+1) / 6.
     c2 = 3.0 * m0
     c1 = sl - hk * (c2 + dm)
-    coef = torch.cat([xy[..., :-1], c1, c2, dm / hk])  # (5, 2, R, K-1): x_k, y_k, c1, c2, c3
-    idx = seg + torch.zeros(5, 1, 1, 1, dtype=seg.dtype, device=seg.device)  # (5, 2, R, N)
-    gx, gy, g1, g2, g3 = torch.gather(coef, -1, idx).split(1)  # (1, 2, R, N) each
+    s1 = seg.unsqueeze(0)  # (1, 2, R, N)
+    x0, y0 = xy.split(1)  # (1, 2, R, K) each; a segment index is at most K-2
+    gx, gy, g1, g2, g3 = (torch.gather(c, -1, s1) for c in (x0, y0, c1, c2, dm / hk))
     t = torch.arange(n_time, dtype=xy.dtype, device=xy.device)  # (N,)
     b = t - gx
     return gy + b * (g1 + b * (g2 + b * g3))  # (1, 2, R, N)
