@@ -1,14 +1,20 @@
 """Benchmark: EMD as tensor ops (torch eager, onnxruntime) against PyEMD, one thread.
 
-    python bench/emd.py [--repeats 3] [--pieces]
+    python bench/emd.py [--repeats 3] [--pieces | --profile | --node-costs]
 
 Prints, for 8-channel 50-sample windows and 1-channel 1000-sample windows (4 IMFs x 10 sifts,
 the same windows for every implementation, measured in this run): milliseconds per window and
 the speed-up over PyEMD ``EMD(FIXE=10).emd(x, max_imf=4)`` looping over channels; then the ONNX
 graph's export time, node counts, file size and session creation time. Each timing is the
 fastest of ``--repeats`` runs (PyEMD's too): on a shared machine, interference only ever adds
-time, so the minimum is the steadiest estimate of what the code costs. ``--pieces`` instead
-times each piece of one sift on its own at batch 1 (where the sift's time goes).
+time, so the minimum is the steadiest estimate of what the code costs. Instead of that:
+
+* ``--pieces`` times each piece of one sift on its own at batch 1;
+* ``--profile`` runs the 8 x 50 graph at batch 256 with onnxruntime's profiler and prints each
+  op type's and the top nodes' shares of kernel time;
+* ``--node-costs`` measures what each node of the sift body costs where it runs, at batch 1:
+  a copy of the graph with four extra copies of that node (graph optimizations off, so they
+  are not merged), timed against the unchanged graph in turn (about 10 minutes).
 """
 
 from __future__ import annotations
@@ -20,6 +26,7 @@ import time
 from pathlib import Path
 
 import numpy as np
+import onnx
 import onnxruntime as ort
 import torch
 from PyEMD import EMD as PyEMD
@@ -153,16 +160,163 @@ def bench_pieces(repeats: int, rows: int = 8) -> list[str]:
     return [*lines, ""]
 
 
+def _sift_body(graph: onnx.GraphProto) -> onnx.GraphProto:
+    """The sift Loop's body inside the EMD graph."""
+    for node in graph.node:
+        for attr in node.attribute:
+            if attr.type == onnx.AttributeProto.GRAPH:
+                if attr.g.name == "sift":
+                    return attr.g
+                try:
+                    return _sift_body(attr.g)
+                except LookupError:
+                    pass
+    raise LookupError("no sift body")
+
+
+def bench_profile(tmp: Path, batch: int = 256, runs: int = 3) -> list[str]:
+    """Shares of kernel time by op type and by node, 8 x 50 windows at ``batch``."""
+    import collections
+    import json
+
+    path = tmp / "emd.onnx"
+    export_emd_onnx(path, N_IMFS, N_SIFTS, 8, 50)
+    opts = ort.SessionOptions()
+    opts.intra_op_num_threads = opts.inter_op_num_threads = 1
+    opts.execution_mode = ort.ExecutionMode.ORT_SEQUENTIAL
+    opts.log_severity_level = 3
+    opts.enable_profiling = True
+    opts.profile_file_prefix = str(tmp / "profile")
+    sess = ort.InferenceSession(str(path), opts, providers=["CPUExecutionProvider"])
+    x = signal_windows(batch, 8, 50).astype(np.float32)
+    for _ in range(runs):
+        sess.run(None, {"x_in": x})
+    events = json.loads(Path(sess.end_profiling()).read_text())
+    by_op: dict[str, float] = collections.defaultdict(float)
+    by_node: dict[str, float] = collections.defaultdict(float)
+    for ev in events:
+        if ev.get("cat") != "Node" or not ev["name"].endswith("_kernel_time"):
+            continue
+        op = ev["args"].get("op_name", "")
+        if op in ("Loop", "If"):  # their time is their bodies' nodes
+            continue
+        by_op[op] += ev["dur"]
+        by_node[ev["name"][: -len("_kernel_time")]] += ev["dur"]
+    total = sum(by_op.values())
+    lines = [f"## Kernel time at batch {batch} (8 x 50, {runs} runs): "
+             f"{total / runs / 1e3:.1f} ms per run", "", "| op type | share |", "|---|---:|"]
+    lines += [f"| {op} | {t / total:.1%} |"
+              for op, t in sorted(by_op.items(), key=lambda kv: -kv[1])[:15]]
+    lines += ["", "| node | share |", "|---|---:|"]
+    lines += [f"| {name} | {t / total:.1%} |"
+              for name, t in sorted(by_node.items(), key=lambda kv: -kv[1])[:15]]
+    return [*lines, ""]
+
+
+def bench_node_costs(tmp: Path, repeats: int, copies: int = 4, top: int = 25) -> list[str]:
+    """Microseconds each node of the sift body costs where it runs (batch 1, 8 x 50)."""
+    import copy
+
+    model = export_emd_onnx(tmp / "emd.onnx", N_IMFS, N_SIFTS, 8, 50)
+    opts = ort.SessionOptions()
+    opts.intra_op_num_threads = opts.inter_op_num_threads = 1
+    opts.execution_mode = ort.ExecutionMode.ORT_SEQUENTIAL
+    opts.log_severity_level = 3
+    opts.graph_optimization_level = ort.GraphOptimizationLevel.ORT_DISABLE_ALL
+
+    def make(m: onnx.ModelProto) -> ort.InferenceSession:
+        return ort.InferenceSession(m.SerializeToString(), opts,
+                                    providers=["CPUExecutionProvider"])
+
+    x = signal_windows(24, 8, 50).astype(np.float32)
+    feeds = [{"x_in": w[None]} for w in x]
+    base = make(model)
+    sifts_run = _sifts_run(base, feeds)
+
+    def per_window(sess: ort.InferenceSession) -> float:
+        start = time.perf_counter()
+        for feed in feeds:
+            sess.run(None, feed)
+        return (time.perf_counter() - start) / len(feeds)
+
+    rows = []
+    for i, node in enumerate(_sift_body(model.graph).node):
+        if node.op_type in ("If", "Loop"):
+            continue
+        variant = copy.deepcopy(model)
+        body = _sift_body(variant.graph)
+        extra = []
+        for c in range(copies):
+            dup = copy.deepcopy(node)
+            dup.name = f"{node.name}_copy{c}"
+            del dup.output[:]
+            dup.output.extend(f"copy{c}_{k}" for k in range(len(node.output)))
+            extra.append(dup)
+        nodes = list(body.node)
+        del body.node[:]
+        body.node.extend(nodes[: i + 1] + extra + nodes[i + 1 :])
+        sess = make(variant)
+        t_base = t_var = float("inf")
+        for _ in range(repeats):
+            t_base = min(t_base, per_window(base))
+            t_var = min(t_var, per_window(sess))
+        rows.append(((t_var - t_base) / sifts_run / copies * 1e6, node.op_type, node.name))
+    total = sum(r[0] for r in rows)
+    per_sift = min(per_window(base) for _ in range(repeats)) / sifts_run * 1e6
+    lines = [f"## Cost of each sift-body node where it runs (batch 1, 8 x 50, {copies} copies)",
+             "", f"{len(rows)} nodes add up to {total:.0f} us; a sift takes {per_sift:.0f} us "
+             f"({sifts_run:.1f} sifts per window)", "", "| node | op | us |", "|---|---|---:|"]
+    lines += [f"| {name} | {op} | {us:.2f} |" for us, op, name in sorted(rows, reverse=True)[:top]]
+    by_op: dict[str, list[float]] = {}
+    for us, op, _ in rows:
+        by_op.setdefault(op, []).append(us)
+    lines += ["", "| op type | nodes | median us | total us |", "|---|---:|---:|---:|"]
+    lines += [f"| {op} | {len(v)} | {float(np.median(v)):.2f} | {sum(v):.1f} |"
+              for op, v in sorted(by_op.items(), key=lambda kv: -sum(kv[1]))]
+    return [*lines, ""]
+
+
+def _sifts_run(sess: ort.InferenceSession, feeds: list[dict]) -> float:
+    """Sifts the graph runs per window on ``feeds`` (the loop stops once no row is active)."""
+    from tactile.training.emd.decompose import imf_update
+    from tactile.training.emd.sift import sift
+
+    count = 0
+    for feed in feeds:
+        x = torch.from_numpy(feed["x_in"][0].astype(np.float64))
+        acc, alive = torch.zeros_like(x), torch.ones(x.shape[0], dtype=torch.bool)
+        for _ in range(N_IMFS):
+            h, active = x - acc, alive
+            for _ in range(N_SIFTS):
+                if not bool(active.any()):
+                    break
+                count += 1
+                h, active = sift(h, active)
+            _, acc, alive = imf_update(x, acc, h, active)
+    return count / len(feeds)
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--repeats", type=int, default=3, help="timed runs per measurement")
     parser.add_argument("--pieces", action="store_true",
                         help="only time each piece of one sift on its own (batch 1)")
+    parser.add_argument("--profile", action="store_true",
+                        help="only profile the 8 x 50 graph at batch 256 (shares of kernel time)")
+    parser.add_argument("--node-costs", action="store_true",
+                        help="only measure each sift-body node's cost where it runs (batch 1)")
     args = parser.parse_args(argv)
     torch.set_num_threads(1)
     print(f"torch {torch.__version__}, onnxruntime {ort.__version__}, one thread", file=sys.stderr)
     if args.pieces:
         print("\n".join(bench_pieces(args.repeats)))
+        return 0
+    if args.profile or args.node_costs:
+        with tempfile.TemporaryDirectory() as tmp:
+            if args.profile:
+                print("\n".join(bench_profile(Path(tmp))))
+            if args.node_costs:
+                print("\n".join(bench_node_costs(Path(tmp), args.repeats)))
         return 0
     with tempfile.TemporaryDirectory() as tmp:
         lines = bench_shape(8, 50, 20, args.repeats, Path(tmp))
