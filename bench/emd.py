@@ -10,8 +10,8 @@ fastest of ``--repeats`` runs (PyEMD's too): on a shared machine, interference o
 time, so the minimum is the steadiest estimate of what the code costs. Instead of that:
 
 * ``--pieces`` times each piece of one sift on its own at batch 1;
-* ``--profile`` runs the 8 x 50 graph at batch 256 with onnxruntime's profiler and prints each
-  op type's and the top nodes' shares of kernel time;
+* ``--profile`` runs the 8 x 50 graph at batch 256 with onnxruntime's profiler (a warm-up run,
+  then three) and prints each op type's and the top nodes' shares of kernel time;
 * ``--node-costs`` measures what each node of the sift body costs where it runs, at batch 1:
   a copy of the graph with four extra copies of that node (graph optimizations off, so they
   are not merged), timed against the unchanged graph in turn (about 10 minutes).
@@ -32,7 +32,12 @@ import torch
 from PyEMD import EMD as PyEMD
 
 from tactile.training.emd import EMD
-from tactile.training.emd.onnx_export import count_nodes, export_emd_onnx, sift_path_nodes
+from tactile.training.emd.onnx_export import (
+    count_nodes,
+    export_emd_onnx,
+    sift_path_nodes,
+    subgraphs,
+)
 
 N_IMFS, N_SIFTS = 4, 10
 
@@ -67,12 +72,17 @@ def timed(fn, repeats: int) -> float:
     return min(times)
 
 
-def session(path: Path) -> ort.InferenceSession:
+def options() -> ort.SessionOptions:
+    """One intra-op and one inter-op thread, sequential execution, quiet."""
     opts = ort.SessionOptions()
-    opts.intra_op_num_threads = 1
-    opts.inter_op_num_threads = 1
+    opts.intra_op_num_threads = opts.inter_op_num_threads = 1
     opts.execution_mode = ort.ExecutionMode.ORT_SEQUENTIAL
     opts.log_severity_level = 3
+    return opts
+
+
+def session(path: Path) -> ort.InferenceSession:
+    opts = options()
     return ort.InferenceSession(str(path), opts, providers=["CPUExecutionProvider"])
 
 
@@ -134,9 +144,7 @@ def bench_pieces(repeats: int, rows: int = 8) -> list[str]:
     def per_run(sess: ort.InferenceSession, feed: dict) -> float:
         return timed(lambda: [sess.run(None, feed) for _ in range(200)], repeats) / 200 * 1e6
 
-    opts = ort.SessionOptions()
-    opts.intra_op_num_threads = opts.inter_op_num_threads = 1
-    opts.log_severity_level = 3
+    opts = options()
     lines = ["## Pieces of one sift, traced alone (8 rows x 50 samples, batch 1)", "",
              "| piece | nodes | us per run |", "|---|---:|---:|"]
     examples = piece_examples(rows=rows, dtype=torch.float32)
@@ -160,20 +168,6 @@ def bench_pieces(repeats: int, rows: int = 8) -> list[str]:
     return [*lines, ""]
 
 
-def _sift_body(graph: onnx.GraphProto) -> onnx.GraphProto:
-    """The sift Loop's body inside the EMD graph."""
-    for node in graph.node:
-        for attr in node.attribute:
-            if attr.type == onnx.AttributeProto.GRAPH:
-                if attr.g.name == "sift":
-                    return attr.g
-                try:
-                    return _sift_body(attr.g)
-                except LookupError:
-                    pass
-    raise LookupError("no sift body")
-
-
 def bench_profile(tmp: Path, batch: int = 256, runs: int = 3) -> list[str]:
     """Shares of kernel time by op type and by node, 8 x 50 windows at ``batch``."""
     import collections
@@ -181,21 +175,23 @@ def bench_profile(tmp: Path, batch: int = 256, runs: int = 3) -> list[str]:
 
     path = tmp / "emd.onnx"
     export_emd_onnx(path, N_IMFS, N_SIFTS, 8, 50)
-    opts = ort.SessionOptions()
-    opts.intra_op_num_threads = opts.inter_op_num_threads = 1
-    opts.execution_mode = ort.ExecutionMode.ORT_SEQUENTIAL
-    opts.log_severity_level = 3
+    opts = options()
     opts.enable_profiling = True
     opts.profile_file_prefix = str(tmp / "profile")
     sess = ort.InferenceSession(str(path), opts, providers=["CPUExecutionProvider"])
     x = signal_windows(batch, 8, 50).astype(np.float32)
-    for _ in range(runs):
+    for _ in range(runs + 1):
         sess.run(None, {"x_in": x})
     events = json.loads(Path(sess.end_profiling()).read_text())
+    # The first run grows the memory arena: only the runs after it count.
+    first = min((ev for ev in events if ev["name"] == "model_run"), key=lambda ev: ev["ts"])
+    warm = first["ts"] + first["dur"]
     by_op: dict[str, float] = collections.defaultdict(float)
     by_node: dict[str, float] = collections.defaultdict(float)
     for ev in events:
         if ev.get("cat") != "Node" or not ev["name"].endswith("_kernel_time"):
+            continue
+        if ev["ts"] < warm:
             continue
         op = ev["args"].get("op_name", "")
         if op in ("Loop", "If"):  # their time is their bodies' nodes
@@ -203,7 +199,7 @@ def bench_profile(tmp: Path, batch: int = 256, runs: int = 3) -> list[str]:
         by_op[op] += ev["dur"]
         by_node[ev["name"][: -len("_kernel_time")]] += ev["dur"]
     total = sum(by_op.values())
-    lines = [f"## Kernel time at batch {batch} (8 x 50, {runs} runs): "
+    lines = [f"## Kernel time at batch {batch} (8 x 50, {runs} runs after a warm-up): "
              f"{total / runs / 1e3:.1f} ms per run", "", "| op type | share |", "|---|---:|"]
     lines += [f"| {op} | {t / total:.1%} |"
               for op, t in sorted(by_op.items(), key=lambda kv: -kv[1])[:15]]
@@ -218,10 +214,7 @@ def bench_node_costs(tmp: Path, repeats: int, copies: int = 4, top: int = 25) ->
     import copy
 
     model = export_emd_onnx(tmp / "emd.onnx", N_IMFS, N_SIFTS, 8, 50)
-    opts = ort.SessionOptions()
-    opts.intra_op_num_threads = opts.inter_op_num_threads = 1
-    opts.execution_mode = ort.ExecutionMode.ORT_SEQUENTIAL
-    opts.log_severity_level = 3
+    opts = options()
     opts.graph_optimization_level = ort.GraphOptimizationLevel.ORT_DISABLE_ALL
 
     def make(m: onnx.ModelProto) -> ort.InferenceSession:
@@ -231,7 +224,7 @@ def bench_node_costs(tmp: Path, repeats: int, copies: int = 4, top: int = 25) ->
     x = signal_windows(24, 8, 50).astype(np.float32)
     feeds = [{"x_in": w[None]} for w in x]
     base = make(model)
-    sifts_run = _sifts_run(base, feeds)
+    sifts_run = _sifts_run(x)
 
     def per_window(sess: ort.InferenceSession) -> float:
         start = time.perf_counter()
@@ -240,11 +233,11 @@ def bench_node_costs(tmp: Path, repeats: int, copies: int = 4, top: int = 25) ->
         return (time.perf_counter() - start) / len(feeds)
 
     rows = []
-    for i, node in enumerate(_sift_body(model.graph).node):
+    for i, node in enumerate(subgraphs(model.graph)["sift"].node):
         if node.op_type in ("If", "Loop"):
             continue
         variant = copy.deepcopy(model)
-        body = _sift_body(variant.graph)
+        body = subgraphs(variant.graph)["sift"]
         extra = []
         for c in range(copies):
             dup = copy.deepcopy(node)
@@ -276,14 +269,15 @@ def bench_node_costs(tmp: Path, repeats: int, copies: int = 4, top: int = 25) ->
     return [*lines, ""]
 
 
-def _sifts_run(sess: ort.InferenceSession, feeds: list[dict]) -> float:
-    """Sifts the graph runs per window on ``feeds`` (the loop stops once no row is active)."""
+def _sifts_run(windows: np.ndarray) -> float:
+    """Sifts the graph runs per (C, T) window of ``windows``, one window at a time (the sift
+    loop stops once no row is active; counted with the eager pieces)."""
     from tactile.training.emd.decompose import imf_update
     from tactile.training.emd.sift import sift
 
     count = 0
-    for feed in feeds:
-        x = torch.from_numpy(feed["x_in"][0].astype(np.float64))
+    for window in windows:
+        x = torch.from_numpy(window.astype(np.float64))
         acc, alive = torch.zeros_like(x), torch.ones(x.shape[0], dtype=torch.bool)
         for _ in range(N_IMFS):
             h, active = x - acc, alive
@@ -293,7 +287,7 @@ def _sifts_run(sess: ort.InferenceSession, feeds: list[dict]) -> float:
                 count += 1
                 h, active = sift(h, active)
             _, acc, alive = imf_update(x, acc, h, active)
-    return count / len(feeds)
+    return count / len(windows)
 
 
 def main(argv: list[str] | None = None) -> int:

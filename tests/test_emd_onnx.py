@@ -27,6 +27,7 @@ from tactile.training.emd.onnx_export import (
     export_emd_onnx,
     sift_path_nodes,
     subgraph_nodes,
+    subgraphs,
     trace_graph,
 )
 from tactile.training.emd.pieces import piece_examples
@@ -141,12 +142,9 @@ def test_sift_body_and_total_node_counts(default_model):
     shortest, longest = sift_path_nodes(model, 50)
     assert shortest <= SIFT_SHORTEST and longest <= SIFT_LONGEST, (shortest, longest)
     # The sift loop stops once no row is active: its condition is computed, not passed through.
-    body = next(
-        a.g for n in model.graph.node for a in n.attribute if a.type == onnx.AttributeProto.GRAPH
-    )
-    sift_loop = next(n for n in body.node if n.op_type == "Loop")
+    sift_loop = next(n for n in subgraphs(model.graph)["imf"].node if n.op_type == "Loop")
     assert sift_loop.input[1], "the sift loop has no start condition"
-    producer = {o: n for n in sift_loop.attribute[0].g.node for o in n.output}
+    producer = {o: n for n in subgraphs(model.graph)["sift"].node for o in n.output}
     assert producer["s_c_out"].op_type != "Identity"
     branches = sum(v for k, v in graphs.items() if k.startswith(("step", "solved", "plateau")))
     assert count_nodes(model.graph) <= graphs["sift"] + graphs["strict"] + branches + 60

@@ -571,15 +571,21 @@ def export_emd_onnx(
     return model
 
 
-def subgraph_nodes(graph: onnx.GraphProto) -> dict[str, int]:
-    """Node count of every subgraph (Loop bodies, If branches) by name, nested ones included."""
-    out: dict[str, int] = {}
+def subgraphs(graph: onnx.GraphProto) -> dict[str, onnx.GraphProto]:
+    """Every subgraph (Loop bodies such as ``imf`` and ``sift``, If branches) by name, nested
+    ones included."""
+    out: dict[str, onnx.GraphProto] = {}
     for node in graph.node:
         for attr in node.attribute:
             if attr.type == onnx.AttributeProto.GRAPH:
-                out[attr.g.name] = len(attr.g.node)
-                out.update(subgraph_nodes(attr.g))
+                out[attr.g.name] = attr.g
+                out.update(subgraphs(attr.g))
     return out
+
+
+def subgraph_nodes(graph: onnx.GraphProto) -> dict[str, int]:
+    """Node count of every subgraph by name (:func:`subgraphs`)."""
+    return {name: len(g.node) for name, g in subgraphs(graph).items()}
 
 
 def sift_path_nodes(model: onnx.ModelProto, n_time: int) -> tuple[int, int]:

@@ -33,7 +33,7 @@ def prepare(h: Tensor, marks: Tensor, base: Tensor | None = None) -> tuple[Tenso
     cnt, n = extrema_counts(marks)  # (2, R, N), (2, R, 1, 1)
     p, v = end_extrema(h, cnt, n)  # (2, R, 2, 4) x2
     bxy, bv = boundary_knots(h, p, v, n)  # (2, 2, R, 4), (2, R, 4)
-    # (2, 2, R, K) knots (half values), (2, R, 1), (2, R, 4):
+    # (2, 2, R, K) knots (half values), (2, R, 1) last slot, (2, R, N) slot at each sample:
     xy, j1, ks = assemble(h, marks, bxy, bv, base)
     hk, sl = spacings(xy)  # shared by the system and the envelopes' coefficients
     return spline_system(xy, j1, hk, sl), xy, j1, ks, n.sum(dim=(0, 2, 3)), hk, sl
