@@ -9,7 +9,8 @@ graph's export time, node counts, file size and session creation time. Each timi
 fastest of ``--repeats`` runs (PyEMD's too): on a shared machine, interference only ever adds
 time, so the minimum is the steadiest estimate of what the code costs. Instead of that:
 
-* ``--pieces`` times each piece of one sift on its own at batch 1;
+* ``--pieces`` times each piece of one sift on its own, at batch 1 (8 rows of 50 samples) or,
+  with ``--rows 2048``, at batch 256 (where element throughput, not node count, decides);
 * ``--profile`` runs the 8 x 50 graph at batch 256 with onnxruntime's profiler (a warm-up run,
   then three) and prints each op type's and the top nodes' shares of kernel time;
 * ``--node-costs`` measures what each node of the sift body costs where it runs, at batch 1:
@@ -145,7 +146,8 @@ def bench_pieces(repeats: int, rows: int = 8) -> list[str]:
         return timed(lambda: [sess.run(None, feed) for _ in range(200)], repeats) / 200 * 1e6
 
     opts = options()
-    lines = ["## Pieces of one sift, traced alone (8 rows x 50 samples, batch 1)", "",
+    batch = f"batch {rows // 8} of 8 channels" if rows % 8 == 0 else f"{rows} rows"
+    lines = [f"## Pieces of one sift, traced alone ({rows} rows x 50 samples: {batch})", "",
              "| piece | nodes | us per run |", "|---|---:|---:|"]
     examples = piece_examples(rows=rows, dtype=torch.float32)
     # The fixed cost of one run: a one-node graph on the first piece's input.
@@ -295,6 +297,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--repeats", type=int, default=3, help="timed runs per measurement")
     parser.add_argument("--pieces", action="store_true",
                         help="only time each piece of one sift on its own (batch 1)")
+    parser.add_argument("--rows", type=int, default=8,
+                        help="rows (windows x 8 channels) for --pieces (default 8: batch 1)")
     parser.add_argument("--profile", action="store_true",
                         help="only profile the 8 x 50 graph at batch 256 (shares of kernel time)")
     parser.add_argument("--node-costs", action="store_true",
@@ -303,7 +307,9 @@ def main(argv: list[str] | None = None) -> int:
     torch.set_num_threads(1)
     print(f"torch {torch.__version__}, onnxruntime {ort.__version__}, one thread", file=sys.stderr)
     if args.pieces:
-        print("\n".join(bench_pieces(args.repeats)))
+        if args.rows < 1:
+            parser.error(f"--rows must be at least 1, got {args.rows}")
+        print("\n".join(bench_pieces(args.repeats, rows=args.rows)))
         return 0
     if args.profile or args.node_costs:
         with tempfile.TemporaryDirectory() as tmp:
