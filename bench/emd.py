@@ -296,7 +296,7 @@ def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--repeats", type=int, default=3, help="timed runs per measurement")
     parser.add_argument("--pieces", action="store_true",
-                        help="only time each piece of one sift on its own (batch 1)")
+                        help="only time each piece of one sift alone (batch 1; see --rows)")
     parser.add_argument("--rows", type=int, default=8,
                         help="rows (windows x 8 channels) for --pieces (default 8: batch 1)")
     parser.add_argument("--profile", action="store_true",
