@@ -297,19 +297,19 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--repeats", type=int, default=3, help="timed runs per measurement")
     parser.add_argument("--pieces", action="store_true",
                         help="only time each piece of one sift alone (batch 1; see --rows)")
-    parser.add_argument("--rows", type=int, default=8,
+    parser.add_argument("--rows", type=int,
                         help="rows (windows x 8 channels) for --pieces (default 8: batch 1)")
     parser.add_argument("--profile", action="store_true",
                         help="only profile the 8 x 50 graph at batch 256 (shares of kernel time)")
     parser.add_argument("--node-costs", action="store_true",
                         help="only measure each sift-body node's cost where it runs (batch 1)")
     args = parser.parse_args(argv)
+    if args.rows is not None and (not args.pieces or args.rows < 1):
+        parser.error(f"--rows takes a count of at least 1 and goes with --pieces, got {args.rows}")
     torch.set_num_threads(1)
     print(f"torch {torch.__version__}, onnxruntime {ort.__version__}, one thread", file=sys.stderr)
     if args.pieces:
-        if args.rows < 1:
-            parser.error(f"--rows must be at least 1, got {args.rows}")
-        print("\n".join(bench_pieces(args.repeats, rows=args.rows)))
+        print("\n".join(bench_pieces(args.repeats, rows=args.rows or 8)))
         return 0
     if args.profile or args.node_costs:
         with tempfile.TemporaryDirectory() as tmp:
