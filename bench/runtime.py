@@ -5,7 +5,8 @@
 Without --model it trains and exports a small model with EMD features on (the pen's 8 channels,
 50-sample windows, 4 IMFs x 10 sifts of pressure_0 and accel_x/y/z) on simulated data first.
 Prints, with one thread: per-window latency p50/p99 at batch 1 (onnxruntime) and of the
-reference pipeline (PyEMD EMD per channel + PyTorch LSTM), the highest sustained sample rate of
+reference pipeline (PyEMD EMD per channel + PyTorch LSTM), the two timed window by window in
+one interleaved pass (so the host's drift during the run affects both alike), the highest sustained sample rate of
 the whole path (decode bytes -> window -> inference), resident memory of a tactile-run process,
 and the time from start to the first label.
 """
@@ -43,22 +44,16 @@ def percentiles(ms: list[float]) -> tuple[float, float]:
     return float(np.percentile(ms, 50)), float(np.percentile(ms, 99))
 
 
-def onnx_latency(model_path: Path, windows: np.ndarray) -> list[float]:
+def onnx_classifier(model_path: Path):
+    """The deployed path's per-window call (onnxruntime, zero state), warmed up."""
     from tactile.runtime.model import Model
 
     model = Model(model_path)
     h, c = model.zero_state()
-    for w in windows[:20]:  # warm-up
-        model.classify(w[None], h, c)
-    out = []
-    for w in windows:
-        t0 = time.perf_counter()
-        model.classify(w[None], h, c)
-        out.append((time.perf_counter() - t0) * 1e3)
-    return out
+    return lambda w: model.classify(w[None], h, c)
 
 
-def reference_latency(run: Path, windows: np.ndarray) -> list[float]:
+def reference_classifier(run: Path):
     """PyEMD (FIXE=10, max_imf=4) per EMD channel, then the PyTorch head, per window."""
     import torch
     from PyEMD import EMD
@@ -74,23 +69,47 @@ def reference_latency(run: Path, windows: np.ndarray) -> list[float]:
     mask = np.zeros(len(mean))
     mask[list(ck["center_index"])] = 1
     h, c = model.zero_state(1)
-    out = []
-    with torch.no_grad():
-        for w in windows[:200]:
-            t0 = time.perf_counter()
-            z = (w - mean) / std
-            z = z - z.mean(0) * mask
-            feats = []
-            for i in idx:
-                rows = emd.emd(z[:, i].astype(np.float64), max_imf=cfg.emd_imfs)
-                imfs = rows[:-1][: cfg.emd_imfs]  # PyEMD appends the residue as the last row
-                k = np.zeros((cfg.emd_imfs, len(z)))
-                k[: len(imfs)] = imfs
-                feats.append(k)
-            f = np.concatenate([z.T, *feats]).T[None].astype(np.float32)
+
+    def classify(w: np.ndarray) -> None:
+        z = (w - mean) / std
+        z = z - z.mean(0) * mask
+        feats = []
+        for i in idx:
+            rows = emd.emd(z[:, i].astype(np.float64), max_imf=cfg.emd_imfs)
+            imfs = rows[:-1][: cfg.emd_imfs]  # PyEMD appends the residue as the last row
+            k = np.zeros((cfg.emd_imfs, len(z)))
+            k[: len(imfs)] = imfs
+            feats.append(k)
+        f = np.concatenate([z.T, *feats]).T[None].astype(np.float32)
+        with torch.no_grad():
             model.head(torch.from_numpy(f), h, c)
-            out.append((time.perf_counter() - t0) * 1e3)
-    return out
+
+    return classify
+
+
+def paired_latency(
+    ours, ref, windows: np.ndarray, ref_windows: int
+) -> tuple[list[float], list[float]]:
+    """Per-window milliseconds of both pipelines, measured interleaved in one pass.
+
+    The reference runs on every k-th window (about ``ref_windows`` of them), right after the
+    deployed path has done the same window, so a host that speeds up or slows down during the
+    run moves both series alike and the ratio stays fair.
+    """
+    for w in windows[:20]:  # warm-up
+        ours(w)
+        ref(w)
+    every = max(1, -(-len(windows) // ref_windows))
+    mine, theirs = [], []
+    for i, w in enumerate(windows):
+        t0 = time.perf_counter()
+        ours(w)
+        mine.append((time.perf_counter() - t0) * 1e3)
+        if i % every == 0:
+            t0 = time.perf_counter()
+            ref(w)
+            theirs.append((time.perf_counter() - t0) * 1e3)
+    return mine, theirs
 
 
 def sustained_rate(model_path: Path, seconds: float = 60.0) -> float:
@@ -143,8 +162,12 @@ def main() -> None:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("--model", type=Path)
     p.add_argument("--run", type=Path, help="the run the model came from (for the reference)")
-    p.add_argument("--windows", type=int, default=1000)
+    p.add_argument("--windows", type=int, default=1000, help="windows timed (default 1000)")
+    p.add_argument("--ref-windows", type=int, default=200,
+                   help="of those, how many the reference also runs, interleaved (default 200)")
     args = p.parse_args()
+    if args.windows < 1 or args.ref_windows < 1:
+        p.error("--windows and --ref-windows must be at least 1")
     os.environ.setdefault("OMP_NUM_THREADS", "1")
     with tempfile.TemporaryDirectory() as tmp:
         model_path, run = (args.model, args.run) if args.model else build_model(Path(tmp))
@@ -156,8 +179,11 @@ def main() -> None:
         raw = PenSimulator("paper", seed=9).read(args.windows * 25 + 50)
         values = raw * scale
         windows = np.stack([values[i : i + 50] for i in range(0, args.windows * 25, 25)])
-        onnx_p50, onnx_p99 = percentiles(onnx_latency(model_path, windows))
-        ref_p50, ref_p99 = percentiles(reference_latency(run, windows))
+        mine, theirs = paired_latency(
+            onnx_classifier(model_path), reference_classifier(run), windows, args.ref_windows
+        )
+        onnx_p50, onnx_p99 = percentiles(mine)
+        ref_p50, ref_p99 = percentiles(theirs)
         rate = sustained_rate(model_path)
         rss, first = process_figures(model_path)
         print(f"model: {model_path.name}, {model_path.stat().st_size / 1e3:.0f} kB")
