@@ -95,7 +95,7 @@ def trace_graph(
 ) -> onnx.ModelProto:
     """Trace ``fn`` to a constant-folded ONNX model (the pinned exporter path)."""
     model = onnxscript.optimizer.optimize(export_traced(_Fn(fn), args, inputs, outputs, dynamic))
-    return _drop_update_slices(_fold_constants(model))
+    return _rank_constants(_drop_update_slices(_fold_constants(model)))
 
 
 def _drop_update_slices(model: onnx.ModelProto) -> onnx.ModelProto:
@@ -161,6 +161,51 @@ def _fold_constants(model: onnx.ModelProto) -> onnx.ModelProto:
     graph.node.extend(kept)
     del graph.initializer[:]
     inits = [numpy_helper.from_array(known[v], v) for v in sorted(known) if v in used]
+    graph.initializer.extend(inits)
+    return model
+
+
+_BROADCASTING = {
+    "Add", "Sub", "Mul", "Div", "Pow", "Max", "Min", "Mod", "Equal", "Less", "LessOrEqual",
+    "Greater", "GreaterOrEqual", "And", "Or", "Xor", "Where",
+}
+
+
+def _rank_constants(model: onnx.ModelProto) -> onnx.ModelProto:
+    """Give every constant operand of a broadcasting node the rank of the node's output.
+
+    The tracer writes scalars as 0-d tensors. onnxruntime's CPU kernels broadcast a 0-d
+    operand against a tensor with size-1 axes (the (2, R, 2, 1)-shaped boundary quantities,
+    ``j1`` of shape (2, R, 1)) one element at a time, about 10 ns an element, but a constant of
+    shape (1, ..., 1) at full speed (about 0.1 ns): at 2,048 rows that is 40 us against 0.4 us
+    per node. Leading size-1 axes change nothing in the arithmetic (numpy broadcasting).
+    """
+    graph = model.graph
+    inferred = onnx.shape_inference.infer_shapes(model).graph
+    rank = {
+        v.name: len(v.type.tensor_type.shape.dim)
+        for v in [*inferred.value_info, *inferred.output, *inferred.input]
+        if v.type.tensor_type.HasField("shape")
+    }
+    known = {init.name: init for init in graph.initializer}
+    added: dict[str, onnx.TensorProto] = {}
+    for node in graph.node:
+        if node.op_type not in _BROADCASTING or node.output[0] not in rank:
+            continue
+        r = rank[node.output[0]]
+        for i, v in enumerate(node.input):
+            init = known.get(v)
+            if init is None or len(init.dims) >= r:
+                continue
+            new = f"{v}_rank{r}"
+            if new not in added:
+                arr = numpy_helper.to_array(init)
+                added[new] = numpy_helper.from_array(arr.reshape((1,) * (r - arr.ndim) + arr.shape), new)
+            node.input[i] = new
+    graph.initializer.extend(added.values())
+    used = {v for n in graph.node for v in n.input} | {v for n in graph.node for v in _subgraph_inputs(n)}
+    inits = [init for init in graph.initializer if init.name in used]
+    del graph.initializer[:]
     graph.initializer.extend(inits)
     return model
 
