@@ -1,6 +1,6 @@
 """Benchmark: EMD as tensor ops (torch eager, onnxruntime) against PyEMD, one thread.
 
-    python bench/emd.py [--repeats 3] [--pieces | --profile | --node-costs]
+    python bench/emd.py [--repeats 3] [--pieces | --profile | --node-costs | --solvers]
 
 Prints, for 8-channel 50-sample windows and 1-channel 1000-sample windows (4 IMFs x 10 sifts,
 the same windows for every implementation, measured in this run): milliseconds per window and
@@ -15,7 +15,9 @@ time, so the minimum is the steadiest estimate of what the code costs. Instead o
   then three) and prints each op type's and the top nodes' shares of kernel time;
 * ``--node-costs`` measures what each node of the sift body costs where it runs, at batch 1:
   a copy of the graph with four extra copies of that node (graph optimizations off, so they
-  are not merged), timed against the unchanged graph in turn (about 10 minutes).
+  are not merged), timed against the unchanged graph in turn (about 10 minutes);
+* ``--solvers`` times the 8 x 50 graph with every batch size solved by PCR and by the Thomas
+  algorithm, interleaved, to place the switch between them (``spline.THOMAS_ROWS``).
 """
 
 from __future__ import annotations
@@ -34,11 +36,14 @@ from PyEMD import EMD as PyEMD
 
 from tactile.training.emd import EMD
 from tactile.training.emd.onnx_export import (
+    build_emd_model,
     count_nodes,
     export_emd_onnx,
     sift_path_nodes,
+    subgraph_nodes,
     subgraphs,
 )
+from tactile.training.emd.spline import THOMAS_ROWS
 
 N_IMFS, N_SIFTS = 4, 10
 
@@ -119,6 +124,8 @@ def bench_shape(n_channels: int, n_time: int, n_ref: int, repeats: int, tmp: Pat
         ("onnxruntime, batch 256", ort_256 / 256 * 1e3),
     ]
     fewest, most = sift_path_nodes(onnx_model, n_time)
+    graphs = subgraph_nodes(onnx_model.graph)
+    large = graphs["sift_large"] + graphs["strict_large"]
     lines = [
         f"## {n_channels} channel(s) x {n_time} samples, {N_IMFS} IMFs x {N_SIFTS} sifts",
         "",
@@ -128,9 +135,9 @@ def bench_shape(n_channels: int, n_time: int, n_ref: int, repeats: int, tmp: Pat
     lines += [f"| {name} | {ms:.3f} | {t_ref / ms:.1f} |" for name, ms in rows]
     lines += [
         "",
-        f"ONNX: export {t_export:.1f} s, {count_nodes(onnx_model.graph)} nodes "
-        f"(one sift runs {fewest} to {most}, in a Loop), file {path.stat().st_size / 1e6:.3f} MB, "
-        f"session creation {t_session:.3f} s",
+        f"ONNX: export {t_export:.1f} s, {count_nodes(onnx_model.graph)} nodes (one sift, in a "
+        f"Loop, runs {fewest} to {most} below {THOMAS_ROWS} rows, {large} from there on), "
+        f"file {path.stat().st_size / 1e6:.3f} MB, session creation {t_session:.3f} s",
         "",
     ]
     return lines
@@ -271,6 +278,41 @@ def bench_node_costs(tmp: Path, repeats: int, copies: int = 4, top: int = 25) ->
     return [*lines, ""]
 
 
+def bench_solvers(repeats: int, batches=(1, 4, 8, 12, 16, 32, 256)) -> list[str]:
+    """ms per window of the 8 x 50 graph with PCR and with the Thomas algorithm at every size."""
+    x = signal_windows(256, 8, 50).astype(np.float32)
+    opts = options()
+    pcr, thomas = (
+        ort.InferenceSession(build_emd_model(N_IMFS, N_SIFTS, 8, 50, thomas_rows=t)
+                             .SerializeToString(), opts, providers=["CPUExecutionProvider"])
+        for t in (2**62, 1)
+    )
+    lines = [
+        f"## Spline solver by batch size (8 x 50; the graph switches at {THOMAS_ROWS} rows)",
+        "",
+        "| batch | rows | PCR ms / window | Thomas ms / window | PCR / Thomas |",
+        "|---:|---:|---:|---:|---:|",
+    ]
+    for b in batches:
+        n = max(b, 32)  # windows per timed run
+
+        def run(sess: ort.InferenceSession, b: int = b, n: int = n) -> None:
+            for i in range(0, n, b):
+                sess.run(None, {"x_in": x[i : i + b]})
+
+        times = {id(pcr): [], id(thomas): []}
+        run(pcr)
+        run(thomas)
+        for _ in range(repeats):  # interleaved, so drift of the host hits both alike
+            for sess in (pcr, thomas):
+                start = time.perf_counter()
+                run(sess)
+                times[id(sess)].append((time.perf_counter() - start) / n * 1e3)
+        t_pcr, t_thomas = min(times[id(pcr)]), min(times[id(thomas)])
+        lines.append(f"| {b} | {8 * b} | {t_pcr:.3f} | {t_thomas:.3f} | {t_pcr / t_thomas:.2f} |")
+    return lines
+
+
 def _sifts_run(windows: np.ndarray) -> float:
     """Sifts the graph runs per (C, T) window of ``windows``, one window at a time (the sift
     loop stops once no row is active; counted with the eager pieces)."""
@@ -303,6 +345,8 @@ def main(argv: list[str] | None = None) -> int:
                         help="only profile the 8 x 50 graph at batch 256 (shares of kernel time)")
     parser.add_argument("--node-costs", action="store_true",
                         help="only measure each sift-body node's cost where it runs (batch 1)")
+    parser.add_argument("--solvers", action="store_true",
+                        help="only time PCR against the Thomas algorithm at each batch size")
     args = parser.parse_args(argv)
     if args.rows is not None and (not args.pieces or args.rows < 1):
         parser.error(f"--rows takes a count of at least 1 and goes with --pieces, got {args.rows}")
@@ -310,6 +354,9 @@ def main(argv: list[str] | None = None) -> int:
     print(f"torch {torch.__version__}, onnxruntime {ort.__version__}, one thread", file=sys.stderr)
     if args.pieces:
         print("\n".join(bench_pieces(args.repeats, rows=args.rows or 8)))
+        return 0
+    if args.solvers:
+        print("\n".join(bench_solvers(args.repeats)))
         return 0
     if args.profile or args.node_costs:
         with tempfile.TemporaryDirectory() as tmp:

@@ -22,7 +22,7 @@ from tactile.training.emd.envelope import evaluate, segment_index
 from tactile.training.emd.extrema import extrema_marks, find_extrema
 from tactile.training.emd.knots import assemble, end_extrema, extrema_counts, n_slots
 from tactile.training.emd.sift import envelopes, sift
-from tactile.training.emd.spline import pcr_solve, spline_system
+from tactile.training.emd.spline import THOMAS_ROWS, pcr_solve, spline_system, thomas_solve
 
 PARITY_TOL = 1e-9  # x window std
 REF = PyEMD(FIXE=10, spline_kind="cubic", nbsym=2, extrema_detection="simple")
@@ -179,7 +179,8 @@ def test_segment_from_running_count_equals_a_search_over_the_knots():
     assert checked > 5000 and natural > 100, (checked, natural)  # both spline kinds seen
 
 
-def test_pcr_solves_diagonally_dominant_tridiagonal_systems():
+@pytest.mark.parametrize("solver", [pcr_solve, thomas_solve])
+def test_solvers_solve_diagonally_dominant_tridiagonal_systems(solver):
     rng = np.random.default_rng(4)
     k = 37
     a = rng.uniform(-1, 1, (50, k))
@@ -188,14 +189,15 @@ def test_pcr_solves_diagonally_dominant_tridiagonal_systems():
     c[:, -1] = 0
     b = np.abs(a) + np.abs(c) + rng.uniform(0.05, 1, (50, k))
     r = rng.standard_normal((50, k))
-    got = pcr_solve(torch.tensor(np.stack([a / b, c / b, r / b])))[0].numpy()  # (50, K)
+    got = solver(torch.tensor(np.stack([a / b, c / b, r / b])))[0].numpy()  # (50, K)
     for i in range(50):
         mat = np.diag(b[i]) + np.diag(a[i, 1:], -1) + np.diag(c[i, :-1], 1)
         np.testing.assert_allclose(got[i], np.linalg.solve(mat, r[i]), rtol=1e-12, atol=1e-12)
 
 
+@pytest.mark.parametrize("solver", [pcr_solve, thomas_solve])
 @pytest.mark.parametrize("n_knots", [3, 4, 5, 9, 20])
-def test_spline_pieces_match_scipy_not_a_knot_and_natural_3_point(n_knots):
+def test_spline_pieces_match_scipy_not_a_knot_and_natural_3_point(n_knots, solver):
     rng = np.random.default_rng(n_knots)
     n_time = 60
     k = n_slots(n_time)
@@ -208,7 +210,7 @@ def test_spline_pieces_match_scipy_not_a_knot_and_natural_3_point(n_knots):
         y = np.concatenate([ys, np.zeros(k - n_knots)])
         xy = torch.tensor(np.stack([x, y])).reshape(2, 1, 1, k).repeat(1, 2, 1, 1)  # (2, 2, 1, K)
         j1 = torch.full((2, 1, 1), n_knots - 1.0, dtype=torch.float64)
-        m = pcr_solve(spline_system(xy, j1))
+        m = solver(spline_system(xy, j1))
         t = np.arange(n_time, dtype=np.float64)
         seg = np.clip(np.searchsorted(xs, t, side="right") - 1, 0, n_knots - 2)
         if n_knots >= 4:  # outer segments evaluate their neighbour's cubic (same polynomial)
@@ -249,10 +251,13 @@ PARITY_SETS = [(50, 300), (200, 80), (1000, 25)]  # (length, windows per kind): 
 """Shared with test_emd_onnx.py, which checks onnxruntime on the same windows."""
 
 
+@pytest.mark.parametrize("solver", ["thomas", "pcr"])
 @pytest.mark.parametrize(("n_time", "per_kind"), PARITY_SETS)
-def test_float64_parity_with_pyemd(n_time, per_kind):
+def test_float64_parity_with_pyemd(n_time, per_kind, solver):
+    """All windows in one call (Thomas solver), then in calls below THOMAS_ROWS (PCR)."""
     x, refs = parity_set(n_time, per_kind)
-    imfs, residue, n_valid = run_torch(x)
+    assert len(x) >= THOMAS_ROWS
+    imfs, residue, n_valid = run_torch(x, chunk=None if solver == "thomas" else THOMAS_ROWS // 2)
     same, rel = compare(x, imfs, residue, n_valid, refs)
     assert same.all(), f"IMF count differs from PyEMD in {np.count_nonzero(~same)} windows"
     assert rel.max() <= PARITY_TOL, rel.max()

@@ -31,6 +31,7 @@ from tactile.training.emd.onnx_export import (
     trace_graph,
 )
 from tactile.training.emd.pieces import piece_examples
+from tactile.training.emd.spline import THOMAS_ROWS
 
 TOL = 1e-4  # x window std
 MIN_PASS = 0.995
@@ -49,12 +50,14 @@ BUDGET = {
     "spacings": 5,
     "system": 23,
     "solve": 68,
+    "thomas": 237,
     "segment": 6,
     "evaluate": 22,
     "finish": 34,
 }
 SIFT_SHORTEST = 186  # nodes run by one sift with few knots (later IMFs)
 SIFT_LONGEST = 225  # ... and with many knots (every PCR step)
+SIFT_LARGE = 391  # nodes one sift runs from THOMAS_ROWS rows on (Thomas solver, no Ifs)
 
 
 def _session(model: onnx.ModelProto) -> ort.InferenceSession:
@@ -87,8 +90,11 @@ def test_graph_contract(default_model):
         "n_valid": onnx.TensorProto.INT64,
     }
     assert size < 5_000_000
-    ops = {n.op_type for n in model.graph.node}
-    assert "Loop" in ops
+    # The solver choice is an If on the row count; each branch holds the IMF Loop.
+    assert "If" in {n.op_type for n in model.graph.node}
+    bodies = subgraphs(model.graph)
+    for name in ("solver_small", "solver_large"):
+        assert [n.op_type for n in bodies[name].node] == ["Loop"]
 
 
 def test_skipped_solver_steps_and_plateau_branch_change_nothing(default_model):
@@ -107,7 +113,7 @@ def test_skipped_solver_steps_and_plateau_branch_change_nothing(default_model):
             np.testing.assert_array_equal(a[0], b[i])
 
 
-@pytest.mark.parametrize("batch", [1, 7])
+@pytest.mark.parametrize("batch", [1, 7, 9])  # 8, 56 rows: PCR; 72 rows: Thomas
 def test_dynamic_batch_and_output_shapes(default_model, batch):
     model, _ = default_model
     x = np.random.default_rng(batch).standard_normal((batch, 8, 50)).astype(np.float32)
@@ -146,13 +152,21 @@ def test_sift_body_and_total_node_counts(default_model):
     assert sift_loop.input[1], "the sift loop has no start condition"
     producer = {o: n for n in subgraphs(model.graph)["sift"].node for o in n.output}
     assert producer["s_c_out"].op_type != "Identity"
+    # The large-batch body runs every node each sift: no PCR Ifs.
+    assert graphs["sift_large"] + graphs["strict_large"] <= SIFT_LARGE
+    large_ops = [n.op_type for n in subgraphs(model.graph)["sift_large"].node]
+    assert large_ops.count("If") == 1  # the extremum rule's only
     branches = sum(v for k, v in graphs.items() if k.startswith(("step", "solved", "plateau")))
-    assert count_nodes(model.graph) <= graphs["sift"] + graphs["strict"] + branches + 60
+    bodies = graphs["sift"] + graphs["strict"] + graphs["sift_large"] + graphs["strict_large"]
+    # Beyond those: two IMF loop bodies (21 nodes each), the solver If's branches and the
+    # main graph (set-up, the row-count test, reshapes; 34 in all).
+    assert count_nodes(model.graph) <= bodies + branches + 2 * 21 + 34
 
 
-def test_float64_graph_matches_torch_float64():
+@pytest.mark.parametrize("batch", [4, 30])  # 12 rows: PCR; 90 rows: Thomas
+def test_float64_graph_matches_torch_float64(batch):
     model = build_emd_model(4, 10, 3, 60, dtype=torch.float64)
-    x = np.random.default_rng(3).standard_normal((4, 3, 60))
+    x = np.random.default_rng(3).standard_normal((batch, 3, 60))
     imfs, residue, n_valid = _session(model).run(None, {"x_in": x})
     ref = EMD(4, 10)(torch.from_numpy(x))
     np.testing.assert_array_equal(n_valid, ref[2].numpy())
@@ -160,17 +174,23 @@ def test_float64_graph_matches_torch_float64():
     np.testing.assert_allclose(residue, ref[1].numpy(), rtol=0, atol=1e-12)
 
 
-def test_onnxruntime_float32_parity():
-    """Over the 50- and 200-sample parity windows pooled (1900 windows)."""
+@pytest.mark.parametrize("solver", ["thomas", "pcr"])
+def test_onnxruntime_float32_parity(solver):
+    """Over the 50- and 200-sample parity windows pooled (1900 windows), all in one call
+    (Thomas solver) or in calls of fewer than THOMAS_ROWS windows (PCR)."""
+    chunk = None if solver == "thomas" else THOMAS_ROWS // 2
     ok_torch, ok_ref, unexplained, medians = [], [], [], []
     for n_time, per_kind in [(50, 300), (200, 80)]:
         x, refs = parity_set(n_time, per_kind)  # (W, N) float64, PyEMD's answers
-        model = build_emd_model(4, 10, 1, n_time)
-        outs = _session(model).run(None, {"x_in": x[:, None].astype(np.float32)})
+        sess = _session(build_emd_model(4, 10, 1, n_time))
+        x32 = x[:, None].astype(np.float32)
+        step = chunk or len(x)
+        parts = [sess.run(None, {"x_in": x32[i : i + step]}) for i in range(0, len(x), step)]
+        outs = [np.concatenate(t) for t in zip(*parts)]
         imfs, residue = outs[0][:, 0].astype(float), outs[1][:, 0].astype(float)
         n_valid = outs[2][:, 0]
-        # vs the torch module in float32
-        t_imfs, t_res, t_nv = run_torch(x.astype(np.float32), torch.float32)
+        # vs the torch module in float32, same calls
+        t_imfs, t_res, t_nv = run_torch(x.astype(np.float32), torch.float32, chunk)
         std = np.where(x.std(1) > 0, x.std(1), 1.0)
         d = np.maximum(np.abs(imfs - t_imfs).max((1, 2)), np.abs(residue - t_res).max(1)) / std
         good_torch = (n_valid == t_nv) & (d <= TOL)

@@ -116,20 +116,30 @@ def compare(x, imfs, residue, n_valid, refs=None):
     return np.asarray(same), np.asarray(rel)
 
 
-def run_torch(x: np.ndarray, dtype=torch.float64):
+def run_torch(x: np.ndarray, dtype=torch.float64, chunk: int | None = None):
     """Our EMD on (W, N) windows, one channel each; numpy outputs.
+
+    ``chunk``: windows per call (default: all at once). The spline solver follows the row
+    count (``spline.THOMAS_ROWS``), so chunks below it exercise PCR and large calls the Thomas
+    algorithm.
 
     Runs with one torch thread: on a busy 2-core machine, torch's default thread pool can be
     fifty times slower on these small kernels.
     """
     from tactile.training.emd import EMD
 
+    step = chunk or len(x)
     threads = torch.get_num_threads()
     torch.set_num_threads(1)
     try:
-        imfs, residue, n_valid = EMD(N_IMFS, N_SIFTS)(torch.as_tensor(x, dtype=dtype)[:, None])
+        emd = EMD(N_IMFS, N_SIFTS)
+        parts = [
+            emd(torch.as_tensor(x[i : i + step], dtype=dtype)[:, None])
+            for i in range(0, len(x), step)
+        ]
     finally:
         torch.set_num_threads(threads)
+    imfs, residue, n_valid = (torch.cat(t) for t in zip(*parts))
     return imfs[:, 0].double().numpy(), residue[:, 0].double().numpy(), n_valid[:, 0].numpy()
 
 

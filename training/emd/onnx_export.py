@@ -38,7 +38,7 @@ from .extrema import differences, has_tie, plateau_marks, strict_marks
 from .knots import n_slots, slot_base
 from .module import EMDConfig
 from .sift import finish, prepare
-from .spline import decoupled_after, pcr_last, pcr_step, pcr_steps
+from .spline import THOMAS_ROWS, decoupled_after, pcr_last, pcr_step, pcr_steps, thomas_solve
 
 OPSET = 18
 """ONNX opset of the exported graph (ScatterElements with reduction needs >= 16)."""
@@ -271,6 +271,12 @@ def _inline(
     return nodes, inits
 
 
+def _copy(node: onnx.NodeProto) -> onnx.NodeProto:
+    new = onnx.NodeProto()
+    new.CopyFrom(node)
+    return new
+
+
 def _t(name: str, elem: int, shape: list) -> onnx.ValueInfoProto:
     return helper.make_tensor_value_info(name, elem, shape)
 
@@ -314,18 +320,21 @@ them, with bit-identical results."""
 
 
 def _sift_graph(
-    h: Tensor, act: Tensor, elem: int, n_time: int, rows: dict[int, str]
+    h: Tensor, act: Tensor, elem: int, n_time: int, rows: dict[int, str], large: bool = False
 ) -> tuple[onnx.GraphProto, list[onnx.TensorProto]]:
     """The Loop body of one sift.
 
     Differences; an ``If`` choosing the extremum rule; knots and spline system with the first
     :data:`PCR_ALWAYS` solver steps; nested ``If`` nodes for the remaining steps, each taking
     the solution as it stands once every system is decoupled; envelopes and the update.
+    With ``large``, the body for :data:`spline.THOMAS_ROWS` rows or more: the Thomas algorithm
+    instead of PCR, no ``If`` around it, and its subgraphs' names end in ``_large``.
     Loop-carried names: ``s_h``, ``s_a`` in, ``s_h_out``, ``s_a_out`` out.
     """
+    suffix = "_large" if large else ""
     k = n_slots(n_time)
     steps = pcr_steps(k)
-    always = min(PCR_ALWAYS, steps - 1)
+    always = 0 if large else min(PCR_ALWAYS, steps - 1)
     sg = torch.sign(differences(h))
     marks = strict_marks(sg)
     base = slot_base(h)
@@ -338,10 +347,10 @@ def _sift_graph(
         sys, *rest = prepare(h, marks, base)
         for step in range(always):
             sys = pcr_step(sys, 1 << step)
-        done = [decoupled_after(rest[1], step) for step in range(always, steps)]
+        done = [] if large else [decoupled_after(rest[1], step) for step in range(always, steps)]
         return (sys, *rest, *done)
 
-    done_names = [f"done{s}" for s in range(always, steps)]
+    done_names = [] if large else [f"done{s}" for s in range(always, steps)]
     head = trace_graph(_head, [h], ["h"], ["sg", "tie"], {"h": rows, "sg": rows})
     strict = trace_graph(strict_marks, [sg], ["sg"], ["marks"], {"sg": rows, "marks": r1})
     plateau = trace_graph(plateau_marks, [sg], ["sg"], ["marks"], {"sg": rows, "marks": r1})
@@ -353,17 +362,19 @@ def _sift_graph(
         {"h": rows, "marks": r1, "base": r2, "sys": r2, "xy": r2, "j1": r1, "ks": r1,
          "n_ext": {0: "rows"}, "hk": r2, "sl": r2},
     )
-    solved = trace_graph(lambda sys: sys[2:3], [sys], ["sys"], ["m"], {"sys": r2, "m": r2})
-    step_models = {
-        s: trace_graph(
-            lambda sys, st=1 << s: pcr_step(sys, st),
-            [sys], ["sys"], ["out"], {"sys": r2, "out": r2},
+    if not large:
+        solved = trace_graph(lambda sys: sys[2:3], [sys], ["sys"], ["m"], {"sys": r2, "m": r2})
+        step_models = {
+            s: trace_graph(
+                lambda sys, st=1 << s: pcr_step(sys, st),
+                [sys], ["sys"], ["out"], {"sys": r2, "out": r2},
+            )
+            for s in range(always, steps - 1)
+        }
+        last = trace_graph(
+            lambda sys: pcr_last(sys, 1 << (steps - 1)), [sys], ["sys"], ["m"],
+            {"sys": r2, "m": r2},
         )
-        for s in range(always, steps - 1)
-    }
-    last = trace_graph(
-        lambda sys: pcr_last(sys, 1 << (steps - 1)), [sys], ["sys"], ["m"], {"sys": r2, "m": r2}
-    )
     tail = trace_graph(
         _finish_sift,
         [h, act, xy, m, j1, ks, n_ext, hk, sl],
@@ -376,7 +387,8 @@ def _sift_graph(
     inits: list[onnx.TensorProto] = []
 
     def add(model: onnx.ModelProto, prefix: str, rename: dict[str, str]) -> list[onnx.NodeProto]:
-        nodes, more = _inline(model, prefix, rename)
+        # Initializers live in the main graph: the two bodies' names must differ.
+        nodes, more = _inline(model, ("large/" if large else "") + prefix, rename)
         inits.extend(more)
         return nodes
 
@@ -386,7 +398,7 @@ def _sift_graph(
     for name, part in (("plateau", plateau), ("strict", strict)):
         b_nodes = add(part, f"{name}/", {"sg": "s_sg", "marks": f"{name}/marks"})
         branches[name] = helper.make_graph(
-            b_nodes, name, [], [_t(f"{name}/marks", elem, [2, "rows", n_time])]
+            b_nodes, name + suffix, [], [_t(f"{name}/marks", elem, [2, "rows", n_time])]
         )
     nodes.append(
         helper.make_node(
@@ -421,7 +433,11 @@ def _sift_graph(
             )
         ]
 
-    nodes += solve_from(always, "s_m")
+    if large:
+        thomas = trace_graph(thomas_solve, [sys], ["sys"], ["m"], {"sys": r2, "m": r2})
+        nodes += add(thomas, "thomas/", {"sys": "s_sys0", "m": "s_m"})
+    else:
+        nodes += solve_from(always, "s_m")
     nodes += add(
         tail,
         "sift/",
@@ -429,7 +445,7 @@ def _sift_graph(
          "go": "s_c_out", **{v: f"s_{v}" for v in ["xy", "j1", "ks", "n_ext", "hk", "sl"]}},
     )
     carried = [("s_h", elem, ["rows", n_time]), ("s_a", TensorProto.BOOL, ["rows"])]
-    graph = _loop_body("sift", "s", nodes, carried, cond_out=True)
+    graph = _loop_body("sift" + suffix, "s", nodes, carried, cond_out=True)
     return graph, inits
 
 
@@ -463,8 +479,14 @@ def build_emd_model(
     n_channels: int,
     n_time: int,
     dtype: torch.dtype = torch.float32,
+    thomas_rows: int = THOMAS_ROWS,
 ) -> onnx.ModelProto:
-    """The EMD graph for windows of ``n_channels`` x ``n_time`` (dynamic batch)."""
+    """The EMD graph for windows of ``n_channels`` x ``n_time`` (dynamic batch).
+
+    From ``thomas_rows`` rows (batch x channels) on, the graph solves the spline systems by the
+    Thomas algorithm, below by PCR, as :func:`spline.solve` does at its default; another value
+    only serves to benchmark the two (``bench/emd.py --solvers``).
+    """
     EMDConfig(n_imfs=n_imfs, n_sifts=n_sifts)  # validates
     if n_time < 3:
         raise ConfigError(f"EMD export needs windows of at least 3 samples, got {n_time}")
@@ -508,10 +530,6 @@ def build_emd_model(
     )
 
     inits: list[onnx.TensorProto] = []
-    # Inner loop: one sift per iteration.
-    sift_graph, s_inits = _sift_graph(h, act, elem, n_time, rows)
-    inits += s_inits
-    # Outer loop: one IMF per iteration.
     c_nodes, c_inits = _inline(
         close,
         "close/",
@@ -528,28 +546,46 @@ def build_emd_model(
         },
     )
     inits += c_inits
-    sifts = [
-        helper.make_node(
-            "Loop", ["n_sifts", "i_go", "i_h0", "i_alive"], ["i_h", "i_act"], body=sift_graph
+    loop_outs = ["acc", "alive", "nv", "imfs_scan"]
+    loop_types = [elem, TensorProto.BOOL, TensorProto.INT64, elem]
+    loop_shapes = [["rows", n_time], ["rows"], ["rows"], [n_imfs, "rows", n_time]]
+    branches = {}
+    for large in (False, True):
+        # Inner loop: one sift per iteration.
+        sift_graph, s_inits = _sift_graph(h, act, elem, n_time, rows, large)
+        inits += s_inits
+        sifts = [
+            helper.make_node(
+                "Loop", ["n_sifts", "i_go", "i_h0", "i_alive"], ["i_h", "i_act"], body=sift_graph
+            )
+        ]
+        # Rows that stopped are left as they are, so no sift runs once no row is alive.
+        imf_nodes = [
+            helper.make_node("Sub", ["x", "i_acc"], ["i_h0"]),  # PyEMD restarts from S - sum(IMF)
+            helper.make_node("Cast", ["i_alive"], ["i_alive_f"], to=TensorProto.FLOAT),
+            helper.make_node("ReduceMax", ["i_alive_f"], ["i_alive_max"], keepdims=0),
+            helper.make_node("Cast", ["i_alive_max"], ["i_go"], to=TensorProto.BOOL),
+            *sifts,
+            *[_copy(n) for n in c_nodes],
+        ]
+        suffix = "_large" if large else ""
+        imf_graph = _loop_body(
+            "imf" + suffix,
+            "i",
+            imf_nodes,
+            [("i_acc", elem, ["rows", n_time]), ("i_alive", TensorProto.BOOL, ["rows"]),
+             ("i_nv", TensorProto.INT64, ["rows"])],
+            scans=[("i_imf", elem, ["rows", n_time])],
         )
-    ]
-    # Rows that stopped are left as they are, so no sift runs once no row is alive.
-    imf_nodes = [
-        helper.make_node("Sub", ["x", "i_acc"], ["i_h0"]),  # PyEMD restarts from S - sum(IMF)
-        helper.make_node("Cast", ["i_alive"], ["i_alive_f"], to=TensorProto.FLOAT),
-        helper.make_node("ReduceMax", ["i_alive_f"], ["i_alive_max"], keepdims=0),
-        helper.make_node("Cast", ["i_alive_max"], ["i_go"], to=TensorProto.BOOL),
-        *sifts,
-        *c_nodes,
-    ]
-    imf_graph = _loop_body(
-        "imf",
-        "i",
-        imf_nodes,
-        [("i_acc", elem, ["rows", n_time]), ("i_alive", TensorProto.BOOL, ["rows"]),
-         ("i_nv", TensorProto.INT64, ["rows"])],
-        scans=[("i_imf", elem, ["rows", n_time])],
-    )
+        # Outer loop: one IMF per iteration, inside one branch of the solver choice.
+        outs = [f"{v}{suffix or '_small'}" for v in loop_outs]
+        branches[large] = helper.make_graph(
+            [helper.make_node("Loop", ["n_imfs", "", "acc0", "alive0", "nv0"], outs,
+                              body=imf_graph)],
+            "solver" + (suffix or "_small"),
+            [],
+            [_t(o, e, sh) for o, e, sh in zip(outs, loop_types, loop_shapes)],
+        )
     # The graph input is `x_in`; the loop bodies read its (R, N) view `x` from the outer scope.
     i_nodes, i_inits = _inline(
         init,
@@ -573,13 +609,18 @@ def build_emd_model(
     inits += i_inits + f_inits
     inits.append(helper.make_tensor("n_imfs", TensorProto.INT64, [], [n_imfs]))
     inits.append(helper.make_tensor("n_sifts", TensorProto.INT64, [], [n_sifts]))
+    inits.append(helper.make_tensor("thomas_rows", TensorProto.INT64, [], [thomas_rows]))
+    inits.append(helper.make_tensor("row_axis", TensorProto.INT64, [1], [0]))
     main_nodes = [
         *i_nodes,
+        # The solver follows the row count, as spline.solve does in torch.
+        helper.make_node("Shape", ["x"], ["x_shape"]),
+        helper.make_node("Gather", ["x_shape", "row_axis"], ["n_rows"], axis=0),
+        helper.make_node("Squeeze", ["n_rows"], ["n_rows0"]),
+        helper.make_node("GreaterOrEqual", ["n_rows0", "thomas_rows"], ["use_thomas"]),
         helper.make_node(
-            "Loop",
-            ["n_imfs", "", "acc0", "alive0", "nv0"],
-            ["acc", "alive", "nv", "imfs_scan"],
-            body=imf_graph,
+            "If", ["use_thomas"], loop_outs, then_branch=branches[True],
+            else_branch=branches[False],
         ),
         *f_nodes,
     ]

@@ -12,7 +12,7 @@ from .envelope import evaluate, segment_index
 from .extrema import differences, extrema_marks, has_tie, plateau_marks, strict_marks
 from .knots import assemble, end_extrema, extrema_counts, slot_base
 from .sift import finish
-from .spline import pcr_solve, spacings, spline_system
+from .spline import pcr_solve, spacings, spline_system, thomas_solve
 
 
 def piece_examples(
@@ -44,6 +44,7 @@ def piece_examples(
         "spacings": (spacings, (xy,)),
         "system": (spline_system, (xy, j1, hk, sl)),
         "solve": (pcr_solve, (system,)),
+        "thomas": (thomas_solve, (system,)),
         "segment": (segment_index, (ks, j1)),
         "evaluate": (evaluate, (h, xy, m, seg, hk, sl)),
         "finish": (finish, (h, active, xy, m, j1, ks, n_ext, hk, sl)),

@@ -1,8 +1,8 @@
 """One sift: subtract the mean of the upper and lower envelopes (EMD_SPEC §1.3, §4.1-4.8).
 
 A sift is three stages, so that the exported graph can put the spline solve's later steps in
-``If`` nodes: :func:`prepare` (extrema to the spline system), :func:`spline.pcr_solve`, and
-:func:`finish` (envelopes and the update).
+``If`` nodes: :func:`prepare` (extrema to the spline system), :func:`spline.solve` (PCR, or
+the Thomas algorithm for large batches), and :func:`finish` (envelopes and the update).
 """
 
 from __future__ import annotations
@@ -14,7 +14,7 @@ from .boundary import boundary_knots
 from .envelope import evaluate, segment_index
 from .extrema import extrema_marks
 from .knots import assemble, end_extrema, extrema_counts
-from .spline import pcr_solve, spacings, spline_system
+from .spline import solve, spacings, spline_system
 
 
 def prepare(h: Tensor, marks: Tensor, base: Tensor | None = None) -> tuple[Tensor, ...]:
@@ -44,7 +44,7 @@ def finish(
     hk: Tensor, sl: Tensor,
 ) -> tuple[Tensor, Tensor]:
     """Evaluate the envelopes and subtract their mean (the arguments as :func:`prepare` gives
-    them, ``m`` (1, 2, R, K) from :func:`spline.pcr_solve`); returns as :func:`sift`."""
+    them, ``m`` (1, 2, R, K) from :func:`spline.solve`); returns as :func:`sift`."""
     half = evaluate(h, xy, m, segment_index(ks, j1), hk, sl)  # (1, 2, R, N) envelopes / 2
     active = active & (n_ext > 2.0)  # (R,)
     mean = half.sum(dim=(0, 1))  # (R, N): (upper + lower) / 2, bit for bit as PyEMD's
@@ -66,7 +66,7 @@ def envelopes(h: Tensor, marks: Tensor | None = None) -> tuple[Tensor, Tensor]:
     if marks is None:
         marks = extrema_marks(h)  # (2, R, N)
     sys, xy, j1, ks, n_ext, hk, sl = prepare(h, marks)
-    m = pcr_solve(sys, j1)
+    m = solve(sys, j1)
     return evaluate(h, xy, m, segment_index(ks, j1), hk, sl)[0] * 2.0, n_ext
 
 
@@ -87,4 +87,4 @@ def sift(h: Tensor, active: Tensor, marks: Tensor | None = None) -> tuple[Tensor
     if marks is None:
         marks = extrema_marks(h)  # (2, R, N)
     sys, xy, j1, ks, n_ext, hk, sl = prepare(h, marks)
-    return finish(h, active, xy, pcr_solve(sys, j1), j1, ks, n_ext, hk, sl)
+    return finish(h, active, xy, solve(sys, j1), j1, ks, n_ext, hk, sl)

@@ -145,3 +145,54 @@ def pcr_solve(sys: Tensor, j1: Tensor | None = None) -> Tensor:
             return pcr_last(sys, 1 << step)
         sys = pcr_step(sys, 1 << step)
     raise AssertionError("unreachable: pcr_steps() >= 1")
+
+
+THOMAS_ROWS = 64
+"""Rows (windows x channels) from which :func:`solve` uses :func:`thomas_solve`.
+
+The two solvers trade differently in onnxruntime: PCR is at most ``5 x 13`` nodes on
+full-width tensors (fewer once the systems decouple), the Thomas algorithm about ``8 K`` nodes
+on one column each. With few rows every node costs about the same fixed microsecond, so fewer
+nodes win; with many rows the work per element decides, and the Thomas algorithm does
+``O(K)`` of it against PCR's ``O(K log K)``. ``bench/emd.py --solvers`` measures the
+crossover (about 64 rows for 50-sample windows).
+"""
+
+
+def thomas_solve(sys: Tensor) -> Tensor:
+    """Solve unit-diagonal tridiagonal systems by the Thomas algorithm (no pivoting).
+
+    Args:
+        sys: (3, ..., K) sub-diagonal ``a``, super-diagonal ``c`` and right-hand side ``r``, as
+            for :func:`pcr_solve` (``a[..., 0] = c[..., K-1] = 0``, strictly diagonally
+            dominant, so the elimination is stable and every pivot is at least
+            ``1 - max |a| max |c| > 0``).
+
+    Returns:
+        (1, ..., K) solution. Identity rows (``a = c = r = 0``) get exactly 0, as from PCR; real
+        rows agree with :func:`pcr_solve` to rounding (both are exact elimination orders).
+
+    Forward sweep: ``c'[j] = c[j] / p[j]`` and ``r'[j] = (r[j] - a[j] r'[j-1]) / p[j]`` with
+    pivot ``p[j] = 1 - a[j] c'[j-1]``; back substitution: ``x[j] = r'[j] - c'[j] x[j+1]``. The
+    columns are split once, so each step is a few elementwise nodes on (1, ..., 1) tensors.
+    """
+    a, c, r = sys.split(1)  # (1, ..., K) each
+    cols_a, cols_c, cols_r = (t.split(1, dim=-1) for t in (a, c, r))  # K x (1, ..., 1)
+    cp, rp = [cols_c[0]], [cols_r[0]]  # row 0: pivot 1 (a[0] = 0)
+    for j in range(1, len(cols_a)):
+        pivot = 1.0 - cols_a[j] * cp[-1]
+        cp.append(cols_c[j] / pivot)
+        rp.append((cols_r[j] - cols_a[j] * rp[-1]) / pivot)
+    x = [rp[-1]]
+    for j in range(len(cols_a) - 2, -1, -1):
+        x.append(rp[j] - cp[j] * x[-1])
+    return torch.cat(x[::-1], dim=-1)
+
+
+def solve(sys: Tensor, j1: Tensor | None = None) -> Tensor:
+    """The spline system's solution, (3, 2, R, K) -> (1, 2, R, K): :func:`thomas_solve` from
+    :data:`THOMAS_ROWS` rows on, :func:`pcr_solve` below (the exported graph makes the same
+    choice, so onnxruntime and the torch module run the same arithmetic)."""
+    if int(sys.shape[2]) >= THOMAS_ROWS:
+        return thomas_solve(sys)
+    return pcr_solve(sys, j1)
