@@ -6,9 +6,9 @@ Without --model it trains and exports a small model with EMD features on (the pe
 50-sample windows, 4 IMFs x 10 sifts of pressure_0 and accel_x/y/z) on simulated data first.
 Prints, with one thread: per-window latency p50/p99 at batch 1 (onnxruntime) and of the
 reference pipeline (PyEMD EMD per channel + PyTorch LSTM), the two timed window by window in
-one interleaved pass (so the host's drift during the run affects both alike), the highest sustained sample rate of
-the whole path (decode bytes -> window -> inference), resident memory of a tactile-run process,
-and the time from start to the first label.
+one interleaved pass (so the host's drift during the run affects both alike), the highest
+sustained sample rate of the whole path (decode bytes -> window -> inference), resident memory
+of a tactile-run process, and the time from start to the first label.
 """
 
 from __future__ import annotations

@@ -200,10 +200,12 @@ def _rank_constants(model: onnx.ModelProto) -> onnx.ModelProto:
             new = f"{v}_rank{r}"
             if new not in added:
                 arr = numpy_helper.to_array(init)
-                added[new] = numpy_helper.from_array(arr.reshape((1,) * (r - arr.ndim) + arr.shape), new)
+                shaped = arr.reshape((1,) * (r - arr.ndim) + arr.shape)
+                added[new] = numpy_helper.from_array(shaped, new)
             node.input[i] = new
     graph.initializer.extend(added.values())
-    used = {v for n in graph.node for v in n.input} | {v for n in graph.node for v in _subgraph_inputs(n)}
+    used = {v for n in graph.node for v in n.input}
+    used |= {v for n in graph.node for v in _subgraph_inputs(n)}
     inits = [init for init in graph.initializer if init.name in used]
     del graph.initializer[:]
     graph.initializer.extend(inits)
@@ -376,7 +378,7 @@ def _sift_graph(
             {"sys": r2, "m": r2},
         )
     tail = trace_graph(
-        _finish_sift,
+        lambda *args: _finish_sift(*args, split_sum=large),
         [h, act, xy, m, j1, ks, n_ext, hk, sl],
         ["h", "act", "xy", "m", "j1", "ks", "n_ext", "hk", "sl"],
         ["h_out", "act_out", "go"],
@@ -449,10 +451,10 @@ def _sift_graph(
     return graph, inits
 
 
-def _finish_sift(*args: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+def _finish_sift(*args: Tensor, split_sum: bool = False) -> tuple[Tensor, Tensor, Tensor]:
     """:func:`sift.finish`, and whether any row is still active (the sift loop's condition:
     a row that stopped stays unchanged, so the remaining sifts can be skipped exactly)."""
-    h, active = finish(*args)
+    h, active = finish(*args, split_sum=split_sum)
     return h, active, active.any()
 
 
