@@ -129,6 +129,10 @@ def test_boundary_knots_match_pyemd_in_every_case():
         cnt, n = extrema_counts(marks)
         p, v = end_extrema(h, cnt, n)
         bxy, bv = boundary_knots(h, p, v, n)
+        # The row-last layout (the exported large-batch body's) gives the same bits.
+        last = (0, 2, 3, 1)
+        txy, tv = boundary_knots(h, p.permute(last), v.permute(last), n.permute(last), True)
+        assert torch.equal(txy.transpose(-1, -2), bxy) and torch.equal(tv.transpose(-1, -2), bv)
         (kx, ky), j1, _ = assemble(h, marks, bxy, bv)
         for env, ref in ((0, ref_max), (1, ref_min)):
             hi = int(j1[env, 0, 0]) + 1

@@ -27,7 +27,9 @@ import torch
 from torch import Tensor
 
 
-def boundary_knots(h: Tensor, p: Tensor, v: Tensor, n: Tensor) -> tuple[Tensor, Tensor]:
+def boundary_knots(
+    h: Tensor, p: Tensor, v: Tensor, n: Tensor, rows_last: bool = False
+) -> tuple[Tensor, Tensor]:
     """The mirrored knots of both envelopes at both ends.
 
     Args:
@@ -39,38 +41,48 @@ def boundary_knots(h: Tensor, p: Tensor, v: Tensor, n: Tensor) -> tuple[Tensor, 
         xy: (2, 2, R, 4) knot positions and values (scaled as ``v``), ordered
             ``[left far, left near, right near, right far]`` (ascending when valid).
         valid: (2, R, 4) 0/1 floats. Rows with fewer than 3 extrema get meaningless knots.
+
+    With ``rows_last`` every tensor has the row axis last instead: ``p``, ``v`` (2, 2, 4, R),
+    ``n`` (2, 1, 1, R); returns ``xy`` (2, 2, 4, R) and ``valid`` (2, 4, R). The same
+    elementwise operations and gathers, so the same bits; onnxruntime broadcasts over a long
+    innermost axis far faster than over the short side and source axes (the exported graph's
+    large-batch body uses it).
     """
     n_time = int(h.shape[-1])
     dt, dev = h.dtype, h.device
     last = float(n_time - 1)
-    side_sign = torch.tensor([[1.0], [-1.0]], dtype=dt, device=dev)  # (side, 1)
-    side_off = torch.tensor([[0.0], [last]], dtype=dt, device=dev)  # (side, 1)
+    rows = (1,) if rows_last else ()  # a trailing row axis for the constants
+    ax = -2 if rows_last else -1  # the sources' axis
+    side_sign = torch.tensor([1.0, -1.0], dtype=dt, device=dev).reshape(2, 1, *rows)  # (side, 1)
+    side_off = torch.tensor([0.0, last], dtype=dt, device=dev).reshape(2, 1, *rows)
     env_sign = torch.tensor([1.0, -1.0], dtype=dt, device=dev).reshape(2, 1, 1, 1)
     # Left side takes sources [far, near], right side [near, far]: ascending positions at once.
-    kvec = torch.tensor([[1.0, 0.0], [0.0, 1.0]], dtype=dt, device=dev)  # (side, k)
+    kvec = torch.tensor([[1.0, 0.0], [0.0, 1.0]], dtype=dt, device=dev).reshape(2, 2, *rows)
     q = p * side_sign + side_off  # (2, R, side, 4): distance from the end (the end sample: 0)
 
-    first = q[..., 1:2]  # (2, R, side, 1)
+    first = q.narrow(ax, 1, 1)  # (2, R, side, 1)
     other = first.flip(0)  # the other envelope's first extremum
     is_f = first < other  # (2, R, side, 1): this envelope plays F
     f0 = torch.minimum(first, other)
-    ends, v0 = v[..., 0:1], v[..., 1:2]
+    ends, v0 = v.narrow(ax, 0, 1), v.narrow(ax, 1, 1)
     # Case 1 seen from either envelope: sigma_F * (S[end] - vG0) > 0, i.e. G's own
     # sigma_G * (vG0 - S[end]) > 0 (sigma_G = -sigma_F), read from G's row when this one is F.
     own = (v0 - ends) * env_sign  # (2, R, side, 1)
     case1 = torch.where(is_f, own.flip(0), own) > 0
     # Fallback: the outermost case-1 knot of F (source F[min(2, nF-1)]) or of G (source
     # G[min(1, nG-1)]) would not reach past the end (list index + 1: the end sample is first).
-    own_last = torch.gather(q, -1, torch.minimum(is_f.to(dt) + 2.0, n).long())
+    own_last = torch.gather(q, ax, torch.minimum(is_f.to(dt) + 2.0, n).long())
     two_f0 = 2.0 * f0
     reach = own_last >= two_f0  # (2, R, side, 1): not the fallback for this envelope
     mirror_f0 = (case1 & reach & reach.flip(0)).to(dt)
     shift = torch.where(is_f, mirror_f0 + 1.0, case1.to(dt))  # (2, R, side, 1) in 0..2
     src = shift + kvec  # (2, R, side, k): index in [end sample, E0, E1, E2]
     idx = src.long()
-    kx = two_f0 * mirror_f0 - torch.gather(q, -1, idx)  # mirrored, side coordinates
-    val = torch.gather(v, -1, idx)
+    kx = two_f0 * mirror_f0 - torch.gather(q, ax, idx)  # mirrored, side coordinates
+    val = torch.gather(v, ax, idx)
     # A source exists when the list is long enough; a knot on E0 duplicates it.
     valid = (src <= n) & (kx < first)
     kx = kx * side_sign + side_off  # back to sample positions
+    if rows_last:
+        return torch.cat([kx, val]).reshape(2, 2, 4, -1), valid.to(dt).reshape(2, 4, -1)
     return torch.cat([kx, val]).reshape(2, 2, -1, 4), valid.to(dt).reshape(2, -1, 4)

@@ -346,7 +346,7 @@ def _sift_graph(
     r2 = {2: "rows"}
 
     def pre(h: Tensor, marks: Tensor, base: Tensor) -> tuple[Tensor, ...]:
-        sys, *rest = prepare(h, marks, base)
+        sys, *rest = prepare(h, marks, base, rows_last=large)
         for step in range(always):
             sys = pcr_step(sys, 1 << step)
         done = [] if large else [decoupled_after(rest[1], step) for step in range(always, steps)]

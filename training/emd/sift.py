@@ -17,12 +17,16 @@ from .knots import assemble, end_extrema, extrema_counts
 from .spline import solve, spacings, spline_system
 
 
-def prepare(h: Tensor, marks: Tensor, base: Tensor | None = None) -> tuple[Tensor, ...]:
+def prepare(
+    h: Tensor, marks: Tensor, base: Tensor | None = None, rows_last: bool = False
+) -> tuple[Tensor, ...]:
     """Knots and spline system of both envelopes of every row.
 
     Args:
         h: (R, N) signals, N >= 3, finite; marks: (2, R, N) their extremum marks.
         base: :func:`knots.slot_base` of ``h`` (computed when not given).
+        rows_last: run the boundary rule with the row axis last (same bits; the exported
+            large-batch body's layout, see :func:`boundary.boundary_knots`).
 
     Returns:
         sys: (3, 2, R, K) the unit-diagonal system (:func:`spline.spline_system`).
@@ -32,7 +36,12 @@ def prepare(h: Tensor, marks: Tensor, base: Tensor | None = None) -> tuple[Tenso
     """
     cnt, n = extrema_counts(marks)  # (2, R, N), (2, R, 1, 1)
     p, v = end_extrema(h, cnt, n)  # (2, R, 2, 4) x2
-    bxy, bv = boundary_knots(h, p, v, n)  # (2, 2, R, 4), (2, R, 4)
+    if rows_last:
+        last = (0, 2, 3, 1)  # (2, R, a, b) -> (2, a, b, R)
+        bxy, bv = boundary_knots(h, p.permute(last), v.permute(last), n.permute(last), True)
+        bxy, bv = bxy.transpose(-1, -2), bv.transpose(-1, -2)
+    else:
+        bxy, bv = boundary_knots(h, p, v, n)  # (2, 2, R, 4), (2, R, 4)
     # (2, 2, R, K) knots (half values), (2, R, 1) last slot, (2, R, N) slot at each sample:
     xy, j1, ks = assemble(h, marks, bxy, bv, base)
     hk, sl = spacings(xy)  # shared by the system and the envelopes' coefficients
