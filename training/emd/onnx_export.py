@@ -8,8 +8,11 @@ and ``If`` nodes inside the sift (the plateau rule only when there are ties; PCR
 while a system is still coupled). onnxruntime runs the ~200-node sift body up to 40 times
 instead of holding 40 unrolled copies: the file stays small and session creation fast. The
 sift loop stops as soon as no row is active (a stopped row is left unchanged, so the skipped
-sifts would change nothing). The same torch functions run in eager mode, so the graph
-computes exactly what :func:`decompose.decompose` computes.
+sifts would change nothing). An ``If`` on the row count picks one of two such loop nests:
+below :data:`spline.THOMAS_ROWS` rows the sift solves its spline systems by PCR, from there on
+by the Thomas algorithm (and lays out the boundary rule and the envelope sum for large
+tensors), as :func:`spline.solve` chooses in torch. The same torch functions run in eager
+mode, so the graph computes exactly what :func:`decompose.decompose` computes.
 
 Graph contract: input ``x_in`` (batch, channels, time) float32/float64 with a dynamic batch axis;
 outputs ``imfs`` (batch, channels, n_imfs, time), ``residue`` (batch, channels, time) and

@@ -58,7 +58,7 @@ def finish(
     ``split_sum`` adds the two half envelopes as two tensors instead of reducing over their
     axis: the same single addition, so the same bits. The exported graph's large-batch body
     uses it, where onnxruntime's reduction over a leading axis costs about 1 ns an element,
-    six times the split and the addition; with few rows the one reduction node is cheaper.
+    seven times the split and the addition; with few rows the one reduction node is cheaper.
     """
     half = evaluate(h, xy, m, segment_index(ks, j1), hk, sl)  # (1, 2, R, N) envelopes / 2
     active = active & (n_ext > 2.0)  # (R,)

@@ -165,8 +165,8 @@ def thomas_solve(sys: Tensor) -> Tensor:
     Args:
         sys: (3, ..., K) sub-diagonal ``a``, super-diagonal ``c`` and right-hand side ``r``, as
             for :func:`pcr_solve` (``a[..., 0] = c[..., K-1] = 0``, strictly diagonally
-            dominant, so the elimination is stable and every pivot is at least
-            ``1 - max |a| max |c| > 0``).
+            dominant: ``|a| + |c| < 1``). Then the elimination is stable: by induction every
+            ``|c'| < 1``, so every pivot exceeds ``1 - |a| > |c| >= 0``.
 
     Returns:
         (1, ..., K) solution. Identity rows (``a = c = r = 0``) get exactly 0, as from PCR; real
