@@ -50,7 +50,7 @@ BUDGET = {
     "spacings": 5,
     "system": 23,
     "solve": 68,
-    "thomas": 237,
+    "thomas": 236,
     "segment": 6,
     "evaluate": 22,
     "finish": 34,
