@@ -45,7 +45,7 @@ def percentiles(ms: list[float]) -> tuple[float, float]:
 
 
 def onnx_classifier(model_path: Path):
-    """The deployed path's per-window call (onnxruntime, zero state), warmed up."""
+    """The deployed path's per-window call (onnxruntime, zero state)."""
     from tactile.runtime.model import Model
 
     model = Model(model_path)
