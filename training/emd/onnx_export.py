@@ -125,11 +125,17 @@ def _drop_update_slices(model: onnx.ModelProto) -> onnx.ModelProto:
     kept = [n for n in graph.node if id(n) not in drop or any(o in users for o in n.output)]
     del graph.node[:]
     graph.node.extend(kept)
-    used = {v for n in kept for v in n.input} | {v for n in kept for v in _subgraph_inputs(n)}
+    _drop_unused_initializers(graph)
+    return model
+
+
+def _drop_unused_initializers(graph: onnx.GraphProto) -> None:
+    """Remove the initializers no node (nor any subgraph of one) reads."""
+    used = {v for n in graph.node for v in n.input}
+    used |= {v for n in graph.node for v in _subgraph_inputs(n)}
     inits = [init for init in graph.initializer if init.name in used]
     del graph.initializer[:]
     graph.initializer.extend(inits)
-    return model
 
 
 def _fold_constants(model: onnx.ModelProto) -> onnx.ModelProto:
@@ -207,11 +213,7 @@ def _rank_constants(model: onnx.ModelProto) -> onnx.ModelProto:
                 added[new] = numpy_helper.from_array(shaped, new)
             node.input[i] = new
     graph.initializer.extend(added.values())
-    used = {v for n in graph.node for v in n.input}
-    used |= {v for n in graph.node for v in _subgraph_inputs(n)}
-    inits = [init for init in graph.initializer if init.name in used]
-    del graph.initializer[:]
-    graph.initializer.extend(inits)
+    _drop_unused_initializers(graph)
     return model
 
 
@@ -274,12 +276,6 @@ def _inline(
         new.name = name(init.name)
         inits.append(new)
     return nodes, inits
-
-
-def _copy(node: onnx.NodeProto) -> onnx.NodeProto:
-    new = onnx.NodeProto()
-    new.CopyFrom(node)
-    return new
 
 
 def _t(name: str, elem: int, shape: list) -> onnx.ValueInfoProto:
@@ -571,7 +567,7 @@ def build_emd_model(
             helper.make_node("ReduceMax", ["i_alive_f"], ["i_alive_max"], keepdims=0),
             helper.make_node("Cast", ["i_alive_max"], ["i_go"], to=TensorProto.BOOL),
             *sifts,
-            *[_copy(n) for n in c_nodes],
+            *c_nodes,  # make_graph copies them into each body
         ]
         suffix = "_large" if large else ""
         imf_graph = _loop_body(
@@ -615,14 +611,13 @@ def build_emd_model(
     inits.append(helper.make_tensor("n_imfs", TensorProto.INT64, [], [n_imfs]))
     inits.append(helper.make_tensor("n_sifts", TensorProto.INT64, [], [n_sifts]))
     inits.append(helper.make_tensor("thomas_rows", TensorProto.INT64, [], [thomas_rows]))
-    inits.append(helper.make_tensor("row_axis", TensorProto.INT64, [1], [0]))
+    inits.append(helper.make_tensor("row_axis", TensorProto.INT64, [], [0]))
     main_nodes = [
         *i_nodes,
         # The solver follows the row count, as spline.solve does in torch.
         helper.make_node("Shape", ["x"], ["x_shape"]),
         helper.make_node("Gather", ["x_shape", "row_axis"], ["n_rows"], axis=0),
-        helper.make_node("Squeeze", ["n_rows"], ["n_rows0"]),
-        helper.make_node("GreaterOrEqual", ["n_rows0", "thomas_rows"], ["use_thomas"]),
+        helper.make_node("GreaterOrEqual", ["n_rows", "thomas_rows"], ["use_thomas"]),
         helper.make_node(
             "If", ["use_thomas"], loop_outs, then_branch=branches[True],
             else_branch=branches[False],
