@@ -17,10 +17,16 @@ from scipy.interpolate import CubicSpline
 
 from tactile.errors import ConfigError
 from tactile.training.emd import EMD, EMDConfig
-from tactile.training.emd.boundary import boundary_knots
+from tactile.training.emd.boundary import boundary_knots, side_coordinates
 from tactile.training.emd.envelope import evaluate, segment_index
 from tactile.training.emd.extrema import extrema_marks, find_extrema
-from tactile.training.emd.knots import assemble, end_extrema, extrema_counts, n_slots
+from tactile.training.emd.knots import (
+    assemble,
+    end_extrema,
+    end_extrema_topk,
+    extrema_counts,
+    n_slots,
+)
 from tactile.training.emd.sift import envelopes, sift
 from tactile.training.emd.spline import THOMAS_ROWS, pcr_solve, spline_system, thomas_solve
 
@@ -112,6 +118,15 @@ def _case(x: np.ndarray, pmax: np.ndarray, pmin: np.ndarray) -> tuple[str, str]:
     return left, right
 
 
+def _assert_same_knots(got, bxy, bv):
+    """``got`` has the validity ``bv`` and the knots ``bxy`` wherever they are valid (the
+    others go to the dump slot, never used)."""
+    gxy, gv = got
+    assert torch.equal(gv, bv)
+    keep = bv.bool().expand_as(bxy)
+    assert torch.equal(gxy[keep], bxy[keep])
+
+
 def test_boundary_knots_match_pyemd_in_every_case():
     rng = np.random.default_rng(2)
     seen: set[str] = set()
@@ -128,10 +143,15 @@ def test_boundary_knots_match_pyemd_in_every_case():
         marks = extrema_marks(h)  # (2, 1, N)
         cnt, n = extrema_counts(marks)
         p, v = end_extrema(h, cnt, n)
-        bxy, bv = boundary_knots(h, p, v, n)
+        q = side_coordinates(p, len(x))
+        bxy, bv = boundary_knots(h, q, v, n)
+        # The end extrema by TopK (the exported small-batch body's) give the same knots.
+        tq, tv, tn = end_extrema_topk(h, marks)
+        assert torch.equal(tn, n)
+        _assert_same_knots(boundary_knots(h, tq, tv, tn), bxy, bv)
         # The row-last layout (the exported large-batch body's) gives the same bits.
         last = (0, 2, 3, 1)
-        txy, tv = boundary_knots(h, p.permute(last), v.permute(last), n.permute(last), True)
+        txy, tv = boundary_knots(h, q.permute(last), v.permute(last), n.permute(last), True)
         assert torch.equal(txy.transpose(-1, -2), bxy) and torch.equal(tv.transpose(-1, -2), bv)
         (kx, ky), j1, _ = assemble(h, marks, bxy, bv)
         for env, ref in ((0, ref_max), (1, ref_min)):
@@ -168,7 +188,7 @@ def test_segment_from_running_count_equals_a_search_over_the_knots():
         if int(n.sum()) <= 2:
             continue
         p, v = end_extrema(h, cnt, n)
-        bxy, bv = boundary_knots(h, p, v, n)
+        bxy, bv = boundary_knots(h, side_coordinates(p, len(x)), v, n)
         xy, j1, ks = assemble(h, marks, bxy, bv)
         got = segment_index(ks, j1)[:, 0].numpy()  # (2, N)
         t = np.arange(len(x))

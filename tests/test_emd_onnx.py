@@ -40,12 +40,14 @@ NEAR_TIE = 1e-5  # x window std
 # then "strict" without ties or "plateau" with them, ...). Lower them when a piece gets leaner;
 # a rise means a change added kernel launches to every sift.
 BUDGET = {
-    "head": 8,
+    "head": 7,
     "strict": 6,
     "plateau": 29,
+    "end_topk": 10,  # below THOMAS_ROWS rows; from there on "counts", "end_extrema", "sides"
     "counts": 3,
     "end_extrema": 12,
-    "boundary": 42,
+    "sides": 2,
+    "boundary": 39,
     "assemble": 17,
     "spacings": 5,
     "system": 23,
@@ -55,9 +57,9 @@ BUDGET = {
     "evaluate": 22,
     "finish": 34,
 }
-SIFT_SHORTEST = 186  # nodes run by one sift with few knots (later IMFs)
-SIFT_LONGEST = 225  # ... and with many knots (every PCR step)
-SIFT_LARGE = 398  # nodes one sift runs from THOMAS_ROWS rows on (Thomas solver, no Ifs)
+SIFT_SHORTEST = 177  # nodes run by one sift with few knots (later IMFs)
+SIFT_LONGEST = 216  # ... and with many knots (every PCR step)
+SIFT_LARGE = 396  # nodes one sift runs from THOMAS_ROWS rows on (Thomas solver, no Ifs)
 
 
 def _session(model: onnx.ModelProto) -> ort.InferenceSession:
@@ -158,9 +160,9 @@ def test_sift_body_and_total_node_counts(default_model):
     assert large_ops.count("If") == 1  # the extremum rule's only
     branches = sum(v for k, v in graphs.items() if k.startswith(("step", "solved", "plateau")))
     bodies = graphs["sift"] + graphs["strict"] + graphs["sift_large"] + graphs["strict_large"]
-    # Beyond those: two IMF loop bodies (21 nodes each), the solver If's branches and the
-    # main graph (set-up, the row-count test, reshapes; 33 now, 34 allowed).
-    assert count_nodes(model.graph) <= bodies + branches + 2 * 21 + 34
+    # Beyond those: two IMF loop bodies (21 nodes each), the solver If's branches (a Loop
+    # each) and the main graph (set-up, the row-count test, reshapes): 36 now.
+    assert count_nodes(model.graph) <= bodies + branches + 2 * 21 + 36
 
 
 @pytest.mark.parametrize("batch", [4, 30])  # 12 rows: PCR; 90 rows: Thomas

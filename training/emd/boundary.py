@@ -27,22 +27,38 @@ import torch
 from torch import Tensor
 
 
+def side_coordinates(p: Tensor, n_time: int, rows_last: bool = False) -> Tensor:
+    """Sample positions -> distances from the end each list is seen from.
+
+    ``p``: (2, R, 2, 4) positions of ``[end sample, E0, E1, E2]`` from each end
+    (:func:`knots.end_extrema`), or (2, 2, 4, R) with ``rows_last``; the left end's are
+    unchanged, the right end's become ``N - 1 - p``.
+    """
+    dt, dev = p.dtype, p.device
+    rows = (1,) if rows_last else ()
+    side_sign = torch.tensor([1.0, -1.0], dtype=dt, device=dev).reshape(2, 1, *rows)
+    side_off = torch.tensor([0.0, n_time - 1.0], dtype=dt, device=dev).reshape(2, 1, *rows)
+    return p * side_sign + side_off
+
+
 def boundary_knots(
-    h: Tensor, p: Tensor, v: Tensor, n: Tensor, rows_last: bool = False
+    h: Tensor, q: Tensor, v: Tensor, n: Tensor, rows_last: bool = False
 ) -> tuple[Tensor, Tensor]:
     """The mirrored knots of both envelopes at both ends.
 
     Args:
         h: (R, N) signals (only the length is used).
-        p, v: (2, R, 2, 4) positions (sample indices) and values of ``[end sample, E0, E1, E2]``
-            seen from each end (:func:`knots.end_extrema`); n: (2, R, 1, 1) extrema counts.
+        q: (2, R, 2, 4) distances from each end (:func:`side_coordinates`) of
+            ``[end sample, E0, E1, E2]`` seen from that end; v: (2, R, 2, 4) the *signed* half
+            values there, ``sigma * S / 2`` with ``sigma = +1`` for the maxima' row and ``-1``
+            for the minima's (:func:`knots.end_extrema`); n: (2, R, 1, 1) extrema counts.
 
     Returns:
-        xy: (2, 2, R, 4) knot positions and values (scaled as ``v``), ordered
+        xy: (2, 2, R, 4) knot positions and half values (signs undone), ordered
             ``[left far, left near, right near, right far]`` (ascending when valid).
         valid: (2, R, 4) 0/1 floats. Rows with fewer than 3 extrema get meaningless knots.
 
-    With ``rows_last`` every tensor has the row axis last instead: ``p``, ``v`` (2, 2, 4, R),
+    With ``rows_last`` every tensor has the row axis last instead: ``q``, ``v`` (2, 2, 4, R),
     ``n`` (2, 1, 1, R); returns ``xy`` (2, 2, 4, R) and ``valid`` (2, 4, R). The same
     elementwise operations and gathers, so the same bits; onnxruntime broadcasts over a long
     innermost axis far faster than over the short side and source axes (the exported graph's
@@ -50,24 +66,17 @@ def boundary_knots(
     """
     n_time = int(h.shape[-1])
     dt, dev = h.dtype, h.device
-    last = float(n_time - 1)
-    rows = (1,) if rows_last else ()  # a trailing row axis for the constants
     ax = -2 if rows_last else -1  # the sources' axis
-    side_sign = torch.tensor([1.0, -1.0], dtype=dt, device=dev).reshape(2, 1, *rows)  # (side, 1)
-    side_off = torch.tensor([0.0, last], dtype=dt, device=dev).reshape(2, 1, *rows)
-    env_sign = torch.tensor([1.0, -1.0], dtype=dt, device=dev).reshape(2, 1, 1, 1)
     # Left side takes sources [far, near], right side [near, far]: ascending positions at once.
-    kvec = torch.tensor([[1.0, 0.0], [0.0, 1.0]], dtype=dt, device=dev).reshape(2, 2, *rows)
-    q = p * side_sign + side_off  # (2, R, side, 4): distance from the end (the end sample: 0)
-
+    kvec = torch.tensor([[1.0, 0.0], [0.0, 1.0]], dtype=dt, device=dev)
+    kvec = kvec.reshape(2, 2, 1) if rows_last else kvec
     first = q.narrow(ax, 1, 1)  # (2, R, side, 1)
     other = first.flip(0)  # the other envelope's first extremum
     is_f = first < other  # (2, R, side, 1): this envelope plays F
     f0 = torch.minimum(first, other)
-    ends, v0 = v.narrow(ax, 0, 1), v.narrow(ax, 1, 1)
     # Case 1 seen from either envelope: sigma_F * (S[end] - vG0) > 0, i.e. G's own
     # sigma_G * (vG0 - S[end]) > 0 (sigma_G = -sigma_F), read from G's row when this one is F.
-    own = (v0 - ends) * env_sign  # (2, R, side, 1)
+    own = v.narrow(ax, 1, 1) - v.narrow(ax, 0, 1)  # (2, R, side, 1): signed values
     case1 = torch.where(is_f, own.flip(0), own) > 0
     # Fallback: the outermost case-1 knot of F (source F[min(2, nF-1)]) or of G (source
     # G[min(1, nG-1)]) would not reach past the end (list index + 1: the end sample is first).
@@ -82,7 +91,12 @@ def boundary_knots(
     val = torch.gather(v, ax, idx)
     # A source exists when the list is long enough; a knot on E0 duplicates it.
     valid = (src <= n) & (kx < first)
-    kx = kx * side_sign + side_off  # back to sample positions
+    # [kx, val] (4, R, side, k): positions back from side coordinates, values unsigned.
+    scale = torch.tensor([[1.0, -1.0], [1.0, -1.0], [1.0, 1.0], [-1.0, -1.0]], dtype=dt,
+                         device=dev)
+    offset = torch.tensor([[0.0, n_time - 1.0]] * 2 + [[0.0, 0.0]] * 2, dtype=dt, device=dev)
+    shape = (4, 2, 1, 1) if rows_last else (4, 1, 2, 1)
+    xy = torch.cat([kx, val]) * scale.reshape(shape) + offset.reshape(shape)
     if rows_last:
-        return torch.cat([kx, val]).reshape(2, 2, 4, -1), valid.to(dt).reshape(2, 4, -1)
-    return torch.cat([kx, val]).reshape(2, 2, -1, 4), valid.to(dt).reshape(2, -1, 4)
+        return xy.reshape(2, 2, 4, -1), valid.to(dt).reshape(2, 4, -1)
+    return xy.reshape(2, 2, -1, 4), valid.to(dt).reshape(2, -1, 4)

@@ -11,6 +11,7 @@ system divides by zero.
 from __future__ import annotations
 
 import torch
+import torch.nn.functional as F
 from torch import Tensor
 
 
@@ -45,7 +46,8 @@ def end_extrema(h: Tensor, cnt: Tensor, n: Tensor) -> tuple[Tensor, Tensor]:
     Returns:
         p: (2, R, 2, 4) positions ``[[0, E0, E1, E2], [N-1, E[n-1], E[n-2], E[n-3]]]``;
             entries past the list hold 0 or N-1 (placeholders, never used as knots).
-        v: (2, R, 2, 4) half the signal values there (see :func:`assemble`).
+        v: (2, R, 2, 4) half the signal values there (see :func:`assemble`), signed: negated
+            in the minima's row (:func:`boundary.boundary_knots` compares them that way).
     """
     n_time = int(h.shape[-1])
     dt, dev = h.dtype, h.device
@@ -54,9 +56,54 @@ def end_extrema(h: Tensor, cnt: Tensor, n: Tensor) -> tuple[Tensor, Tensor]:
     rank = n * w.unsqueeze(-1) + b.unsqueeze(-1)  # (2, R, 8, 1): ranks 0..3, n+1, n, n-1, n-2
     p = (cnt.unsqueeze(-2) < rank).to(dt).sum(-1)  # (2, R, 8)
     p = torch.clamp(p, max=n_time - 1.0)
-    half = torch.full((2, 1, 1), 0.5, dtype=dt, device=dev)
+    half = torch.tensor([0.5, -0.5], dtype=dt, device=dev).reshape(2, 1, 1)
     v = torch.gather(h * half, -1, p.long())  # (2, R, 8)
     return p.reshape(2, -1, 2, 4), v.reshape(2, -1, 2, 4)
+
+
+def end_base(h: Tensor) -> Tensor:
+    """(R, N) signals -> (2, R, 2, 1) int64 end samples ``[0, N-1]`` of each row and envelope,
+    what :func:`end_extrema_topk` puts first; it depends only on the shape (made once)."""
+    ends = torch.tensor([0.0, h.shape[-1] - 1.0], dtype=h.dtype, device=h.device)
+    zero = (h[:, :1] * 0.0).reshape(1, -1, 1, 1)  # (1, R, 1, 1)
+    return (zero + ends.reshape(1, 1, 2, 1).expand(2, 1, 2, 1)).long()
+
+
+def end_extrema_topk(
+    h: Tensor, marks: Tensor, ends: Tensor | None = None
+) -> tuple[Tensor, Tensor, Tensor]:
+    """:func:`end_extrema` by ``TopK``, with the count of the extrema (:func:`extrema_counts`).
+
+    Args:
+        h: (R, N) signals; marks: (2, R, N) 0/1 extremum marks; ends: :func:`end_base` of
+            ``h`` (made here when not given).
+
+    Returns:
+        q: (2, R, 2, 4) the positions in side coordinates (:func:`boundary.side_coordinates`
+            of :func:`end_extrema`'s) and v: (2, R, 2, 4) the same signed half values, wherever
+            the list has an entry; past it, placeholders (never used as knots).
+        n: (2, R, 1, 1) extrema in the row.
+
+    The first three extrema are the three largest of ``marks * (N - t)``, the last three the
+    three largest of ``marks * (t + 1)``: one ``TopK`` over both sides, whose indices are the
+    positions and whose values give the distances from the end (``N - key`` on both sides), in
+    place of :func:`end_extrema`'s comparison of every running count with every rank. Fewer
+    and cheaper nodes with few rows; with many, onnxruntime's ``TopK`` is the slower (the
+    exported large-batch body keeps :func:`end_extrema`). The keys of marked samples are
+    distinct and positive, so ties (unmarked samples) only decide the placeholders.
+    """
+    n_time = int(h.shape[-1])
+    dt, dev = h.dtype, h.device
+    t = torch.arange(n_time, dtype=dt, device=dev)
+    m4 = marks.unsqueeze(2)  # (2, R, 1, N)
+    key = m4 * torch.stack([n_time - t, t + 1.0])  # (2, R, 2, N): [from the left, the right]
+    top, idx = torch.topk(key, 3, dim=-1)  # (2, R, 2, 3): E0, E1, E2 / E[n-1], E[n-2], ...
+    q = F.pad(n_time - top, (1, 0))  # (2, R, 2, 4): the end sample is at distance 0
+    if ends is None:
+        ends = end_base(h)
+    half = torch.tensor([[0.5, 0.5], [-0.5, -0.5]], dtype=dt, device=dev).reshape(2, 1, 2, 1)
+    v = torch.gather(h.unsqueeze(1) * half, -1, torch.cat([ends, idx], dim=-1))  # (2, R, 2, 4)
+    return q, v, m4.sum(-1, keepdim=True)
 
 
 def slot_base(h: Tensor) -> Tensor:

@@ -38,7 +38,7 @@ from tactile.errors import ConfigError
 
 from .decompose import imf_update
 from .extrema import differences, has_tie, plateau_marks, strict_marks
-from .knots import n_slots, slot_base
+from .knots import end_base, n_slots, slot_base
 from .module import EMDConfig
 from .sift import finish, prepare
 from .spline import THOMAS_ROWS, decoupled_after, pcr_last, pcr_step, pcr_steps, thomas_solve
@@ -344,8 +344,10 @@ def _sift_graph(
     r1 = {1: "rows"}
     r2 = {2: "rows"}
 
-    def pre(h: Tensor, marks: Tensor, base: Tensor) -> tuple[Tensor, ...]:
-        sys, *rest = prepare(h, marks, base, rows_last=large)
+    def pre(h: Tensor, marks: Tensor, base: Tensor, *ends: Tensor) -> tuple[Tensor, ...]:
+        # The small body finds the end extrema by TopK (from the end samples made once).
+        sys, *rest = prepare(h, marks, base, rows_last=large, ends=ends[0] if ends else None,
+                             topk=not large)
         for step in range(always):
             sys = pcr_step(sys, 1 << step)
         done = [] if large else [decoupled_after(rest[1], step) for step in range(always, steps)]
@@ -355,12 +357,13 @@ def _sift_graph(
     head = trace_graph(_head, [h], ["h"], ["sg", "tie"], {"h": rows, "sg": rows})
     strict = trace_graph(strict_marks, [sg], ["sg"], ["marks"], {"sg": rows, "marks": r1})
     plateau = trace_graph(plateau_marks, [sg], ["sg"], ["marks"], {"sg": rows, "marks": r1})
+    ends = [] if large else [end_base(h)]
     prep = trace_graph(
         pre,
-        [h, marks, base],
-        ["h", "marks", "base"],
+        [h, marks, base, *ends],
+        ["h", "marks", "base", *["ends"][: len(ends)]],
         ["sys", "xy", "j1", "ks", "n_ext", "hk", "sl", *done_names],
-        {"h": rows, "marks": r1, "base": r2, "sys": r2, "xy": r2, "j1": r1, "ks": r1,
+        {"h": rows, "marks": r1, "base": r2, "ends": r1, "sys": r2, "xy": r2, "j1": r1, "ks": r1,
          "n_ext": {0: "rows"}, "hk": r2, "sl": r2},
     )
     if not large:
@@ -408,7 +411,8 @@ def _sift_graph(
         )
     )
     # The slots' starting content depends only on the shape: made once, outside the loops.
-    outer = {"h": "s_h", "marks": "s_marks", "base": "slot_base", "sys": f"s_sys{always}"}
+    outer = {"h": "s_h", "marks": "s_marks", "base": "slot_base", "ends": "end_base",
+             "sys": f"s_sys{always}"}
     outer.update({v: f"s_{v}" for v in ["xy", "j1", "ks", "n_ext", "hk", "sl", *done_names]})
     nodes += add(prep, "prep/", outer)
 
@@ -457,10 +461,11 @@ def _finish_sift(*args: Tensor, split_sum: bool = False) -> tuple[Tensor, Tensor
     return h, active, active.any()
 
 
-def _init(x3: Tensor) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor]:
+def _init(x3: Tensor) -> tuple[Tensor, ...]:
     x = x3.reshape(-1, x3.shape[-1])  # (R, N)
     alive = x[:, 0] == x[:, 0]  # (R,) all true for finite input
-    return x, x * 0.0, alive, torch.zeros_like(x[:, 0], dtype=torch.int64), slot_base(x)
+    nv = torch.zeros_like(x[:, 0], dtype=torch.int64)
+    return x, x * 0.0, alive, nv, slot_base(x), end_base(x)
 
 
 def _close(x: Tensor, acc: Tensor, h: Tensor, active: Tensor, n_valid: Tensor):
@@ -504,7 +509,7 @@ def build_emd_model(
     rows = {0: "rows"}
 
     init = trace_graph(
-        _init, [x3], ["x3"], ["x", "acc", "alive", "nv", "base"], {"x3": {0: "batch"}}
+        _init, [x3], ["x3"], ["x", "acc", "alive", "nv", "base", "ends"], {"x3": {0: "batch"}}
     )
     close = trace_graph(
         _close,
@@ -592,7 +597,7 @@ def build_emd_model(
         init,
         "init/",
         {"x3": "x_in", "x": "x", "acc": "acc0", "alive": "alive0", "nv": "nv0",
-         "base": "slot_base"},
+         "base": "slot_base", "ends": "end_base"},
     )
     f_nodes, f_inits = _inline(
         finish,

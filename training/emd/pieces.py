@@ -7,10 +7,17 @@ from collections.abc import Callable
 import torch
 from torch import Tensor
 
-from .boundary import boundary_knots
+from .boundary import boundary_knots, side_coordinates
 from .envelope import evaluate, segment_index
 from .extrema import differences, extrema_marks, has_tie, plateau_marks, strict_marks
-from .knots import assemble, end_extrema, extrema_counts, slot_base
+from .knots import (
+    assemble,
+    end_base,
+    end_extrema,
+    end_extrema_topk,
+    extrema_counts,
+    slot_base,
+)
 from .sift import finish
 from .spline import pcr_solve, spacings, spline_system, thomas_solve
 
@@ -25,7 +32,8 @@ def piece_examples(
     marks = extrema_marks(h)
     cnt, n = extrema_counts(marks)
     p, v = end_extrema(h, cnt, n)
-    bxy, bv = boundary_knots(h, p, v, n)
+    q = side_coordinates(p, n_time)
+    bxy, bv = boundary_knots(h, q, v, n)
     xy, j1, ks = assemble(h, marks, bxy, bv)
     hk, sl = spacings(xy)
     system = spline_system(xy, j1, hk, sl)
@@ -37,9 +45,11 @@ def piece_examples(
         "head": (lambda h: (d := torch.sign(differences(h)), has_tie(d)), (h,)),
         "strict": (strict_marks, (d,)),
         "plateau": (plateau_marks, (d,)),
+        "end_topk": (end_extrema_topk, (h, marks, end_base(h))),
         "counts": (extrema_counts, (marks,)),
         "end_extrema": (end_extrema, (h, cnt, n)),
-        "boundary": (boundary_knots, (h, p, v, n)),
+        "sides": (lambda p: side_coordinates(p, n_time), (p,)),
+        "boundary": (boundary_knots, (h, q, v, n)),
         "assemble": (assemble, (h, marks, bxy, bv, slot_base(h))),
         "spacings": (spacings, (xy,)),
         "system": (spline_system, (xy, j1, hk, sl)),

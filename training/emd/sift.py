@@ -10,23 +10,32 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
-from .boundary import boundary_knots
+from .boundary import boundary_knots, side_coordinates
 from .envelope import evaluate, segment_index
 from .extrema import extrema_marks
-from .knots import assemble, end_extrema, extrema_counts
-from .spline import solve, spacings, spline_system
+from .knots import assemble, end_extrema, end_extrema_topk, extrema_counts
+from .spline import THOMAS_ROWS, solve, spacings, spline_system
 
 
 def prepare(
-    h: Tensor, marks: Tensor, base: Tensor | None = None, rows_last: bool = False
+    h: Tensor,
+    marks: Tensor,
+    base: Tensor | None = None,
+    rows_last: bool = False,
+    ends: Tensor | None = None,
+    topk: bool | None = None,
 ) -> tuple[Tensor, ...]:
     """Knots and spline system of both envelopes of every row.
 
     Args:
         h: (R, N) signals, N >= 3, finite; marks: (2, R, N) their extremum marks.
-        base: :func:`knots.slot_base` of ``h`` (computed when not given).
+        base, ends: :func:`knots.slot_base` and :func:`knots.end_base` of ``h`` (computed
+            when not given).
         rows_last: run the boundary rule with the row axis last (same bits; the exported
             large-batch body's layout, see :func:`boundary.boundary_knots`).
+        topk: find the end extrema by :func:`knots.end_extrema_topk` rather than
+            :func:`knots.end_extrema` (the same knots); by default below
+            :data:`spline.THOMAS_ROWS` rows, as the exported graph does.
 
     Returns:
         sys: (3, 2, R, K) the unit-diagonal system (:func:`spline.spline_system`).
@@ -34,14 +43,22 @@ def prepare(
         knot counted at each sample (:func:`knots.assemble`); n_ext: (R,) extrema per row
         (PyEMD's ``extNo``); hk, sl: (1, 2, R, K-1) knot spacings and secant slopes.
     """
-    cnt, n = extrema_counts(marks)  # (2, R, N), (2, R, 1, 1)
-    p, v = end_extrema(h, cnt, n)  # (2, R, 2, 4) x2
+    if topk is None:
+        topk = int(h.shape[0]) < THOMAS_ROWS
+    n_time = int(h.shape[-1])
+    if topk:
+        q, v, n = end_extrema_topk(h, marks, ends)  # (2, R, 2, 4) x2, (2, R, 1, 1)
+    else:
+        cnt, n = extrema_counts(marks)  # (2, R, N), (2, R, 1, 1)
+        p, v = end_extrema(h, cnt, n)  # (2, R, 2, 4) x2
     if rows_last:
         last = (0, 2, 3, 1)  # (2, R, a, b) -> (2, a, b, R)
-        bxy, bv = boundary_knots(h, p.permute(last), v.permute(last), n.permute(last), True)
+        q = side_coordinates(p.permute(last), n_time, True) if not topk else q.permute(last)
+        bxy, bv = boundary_knots(h, q, v.permute(last), n.permute(last), True)
         bxy, bv = bxy.transpose(-1, -2), bv.transpose(-1, -2)
     else:
-        bxy, bv = boundary_knots(h, p, v, n)  # (2, 2, R, 4), (2, R, 4)
+        q = q if topk else side_coordinates(p, n_time)
+        bxy, bv = boundary_knots(h, q, v, n)  # (2, 2, R, 4), (2, R, 4)
     # (2, 2, R, K) knots (half values), (2, R, 1) last slot, (2, R, N) slot at each sample:
     xy, j1, ks = assemble(h, marks, bxy, bv, base)
     hk, sl = spacings(xy)  # shared by the system and the envelopes' coefficients
