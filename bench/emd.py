@@ -322,7 +322,7 @@ def _sifts_run(windows: np.ndarray) -> float:
     count = 0
     for window in windows:
         x = torch.from_numpy(window.astype(np.float64))
-        acc, alive = torch.zeros_like(x), torch.ones(x.shape[0], dtype=torch.bool)
+        acc, alive = torch.zeros_like(x), torch.ones(x.shape[0], 1, dtype=torch.bool)
         for _ in range(N_IMFS):
             h, active = x - acc, alive
             for _ in range(N_SIFTS):

@@ -253,7 +253,7 @@ def test_one_sift_matches_pyemd_envelopes():
     x = np.concatenate([windows(kind, 50, 40, 10 + i) for i, kind in enumerate(KINDS)])
     x = np.concatenate([x, rng.standard_normal((100, 50))])
     env, n_ext = envelopes(torch.tensor(x))
-    h, active = sift(torch.tensor(x), torch.ones(len(x), dtype=torch.bool))
+    h, active = sift(torch.tensor(x), torch.ones(len(x), 1, dtype=torch.bool))
     t = np.arange(50, dtype=float)
     for i in range(len(x)):
         pmax, _, pmin, _, _ = REF._find_extrema_simple(t, x[i])

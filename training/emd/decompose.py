@@ -26,17 +26,18 @@ def imf_update(x: Tensor, acc: Tensor, h: Tensor, active: Tensor) -> tuple[Tenso
 
     Args:
         x: (R, N) input; acc: (R, N) sum of the IMFs so far.
-        h: (R, N) sifted proto-IMF; active: (R,) rows whose sifts all found > 2 extrema.
+        h: (R, N) sifted proto-IMF; active: (R, 1) rows whose sifts all found > 2 extrema.
 
     Returns:
         imf: (R, N) ``h`` for active rows, 0 elsewhere.
         acc: (R, N) updated sum (PyEMD's ``np.sum(IMF, axis=0)``, added in the same order).
-        alive: (R,) ``active`` and the residue ``x - acc`` is still above both thresholds.
+        alive: (R, 1) ``active`` and the residue ``x - acc`` is still above both thresholds.
     """
-    imf = torch.where(active.unsqueeze(-1), h, torch.zeros((), dtype=h.dtype, device=h.device))
+    imf = torch.where(active, h, torch.zeros((), dtype=h.dtype, device=h.device))
     acc = acc + imf
     res = x - acc  # (R, N)
-    big = (res.amax(-1) - res.amin(-1) >= RANGE_THR) & (res.abs().sum(-1) >= POWER_THR)
+    big = res.amax(-1, keepdim=True) - res.amin(-1, keepdim=True) >= RANGE_THR
+    big = big & (res.abs().sum(-1, keepdim=True) >= POWER_THR)  # (R, 1)
     return imf, acc, active & big
 
 
@@ -53,8 +54,8 @@ def decompose(x: Tensor, n_imfs: int, n_sifts: int) -> tuple[Tensor, Tensor, Ten
         n_valid: (R,) int64 number of IMFs.
     """
     acc = torch.zeros_like(x)  # (R, N)
-    alive = torch.ones_like(x[:, 0], dtype=torch.bool)  # (R,)
-    n_valid = torch.zeros_like(x[:, 0], dtype=torch.int64)  # (R,)
+    alive = torch.ones_like(x[:, :1], dtype=torch.bool)  # (R, 1): a column selects rows
+    n_valid = torch.zeros_like(x[:, :1], dtype=torch.int64)  # (R, 1)
     imfs = []
     for _ in range(n_imfs):
         h, active = x - acc, alive  # PyEMD restarts from S - sum(IMF)
@@ -63,4 +64,4 @@ def decompose(x: Tensor, n_imfs: int, n_sifts: int) -> tuple[Tensor, Tensor, Ten
         imf, acc, alive = imf_update(x, acc, h, active)
         n_valid = n_valid + active.long()
         imfs.append(imf)
-    return torch.stack(imfs, dim=1), x - acc, n_valid
+    return torch.stack(imfs, dim=1), x - acc, n_valid[:, 0]

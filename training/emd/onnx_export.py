@@ -449,7 +449,7 @@ def _sift_graph(
         {"h": "s_h", "act": "s_a", "m": "s_m", "h_out": "s_h_out", "act_out": "s_a_out",
          "go": "s_c_out", **{v: f"s_{v}" for v in ["xy", "j1", "ks", "n_ext", "hk", "sl"]}},
     )
-    carried = [("s_h", elem, ["rows", n_time]), ("s_a", TensorProto.BOOL, ["rows"])]
+    carried = [("s_h", elem, ["rows", n_time]), ("s_a", TensorProto.BOOL, ["rows", 1])]
     graph = _loop_body("sift" + suffix, "s", nodes, carried, cond_out=True)
     return graph, inits
 
@@ -463,8 +463,8 @@ def _finish_sift(*args: Tensor, split_sum: bool = False) -> tuple[Tensor, Tensor
 
 def _init(x3: Tensor) -> tuple[Tensor, ...]:
     x = x3.reshape(-1, x3.shape[-1])  # (R, N)
-    alive = x[:, 0] == x[:, 0]  # (R,) all true for finite input
-    nv = torch.zeros_like(x[:, 0], dtype=torch.int64)
+    alive = x[:, :1] == x[:, :1]  # (R, 1) all true for finite input
+    nv = torch.zeros_like(x[:, :1], dtype=torch.int64)
     return x, x * 0.0, alive, nv, slot_base(x), end_base(x)
 
 
@@ -503,8 +503,8 @@ def build_emd_model(
     elem = _DTYPES[dtype]
     r = 3 * n_channels  # example rows: any value > 1 keeps the row axis symbolic
     h = torch.randn(r, n_time, dtype=dtype)
-    act = torch.ones(r, dtype=torch.bool)
-    nv = torch.zeros(r, dtype=torch.int64)
+    act = torch.ones(r, 1, dtype=torch.bool)
+    nv = torch.zeros(r, 1, dtype=torch.int64)
     x3 = torch.randn(3, n_channels, n_time, dtype=dtype)
     rows = {0: "rows"}
 
@@ -554,7 +554,7 @@ def build_emd_model(
     inits += c_inits
     loop_outs = ["acc", "alive", "nv", "imfs_scan"]
     loop_types = [elem, TensorProto.BOOL, TensorProto.INT64, elem]
-    loop_shapes = [["rows", n_time], ["rows"], ["rows"], [n_imfs, "rows", n_time]]
+    loop_shapes = [["rows", n_time], ["rows", 1], ["rows", 1], [n_imfs, "rows", n_time]]
     branches = {}
     for large in (False, True):
         # Inner loop: one sift per iteration.
@@ -579,8 +579,8 @@ def build_emd_model(
             "imf" + suffix,
             "i",
             imf_nodes,
-            [("i_acc", elem, ["rows", n_time]), ("i_alive", TensorProto.BOOL, ["rows"]),
-             ("i_nv", TensorProto.INT64, ["rows"])],
+            [("i_acc", elem, ["rows", n_time]), ("i_alive", TensorProto.BOOL, ["rows", 1]),
+             ("i_nv", TensorProto.INT64, ["rows", 1])],
             scans=[("i_imf", elem, ["rows", n_time])],
         )
         # Outer loop: one IMF per iteration, inside one branch of the solver choice.

@@ -39,8 +39,8 @@ def piece_examples(
     system = spline_system(xy, j1, hk, sl)
     m = pcr_solve(system)
     seg = segment_index(ks, j1)
-    n_ext = n.sum(dim=(0, 2, 3))
-    active = torch.ones(rows, dtype=torch.bool)
+    n_ext = n.sum(dim=(0, 3))
+    active = torch.ones(rows, 1, dtype=torch.bool)
     return {
         "head": (lambda h: (d := torch.sign(differences(h)), has_tie(d)), (h,)),
         "strict": (strict_marks, (d,)),

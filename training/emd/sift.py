@@ -40,7 +40,7 @@ def prepare(
     Returns:
         sys: (3, 2, R, K) the unit-diagonal system (:func:`spline.spline_system`).
         xy: (2, 2, R, K) knots; j1: (2, R, 1) last real slot; ks: (2, R, N) slot of the last
-        knot counted at each sample (:func:`knots.assemble`); n_ext: (R,) extrema per row
+        knot counted at each sample (:func:`knots.assemble`); n_ext: (R, 1) extrema per row
         (PyEMD's ``extNo``); hk, sl: (1, 2, R, K-1) knot spacings and secant slopes.
     """
     if topk is None:
@@ -62,7 +62,7 @@ def prepare(
     # (2, 2, R, K) knots (half values), (2, R, 1) last slot, (2, R, N) slot at each sample:
     xy, j1, ks = assemble(h, marks, bxy, bv, base)
     hk, sl = spacings(xy)  # shared by the system and the envelopes' coefficients
-    return spline_system(xy, j1, hk, sl), xy, j1, ks, n.sum(dim=(0, 2, 3)), hk, sl
+    return spline_system(xy, j1, hk, sl), xy, j1, ks, n.sum(dim=(0, 3)), hk, sl
 
 
 def finish(
@@ -78,13 +78,13 @@ def finish(
     seven times the split and the addition; with few rows the one reduction node is cheaper.
     """
     half = evaluate(h, xy, m, segment_index(ks, j1), hk, sl)  # (1, 2, R, N) envelopes / 2
-    active = active & (n_ext > 2.0)  # (R,)
+    active = active & (n_ext > 2.0)  # (R, 1)
     if split_sum:
         upper, lower = half.split(1, dim=1)  # (1, 1, R, N) each
         mean = (upper + lower).squeeze(1).squeeze(0)
     else:
         mean = half.sum(dim=(0, 1))  # (R, N): (upper + lower) / 2, bit for bit as PyEMD's
-    return torch.where(active.unsqueeze(-1), h - mean, h), active
+    return torch.where(active, h - mean, h), active
 
 
 def envelopes(h: Tensor, marks: Tensor | None = None) -> tuple[Tensor, Tensor]:
@@ -97,7 +97,7 @@ def envelopes(h: Tensor, marks: Tensor | None = None) -> tuple[Tensor, Tensor]:
 
     Returns:
         env: (2, R, N) [upper, lower]; meaningless in rows with fewer than 3 extrema.
-        n_ext: (R,) number of extrema (PyEMD's ``extNo``).
+        n_ext: (R, 1) number of extrema (PyEMD's ``extNo``).
     """
     if marks is None:
         marks = extrema_marks(h)  # (2, R, N)
@@ -111,13 +111,13 @@ def sift(h: Tensor, active: Tensor, marks: Tensor | None = None) -> tuple[Tensor
 
     Args:
         h: (R, N) current proto-IMFs.
-        active: (R,) bool, rows still being sifted.
+        active: (R, 1) bool, rows still being sifted (a column: it selects rows of ``h``).
         marks: (2, R, N) extremum marks of ``h``, computed here when not given (the exported
             graph computes them in an ``If`` before the rest of the sift).
 
     Returns:
         h: (R, N) ``h - (upper + lower) / 2`` where active, unchanged elsewhere.
-        active: (R,) ``active`` and the row had more than 2 extrema (PyEMD stops the whole
+        active: (R, 1) ``active`` and the row had more than 2 extrema (PyEMD stops the whole
             decomposition of a row the first time a sift finds ``extNo <= 2``).
     """
     if marks is None:
