@@ -48,7 +48,7 @@ BUDGET = {
     "end_extrema": 12,
     "sides": 2,
     "boundary": 39,
-    "assemble": 17,
+    "assemble": 18,
     "spacings": 5,
     "system": 23,
     "solve": 68,
@@ -57,9 +57,9 @@ BUDGET = {
     "evaluate": 22,
     "finish": 33,
 }
-SIFT_SHORTEST = 176  # nodes run by one sift with few knots (later IMFs)
-SIFT_LONGEST = 215  # ... and with many knots (every PCR step)
-SIFT_LARGE = 395  # nodes one sift runs from THOMAS_ROWS rows on (Thomas solver, no Ifs)
+SIFT_SHORTEST = 177  # nodes run by one sift with few knots (later IMFs)
+SIFT_LONGEST = 216  # ... and with many knots (every PCR step)
+SIFT_LARGE = 396  # nodes one sift runs from THOMAS_ROWS rows on (Thomas solver, no Ifs)
 
 
 def _session(model: onnx.ModelProto) -> ort.InferenceSession:
@@ -161,8 +161,9 @@ def test_sift_body_and_total_node_counts(default_model):
     branches = sum(v for k, v in graphs.items() if k.startswith(("step", "solved", "plateau")))
     bodies = graphs["sift"] + graphs["strict"] + graphs["sift_large"] + graphs["strict_large"]
     # Beyond those: two IMF loop bodies (21 nodes each), the solver If's branches (a Loop
-    # each) and the main graph (set-up, the row-count test, reshapes): 36 now.
-    assert count_nodes(model.graph) <= bodies + branches + 2 * 21 + 36
+    # each) and the main graph (set-up with the tensors the bodies take from outside, the
+    # row-count test, reshapes): 39 now.
+    assert count_nodes(model.graph) <= bodies + branches + 2 * 21 + 39
 
 
 @pytest.mark.parametrize("batch", [4, 30])  # 12 rows: PCR; 90 rows: Thomas

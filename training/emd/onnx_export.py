@@ -344,10 +344,10 @@ def _sift_graph(
     r1 = {1: "rows"}
     r2 = {2: "rows"}
 
-    def pre(h: Tensor, marks: Tensor, base: Tensor, *ends: Tensor) -> tuple[Tensor, ...]:
+    def pre(h: Tensor, marks: Tensor, *made: Tensor) -> tuple[Tensor, ...]:
         # The small body finds the end extrema by TopK (from the end samples made once).
-        sys, *rest = prepare(h, marks, base, rows_last=large, ends=ends[0] if ends else None,
-                             topk=not large)
+        sys, *rest = prepare(h, marks, made[:3], rows_last=large,
+                             ends=made[3] if len(made) > 3 else None, topk=not large)
         for step in range(always):
             sys = pcr_step(sys, 1 << step)
         done = [] if large else [decoupled_after(rest[1], step) for step in range(always, steps)]
@@ -358,13 +358,14 @@ def _sift_graph(
     strict = trace_graph(strict_marks, [sg], ["sg"], ["marks"], {"sg": rows, "marks": r1})
     plateau = trace_graph(plateau_marks, [sg], ["sg"], ["marks"], {"sg": rows, "marks": r1})
     ends = [] if large else [end_base(h)]
+    made = ["dummies", "slots", "cands", *["ends"][: len(ends)]]
     prep = trace_graph(
         pre,
-        [h, marks, base, *ends],
-        ["h", "marks", "base", *["ends"][: len(ends)]],
+        [h, marks, *base, *ends],
+        ["h", "marks", *made],
         ["sys", "xy", "j1", "ks", "n_ext", "hk", "sl", *done_names],
-        {"h": rows, "marks": r1, "base": r2, "ends": r1, "sys": r2, "xy": r2, "j1": r1, "ks": r1,
-         "n_ext": {0: "rows"}, "hk": r2, "sl": r2},
+        {"h": rows, "marks": r1, "dummies": r2, "slots": r1, "cands": r1, "ends": r1,
+         "sys": r2, "xy": r2, "j1": r1, "ks": r1, "n_ext": {0: "rows"}, "hk": r2, "sl": r2},
     )
     if not large:
         solved = trace_graph(lambda sys: sys[2:3], [sys], ["sys"], ["m"], {"sys": r2, "m": r2})
@@ -410,9 +411,9 @@ def _sift_graph(
             then_branch=branches["plateau"], else_branch=branches["strict"],
         )
     )
-    # The slots' starting content depends only on the shape: made once, outside the loops.
-    outer = {"h": "s_h", "marks": "s_marks", "base": "slot_base", "ends": "end_base",
-             "sys": f"s_sys{always}"}
+    # What depends only on the shape is made once, outside the loops.
+    outer = {"h": "s_h", "marks": "s_marks", "sys": f"s_sys{always}"}
+    outer.update({v: f"made_{v}" for v in made})
     outer.update({v: f"s_{v}" for v in ["xy", "j1", "ks", "n_ext", "hk", "sl", *done_names]})
     nodes += add(prep, "prep/", outer)
 
@@ -461,11 +462,14 @@ def _finish_sift(*args: Tensor, split_sum: bool = False) -> tuple[Tensor, Tensor
     return h, active, active.any()
 
 
+_MADE = ["dummies", "slots", "cands", "ends"]  # what _init makes for the sift bodies
+
+
 def _init(x3: Tensor) -> tuple[Tensor, ...]:
     x = x3.reshape(-1, x3.shape[-1])  # (R, N)
     alive = x[:, :1] == x[:, :1]  # (R, 1) all true for finite input
     nv = torch.zeros_like(x[:, :1], dtype=torch.int64)
-    return x, x * 0.0, alive, nv, slot_base(x), end_base(x)
+    return x, x * 0.0, alive, nv, *slot_base(x), end_base(x)
 
 
 def _close(x: Tensor, acc: Tensor, h: Tensor, active: Tensor, n_valid: Tensor):
@@ -509,7 +513,7 @@ def build_emd_model(
     rows = {0: "rows"}
 
     init = trace_graph(
-        _init, [x3], ["x3"], ["x", "acc", "alive", "nv", "base", "ends"], {"x3": {0: "batch"}}
+        _init, [x3], ["x3"], ["x", "acc", "alive", "nv", *_MADE], {"x3": {0: "batch"}}
     )
     close = trace_graph(
         _close,
@@ -597,7 +601,7 @@ def build_emd_model(
         init,
         "init/",
         {"x3": "x_in", "x": "x", "acc": "acc0", "alive": "alive0", "nv": "nv0",
-         "base": "slot_base", "ends": "end_base"},
+         **{v: f"made_{v}" for v in _MADE}},
     )
     f_nodes, f_inits = _inline(
         finish,

@@ -20,7 +20,7 @@ from .spline import THOMAS_ROWS, solve, spacings, spline_system
 def prepare(
     h: Tensor,
     marks: Tensor,
-    base: Tensor | None = None,
+    base: tuple[Tensor, Tensor, Tensor] | None = None,
     rows_last: bool = False,
     ends: Tensor | None = None,
     topk: bool | None = None,
