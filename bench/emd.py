@@ -278,15 +278,12 @@ def bench_node_costs(tmp: Path, repeats: int, copies: int = 4, top: int = 25) ->
     return [*lines, ""]
 
 
-def bench_solvers(repeats: int, batches=(1, 4, 8, 12, 16, 32, 256)) -> list[str]:
+def bench_solvers(repeats: int, batches=(1, 2, 4, 6, 8, 16, 32, 256)) -> list[str]:
     """ms per window of the 8 x 50 graph with PCR and with the Thomas algorithm at every size."""
     x = signal_windows(256, 8, 50).astype(np.float32)
     opts = options()
-    pcr, thomas = (
-        ort.InferenceSession(build_emd_model(N_IMFS, N_SIFTS, 8, 50, thomas_rows=t)
-                             .SerializeToString(), opts, providers=["CPUExecutionProvider"])
-        for t in (2**62, 1)
-    )
+    graphs = [build_emd_model(N_IMFS, N_SIFTS, 8, 50, thomas_rows=t).SerializeToString()
+              for t in (2**62, 1)]
     lines = [
         f"## Spline solver by batch size (8 x 50; the graph switches at {THOMAS_ROWS} rows)",
         "",
@@ -295,6 +292,10 @@ def bench_solvers(repeats: int, batches=(1, 4, 8, 12, 16, 32, 256)) -> list[str]
     ]
     for b in batches:
         n = max(b, 32)  # windows per timed run
+        # Fresh sessions for every batch size: a session that ran batch 1 first runs the small
+        # body at batch 2-6 some 15% slower than a fresh one (seen with onnxruntime 1.32).
+        pcr, thomas = (ort.InferenceSession(g, opts, providers=["CPUExecutionProvider"])
+                       for g in graphs)
 
         def run(sess: ort.InferenceSession, b: int = b, n: int = n) -> None:
             for i in range(0, n, b):
