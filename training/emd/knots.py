@@ -3,9 +3,9 @@
 Per envelope (axis 0: [upper, lower]) and row, knots live in ``K = N // 2 + 5`` slots. The
 valid knots, in ascending order ``[left far, left near, interior extrema..., right near,
 right far]``, take slots ``0 .. j1``: each knot's slot is the running count of valid knots
-before it, so one cumulative sum and one scatter place them all. Every slot after ``j1`` holds
-a dummy position above all knots, so all spacings are positive and nothing in the spline
-system divides by zero.
+before it, so one cumulative sum, one scatter of indices and one gather place them all. Every
+slot after ``j1`` holds a dummy position above all knots, so all spacings are positive and
+nothing in the spline system divides by zero.
 """
 
 from __future__ import annotations
@@ -122,9 +122,9 @@ def slot_base(h: Tensor) -> tuple[Tensor, Tensor, Tensor]:
     zero = h[:, :1] * 0.0  # (R, 1)
     dummy = torch.arange(k, dtype=dt, device=dev) + 16.0 * n_time
     dummies = zero + torch.stack([dummy, dummy * 0.0]).reshape(2, 1, 1, k).expand(2, 2, 1, k)
-    count = torch.arange(k + 1 + n_time + 4, dtype=dt, device=dev)
-    index = (zero + count.reshape(1, 1, -1).expand(2, 1, -1)).long()  # (2, R, K + 1 + N + 4)
-    return dummies, index[..., : k + 1] + (n_time + 4), index[..., : n_time + 4]
+    count = torch.arange(n_time + 4, dtype=dt, device=dev)  # N + 4 >= K + 1 for N >= 3
+    index = (zero + count.reshape(1, 1, -1).expand(2, 1, -1)).long()  # (2, R, N + 4)
+    return dummies, index[..., : k + 1] + (n_time + 4), index
 
 
 def assemble(
