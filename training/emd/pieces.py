@@ -50,8 +50,10 @@ def piece_examples(
         "end_extrema": (end_extrema, (h, cnt, n)),
         "sides": (lambda p: side_coordinates(p, n_time), (p,)),
         "boundary": (boundary_knots, (h, q, v, n)),
-        "assemble": (lambda h, m, xy, v, *b: assemble(h, m, xy, v, b), (h, marks, bxy, bv,
-                                                                        *slot_base(h))),
+        "assemble": (
+            lambda h, m, xy, v, *base: assemble(h, m, xy, v, base),
+            (h, marks, bxy, bv, *slot_base(h)),
+        ),
         "spacings": (spacings, (xy,)),
         "system": (spline_system, (xy, j1, hk, sl)),
         "solve": (pcr_solve, (system,)),
