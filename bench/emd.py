@@ -293,7 +293,8 @@ def bench_solvers(repeats: int, batches=(1, 2, 4, 6, 8, 16, 32, 256)) -> list[st
     for b in batches:
         n = max(b, 32)  # windows per timed run
         # Fresh sessions for every batch size: a session that ran batch 1 first runs the small
-        # body at batch 2-6 some 15% slower than a fresh one (seen with onnxruntime 1.32).
+        # body at batch 2-6 some 15% slower than a fresh one (onnxruntime 1.32; the TopK node
+        # is involved: the same body without it shows no such effect).
         pcr, thomas = (ort.InferenceSession(g, opts, providers=["CPUExecutionProvider"])
                        for g in graphs)
 
