@@ -345,9 +345,9 @@ def _sift_graph(
     r2 = {2: "rows"}
 
     def pre(h: Tensor, marks: Tensor, *made: Tensor) -> tuple[Tensor, ...]:
-        # The small body finds the end extrema by TopK (from the end samples made once).
-        sys, *rest = prepare(h, marks, made[:3], rows_last=large,
-                             ends=made[3] if len(made) > 3 else None, topk=not large)
+        # made: slot_base's three tensors, then (small body) the end samples for TopK.
+        ends = None if large else made[3]
+        sys, *rest = prepare(h, marks, made[:3], ends=ends, large=large)
         for step in range(always):
             sys = pcr_step(sys, 1 << step)
         done = [] if large else [decoupled_after(rest[1], step) for step in range(always, steps)]
@@ -381,7 +381,7 @@ def _sift_graph(
             {"sys": r2, "m": r2},
         )
     tail = trace_graph(
-        lambda *args: _finish_sift(*args, split_sum=large),
+        lambda *args: _finish_sift(*args, large=large),
         [h, act, xy, m, j1, ks, n_ext, hk, sl],
         ["h", "act", "xy", "m", "j1", "ks", "n_ext", "hk", "sl"],
         ["h_out", "act_out", "go"],
@@ -455,10 +455,10 @@ def _sift_graph(
     return graph, inits
 
 
-def _finish_sift(*args: Tensor, split_sum: bool = False) -> tuple[Tensor, Tensor, Tensor]:
+def _finish_sift(*args: Tensor, large: bool = False) -> tuple[Tensor, Tensor, Tensor]:
     """:func:`sift.finish`, and whether any row is still active (the sift loop's condition:
     a row that stopped stays unchanged, so the remaining sifts can be skipped exactly)."""
-    h, active = finish(*args, split_sum=split_sum)
+    h, active = finish(*args, large=large)
     return h, active, active.any()
 
 

@@ -21,9 +21,8 @@ def prepare(
     h: Tensor,
     marks: Tensor,
     base: tuple[Tensor, Tensor, Tensor] | None = None,
-    rows_last: bool = False,
     ends: Tensor | None = None,
-    topk: bool | None = None,
+    large: bool | None = None,
 ) -> tuple[Tensor, ...]:
     """Knots and spline system of both envelopes of every row.
 
@@ -31,11 +30,11 @@ def prepare(
         h: (R, N) signals, N >= 3, finite; marks: (2, R, N) their extremum marks.
         base, ends: :func:`knots.slot_base` and :func:`knots.end_base` of ``h`` (computed
             when not given).
-        rows_last: run the boundary rule with the row axis last (same bits; the exported
-            large-batch body's layout, see :func:`boundary.boundary_knots`).
-        topk: find the end extrema by :func:`knots.end_extrema_topk` rather than
-            :func:`knots.end_extrema` (the same knots); by default below
-            :data:`spline.THOMAS_ROWS` rows, as the exported graph does.
+        large: the path for many rows: the end extrema by running count
+            (:func:`knots.end_extrema`, where onnxruntime's ``TopK`` is the slower) and the
+            boundary rule with the row axis last (:func:`boundary.boundary_knots`); otherwise
+            :func:`knots.end_extrema_topk` and the row-first layout. The same knots either way.
+            By default from :data:`spline.THOMAS_ROWS` rows on, as the exported graph chooses.
 
     Returns:
         sys: (3, 2, R, K) the unit-diagonal system (:func:`spline.spline_system`).
@@ -43,21 +42,17 @@ def prepare(
         knot counted at each sample (:func:`knots.assemble`); n_ext: (R, 1) extrema per row
         (PyEMD's ``extNo``); hk, sl: (1, 2, R, K-1) knot spacings and secant slopes.
     """
-    if topk is None:
-        topk = int(h.shape[0]) < THOMAS_ROWS
-    n_time = int(h.shape[-1])
-    if topk:
-        q, v, n = end_extrema_topk(h, marks, ends)  # (2, R, 2, 4) x2, (2, R, 1, 1)
-    else:
+    if large is None:
+        large = int(h.shape[0]) >= THOMAS_ROWS
+    if large:
         cnt, n = extrema_counts(marks)  # (2, R, N), (2, R, 1, 1)
         p, v = end_extrema(h, cnt, n)  # (2, R, 2, 4) x2
-    if rows_last:
         last = (0, 2, 3, 1)  # (2, R, a, b) -> (2, a, b, R)
-        q = side_coordinates(p.permute(last), n_time, True) if not topk else q.permute(last)
-        bxy, bv = boundary_knots(h, q, v.permute(last), n.permute(last), True)
+        q = side_coordinates(p.permute(last), int(h.shape[-1]), rows_last=True)
+        bxy, bv = boundary_knots(h, q, v.permute(last), n.permute(last), rows_last=True)
         bxy, bv = bxy.transpose(-1, -2), bv.transpose(-1, -2)
     else:
-        q = q if topk else side_coordinates(p, n_time)
+        q, v, n = end_extrema_topk(h, marks, ends)  # (2, R, 2, 4) x2, (2, R, 1, 1)
         bxy, bv = boundary_knots(h, q, v, n)  # (2, 2, R, 4), (2, R, 4)
     # (2, 2, R, K) knots (half values), (2, R, 1) last slot, (2, R, N) slot at each sample:
     xy, j1, ks = assemble(h, marks, bxy, bv, base)
@@ -67,19 +62,22 @@ def prepare(
 
 def finish(
     h: Tensor, active: Tensor, xy: Tensor, m: Tensor, j1: Tensor, ks: Tensor, n_ext: Tensor,
-    hk: Tensor, sl: Tensor, split_sum: bool = False,
+    hk: Tensor, sl: Tensor, large: bool | None = None,
 ) -> tuple[Tensor, Tensor]:
     """Evaluate the envelopes and subtract their mean (the arguments as :func:`prepare` gives
     them, ``m`` (1, 2, R, K) from :func:`spline.solve`); returns as :func:`sift`.
 
-    ``split_sum`` adds the two half envelopes as two tensors instead of reducing over their
-    axis: the same single addition, so the same bits. The exported graph's large-batch body
-    uses it, where onnxruntime's reduction over a leading axis costs about 1 ns an element,
-    seven times the split and the addition; with few rows the one reduction node is cheaper.
+    ``large`` (by default from :data:`spline.THOMAS_ROWS` rows on, as in :func:`prepare`) adds
+    the two half envelopes as two tensors instead of reducing over their axis: the same single
+    addition, so the same bits. onnxruntime's reduction over a leading axis costs about 1 ns an
+    element, seven times the split and the addition; with few rows the one reduction node is
+    cheaper.
     """
+    if large is None:
+        large = int(h.shape[0]) >= THOMAS_ROWS
     half = evaluate(h, xy, m, segment_index(ks, j1), hk, sl)  # (1, 2, R, N) envelopes / 2
     active = active & (n_ext > 2.0)  # (R, 1)
-    if split_sum:
+    if large:
         upper, lower = half.split(1, dim=1)  # (1, 1, R, N) each
         mean = (upper + lower).squeeze(1).squeeze(0)
     else:

@@ -155,7 +155,8 @@ full-width tensors (fewer once the systems decouple), the Thomas algorithm about
 on one column each. With few rows every node costs about the same fixed microsecond, so fewer
 nodes win; with many rows the work per element decides, and the Thomas algorithm does
 ``O(K)`` of it against PCR's ``O(K log K)``. ``bench/emd.py --solvers`` measures the
-crossover (about 64 rows for 50-sample windows).
+crossover for 50-sample windows (32-48 rows with fresh sessions, where the two exported bodies
+also differ in how they find the end extrema; 64 costs a few percent in between).
 """
 
 
