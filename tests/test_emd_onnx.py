@@ -48,7 +48,7 @@ BUDGET = {
     "end_extrema": 12,
     "sides": 2,
     "boundary": 39,
-    "assemble": 18,
+    "assemble": 15,
     "spacings": 5,
     "system": 23,
     "solve": 68,
@@ -57,9 +57,9 @@ BUDGET = {
     "evaluate": 22,
     "finish": 33,
 }
-SIFT_SHORTEST = 177  # nodes run by one sift with few knots (later IMFs)
-SIFT_LONGEST = 216  # ... and with many knots (every PCR step)
-SIFT_LARGE = 396  # nodes one sift runs from THOMAS_ROWS rows on (Thomas solver, no Ifs)
+SIFT_SHORTEST = 174  # nodes run by one sift with few knots (later IMFs)
+SIFT_LONGEST = 213  # ... and with many knots (every PCR step)
+SIFT_LARGE = 393  # nodes one sift runs from THOMAS_ROWS rows on (Thomas solver, no Ifs)
 
 
 def _session(model: onnx.ModelProto) -> ort.InferenceSession:

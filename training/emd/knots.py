@@ -112,9 +112,11 @@ def slot_base(h: Tensor) -> tuple[Tensor, Tensor, Tensor]:
 
     Returns:
         dummies: (2, 2, R, K) dummy knots: positions above every knot (increasing), values 0.
-        slots: (2, R, K + 1) int64: slot ``s`` names dummy ``s`` (candidate ``N + 4 + s``);
-            the last slot takes the invalid candidates.
-        cands: (2, R, N + 4) int64: each candidate's own index ``0 .. N + 3``.
+        slots: (2, R, K + 1) int64: slot 0 takes the invalid candidates; slot ``s >= 1`` names
+            dummy ``s - 1`` (candidate ``N + 3 + s``).
+        cands: (2, R, N + 4) int64: the index of each candidate, in knot order ``[left far,
+            left near, interior 0 .. N-1, right near, right far]``, in :func:`assemble`'s
+            candidate table ``[mirrored 0 .. 3, interior, dummies]``: ``0, 1, 4 .. N+3, 2, 3``.
     """
     n_time = int(h.shape[-1])
     k = n_slots(n_time)
@@ -123,8 +125,10 @@ def slot_base(h: Tensor) -> tuple[Tensor, Tensor, Tensor]:
     dummy = torch.arange(k, dtype=dt, device=dev) + 16.0 * n_time
     dummies = zero + torch.stack([dummy, dummy * 0.0]).reshape(2, 1, 1, k).expand(2, 2, 1, k)
     count = torch.arange(n_time + 4, dtype=dt, device=dev)  # N + 4 >= K + 1 for N >= 3
-    index = (zero + count.reshape(1, 1, -1).expand(2, 1, -1)).long()  # (2, R, N + 4)
-    return dummies, index[..., : k + 1] + (n_time + 4), index
+    order = torch.cat([count[:2], count[4:], count[2:4]])  # knot order -> table index
+    index = (zero + order.reshape(1, 1, -1).expand(2, 1, -1)).long()  # (2, R, N + 4)
+    slots = (zero + (count[: k + 1] + (n_time + 3.0)).reshape(1, 1, -1).expand(2, 1, -1)).long()
+    return dummies, slots, index
 
 
 def assemble(
@@ -156,22 +160,22 @@ def assemble(
     candidates), the invalid ones to a dump slot, and positions and values are gathered by
     index from the candidates followed by the dummies: half the scattered values of scattering
     positions and values themselves, and onnxruntime scatters about five times slower per
-    value than it gathers.
+    value than it gathers. The slot is the count times the 0/1 validity, so the dump is slot 0
+    (cut off after the scatter; what lands there is never read), and the mirrored knots lead
+    the candidate table whole, so neither needs more than one node.
     """
     n_time = int(h.shape[-1])
-    k = n_slots(n_time)
     dt, dev = h.dtype, h.device
     dummies, slots, cands = slot_base(h) if base is None else base
     left, right = bv.split(2, dim=-1)
     valid = torch.cat([left, marks, right], dim=-1)  # (2, R, N + 4), ascending knot order
-    last = torch.cumsum(valid, dim=-1) - 1.0  # slot of the last valid knot so far
-    slot = (valid * (last - k) + k).long()  # valid: its own slot; invalid: dump slot K
-    src = slots.scatter(-1, slot, cands)[..., :k]  # (2, R, K): candidate in each slot
+    count = torch.cumsum(valid, dim=-1)  # valid knots so far: a valid knot's slot + 1
+    src = slots.scatter(-1, (count * valid).long(), cands)[..., 1:]  # (2, R, K): candidate
     # Interior candidates [t, h[t] / 2] for both envelopes: (2, 1, R, N) + (2, 2, 1, N).
     t = torch.arange(n_time, dtype=dt, device=dev)
     scale = torch.tensor([0.0, 0.5], dtype=dt, device=dev).reshape(2, 1, 1, 1)
     grid = torch.stack([t, t * 0.0]).reshape(2, 1, 1, n_time).expand(2, 2, 1, n_time)
-    lb, rb = bxy.split(2, dim=-1)
-    cand = torch.cat([lb, h * scale + grid, rb, dummies], dim=-1)  # (2, 2, R, N + 4 + K)
+    cand = torch.cat([bxy, h * scale + grid, dummies], dim=-1)  # (2, 2, R, 4 + N + K)
     xy = torch.gather(cand, -1, src.expand(2, -1, -1, -1))  # (2, 2, R, K)
+    last = count - 1.0  # slot of the last valid knot so far
     return xy, last[..., -1:], last[..., 2 : n_time + 2]
