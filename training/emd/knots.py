@@ -126,9 +126,9 @@ def slot_base(h: Tensor) -> tuple[Tensor, Tensor, Tensor]:
     dummies = zero + torch.stack([dummy, dummy * 0.0]).reshape(2, 1, 1, k).expand(2, 2, 1, k)
     count = torch.arange(n_time + 4, dtype=dt, device=dev)  # N + 4 >= K + 1 for N >= 3
     order = torch.cat([count[:2], count[4:], count[2:4]])  # knot order -> table index
-    index = (zero + order.reshape(1, 1, -1).expand(2, 1, -1)).long()  # (2, R, N + 4)
+    cands = (zero + order.reshape(1, 1, -1).expand(2, 1, -1)).long()  # (2, R, N + 4)
     slots = (zero + (count[: k + 1] + (n_time + 3.0)).reshape(1, 1, -1).expand(2, 1, -1)).long()
-    return dummies, slots, index
+    return dummies, slots, cands
 
 
 def assemble(

@@ -357,11 +357,12 @@ def _sift_graph(
     head = trace_graph(_head, [h], ["h"], ["sg", "tie"], {"h": rows, "sg": rows})
     strict = trace_graph(strict_marks, [sg], ["sg"], ["marks"], {"sg": rows, "marks": r1})
     plateau = trace_graph(plateau_marks, [sg], ["sg"], ["marks"], {"sg": rows, "marks": r1})
-    ends = [] if large else [end_base(h)]
-    made = ["dummies", "slots", "cands", *["ends"][: len(ends)]]
+    # The large body finds the end extrema by running count: it takes no end samples.
+    made = _MADE[:3] if large else _MADE
+    made_examples = [*base] if large else [*base, end_base(h)]
     prep = trace_graph(
         pre,
-        [h, marks, *base, *ends],
+        [h, marks, *made_examples],
         ["h", "marks", *made],
         ["sys", "xy", "j1", "ks", "n_ext", "hk", "sl", *done_names],
         {"h": rows, "marks": r1, "dummies": r2, "slots": r1, "cands": r1, "ends": r1,
