@@ -7,10 +7,10 @@ Without --model it trains and exports a small model with EMD features on (the pe
 Prints, with one thread: per-window latency p50/p99 at batch 1 (onnxruntime) and of the
 reference pipeline (PyEMD EMD per channel + PyTorch LSTM), the two timed window by window in
 one interleaved pass (so the host's drift during the run affects both alike); the deployed
-path's p50/p99 of per-window minima over --passes further passes (its own tail, with the host's
-interference removed); the highest sustained sample rate of the whole path (decode bytes ->
-window -> inference), resident memory of a tactile-run process, and the time from start to the
-first label.
+path's p50/p99 of each window's fastest time over --passes further passes (its own tail, with
+most of the host's interference removed); the highest sustained sample rate of the whole path
+(decode bytes -> window -> inference), resident memory of a tactile-run process, and the time
+from start to the first label.
 """
 
 from __future__ import annotations
@@ -117,9 +117,9 @@ def paired_latency(
 def steady_latency(ours, windows: np.ndarray, passes: int) -> list[float]:
     """Per-window minimum milliseconds of the deployed path over ``passes`` passes.
 
-    Interference from the host only ever adds time, so the minimum over passes is what the code
-    itself costs on each window; its p99 is the tail the windows' data cause (more extrema, more
-    PCR steps, the plateau rule), without the host's.
+    Interference from the host only ever adds time, so the minimum over passes approaches what the
+    code itself costs on each window; its p99 is the tail the windows' data cause (more extrema,
+    more PCR steps, the plateau rule), with most of the host's removed.
     """
     best = np.full(len(windows), np.inf)
     for _ in range(passes):
@@ -213,8 +213,8 @@ def main() -> None:
               f"{ref_p50 / onnx_p50:.1f}x |")
         print(f"| latency p99, ms/window | {onnx_p99:.2f} | {ref_p99:.2f} | "
               f"{ref_p99 / onnx_p99:.1f}x |")
-        print(f"| latency p50 / p99 of per-window minima over {args.passes} passes (no host "
-              f"interference) | {steady_p50:.2f} / {steady_p99:.2f} | | |")
+        print(f"| latency p50 / p99 of each window's fastest of {args.passes} more passes | "
+              f"{steady_p50:.2f} / {steady_p99:.2f} | | |")
         print(f"| sustained sample rate (hop 25) | {rate:,.0f} Hz ({rate / 100:.0f}x the pen's "
               f"100 Hz) | | |")
         print(f"| resident memory | {rss:.0f} MB | | |")
