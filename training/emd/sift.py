@@ -14,7 +14,7 @@ from .boundary import boundary_knots, side_coordinates
 from .envelope import evaluate, segment_index
 from .extrema import extrema_marks
 from .knots import assemble, end_extrema, end_extrema_topk, extrema_counts
-from .spline import THOMAS_ROWS, solve, spacings, spline_system
+from .spline import large_path, solve, spacings, spline_system
 
 
 def prepare(
@@ -43,7 +43,7 @@ def prepare(
         (PyEMD's ``extNo``); hk, sl: (1, 2, R, K-1) knot spacings and secant slopes.
     """
     if large is None:
-        large = int(h.shape[0]) >= THOMAS_ROWS
+        large = large_path(int(h.shape[0]))
     if large:
         cnt, n = extrema_counts(marks)  # (2, R, N), (2, R, 1, 1)
         p, v = end_extrema(h, cnt, n)  # (2, R, 2, 4) x2
@@ -74,7 +74,7 @@ def finish(
     cheaper.
     """
     if large is None:
-        large = int(h.shape[0]) >= THOMAS_ROWS
+        large = large_path(int(h.shape[0]))
     half = evaluate(h, xy, m, segment_index(ks, j1), hk, sl)  # (1, 2, R, N) envelopes / 2
     active = active & (n_ext > 2.0)  # (R, 1)
     if large:

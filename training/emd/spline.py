@@ -160,6 +160,13 @@ also differ in how they find the end extrema; 64 costs a few percent in between)
 """
 
 
+def large_path(rows: int) -> bool:
+    """True from :data:`THOMAS_ROWS` rows on: the one rule by which :func:`solve`,
+    :func:`sift.prepare` and :func:`sift.finish` pick their many-row path, as the exported
+    graph's ``If`` on the row count does."""
+    return rows >= THOMAS_ROWS
+
+
 def thomas_solve(sys: Tensor) -> Tensor:
     """Solve unit-diagonal tridiagonal systems by the Thomas algorithm (no pivoting).
 
@@ -194,6 +201,6 @@ def solve(sys: Tensor, j1: Tensor | None = None) -> Tensor:
     """The spline system's solution, (3, 2, R, K) -> (1, 2, R, K): :func:`thomas_solve` from
     :data:`THOMAS_ROWS` rows on, :func:`pcr_solve` below (the exported graph makes the same
     choice, so onnxruntime and the torch module run the same arithmetic)."""
-    if int(sys.shape[2]) >= THOMAS_ROWS:
+    if large_path(int(sys.shape[2])):
         return thomas_solve(sys)
     return pcr_solve(sys, j1)
