@@ -41,13 +41,13 @@ NEAR_TIE = 1e-5  # x window std
 # a rise means a change added kernel launches to every sift.
 BUDGET = {
     "head": 7,
-    "strict": 6,
+    "strict": 5,
     "plateau": 29,
     "end_topk": 10,  # below THOMAS_ROWS rows; from there on "counts", "end_extrema", "sides"
     "counts": 3,
     "end_extrema": 12,
     "sides": 2,
-    "boundary": 39,
+    "boundary": 38,
     "assemble": 15,
     "spacings": 5,
     "system": 23,
@@ -57,9 +57,9 @@ BUDGET = {
     "evaluate": 22,
     "finish": 33,
 }
-SIFT_SHORTEST = 174  # nodes run by one sift with few knots (later IMFs)
-SIFT_LONGEST = 213  # ... and with many knots (every PCR step)
-SIFT_LARGE = 393  # nodes one sift runs from THOMAS_ROWS rows on (Thomas solver, no Ifs)
+SIFT_SHORTEST = 172  # nodes run by one sift with few knots (later IMFs)
+SIFT_LONGEST = 211  # ... and with many knots (every PCR step)
+SIFT_LARGE = 391  # nodes one sift runs from THOMAS_ROWS rows on (Thomas solver, no Ifs)
 
 
 def _session(model: onnx.ModelProto) -> ort.InferenceSession:

@@ -83,8 +83,10 @@ def boundary_knots(
     own_last = torch.gather(q, ax, torch.minimum(is_f.to(dt) + 2.0, n).long())
     two_f0 = 2.0 * f0
     reach = own_last >= two_f0  # (2, R, side, 1): not the fallback for this envelope
-    mirror_f0 = (case1 & reach & reach.flip(0)).to(dt)
-    shift = torch.where(is_f, mirror_f0 + 1.0, case1.to(dt))  # (2, R, side, 1) in 0..2
+    case1 = case1.to(dt)
+    # Both envelopes' outermost knots reach past the end: the smaller 0/1 over the two.
+    mirror_f0 = case1 * reach.to(dt).amin(0, keepdim=True)  # (2, R, side, 1)
+    shift = torch.where(is_f, mirror_f0 + 1.0, case1)  # (2, R, side, 1) in 0..2
     src = shift + kvec  # (2, R, side, k): index in [end sample, E0, E1, E2]
     idx = src.long()
     kx = two_f0 * mirror_f0 - torch.gather(q, ax, idx)  # mirrored, side coordinates

@@ -49,8 +49,12 @@ def strict_marks(sg: Tensor) -> Tensor:
     A sample is a maximum where the slope turns from rising to falling: the sign of the
     differences drops by 2 there (rises by 2 at a minimum). End samples are never extrema.
     """
-    turn = F.pad(sg[:, :-1] - sg[:, 1:], (1, 1))  # (R, N): +2 at maxima, -2 at minima
+    n = int(sg.shape[-1]) + 1
+    turn = F.pad(sg, (1, 0)) - F.pad(sg, (0, 1))  # (R, N): +2 at maxima, -2 at minima
+    # Half the sign change, signed per envelope, and 0 at the end samples (where ``turn`` is
+    # one difference alone): (2, 1, N).
     half = torch.tensor([0.5, -0.5], dtype=sg.dtype, device=sg.device).reshape(2, 1, 1)
+    half = F.pad(half.expand(2, 1, n - 2), (1, 1))
     return torch.relu(turn * half)  # (2, R, N)
 
 
