@@ -26,9 +26,16 @@ from tactile.training.emd.knots import (
     end_extrema_topk,
     extrema_counts,
     n_slots,
+    past_dummies,
 )
 from tactile.training.emd.sift import envelopes, sift
-from tactile.training.emd.spline import THOMAS_ROWS, pcr_solve, spline_system, thomas_solve
+from tactile.training.emd.spline import (
+    THOMAS_ROWS,
+    pcr_solve,
+    spacings,
+    spline_system,
+    thomas_solve,
+)
 
 PARITY_TOL = 1e-9  # x window std
 REF = PyEMD(FIXE=10, spline_kind="cubic", nbsym=2, extrema_detection="simple")
@@ -159,6 +166,9 @@ def test_boundary_knots_match_pyemd_in_every_case():
             assert np.array_equal(kx[env, 0, :hi].numpy(), ref[0]), (x, env)
             assert np.array_equal(2 * ky[env, 0, :hi].numpy(), ref[1]), (x, env)  # half values
             assert np.all(np.diff(kx[env, 0].numpy()) > 0)  # dummies keep spacings positive
+            assert hi < kx.shape[-1]  # the last slot always holds a dummy
+        hk, _ = spacings(torch.stack([kx, ky]), past_dummies(len(x)))
+        assert torch.all(hk[..., -1] == 1.0)  # its placeholder spacing, as the dummies' own
         seen.update(_case(x, pmax.astype(int), pmin.astype(int)))
         checked += 1
     assert checked > 2000
@@ -190,7 +200,7 @@ def test_segment_from_running_count_equals_a_search_over_the_knots():
         p, v = end_extrema(h, cnt, n)
         bxy, bv = boundary_knots(h, side_coordinates(p, len(x)), v, n)
         xy, j1, ks = assemble(h, marks, bxy, bv)
-        got = segment_index(ks, j1)[:, 0].numpy()  # (2, N)
+        got = segment_index(ks, j1)[0, :, 0].numpy()  # (2, N)
         t = np.arange(len(x))
         for env in range(2):
             last = int(j1[env, 0, 0])
@@ -239,7 +249,7 @@ def test_spline_pieces_match_scipy_not_a_knot_and_natural_3_point(n_knots, solve
         seg = np.clip(np.searchsorted(xs, t, side="right") - 1, 0, n_knots - 2)
         if n_knots >= 4:  # outer segments evaluate their neighbour's cubic (same polynomial)
             seg = np.clip(seg, 1, n_knots - 3)
-        seg_t = torch.tensor(seg).reshape(1, 1, -1).repeat(2, 1, 1)
+        seg_t = torch.tensor(seg).reshape(1, 1, 1, -1).repeat(1, 2, 1, 1)
         got = evaluate(torch.zeros(1, n_time), xy, m, seg_t)[0, 0, 0].numpy()
         if n_knots > 3:
             want = CubicSpline(xs, ys)(t)

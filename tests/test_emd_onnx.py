@@ -49,17 +49,17 @@ BUDGET = {
     "sides": 2,
     "boundary": 38,
     "assemble": 15,
-    "spacings": 5,
-    "system": 23,
+    "spacings": 4,
+    "system": 20,
     "solve": 68,
     "thomas": 236,
     "segment": 6,
-    "evaluate": 22,
-    "finish": 33,
+    "evaluate": 20,
+    "finish": 31,
 }
-SIFT_SHORTEST = 172  # nodes run by one sift with few knots (later IMFs)
-SIFT_LONGEST = 211  # ... and with many knots (every PCR step)
-SIFT_LARGE = 391  # nodes one sift runs from THOMAS_ROWS rows on (Thomas solver, no Ifs)
+SIFT_SHORTEST = 166  # nodes run by one sift with few knots (later IMFs)
+SIFT_LONGEST = 205  # ... and with many knots (every PCR step)
+SIFT_LARGE = 385  # nodes one sift runs from THOMAS_ROWS rows on (Thomas solver, no Ifs)
 
 
 def _session(model: onnx.ModelProto) -> ort.InferenceSession:

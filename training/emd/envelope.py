@@ -14,6 +14,7 @@ knots of a not-a-knot spline, up to rounding.
 from __future__ import annotations
 
 import torch
+import torch.nn.functional as F
 from torch import Tensor
 
 from .spline import spacings
@@ -28,7 +29,7 @@ def segment_index(ks: Tensor, j1: Tensor) -> Tensor:
         j1: (2, R, 1) last real knot slot.
 
     Returns:
-        (2, R, N) int64 slot ``k`` of the segment ``[x_k, x_{k+1}]`` evaluated at ``t``: the last
+        (1, 2, R, N) int64 slot ``k`` of the segment ``[x_k, x_{k+1}]`` evaluated at ``t``: the last
         knot at or before ``t``, clamped to ``[1, j1-2]`` for not-a-knot splines and to
         ``[0, j1-1]`` for 3-knot natural ones.
 
@@ -44,7 +45,8 @@ def segment_index(ks: Tensor, j1: Tensor) -> Tensor:
     """
     # Not-a-knot (j1 >= 3) clamps to [1, j1-2], natural 3-knot (j1 = 2) to [0, 1]; rows
     # without an envelope (j1 < 2) stay inside [0, 1].
-    j2 = j1 - 2.0  # (2, R, 1)
+    two = torch.full((1, 1, 1, 1), 2.0, dtype=j1.dtype, device=j1.device)
+    j2 = j1 - two  # (1, 2, R, 1): the leading axis comes with the broadcast, not a node
     lo = torch.clamp(j2, 0.0, 1.0)
     hi = torch.clamp(j2, min=1.0)
     # Slot of the last knot at or before t: (knots <= t) - 1.
@@ -60,8 +62,8 @@ def evaluate(
     Args:
         h: (R, N) signals (only the length is used).
         xy: (2, 2, R, K) knot positions and values; m: (1, 2, R, K) second derivatives over 6.
-        seg: (2, R, N) int64 segment slot per sample (:func:`segment_index`).
-        hk, sl: (1, 2, R, K-1) :func:`spline.spacings` of ``xy``, computed here when not given.
+        seg: (1, 2, R, N) int64 segment slot per sample (:func:`segment_index`).
+        hk, sl: (1, 2, R, K) :func:`spline.spacings` of ``xy``, computed here when not given.
 
     Returns:
         (1, 2, R, N) envelopes.
@@ -69,15 +71,13 @@ def evaluate(
     n_time = int(h.shape[-1])
     if hk is None or sl is None:
         hk, sl = spacings(xy)
-    m0 = m[..., :-1]
-    dm = m[..., 1:] - m0  # (1, 2, R, K-1)
+    dm = F.pad(m, (-1, 1)) - m  # (1, 2, R, K): m_k+1 - m_k (slot K-1 a placeholder)
     # scipy's PPoly form of the cubic on [x_k, x_k+1]: y_k + B (c1 + B (c2 + B c3)), with
     # c2 = M_k / 2 = 3 m_k, c3 = (M_k+1 - M_k) / (6 h) and c1 = slope - h (2 M_k + M_k+1) / 6.
-    c2 = 3.0 * m0
+    c2 = 3.0 * m
     c1 = sl - hk * (c2 + dm)
-    s1 = seg.unsqueeze(0)  # (1, 2, R, N)
-    x0, y0 = xy.split(1)  # (1, 2, R, K) each; a segment index is at most K-2
-    gx, gy, g1, g2, g3 = (torch.gather(c, -1, s1) for c in (x0, y0, c1, c2, dm / hk))
+    x0, y0 = xy.split(1)  # (1, 2, R, K) each; segments start below slot K-1
+    gx, gy, g1, g2, g3 = (torch.gather(c, -1, seg) for c in (x0, y0, c1, c2, dm / hk))
     t = torch.arange(n_time, dtype=xy.dtype, device=xy.device)  # (N,)
     b = t - gx
     return gy + b * (g1 + b * (g2 + b * g3))  # (1, 2, R, N)

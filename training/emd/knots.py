@@ -20,6 +20,12 @@ def n_slots(n_time: int) -> int:
     return n_time // 2 + 5
 
 
+def past_dummies(n_time: int) -> float:
+    """The position one past the last dummy of :func:`slot_base` (the dummies sit at
+    ``16 N + s``, above every knot, which lies within ``-N .. 2N``)."""
+    return 16.0 * n_time + n_slots(n_time)
+
+
 def extrema_counts(marks: Tensor) -> tuple[Tensor, Tensor]:
     """Running and total counts of the extrema.
 
@@ -122,7 +128,7 @@ def slot_base(h: Tensor) -> tuple[Tensor, Tensor, Tensor]:
     k = n_slots(n_time)
     dt, dev = h.dtype, h.device
     zero = h[:, :1] * 0.0  # (R, 1)
-    dummy = torch.arange(k, dtype=dt, device=dev) + 16.0 * n_time
+    dummy = torch.arange(k, dtype=dt, device=dev) + (past_dummies(n_time) - k)
     dummies = zero + torch.stack([dummy, dummy * 0.0]).reshape(2, 1, 1, k).expand(2, 2, 1, k)
     count = torch.arange(n_time + 4, dtype=dt, device=dev)  # N + 4 >= K + 1 for N >= 3
     order = torch.cat([count[:2], count[4:], count[2:4]])  # knot order -> table index

@@ -16,6 +16,7 @@ from .knots import (
     end_extrema,
     end_extrema_topk,
     extrema_counts,
+    past_dummies,
     slot_base,
 )
 from .sift import finish
@@ -35,7 +36,7 @@ def piece_examples(
     q = side_coordinates(p, n_time)
     bxy, bv = boundary_knots(h, q, v, n)
     xy, j1, ks = assemble(h, marks, bxy, bv)
-    hk, sl = spacings(xy)
+    hk, sl = spacings(xy, past_dummies(n_time))
     system = spline_system(xy, j1, hk, sl)
     m = pcr_solve(system)
     seg = segment_index(ks, j1)
@@ -54,7 +55,7 @@ def piece_examples(
             lambda h, m, xy, v, *base: assemble(h, m, xy, v, base),
             (h, marks, bxy, bv, *slot_base(h)),
         ),
-        "spacings": (spacings, (xy,)),
+        "spacings": (lambda xy: spacings(xy, past_dummies(n_time)), (xy,)),
         "system": (spline_system, (xy, j1, hk, sl)),
         "solve": (pcr_solve, (system,)),
         "thomas": (thomas_solve, (system,)),

@@ -13,7 +13,7 @@ from torch import Tensor
 from .boundary import boundary_knots, side_coordinates
 from .envelope import evaluate, segment_index
 from .extrema import extrema_marks
-from .knots import assemble, end_extrema, end_extrema_topk, extrema_counts
+from .knots import assemble, end_extrema, end_extrema_topk, extrema_counts, past_dummies
 from .spline import large_path, solve, spacings, spline_system
 
 
@@ -40,7 +40,8 @@ def prepare(
         sys: (3, 2, R, K) the unit-diagonal system (:func:`spline.spline_system`).
         xy: (2, 2, R, K) knots; j1: (2, R, 1) last real slot; ks: (2, R, N) slot of the last
         knot counted at each sample (:func:`knots.assemble`); n_ext: (R, 1) extrema per row
-        (PyEMD's ``extNo``); hk, sl: (1, 2, R, K-1) knot spacings and secant slopes.
+        (PyEMD's ``extNo``); hk, sl: (1, 2, R, K) knot spacings and secant slopes
+        (:func:`spline.spacings`).
     """
     if large is None:
         large = large_path(int(h.shape[0]))
@@ -56,7 +57,7 @@ def prepare(
         bxy, bv = boundary_knots(h, q, v, n)  # (2, 2, R, 4), (2, R, 4)
     # (2, 2, R, K) knots (half values), (2, R, 1) last slot, (2, R, N) slot at each sample:
     xy, j1, ks = assemble(h, marks, bxy, bv, base)
-    hk, sl = spacings(xy)  # shared by the system and the envelopes' coefficients
+    hk, sl = spacings(xy, past_dummies(int(h.shape[-1])))  # for the system and the envelopes
     return spline_system(xy, j1, hk, sl), xy, j1, ks, n.sum(dim=(0, 3)), hk, sl
 
 

@@ -25,12 +25,23 @@ import torch.nn.functional as F
 from torch import Tensor
 
 
-def spacings(xy: Tensor) -> tuple[Tensor, Tensor]:
-    """(2, ..., K) knot positions and values -> (1, ..., K-1) spacings and secant slopes.
+def spacings(xy: Tensor, end: float | None = None) -> tuple[Tensor, Tensor]:
+    """(2, ..., K) knot positions and values -> (1, ..., K) spacings ``x[j+1] - x[j]`` and secant
+    slopes.
 
-    The spline system and the envelope's coefficients both use them (computed once a sift).
+    The system and the envelopes' coefficients both use them (computed once a sift). Slot K-1
+    is a placeholder: it pairs the last slot with the point ``(end, end)``, by default the last
+    slot's position and value plus 1. ``end`` must lie above every position, so that this
+    spacing is positive too; nothing real reads it (row K-1 of the system is an identity row,
+    and no segment starts at slot K-1). After :func:`knots.slot_base`'s dummies,
+    :func:`knots.past_dummies` makes it exactly 1, as the dummies' own spacings are. K wide
+    rather than K-1, so that each shifted copy the system needs is one ``Pad``.
     """
-    hk, dy = (xy[..., 1:] - xy[..., :-1]).split(1)  # spacings (all > 0), rises
+    if end is None:
+        nxt = torch.cat([xy[..., 1:], xy[..., -1:] + 1.0], dim=-1)
+    else:
+        nxt = F.pad(xy, (-1, 1), value=end)  # (2, ..., K): the next slot's [x, y]
+    hk, dy = (nxt - xy).split(1)  # spacings (all > 0), rises
     return hk, dy / hk
 
 
@@ -43,7 +54,7 @@ def spline_system(
         xy: (2, ..., K) knot positions (strictly increasing over all K slots) and values; the
             real knots are slots ``0 .. j1``.
         j1: (..., 1) last real knot slot (``j1 >= 2`` for real rows).
-        hk, sl: :func:`spacings` of ``xy``, computed here when not given.
+        hk, sl: (1, ..., K) :func:`spacings` of ``xy``, computed here when not given.
 
     Returns:
         (3, ..., K): sub-diagonal, super-diagonal and right-hand side of the unit-diagonal rows
@@ -54,12 +65,14 @@ def spline_system(
     j = torch.arange(k, dtype=dt, device=dev)  # (K,)
     row1 = (j == 1.0).to(dt)  # (K,) row 1: M[0] eliminated (or natural)
     if hk is None or sl is None:
-        hk, sl = spacings(xy)  # (1, ..., K-1) each
-    hm = F.pad(hk, (1, 0), value=1.0)  # (1, ..., K): h[j-1]
-    hp = F.pad(hk, (0, 1), value=1.0)  # (1, ..., K): h[j]
-    rhs = F.pad(sl, (0, 1)) - F.pad(sl, (1, 0))  # (1, ..., K); rows 0 and K-1 are masked
-    dr = j1 - j  # (..., K) distance from the last knot
-    inner = torch.clamp(dr, 0.0, 1.0) * (j >= 1.0).to(dt)  # rows 1 .. j1-1
+        hk, sl = spacings(xy)  # (1, ..., K) each
+    hm = F.pad(hk, (1, -1), value=1.0)  # (1, ..., K): h[j-1]
+    hp = hk  # (1, ..., K): h[j]; the placeholder in row K-1 is positive
+    rhs = sl - F.pad(sl, (1, -1))  # (1, ..., K); rows 0 and K-1 are masked
+    # Distance from the last knot, with row 0 placed past every slot: negative there, so one
+    # clamp masks both ends (and row 0 is never taken for the right not-a-knot row).
+    dr = j1 - torch.where(j == 0.0, float(k), j)  # (..., K)
+    inner = torch.clamp(dr, 0.0, 1.0)  # rows 1 .. j1-1
     # Every row is [h[j-1], 2 s, h[j]] + w [-h[j], s, -h[j-1]] with s = h[j-1] + h[j]:
     # w = 0 inside and for the natural 3-knot row, w = h[j-1]/h[j] for the left not-a-knot row
     # and h[j]/h[j-1] for the right one, row j1-1 (EMD_SPEC §4.6, times h[j]/s or h[j-1]/s).
