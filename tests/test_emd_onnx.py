@@ -40,9 +40,9 @@ NEAR_TIE = 1e-5  # x window std
 # then "strict" without ties or "plateau" with them, ...). Lower them when a piece gets leaner;
 # a rise means a change added kernel launches to every sift.
 BUDGET = {
-    "head": 7,
-    "strict": 5,
-    "plateau": 29,
+    "head": 6,
+    "strict": 4,
+    "plateau": 30,
     "end_topk": 10,  # below THOMAS_ROWS rows; from there on "counts", "end_extrema", "sides"
     "counts": 3,
     "end_extrema": 12,
@@ -57,9 +57,9 @@ BUDGET = {
     "evaluate": 20,
     "finish": 31,
 }
-SIFT_SHORTEST = 166  # nodes run by one sift with few knots (later IMFs)
-SIFT_LONGEST = 205  # ... and with many knots (every PCR step)
-SIFT_LARGE = 385  # nodes one sift runs from THOMAS_ROWS rows on (Thomas solver, no Ifs)
+SIFT_SHORTEST = 164  # nodes run by one sift with few knots (later IMFs)
+SIFT_LONGEST = 203  # ... and with many knots (every PCR step)
+SIFT_LARGE = 383  # nodes one sift runs from THOMAS_ROWS rows on (Thomas solver, no Ifs)
 
 
 def _session(model: onnx.ModelProto) -> ort.InferenceSession:

@@ -18,6 +18,8 @@ gather. A virtual pair at ``j = -1`` carrying the last difference implements qui
 
 from __future__ import annotations
 
+import math
+
 import torch
 import torch.nn.functional as F
 from torch import Tensor
@@ -25,15 +27,20 @@ from torch import Tensor
 _BIG = 1e9
 
 
-def differences(h: Tensor) -> Tensor:
-    """(R, N) signals -> (R, N-1) first differences ``h[t+1] - h[t]``."""
-    return h[:, 1:] - h[:, :-1]
+def signs(h: Tensor) -> Tensor:
+    """(R, N) signals -> (R, N) signs of the first differences ``h[t+1] - h[t]``, and +1 in the
+    last column (the difference to +inf past the end: never zero, never read as a slope).
+
+    N columns rather than N-1, so that the shifted copy :func:`strict_marks` needs is one
+    ``Pad``, and the differences themselves are one ``Pad`` and one ``Sub`` (finite input).
+    """
+    return torch.sign(F.pad(h, (-1, 1), value=math.inf) - h)
 
 
 def has_tie(sg: Tensor) -> Tensor:
     """True (a 0-d bool tensor) when any difference is exactly zero: a flat run somewhere.
 
-    ``sg`` is ``sign`` of the differences (R, N-1); both extremum rules start from it.
+    ``sg``: :func:`signs` of the signals (R, N); both extremum rules start from it.
 
     Without ties the plateau rule reduces to the strict rule, so the exported sift takes the
     cheap branch (:func:`strict_marks`) in an ONNX ``If`` whenever this is false. Quantised
@@ -43,16 +50,15 @@ def has_tie(sg: Tensor) -> Tensor:
 
 
 def strict_marks(sg: Tensor) -> Tensor:
-    """Extremum marks from the differences' signs, none zero: (R, N-1) -> (2, R, N) 0/1
-    [max, min].
+    """Extremum marks from :func:`signs` (R, N), none zero: (R, N) -> (2, R, N) 0/1 [max, min].
 
     A sample is a maximum where the slope turns from rising to falling: the sign of the
     differences drops by 2 there (rises by 2 at a minimum). End samples are never extrema.
     """
-    n = int(sg.shape[-1]) + 1
-    turn = F.pad(sg, (1, 0)) - F.pad(sg, (0, 1))  # (R, N): +2 at maxima, -2 at minima
-    # Half the sign change, signed per envelope, and 0 at the end samples (where ``turn`` is
-    # one difference alone): (2, 1, N).
+    n = int(sg.shape[-1])
+    turn = F.pad(sg, (1, -1)) - sg  # (R, N): +2 at maxima, -2 at minima
+    # Half the sign change, signed per envelope, and 0 at the end samples (where ``turn`` holds
+    # no real change): (2, 1, N).
     half = torch.tensor([0.5, -0.5], dtype=sg.dtype, device=sg.device).reshape(2, 1, 1)
     half = F.pad(half.expand(2, 1, n - 2), (1, 1))
     return torch.relu(turn * half)  # (2, R, N)
@@ -60,6 +66,8 @@ def strict_marks(sg: Tensor) -> Tensor:
 
 def plateau_signed(sg: Tensor) -> Tensor:
     """Signed extremum marks from the differences' signs (R, N-1), with the plateau rule.
+
+    ``sg`` holds the N-1 real differences' signs (:func:`signs` without its last column).
 
     Returns:
         (R, N) tensor of sg's dtype: +1 at maxima, -1 at minima, 0 elsewhere. End samples are
@@ -92,15 +100,14 @@ def plateau_signed(sg: Tensor) -> Tensor:
 
 
 def plateau_marks(sg: Tensor) -> Tensor:
-    """(R, N-1) signs of the differences -> (2, R, N) 0/1 marks [maxima, minima], plateau
-    rule included."""
+    """(R, N) :func:`signs` -> (2, R, N) 0/1 marks [maxima, minima], plateau rule included."""
     sign = torch.tensor([1.0, -1.0], dtype=sg.dtype, device=sg.device).reshape(2, 1, 1)
-    return (plateau_signed(sg) * sign > 0).to(sg.dtype)
+    return (plateau_signed(sg[:, :-1]) * sign > 0).to(sg.dtype)
 
 
 def find_extrema(h: Tensor) -> Tensor:
     """(R, N) signals, N >= 3 -> (R, N) signed marks: +1 at maxima, -1 at minima."""
-    return plateau_signed(torch.sign(differences(h)))
+    return plateau_signed(signs(h)[:, :-1])
 
 
 def extrema_marks(h: Tensor) -> Tensor:
@@ -108,5 +115,5 @@ def extrema_marks(h: Tensor) -> Tensor:
 
     Eager form of the exported ``If``: the plateau rule only when some difference is zero.
     """
-    sg = torch.sign(differences(h))
+    sg = signs(h)
     return plateau_marks(sg) if sg.numel() and bool(has_tie(sg)) else strict_marks(sg)

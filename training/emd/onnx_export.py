@@ -37,7 +37,7 @@ from torch import Tensor, nn
 from tactile.errors import ConfigError
 
 from .decompose import imf_update
-from .extrema import differences, has_tie, plateau_marks, strict_marks
+from .extrema import has_tie, plateau_marks, signs, strict_marks
 from .knots import end_base, n_slots, slot_base
 from .module import EMDConfig
 from .sift import finish, prepare
@@ -310,7 +310,7 @@ def _loop_body(
 
 
 def _head(h: Tensor) -> tuple[Tensor, Tensor]:
-    sg = torch.sign(differences(h))
+    sg = signs(h)
     return sg, has_tie(sg)
 
 
@@ -336,7 +336,7 @@ def _sift_graph(
     k = n_slots(n_time)
     steps = pcr_steps(k)
     always = 0 if large else min(PCR_ALWAYS, steps - 1)
-    sg = torch.sign(differences(h))
+    sg = signs(h)
     marks = strict_marks(sg)
     base = slot_base(h)
     sys, xy, j1, ks, n_ext, hk, sl = prepare(h, marks, base)

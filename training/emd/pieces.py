@@ -9,7 +9,7 @@ from torch import Tensor
 
 from .boundary import boundary_knots, side_coordinates
 from .envelope import evaluate, segment_index
-from .extrema import differences, extrema_marks, has_tie, plateau_marks, strict_marks
+from .extrema import extrema_marks, has_tie, plateau_marks, signs, strict_marks
 from .knots import (
     assemble,
     end_base,
@@ -29,7 +29,7 @@ def piece_examples(
     """Each piece of one sift with real example inputs (from a random batch)."""
     gen = torch.Generator().manual_seed(0)
     h = torch.randn(rows, n_time, generator=gen, dtype=dtype)
-    d = torch.sign(differences(h))
+    d = signs(h)
     marks = extrema_marks(h)
     cnt, n = extrema_counts(marks)
     p, v = end_extrema(h, cnt, n)
@@ -43,7 +43,7 @@ def piece_examples(
     n_ext = n.sum(dim=(0, 3))
     active = torch.ones(rows, 1, dtype=torch.bool)
     return {
-        "head": (lambda h: (d := torch.sign(differences(h)), has_tie(d)), (h,)),
+        "head": (lambda h: (d := signs(h), has_tie(d)), (h,)),
         "strict": (strict_marks, (d,)),
         "plateau": (plateau_marks, (d,)),
         "end_topk": (end_extrema_topk, (h, marks, end_base(h))),
