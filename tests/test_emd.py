@@ -162,10 +162,11 @@ def test_boundary_knots_match_pyemd_in_every_case():
         assert torch.equal(txy.transpose(-1, -2), bxy) and torch.equal(tv.transpose(-1, -2), bv)
         (kx, ky), j1, _ = assemble(h, marks, bxy, bv)
         for env, ref in ((0, ref_max), (1, ref_min)):
-            hi = int(j1[env, 0, 0]) + 1
-            assert np.array_equal(kx[env, 0, :hi].numpy(), ref[0]), (x, env)
-            assert np.array_equal(2 * ky[env, 0, :hi].numpy(), ref[1]), (x, env)  # half values
-            assert np.all(np.diff(kx[env, 0].numpy()) > 0)  # dummies keep spacings positive
+            hi = int(j1[env, 0, 0]) + 1  # knots in slots 1 .. j1, a placeholder in slot 0
+            assert np.array_equal(kx[env, 0, 1:hi].numpy(), ref[0]), (x, env)
+            assert np.array_equal(2 * ky[env, 0, 1:hi].numpy(), ref[1]), (x, env)  # half values
+            # The placeholder and the dummies keep spacings positive.
+            assert np.all(np.diff(kx[env, 0].numpy()) > 0)
             assert hi < kx.shape[-1]  # the last slot always holds a dummy
         hk, _ = spacings(torch.stack([kx, ky]), past_dummies(len(x)))
         assert torch.all(hk[..., -1] == 1.0)  # its placeholder spacing, as the dummies' own
@@ -203,13 +204,13 @@ def test_segment_from_running_count_equals_a_search_over_the_knots():
         got = segment_index(ks, j1)[0, :, 0].numpy()  # (2, N)
         t = np.arange(len(x))
         for env in range(2):
-            last = int(j1[env, 0, 0])
-            xs = xy[0, env, 0, : last + 1].numpy()
-            lo, hi = (1, last - 2) if last >= 3 else (0, 1)
-            want = np.clip(np.searchsorted(xs, t, side="right") - 1, lo, hi)
+            last = int(j1[env, 0, 0])  # knots in slots 1 .. last
+            xs = xy[0, env, 0, 1 : last + 1].numpy()
+            lo, hi = (2, last - 2) if last >= 4 else (1, 2)
+            want = np.clip(np.searchsorted(xs, t, side="right"), lo, hi)
             assert np.array_equal(got[env], want), (x, env)
             checked += 1
-            natural += last == 2
+            natural += last == 3  # three knots
     assert checked > 5000 and natural > 100, (checked, natural)  # both spline kinds seen
 
 
@@ -240,16 +241,18 @@ def test_spline_pieces_match_scipy_not_a_knot_and_natural_3_point(n_knots, solve
         ends = [-int(rng.integers(0, 9))], [n_time - 1 + int(rng.integers(0, 9))]
         xs = np.concatenate([ends[0], inner, ends[1]])
         ys = rng.standard_normal(n_knots)
-        x = np.concatenate([xs, 4 * n_time + np.arange(k - n_knots)]).astype(np.float64)
-        y = np.concatenate([ys, np.zeros(k - n_knots)])
+        # Slot 0 a placeholder below the knots, then the knots, then dummies above them.
+        dummies = 4 * n_time + np.arange(k - 1 - n_knots)
+        x = np.concatenate([[-4 * n_time], xs, dummies]).astype(np.float64)
+        y = np.concatenate([[0.0], ys, np.zeros(k - 1 - n_knots)])
         xy = torch.tensor(np.stack([x, y])).reshape(2, 1, 1, k).repeat(1, 2, 1, 1)  # (2, 2, 1, K)
-        j1 = torch.full((2, 1, 1), n_knots - 1.0, dtype=torch.float64)
+        j1 = torch.full((2, 1, 1), float(n_knots), dtype=torch.float64)
         m = solver(spline_system(xy, j1))
         t = np.arange(n_time, dtype=np.float64)
         seg = np.clip(np.searchsorted(xs, t, side="right") - 1, 0, n_knots - 2)
         if n_knots >= 4:  # outer segments evaluate their neighbour's cubic (same polynomial)
             seg = np.clip(seg, 1, n_knots - 3)
-        seg_t = torch.tensor(seg).reshape(1, 1, 1, -1).repeat(1, 2, 1, 1)
+        seg_t = torch.tensor(seg + 1).reshape(1, 1, 1, -1).repeat(1, 2, 1, 1)  # knot -> slot
         got = evaluate(torch.zeros(1, n_time), xy, m, seg_t)[0, 0, 0].numpy()
         if n_knots > 3:
             want = CubicSpline(xs, ys)(t)

@@ -48,18 +48,18 @@ BUDGET = {
     "end_extrema": 12,
     "sides": 2,
     "boundary": 38,
-    "assemble": 15,
+    "assemble": 12,
     "spacings": 4,
     "system": 20,
     "solve": 68,
-    "thomas": 236,
+    "thomas": 244,
     "segment": 6,
     "evaluate": 20,
     "finish": 31,
 }
-SIFT_SHORTEST = 164  # nodes run by one sift with few knots (later IMFs)
-SIFT_LONGEST = 203  # ... and with many knots (every PCR step)
-SIFT_LARGE = 383  # nodes one sift runs from THOMAS_ROWS rows on (Thomas solver, no Ifs)
+SIFT_SHORTEST = 161  # nodes run by one sift with few knots (later IMFs)
+SIFT_LONGEST = 200  # ... and with many knots (every PCR step)
+SIFT_LARGE = 388  # nodes one sift runs from THOMAS_ROWS rows on (Thomas solver, no Ifs)
 
 
 def _session(model: onnx.ModelProto) -> ort.InferenceSession:
@@ -162,8 +162,8 @@ def test_sift_body_and_total_node_counts(default_model):
     bodies = graphs["sift"] + graphs["strict"] + graphs["sift_large"] + graphs["strict_large"]
     # Beyond those: two IMF loop bodies (21 nodes each), the solver If's branches (a Loop
     # each) and the main graph (set-up with the tensors the bodies take from outside, the
-    # row-count test, reshapes): 36 now.
-    assert count_nodes(model.graph) <= bodies + branches + 2 * 21 + 36
+    # row-count test, reshapes): 37 now.
+    assert count_nodes(model.graph) <= bodies + branches + 2 * 21 + 37
 
 
 @pytest.mark.parametrize("batch", [4, 30])  # 12 rows: PCR; 90 rows: Thomas

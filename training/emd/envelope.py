@@ -25,31 +25,31 @@ def segment_index(ks: Tensor, j1: Tensor) -> Tensor:
 
     Args:
         ks: (2, R, N) the left end's valid mirrored knots plus the interior extrema at or
-            before each sample, minus 1 (:func:`knots.assemble`).
+            before each sample (:func:`knots.assemble`: knots sit in slots ``1 .. j1``).
         j1: (2, R, 1) last real knot slot.
 
     Returns:
         (1, 2, R, N) int64 slot ``k`` of the segment ``[x_k, x_{k+1}]`` evaluated at ``t``: the last
-        knot at or before ``t``, clamped to ``[1, j1-2]`` for not-a-knot splines and to
-        ``[0, j1-1]`` for 3-knot natural ones.
+        knot at or before ``t``, clamped to ``[2, j1-2]`` for not-a-knot splines and to
+        ``[1, j1-1]`` for 3-knot natural ones.
 
     ``ks`` counts the left knots at every sample and the right knots at none, though either
     kind can sit inside the window (mirrored about an extremum, or on the end sample). After
     clamping this changes nothing: a left knot is missed only before the left knots end, where
-    the count - 1 is at most 1 and the true value at most 0, and both clamp to the low end
+    the count is at most 2 and the true value at most 1, and both clamp to the low end
     unless the spline is the natural 3-knot one with two left knots; a right knot is missed
     only after the interior ends, where both clamp to the high end unless the spline is the
     natural one with two right knots. Those two cases cannot occur: an envelope with one
     interior extremum always has a valid near knot at each end (its first source, the end
     sample or E0, always exists), so its three knots are one left, E0 and one right.
     """
-    # Not-a-knot (j1 >= 3) clamps to [1, j1-2], natural 3-knot (j1 = 2) to [0, 1]; rows
-    # without an envelope (j1 < 2) stay inside [0, 1].
+    # Not-a-knot (j1 >= 4) clamps to [2, j1-2], natural 3-knot (j1 = 3) to [1, 2]; rows
+    # without an envelope (j1 < 3) stay inside [1, 2].
     two = torch.full((1, 1, 1, 1), 2.0, dtype=j1.dtype, device=j1.device)
     j2 = j1 - two  # (1, 2, R, 1): the leading axis comes with the broadcast, not a node
-    lo = torch.clamp(j2, 0.0, 1.0)
-    hi = torch.clamp(j2, min=1.0)
-    # Slot of the last knot at or before t: (knots <= t) - 1.
+    lo = torch.clamp(j2, 1.0, 2.0)
+    hi = torch.clamp(j2, min=2.0)
+    # Slot of the last knot at or before t: the knots <= t.
     return torch.minimum(torch.maximum(ks, lo), hi).long()
 
 

@@ -1,11 +1,11 @@
 """Knots: the interior extrema and the mirrored knots of each envelope, ascending, in fixed slots.
 
-Per envelope (axis 0: [upper, lower]) and row, knots live in ``K = N // 2 + 5`` slots. The
+Per envelope (axis 0: [upper, lower]) and row, knots live in ``K = N // 2 + 6`` slots. The
 valid knots, in ascending order ``[left far, left near, interior extrema..., right near,
-right far]``, take slots ``0 .. j1``: each knot's slot is the running count of valid knots
-before it, so one cumulative sum, one scatter of indices and one gather place them all. Every
-slot after ``j1`` holds a dummy position above all knots, so all spacings are positive and
-nothing in the spline system divides by zero.
+right far]``, take slots ``1 .. j1``: each knot's slot is the running count of valid knots up
+to it, so one cumulative sum, one scatter of indices and one gather place them all. Slot 0
+holds a placeholder position below all knots and every slot after ``j1`` a dummy position
+above them, so all spacings are positive and nothing in the spline system divides by zero.
 """
 
 from __future__ import annotations
@@ -16,13 +16,14 @@ from torch import Tensor
 
 
 def n_slots(n_time: int) -> int:
-    """Knot slots per envelope for windows of ``n_time`` samples."""
-    return n_time // 2 + 5
+    """Knot slots per envelope for windows of ``n_time`` samples: the placeholder, room for the
+    at most ``N // 2 + 4`` knots, and at least one dummy."""
+    return n_time // 2 + 6
 
 
 def past_dummies(n_time: int) -> float:
     """The position one past the last dummy of :func:`slot_base` (the dummies sit at
-    ``16 N + s``, above every knot, which lies within ``-N .. 2N``)."""
+    ``16 N + s`` in slot ``s``, above every knot, which lies within ``-N .. 2N``)."""
     return 16.0 * n_time + n_slots(n_time)
 
 
@@ -112,29 +113,40 @@ def end_extrema_topk(
     return q, v, m4.sum(-1, keepdim=True)
 
 
-def slot_base(h: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+def slot_base(h: Tensor) -> tuple[Tensor, Tensor, Tensor, Tensor]:
     """What the knot placement starts from; it depends only on the shape, so the exported
     graph makes it once.
 
     Returns:
-        dummies: (2, 2, R, K) dummy knots: positions above every knot (increasing), values 0.
-        slots: (2, R, K + 1) int64: slot 0 takes the invalid candidates; slot ``s >= 1`` names
-            dummy ``s - 1`` (candidate ``N + 3 + s``).
+        low: (2, 2, R, 1) the placeholder knot of slot 0: position ``-16 N``, below every
+            knot, value 0.
+        dummies: (2, 2, R, K-1) dummy knots for slots ``1 .. K-1``: positions ``16 N + s``,
+            above every knot, values 0.
+        slots: (2, R, K) int64: what each slot takes when no candidate beats it: slot 0 the
+            placeholder, slot ``s >= 1`` dummy ``s``.
         cands: (2, R, N + 4) int64: the index of each candidate, in knot order ``[left far,
-            left near, interior 0 .. N-1, right near, right far]``, in :func:`assemble`'s
-            candidate table ``[mirrored 0 .. 3, interior, dummies]``: ``0, 1, 4 .. N+3, 2, 3``.
+            left near, interior 0 .. N-1, right near, right far]``, in :func:`assemble`'s table
+            ``[low, mirrored 0 .. 3, interior, mirrored 0 .. 3, dummies]``: ``1, 2, 5 .. N+4,
+            N+7, N+8``. Ascending in knot order, and below every dummy's index.
     """
     n_time = int(h.shape[-1])
     k = n_slots(n_time)
     dt, dev = h.dtype, h.device
     zero = h[:, :1] * 0.0  # (R, 1)
-    dummy = torch.arange(k, dtype=dt, device=dev) + (past_dummies(n_time) - k)
-    dummies = zero + torch.stack([dummy, dummy * 0.0]).reshape(2, 1, 1, k).expand(2, 2, 1, k)
-    count = torch.arange(n_time + 4, dtype=dt, device=dev)  # N + 4 >= K + 1 for N >= 3
-    order = torch.cat([count[:2], count[4:], count[2:4]])  # knot order -> table index
+    low = torch.tensor([-16.0 * n_time, 0.0], dtype=dt, device=dev).reshape(2, 1, 1, 1)
+    low = zero + low.expand(2, 2, 1, 1)  # (2, 2, R, 1)
+    dummy = torch.arange(1, k, dtype=dt, device=dev) + (past_dummies(n_time) - k)
+    dummies = zero + torch.stack([dummy, dummy * 0.0]).reshape(2, 1, 1, k - 1).expand(
+        2, 2, 1, k - 1
+    )
+    t = torch.arange(n_time, dtype=dt, device=dev)
+    order = torch.cat([torch.tensor([1.0, 2.0], dtype=dt, device=dev), t + 5.0,
+                       torch.tensor([n_time + 7.0, n_time + 8.0], dtype=dt, device=dev)])
     cands = (zero + order.reshape(1, 1, -1).expand(2, 1, -1)).long()  # (2, R, N + 4)
-    slots = (zero + (count[: k + 1] + (n_time + 3.0)).reshape(1, 1, -1).expand(2, 1, -1)).long()
-    return dummies, slots, cands
+    first = torch.arange(k, dtype=dt, device=dev) + (n_time + 8.0)  # dummy s at N + 8 + s
+    first[0] = 0.0  # the placeholder
+    slots = (zero + first.reshape(1, 1, -1).expand(2, 1, -1)).long()  # (2, R, K)
+    return low, dummies, slots, cands
 
 
 def assemble(
@@ -142,9 +154,9 @@ def assemble(
     marks: Tensor,
     bxy: Tensor,
     bv: Tensor,
-    base: tuple[Tensor, Tensor, Tensor] | None = None,
+    base: tuple[Tensor, Tensor, Tensor, Tensor] | None = None,
 ) -> tuple[Tensor, Tensor, Tensor]:
-    """All knots of each envelope in slots ``0 .. j1``, by one cumulative count, one scatter and
+    """All knots of each envelope in slots ``1 .. j1``, by one cumulative count, one scatter and
     one gather.
 
     Args:
@@ -156,32 +168,33 @@ def assemble(
 
     Returns:
         xy: (2, 2, R, K) knot positions and **half** values (``h / 2``: the two envelopes
-            then sum to their mean), stacked on axis 0; dummies after ``j1``.
-        j1: (2, R, 1) last real slot (``j1 + 1`` knots).
+            then sum to their mean), stacked on axis 0; the placeholder in slot 0, dummies
+            after ``j1``.
+        j1: (2, R, 1) last real slot (``j1`` knots).
         ks: (2, R, N) slot of the last knot counted at each sample: the mirrored knots of
-            the left end plus the interior extrema at or before it, minus 1 (for
+            the left end plus the interior extrema at or before it (for
             :func:`envelope.segment_index`).
 
-    Each valid candidate's index is scattered to its slot (a running count of the valid
-    candidates), the invalid ones to a dump slot, and positions and values are gathered by
-    index from the candidates followed by the dummies: half the scattered values of scattering
-    positions and values themselves, and onnxruntime scatters about five times slower per
-    value than it gathers. The slot is the count times the 0/1 validity, so the dump is slot 0
-    (cut off after the scatter; what lands there is never read), and the mirrored knots lead
-    the candidate table whole, so neither needs more than one node.
+    Every candidate's table index is scattered to its running count of valid candidates, with
+    the smaller index kept: a valid candidate's count is its slot, and the invalid candidates
+    that share it come after it in knot order, so with larger indices (the table lists the
+    candidates in knot order, the mirrored knots twice for that: once before the interior,
+    once after). Invalid candidates before the first knot have count 0, where the
+    placeholder's index 0 beats them. Positions and values are then gathered by index: half
+    the scattered values of scattering positions and values themselves, and onnxruntime
+    scatters about five times slower per value than it gathers.
     """
     n_time = int(h.shape[-1])
     dt, dev = h.dtype, h.device
-    dummies, slots, cands = slot_base(h) if base is None else base
+    low, dummies, slots, cands = slot_base(h) if base is None else base
     left, right = bv.split(2, dim=-1)
     valid = torch.cat([left, marks, right], dim=-1)  # (2, R, N + 4), ascending knot order
-    count = torch.cumsum(valid, dim=-1)  # valid knots so far: a valid knot's slot + 1
-    src = slots.scatter(-1, (count * valid).long(), cands)[..., 1:]  # (2, R, K): candidate
+    count = torch.cumsum(valid, dim=-1)  # valid knots so far: a valid knot's slot
+    src = slots.scatter_reduce(-1, count.long(), cands, "amin")  # (2, R, K): table index
     # Interior candidates [t, h[t] / 2] for both envelopes: (2, 1, R, N) + (2, 2, 1, N).
     t = torch.arange(n_time, dtype=dt, device=dev)
     scale = torch.tensor([0.0, 0.5], dtype=dt, device=dev).reshape(2, 1, 1, 1)
     grid = torch.stack([t, t * 0.0]).reshape(2, 1, 1, n_time).expand(2, 2, 1, n_time)
-    cand = torch.cat([bxy, h * scale + grid, dummies], dim=-1)  # (2, 2, R, 4 + N + K)
-    xy = torch.gather(cand, -1, src.expand(2, -1, -1, -1))  # (2, 2, R, K)
-    last = count - 1.0  # slot of the last valid knot so far
-    return xy, last[..., -1:], last[..., 2 : n_time + 2]
+    table = torch.cat([low, bxy, h * scale + grid, bxy, dummies], dim=-1)  # (2, 2, R, N+K+8)
+    xy = torch.gather(table, -1, src.expand(2, -1, -1, -1))  # (2, 2, R, K)
+    return xy, count[..., -1:], count[..., 2 : n_time + 2]

@@ -22,6 +22,7 @@ outputs ``imfs`` (batch, channels, n_imfs, time), ``residue`` (batch, channels, 
 from __future__ import annotations
 
 import io
+import logging
 import warnings
 from collections.abc import Callable, Sequence
 from pathlib import Path
@@ -97,7 +98,18 @@ def trace_graph(
     dynamic: dict[str, dict[int, str]],
 ) -> onnx.ModelProto:
     """Trace ``fn`` to a constant-folded ONNX model (the pinned exporter path)."""
-    model = onnxscript.optimizer.optimize(export_traced(_Fn(fn), args, inputs, outputs, dynamic))
+    traced = export_traced(_Fn(fn), args, inputs, outputs, dynamic)
+    # The exporter wraps a scatter with a reduction in ``If`` nodes for 0-d inputs. The
+    # optimizer folds them away (ours have rank 3), logging on the way that the 0-d branch's
+    # flattened shape does not merge with the result's: harmless, the branch is gone, but the
+    # warning would reach the log of everyone who exports a model.
+    folder = logging.getLogger("onnxscript.optimizer._constant_folding")
+    level = folder.level
+    folder.setLevel(logging.ERROR)
+    try:
+        model = onnxscript.optimizer.optimize(traced)
+    finally:
+        folder.setLevel(level)
     return _rank_constants(_drop_update_slices(_fold_constants(model)))
 
 
@@ -345,9 +357,9 @@ def _sift_graph(
     r2 = {2: "rows"}
 
     def pre(h: Tensor, marks: Tensor, *made: Tensor) -> tuple[Tensor, ...]:
-        # made: slot_base's three tensors, then (small body) the end samples for TopK.
-        ends = None if large else made[3]
-        sys, *rest = prepare(h, marks, made[:3], ends=ends, large=large)
+        # made: slot_base's four tensors, then (small body) the end samples for TopK.
+        ends = None if large else made[4]
+        sys, *rest = prepare(h, marks, made[:4], ends=ends, large=large)
         for step in range(always):
             sys = pcr_step(sys, 1 << step)
         done = [] if large else [decoupled_after(rest[1], step) for step in range(always, steps)]
@@ -358,14 +370,14 @@ def _sift_graph(
     strict = trace_graph(strict_marks, [sg], ["sg"], ["marks"], {"sg": rows, "marks": r1})
     plateau = trace_graph(plateau_marks, [sg], ["sg"], ["marks"], {"sg": rows, "marks": r1})
     # The large body finds the end extrema by running count: it takes no end samples.
-    made = _MADE[:3] if large else _MADE
+    made = _MADE[:4] if large else _MADE
     made_examples = [*base] if large else [*base, end_base(h)]
     prep = trace_graph(
         pre,
         [h, marks, *made_examples],
         ["h", "marks", *made],
         ["sys", "xy", "j1", "ks", "n_ext", "hk", "sl", *done_names],
-        {"h": rows, "marks": r1, "dummies": r2, "slots": r1, "cands": r1, "ends": r1,
+        {"h": rows, "marks": r1, "low": r2, "dummies": r2, "slots": r1, "cands": r1, "ends": r1,
          "sys": r2, "xy": r2, "j1": r1, "ks": r1, "n_ext": {0: "rows"}, "hk": r2, "sl": r2},
     )
     if not large:
@@ -463,7 +475,7 @@ def _finish_sift(*args: Tensor, large: bool = False) -> tuple[Tensor, Tensor, Te
     return h, active, active.any()
 
 
-_MADE = ["dummies", "slots", "cands", "ends"]  # what _init makes for the sift bodies
+_MADE = ["low", "dummies", "slots", "cands", "ends"]  # what _init makes for the sift bodies
 
 
 def _init(x3: Tensor) -> tuple[Tensor, ...]:

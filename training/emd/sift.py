@@ -20,7 +20,7 @@ from .spline import large_path, solve, spacings, spline_system
 def prepare(
     h: Tensor,
     marks: Tensor,
-    base: tuple[Tensor, Tensor, Tensor] | None = None,
+    base: tuple[Tensor, Tensor, Tensor, Tensor] | None = None,
     ends: Tensor | None = None,
     large: bool | None = None,
 ) -> tuple[Tensor, ...]:

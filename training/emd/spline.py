@@ -2,16 +2,16 @@
 
 PyEMD interpolates with ``scipy.interpolate.CubicSpline`` (not-a-knot) when an envelope has
 more than 3 knots, and with a natural spline for exactly 3 (EMD_SPEC §1.6). With the real
-knots in slots ``0 .. j1``, spacings ``h`` and secant slopes ``s``, the rows for the second
-derivatives ``M`` are
+knots in slots ``1 .. j1`` (slot 0 a placeholder, :mod:`knots`), spacings ``h`` and secant
+slopes ``s``, the rows for the second derivatives ``M`` are
 
-    h[j-1] M[j-1] + 2 (h[j-1] + h[j]) M[j] + h[j] M[j+1] = 6 (s[j] - s[j-1]),  0 < j < j1.
+    h[j-1] M[j-1] + 2 (h[j-1] + h[j]) M[j] + h[j] M[j+1] = 6 (s[j] - s[j-1]),  1 < j < j1.
 
-Not-a-knot eliminates ``M[0]`` into row 1 and ``M[j1]`` into row ``j1-1``; natural sets them
+Not-a-knot eliminates ``M[1]`` into row 2 and ``M[j1]`` into row ``j1-1``; natural sets them
 to 0. The rows are solved for ``M / 6``, which spares the factor 6. The eliminated system is
 strictly diagonally dominant, so parallel cyclic reduction (PCR) without pivoting is stable:
 each step couples every row to rows twice as far away, and ``ceil(log2 K)`` steps decouple all
-rows. Rows outside ``1 .. j1-1`` are identity rows with right-hand side 0; ``M[0]`` and
+rows. Rows outside ``2 .. j1-1`` are identity rows with right-hand side 0; ``M[1]`` and
 ``M[j1]`` are never needed because the envelope evaluates the outer segments with their
 neighbour's cubic (not-a-knot: the same polynomial).
 """
@@ -52,8 +52,8 @@ def spline_system(
 
     Args:
         xy: (2, ..., K) knot positions (strictly increasing over all K slots) and values; the
-            real knots are slots ``0 .. j1``.
-        j1: (..., 1) last real knot slot (``j1 >= 2`` for real rows).
+            real knots are slots ``1 .. j1``.
+        j1: (..., 1) last real knot slot (``j1 >= 3`` for real rows).
         hk, sl: (1, ..., K) :func:`spacings` of ``xy``, computed here when not given.
 
     Returns:
@@ -63,23 +63,23 @@ def spline_system(
     k = int(xy.shape[-1])
     dt, dev = xy.dtype, xy.device
     j = torch.arange(k, dtype=dt, device=dev)  # (K,)
-    row1 = (j == 1.0).to(dt)  # (K,) row 1: M[0] eliminated (or natural)
+    row2 = (j == 2.0).to(dt)  # (K,) row 2: M[1] eliminated (or natural)
     if hk is None or sl is None:
         hk, sl = spacings(xy)  # (1, ..., K) each
     hm = F.pad(hk, (1, -1), value=1.0)  # (1, ..., K): h[j-1]
     hp = hk  # (1, ..., K): h[j]; the placeholder in row K-1 is positive
-    rhs = sl - F.pad(sl, (1, -1))  # (1, ..., K); rows 0 and K-1 are masked
-    # Distance from the last knot, with row 0 placed past every slot: negative there, so one
-    # clamp masks both ends (and row 0 is never taken for the right not-a-knot row).
-    dr = j1 - torch.where(j == 0.0, float(k), j)  # (..., K)
-    inner = torch.clamp(dr, 0.0, 1.0)  # rows 1 .. j1-1
+    rhs = sl - F.pad(sl, (1, -1))  # (1, ..., K); rows 0, 1 and K-1 are masked
+    # Distance from the last knot, with rows 0 and 1 placed past every slot: negative there,
+    # so one clamp masks both ends (and they are never taken for the right not-a-knot row).
+    dr = j1 - torch.where(j < 1.5, float(k), j)  # (..., K)
+    inner = torch.clamp(dr, 0.0, 1.0)  # rows 2 .. j1-1
     # Every row is [h[j-1], 2 s, h[j]] + w [-h[j], s, -h[j-1]] with s = h[j-1] + h[j]:
     # w = 0 inside and for the natural 3-knot row, w = h[j-1]/h[j] for the left not-a-knot row
     # and h[j]/h[j-1] for the right one, row j1-1 (EMD_SPEC §4.6, times h[j]/s or h[j-1]/s).
     # There the coefficient towards the eliminated knot vanishes up to rounding, and that knot's
     # identity row (M = 0, right-hand side 0) makes its value irrelevant.
     u = hm / hp
-    w = torch.where(dr == 1.0, (1.0 - row1) / u, row1 * u)
+    w = torch.where(dr == 1.0, (1.0 - row2) / u, row2 * u)
     s = hm + hp
     a = hm - w * hp
     c = hp - w * hm
@@ -129,11 +129,11 @@ def pcr_last(sys: Tensor, st: int) -> Tensor:
 def decoupled_after(j1: Tensor, steps: int) -> Tensor:
     """True (0-d bool) when ``steps`` PCR steps leave every real row of every system decoupled.
 
-    After ``s`` steps row j couples to rows j -/+ 2^s; the real rows are 1 .. j1-1 and every
-    other row is an identity row with solution 0, so once ``2^s >= j1 - 1`` for all systems the
+    After ``s`` steps row j couples to rows j -/+ 2^s; the real rows are 2 .. j1-1 and every
+    other row is an identity row with solution 0, so once ``2^s >= j1 - 2`` for all systems the
     right-hand side is the solution, and further steps would leave it bit for bit unchanged.
     """
-    return j1.amax() <= float((1 << steps) + 1)  # j1 holds whole numbers: exact
+    return j1.amax() <= float((1 << steps) + 2)  # j1 holds whole numbers: exact
 
 
 def pcr_solve(sys: Tensor, j1: Tensor | None = None) -> Tensor:
