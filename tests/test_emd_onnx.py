@@ -52,14 +52,14 @@ BUDGET = {
     "spacings": 4,
     "system": 20,
     "solve": 68,
-    "thomas": 244,
+    "thomas": 212,
     "segment": 6,
     "evaluate": 20,
     "finish": 31,
 }
 SIFT_SHORTEST = 161  # nodes run by one sift with few knots (later IMFs)
 SIFT_LONGEST = 200  # ... and with many knots (every PCR step)
-SIFT_LARGE = 388  # nodes one sift runs from THOMAS_ROWS rows on (Thomas solver, no Ifs)
+SIFT_LARGE = 356  # nodes one sift runs from THOMAS_ROWS rows on (Thomas solver, no Ifs)
 
 
 def _session(model: onnx.ModelProto) -> ort.InferenceSession:

@@ -42,7 +42,15 @@ from .extrema import has_tie, plateau_marks, signs, strict_marks
 from .knots import end_base, n_slots, slot_base
 from .module import EMDConfig
 from .sift import finish, prepare
-from .spline import THOMAS_ROWS, decoupled_after, pcr_last, pcr_step, pcr_steps, thomas_solve
+from .spline import (
+    SPLINE_EDGES,
+    THOMAS_ROWS,
+    decoupled_after,
+    pcr_last,
+    pcr_step,
+    pcr_steps,
+    thomas_solve,
+)
 
 OPSET = 18
 """ONNX opset of the exported graph (ScatterElements with reduction needs >= 16)."""
@@ -453,7 +461,10 @@ def _sift_graph(
         ]
 
     if large:
-        thomas = trace_graph(thomas_solve, [sys], ["sys"], ["m"], {"sys": r2, "m": r2})
+        thomas = trace_graph(
+            lambda sys: thomas_solve(sys, *SPLINE_EDGES), [sys], ["sys"], ["m"],
+            {"sys": r2, "m": r2},
+        )
         nodes += add(thomas, "thomas/", {"sys": "s_sys0", "m": "s_m"})
     else:
         nodes += solve_from(always, "s_m")

@@ -180,7 +180,13 @@ def large_path(rows: int) -> bool:
     return rows >= THOMAS_ROWS
 
 
-def thomas_solve(sys: Tensor) -> Tensor:
+SPLINE_EDGES = (2, 2)
+"""Identity rows every spline system has at its two ends (:func:`spline_system` with
+:mod:`knots`' layout): the placeholder's and the first knot's rows; the always-dummy last slot's
+and the one before, which is a dummy's or the last knot's (at most ``K - 2`` knots)."""
+
+
+def thomas_solve(sys: Tensor, lead: int = 0, trail: int = 0) -> Tensor:
     """Solve unit-diagonal tridiagonal systems by the Thomas algorithm (no pivoting).
 
     Args:
@@ -188,6 +194,10 @@ def thomas_solve(sys: Tensor) -> Tensor:
             for :func:`pcr_solve` (``a[..., 0] = c[..., K-1] = 0``, strictly diagonally
             dominant: ``|a| + |c| < 1``). Then the elimination is stable: by induction every
             ``|c'| < 1``, so every pivot exceeds ``1 - |a| > |c| >= 0``.
+        lead, trail: the first ``lead`` and the last ``trail`` rows are identity rows
+            (``a = c = r = 0``) in every system, as :data:`SPLINE_EDGES` are for the spline
+            systems: the sweeps skip them (their ``r``, 0, is the solution), with the same
+            result as sweeping them, bit for bit.
 
     Returns:
         (1, ..., K) solution. Identity rows (``a = c = r = 0``) get exactly 0, as from PCR; real
@@ -199,15 +209,17 @@ def thomas_solve(sys: Tensor) -> Tensor:
     """
     a, c, r = sys.split(1)  # (1, ..., K) each
     cols_a, cols_c, cols_r = (t.split(1, dim=-1) for t in (a, c, r))  # K x (1, ..., 1)
-    cp, rp = [cols_c[0]], [cols_r[0]]  # row 0: pivot 1 (a[0] = 0)
-    for j in range(1, len(cols_a)):
+    end = len(cols_a) - trail
+    # The first swept row has pivot 1: a[0] = 0, or the row before is an identity row.
+    cp, rp = [cols_c[lead]], [cols_r[lead]]
+    for j in range(lead + 1, end):
         pivot = 1.0 - cols_a[j] * cp[-1]
         cp.append(cols_c[j] / pivot)
         rp.append((cols_r[j] - cols_a[j] * rp[-1]) / pivot)
-    x = [rp[-1]]
-    for j in range(len(cols_a) - 2, -1, -1):
+    x = [rp[-1]]  # the row after the last swept one is an identity row (or there is none)
+    for j in range(len(rp) - 2, -1, -1):
         x.append(rp[j] - cp[j] * x[-1])
-    return torch.cat(x[::-1], dim=-1)
+    return torch.cat([*cols_r[:lead], *x[::-1], *cols_r[end:]], dim=-1)
 
 
 def solve(sys: Tensor, j1: Tensor | None = None) -> Tensor:
@@ -215,5 +227,5 @@ def solve(sys: Tensor, j1: Tensor | None = None) -> Tensor:
     :data:`THOMAS_ROWS` rows on, :func:`pcr_solve` below (the exported graph makes the same
     choice, so onnxruntime and the torch module run the same arithmetic)."""
     if large_path(int(sys.shape[2])):
-        return thomas_solve(sys)
+        return thomas_solve(sys, *SPLINE_EDGES)
     return pcr_solve(sys, j1)
