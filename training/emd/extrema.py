@@ -50,7 +50,8 @@ def has_tie(sg: Tensor) -> Tensor:
 
 
 def strict_marks(sg: Tensor) -> Tensor:
-    """Extremum marks from :func:`signs` (R, N), none zero: (R, N) -> (2, R, N) 0/1 [max, min].
+    """Extremum marks from :func:`signs` (R, N), none zero, N >= 2: (R, N) -> (2, R, N) 0/1
+    [max, min].
 
     A sample is a maximum where the slope turns from rising to falling: the sign of the
     differences drops by 2 there (rises by 2 at a minimum). End samples are never extrema.
@@ -60,7 +61,7 @@ def strict_marks(sg: Tensor) -> Tensor:
     # Half the sign change, signed per envelope, and 0 at the end samples (where ``turn`` holds
     # no real change): (2, 1, N).
     half = torch.tensor([0.5, -0.5], dtype=sg.dtype, device=sg.device).reshape(2, 1, 1)
-    half = F.pad(half.expand(2, 1, n - 2), (1, 1))
+    half = F.pad(half.expand(2, 1, max(n - 2, 0)), (1, 1))
     return torch.relu(turn * half)  # (2, R, N)
 
 
