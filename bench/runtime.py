@@ -206,7 +206,12 @@ def main() -> None:
         ref_p50, ref_p99 = percentiles(theirs)
         rate = sustained_rate(model_path)
         rss, first = process_figures(model_path)
-        print(f"model: {model_path.name}, {model_path.stat().st_size / 1e3:.0f} kB")
+        import onnxruntime
+        import torch
+
+        # The onnxruntime version moves the latency by several percent (docs/runtime.md).
+        print(f"model: {model_path.name}, {model_path.stat().st_size / 1e3:.0f} kB; "
+              f"onnxruntime {onnxruntime.__version__}, torch {torch.__version__}")
         print("| figure | tactile-run (onnxruntime) | PyTorch + PyEMD | ratio |")
         print("|---|---|---|---|")
         print(f"| latency p50, ms/window | {onnx_p50:.2f} | {ref_p50:.2f} | "
