@@ -191,6 +191,9 @@ def main() -> None:
     os.environ.setdefault("OMP_NUM_THREADS", "1")
     with tempfile.TemporaryDirectory() as tmp:
         model_path, run = (args.model, args.run) if args.model else build_model(Path(tmp))
+        import onnxruntime
+        import torch
+
         from tactile.device.info import pen_info
         from tactile.device.simulator import PenSimulator
 
@@ -206,9 +209,6 @@ def main() -> None:
         ref_p50, ref_p99 = percentiles(theirs)
         rate = sustained_rate(model_path)
         rss, first = process_figures(model_path)
-        import onnxruntime
-        import torch
-
         # The onnxruntime version moves the latency by several percent (docs/runtime.md).
         print(f"model: {model_path.name}, {model_path.stat().st_size / 1e3:.0f} kB; "
               f"onnxruntime {onnxruntime.__version__}, torch {torch.__version__}")

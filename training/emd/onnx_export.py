@@ -107,18 +107,24 @@ def trace_graph(
 ) -> onnx.ModelProto:
     """Trace ``fn`` to a constant-folded ONNX model (the pinned exporter path)."""
     traced = export_traced(_Fn(fn), args, inputs, outputs, dynamic)
-    # The exporter wraps a scatter with a reduction in ``If`` nodes for 0-d inputs. The
-    # optimizer folds them away (ours have rank 3), logging on the way that the 0-d branch's
-    # flattened shape does not merge with the result's: harmless, the branch is gone, but the
-    # warning would reach the log of everyone who exports a model.
     folder = logging.getLogger("onnxscript.optimizer._constant_folding")
-    level = folder.level
-    folder.setLevel(logging.ERROR)
+    folder.addFilter(_folded_if_shapes)
     try:
         model = onnxscript.optimizer.optimize(traced)
     finally:
-        folder.setLevel(level)
+        folder.removeFilter(_folded_if_shapes)
     return _rank_constants(_drop_update_slices(_fold_constants(model)))
+
+
+def _folded_if_shapes(record: logging.LogRecord) -> bool:
+    """Drop only the optimizer's "cannot merge shapes" warning, keep every other record.
+
+    The exporter wraps a scatter with a reduction in ``If`` nodes for 0-d inputs. The optimizer
+    folds them away (ours have rank 3), warning on the way that the 0-d branch's flattened
+    shape does not merge with the result's: harmless, the branch is gone, but it would reach
+    the log of everyone who exports a model.
+    """
+    return "Cannot merge shapes" not in record.getMessage()
 
 
 def _drop_update_slices(model: onnx.ModelProto) -> onnx.ModelProto:
