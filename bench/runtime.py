@@ -190,7 +190,8 @@ def process_figures(model_path: Path) -> tuple[float, float]:
 
 def main() -> None:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    p.add_argument("--model", type=Path)
+    p.add_argument("--model", type=Path,
+                   help="an exported model (default: train and export one on simulated data)")
     p.add_argument("--run", type=Path, help="the run the model came from (for the reference)")
     p.add_argument("--windows", type=int, default=1000, help="windows timed (default 1000)")
     p.add_argument("--passes", type=int, default=3,
@@ -201,6 +202,8 @@ def main() -> None:
     args = p.parse_args()
     if args.windows < 2 or args.ref_windows < 2 or args.passes < 1:
         p.error("--windows and --ref-windows must be at least 2, --passes at least 1")
+    if (args.model is None) != (args.run is None):
+        p.error("--model and --run go together (the reference needs the run the model came from)")
     os.environ.setdefault("OMP_NUM_THREADS", "1")
     with tempfile.TemporaryDirectory() as tmp:
         model_path, run = (args.model, args.run) if args.model else build_model(Path(tmp))
