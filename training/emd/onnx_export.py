@@ -345,8 +345,8 @@ PCR_ALWAYS = 3
 is still coupled (:func:`spline.decoupled_after`): the few-knot envelopes of later IMFs skip
 them, with bit-identical results. Each level of ``If`` costs onnxruntime about 3.5 us a sift
 (the flag, the ``If`` and its subgraph), a third of a step, and with 50-sample windows nearly
-every sift needs 3 steps or more: 3 rather than 2 was 2-4% faster at 4-16 rows and the same at
-56 (``docs/emd.md``)."""
+every sift needs 3 steps or more: 3 rather than 2 was 2-4% faster at 4-16 rows, 2% at 32 and
+the same at 56 (``docs/emd.md``)."""
 
 
 def _sift_graph(
