@@ -343,10 +343,10 @@ def _head(h: Tensor) -> tuple[Tensor, Tensor]:
 PCR_ALWAYS = 3
 """PCR steps every sift runs; each later step sits in an ``If`` and runs only while some system
 is still coupled (:func:`spline.decoupled_after`): the few-knot envelopes of later IMFs skip
-them, with bit-identical results. Each level of ``If`` costs onnxruntime about 3.5 us a sift
-(the flag, the ``If`` and its subgraph), a third of a step, and with 50-sample windows nearly
-every sift needs 3 steps or more: 3 rather than 2 was 2-4% faster at 4-16 rows, 2% at 32 and
-the same at 56 (``docs/emd.md``)."""
+them, with bit-identical results. A level of ``If`` costs onnxruntime more than its nodes
+(about 3.5 us in a sift that runs the step anyway, a third of a step), and with 50-sample
+windows nearly every sift needs 3 steps or more: 3 rather than 2 was 2-4% faster at 4-16 rows,
+2% at 32 and the same at 56 (``docs/emd.md``)."""
 
 
 def _sift_graph(
