@@ -92,6 +92,13 @@ def reference_classifier(run: Path):
     return classify
 
 
+def elapsed_ms(fn, w: np.ndarray) -> float:
+    """Milliseconds ``fn(w)`` takes."""
+    t0 = time.perf_counter()
+    fn(w)
+    return (time.perf_counter() - t0) * 1e3
+
+
 def paired_latency(ours, ref, windows: np.ndarray, ref_windows: int) -> dict[str, list[float]]:
     """Per-window milliseconds of both pipelines, in one pass of alternating blocks.
 
@@ -111,18 +118,12 @@ def paired_latency(ours, ref, windows: np.ndarray, ref_windows: int) -> dict[str
     every = max(2, -(-len(windows) // blocks))
     out: dict[str, list[float]] = {"ours_warm": [], "ours_cold": [], "ref_warm": [],
                                    "ref_cold": []}
-
-    def timed(fn, w) -> float:
-        t0 = time.perf_counter()
-        fn(w)
-        return (time.perf_counter() - t0) * 1e3
-
     for i in range(0, len(windows) - 1, every):
         block = windows[i : i + every]
-        out["ref_cold"].append(timed(ref, block[0]))
-        out["ref_warm"].append(timed(ref, block[1]))
-        out["ours_cold"].append(timed(ours, block[0]))
-        out["ours_warm"] += [timed(ours, w) for w in block[1:]]
+        out["ref_cold"].append(elapsed_ms(ref, block[0]))
+        out["ref_warm"].append(elapsed_ms(ref, block[1]))
+        out["ours_cold"].append(elapsed_ms(ours, block[0]))
+        out["ours_warm"] += [elapsed_ms(ours, w) for w in block[1:]]
     return out
 
 
@@ -136,9 +137,7 @@ def steady_latency(ours, windows: np.ndarray, passes: int) -> list[float]:
     best = np.full(len(windows), np.inf)
     for _ in range(passes):
         for i, w in enumerate(windows):
-            t0 = time.perf_counter()
-            ours(w)
-            best[i] = min(best[i], (time.perf_counter() - t0) * 1e3)
+            best[i] = min(best[i], elapsed_ms(ours, w))
     return best.tolist()
 
 
