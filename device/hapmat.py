@@ -18,7 +18,7 @@ from pathlib import Path
 
 import numpy as np
 
-from tactile.cli import add_debug, run
+from tactile.cli import Parser, add_debug, run
 from tactile.device.info import ChannelSpec, DeviceInfo
 from tactile.device.recording import TakeWriter
 from tactile.errors import RecordingError
@@ -75,7 +75,7 @@ def _main(args: argparse.Namespace) -> int:
 
 
 def main(argv: list[str] | None = None) -> int:
-    p = argparse.ArgumentParser(
+    p = Parser(
         prog="tactile-import-hapmat", description="Import the HapMat stick-IMU recordings."
     )
     p.add_argument("npz", type=Path, help="hapmat_stick_imu.npz")

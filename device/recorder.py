@@ -21,7 +21,7 @@ from pathlib import Path
 import serial
 
 import tactile.device  # noqa: F401  (registers sim://)
-from tactile.cli import add_debug, run
+from tactile.cli import Parser, add_debug, run
 from tactile.device.decoder import Gap, Header, Samples, StreamDecoder
 from tactile.device.info import DeviceInfo
 from tactile.device.recording import TakeWriter
@@ -194,7 +194,7 @@ def _say(msg: str, progress: bool) -> None:
 
 
 def build_parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(
+    p = Parser(
         prog="tactile-record",
         description="Record labelled takes from a pen (device path or pyserial URL).",
     )

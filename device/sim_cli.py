@@ -20,7 +20,7 @@ import tty
 import zlib
 from pathlib import Path
 
-from tactile.cli import add_debug, run
+from tactile.cli import Parser, add_debug, run
 from tactile.device.recording import TakeWriter
 from tactile.device.simlink import LinkConfig, PenLink
 from tactile.device.simulator import TEXTURES, PenSimulator
@@ -106,7 +106,7 @@ def serve_pty(config: LinkConfig, out=sys.stdout) -> None:
 
 
 def build_parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(prog="tactile-sim", description=__doc__.split("\n\n")[0])
+    p = Parser(prog="tactile-sim", description=__doc__.split("\n\n")[0])
     mode = p.add_mutually_exclusive_group(required=True)
     mode.add_argument("--pty", action="store_true", help="serve the pen on a pseudo-terminal")
     mode.add_argument("--dataset", type=Path, metavar="OUT", help="write a synthetic dataset")

@@ -18,7 +18,7 @@ import numpy as np
 import onnx
 import torch
 
-from tactile.cli import add_debug, run
+from tactile.cli import Parser, add_debug, run
 from tactile.contract import OPSET, ModelContract
 from tactile.errors import ModelContractError
 
@@ -130,7 +130,7 @@ def _accuracy(path: Path, c: ModelContract, data: Path) -> None:
 
 
 def build_parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(prog="tactile-check", description=__doc__.split("\n\n")[0])
+    p = Parser(prog="tactile-check", description=__doc__.split("\n\n")[0])
     p.add_argument("model", type=Path, help="ONNX file to check")
     p.add_argument("--run", type=Path, help="run folder: re-run parity against its PyTorch model")
     p.add_argument("--data", type=Path, help="dataset folder: windows to check on")

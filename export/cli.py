@@ -19,7 +19,7 @@ from pathlib import Path
 import onnx
 import torch
 
-from tactile.cli import add_debug, run
+from tactile.cli import Parser, add_debug, run
 from tactile.export.check import load_contract
 from tactile.export.graph import build_graph
 from tactile.export.metadata import attach, contract_for
@@ -106,7 +106,7 @@ def _tradeoff_line(t: dict) -> str:
 
 
 def build_parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(prog="tactile-export", description=__doc__.split("\n\n")[0])
+    p = Parser(prog="tactile-export", description=__doc__.split("\n\n")[0])
     p.add_argument("run", type=Path, help="run folder written by tactile-train")
     p.add_argument("-o", "--out", type=Path, required=True, help="ONNX file to write")
     p.add_argument("--data", type=Path, help="dataset folder holding the run's test takes")

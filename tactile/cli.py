@@ -3,6 +3,9 @@
 from __future__ import annotations
 
 import argparse
+import importlib
+import math
+import os
 import sys
 from collections.abc import Callable
 
@@ -31,6 +34,10 @@ def run(prog: str, body: Callable[[argparse.Namespace], int], args: argparse.Nam
     """Run ``body(args)``; a user's mistake becomes one line on stderr and a non-zero exit."""
     try:
         return body(args)
+    except BrokenPipeError:  # the reader of stdout went away (`| head`): stop quietly
+        devnull = os.open(os.devnull, os.O_WRONLY)
+        os.dup2(devnull, sys.stdout.fileno())  # so that the interpreter's final flush is quiet
+        return EXIT_OK
     except (TactileError, OSError, ValueError) as e:
         if getattr(args, "debug", False):
             raise
@@ -39,8 +46,92 @@ def run(prog: str, body: Callable[[argparse.Namespace], int], args: argparse.Nam
         return exit_code(e)
 
 
+class Parser(argparse.ArgumentParser):
+    """``argparse`` with the project's conventions: a bad argument is one line on stderr and
+    exit code 1 (argparse's own is 2, which the commands keep for the device), and the
+    description's ``literal`` markup is shown as plain text."""
+
+    def __init__(self, *args, **kwargs) -> None:
+        if kwargs.get("description"):
+            kwargs["description"] = kwargs["description"].replace("``", "")
+        super().__init__(*args, **kwargs)
+
+    def error(self, message: str):  # type: ignore[override]
+        print(f"{self.prog}: error: {message} (see --help)", file=sys.stderr)
+        sys.exit(EXIT_USAGE)
+
+
+def int_in(low: int, high: int | None = None) -> Callable[[str], int]:
+    """An argparse type: an integer in ``low .. high`` (no upper bound when ``high`` is None)."""
+
+    def parse(text: str) -> int:
+        try:
+            value = int(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"{text!r} is not an integer") from None
+        if value < low or (high is not None and value > high):
+            span = f">= {low}" if high is None else f"in {low}..{high}"
+            raise argparse.ArgumentTypeError(f"{value} must be {span}")
+        return value
+
+    return parse
+
+
+def float_in(low: float, high: float = math.inf, low_open: bool = True,
+             high_open: bool = False) -> Callable[[str], float]:
+    """An argparse type: a number between ``low`` and ``high`` (open or closed ends); ``inf``
+    is accepted only as an open-ended upper bound's value when ``high`` is infinite."""
+
+    def parse(text: str) -> float:
+        try:
+            value = float(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"{text!r} is not a number") from None
+        ok = not math.isnan(value) and (value > low if low_open else value >= low) and (
+            value < high if high_open else value <= high)
+        if not ok:
+            lo = f"> {low}" if low_open else f">= {low}"
+            hi = "" if math.isinf(high) else (f" and < {high}" if high_open else f" and <= {high}")
+            raise argparse.ArgumentTypeError(f"{text} must be {lo}{hi}")
+        return value
+
+    return parse
+
+
+# What each optional extra brings: a command that needs one says so in one line.
+_EXTRA_OF = {"torch": "train", "onnx": "train", "onnxscript": "train", "tqdm": "train",
+             "matplotlib": "train"}
+
+
+def _with_extra(module: str, prog: str) -> Callable[[], int]:
+    """An entry point that imports ``module`` only when run, so that a command whose
+    dependencies are not installed (the board installs the runtime's only) says which extra
+    it needs instead of showing an import traceback."""
+
+    def main() -> int:
+        try:
+            mod = importlib.import_module(module)
+        except ModuleNotFoundError as e:
+            top = (e.name or "").split(".")[0]
+            if top not in _EXTRA_OF:
+                raise
+            extra = _EXTRA_OF[top]
+            print(f"{prog}: error: needs the [{extra}] extra (no module named {top!r}): "
+                  f"pip install 'tactile-pen[{extra}]'", file=sys.stderr)
+            return EXIT_USAGE
+        return mod.main()
+
+    return main
+
+
+train_main = _with_extra("tactile.training.train", "tactile-train")
+eval_main = _with_extra("tactile.training.evaluate", "tactile-eval")
+export_main = _with_extra("tactile.export.cli", "tactile-export")
+check_main = _with_extra("tactile.export.check", "tactile-check")
+
+
 def add_debug(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--debug", action="store_true", help="show the full traceback on errors")
 
 
-__all__ = ["ConfigError", "run", "add_debug", "exit_code", "EXIT_DEVICE", "EXIT_USAGE"]
+__all__ = ["ConfigError", "Parser", "run", "add_debug", "exit_code", "EXIT_DEVICE", "EXIT_USAGE"]

@@ -55,3 +55,55 @@ def test_the_built_wheel_requires_no_torch(tmp_path):
     for module in ("tactile/runtime/cli.py", "tactile/training/emd/module.py",
                    "tactile/export/cli.py", "tactile/device/PROTOCOL.md", "tactile/contract.py"):
         assert module in names, module
+
+
+_BLOCK_TRAIN = (
+    "import sys\n"
+    "class Block:\n"
+    "    def find_spec(self, name, path=None, target=None):\n"
+    "        if name.split('.')[0] in ('torch', 'onnx', 'onnxscript'):\n"
+    "            raise ModuleNotFoundError(f'No module named {name!r}', name=name)\n"
+    "sys.meta_path.insert(0, Block())\n"
+)
+
+
+def test_commands_needing_an_extra_say_so_in_one_line():
+    """On a board (no torch, no onnx) the training and export commands are installed too; each
+    must name the extra it needs instead of printing an import traceback."""
+    scripts = tomllib.loads((REPO / "pyproject.toml").read_text())["project"]["scripts"]
+    for prog in ("tactile-train", "tactile-eval", "tactile-export", "tactile-check"):
+        module, func = scripts[prog].split(":")
+        code = _BLOCK_TRAIN + f"from {module} import {func}\nsys.argv = ['{prog}', '--help']\n" \
+            f"sys.exit({func}())\n"
+        out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True)
+        assert out.returncode == 1, (prog, out.stderr)
+        lines = out.stderr.strip().splitlines()
+        assert len(lines) == 1 and lines[0].startswith(f"{prog}: error: needs the [train] extra")
+        assert "pip install 'tactile-pen[train]'" in lines[0]
+
+
+def test_every_command_runs_with_its_dependencies():
+    """The same entry points, with everything installed, reach the command's own --help."""
+    scripts = tomllib.loads((REPO / "pyproject.toml").read_text())["project"]["scripts"]
+    assert len(scripts) == 8
+    for prog, target in scripts.items():
+        module, func = target.split(":")
+        code = f"import sys\nfrom {module} import {func}\nsys.argv = ['{prog}', '--help']\n" \
+            f"sys.exit({func}())\n"
+        out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True)
+        assert out.returncode == 0, (prog, out.stderr)
+        assert out.stdout.startswith(f"usage: {prog}"), (prog, out.stdout[:80])
+        assert "``" not in out.stdout, prog  # docstring markup is shown as plain text
+
+
+def test_a_bad_argument_is_one_line_and_exit_1():
+    """argparse's own exit code 2 would read as "device or port"; every command uses 1."""
+    scripts = tomllib.loads((REPO / "pyproject.toml").read_text())["project"]["scripts"]
+    for prog, target in scripts.items():
+        module, func = target.split(":")
+        code = f"import sys\nfrom {module} import {func}\n" \
+            f"sys.argv = ['{prog}', '--no-such-option']\nsys.exit({func}())\n"
+        out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True)
+        assert out.returncode == 1, (prog, out.returncode, out.stderr)
+        lines = out.stderr.strip().splitlines()
+        assert len(lines) == 1 and lines[0].startswith(f"{prog}: error: "), (prog, lines)

@@ -18,7 +18,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from tactile.cli import add_debug, run
+from tactile.cli import Parser, add_debug, run
 from tactile.device.recording import load_dataset
 from tactile.errors import ConfigError, RecordingError
 from tactile.training.data import Windows, cut
@@ -155,7 +155,7 @@ def _main(args: argparse.Namespace) -> int:
 
 
 def main(argv: list[str] | None = None) -> int:
-    p = argparse.ArgumentParser(prog="tactile-eval", description=__doc__.split("\n\n")[0])
+    p = Parser(prog="tactile-eval", description=__doc__.split("\n\n")[0])
     p.add_argument("run", type=Path, help="run folder written by tactile-train")
     p.add_argument("data", type=Path, help="dataset folder")
     p.add_argument("--json", action="store_true", help="the figures as one JSON object")

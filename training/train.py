@@ -27,7 +27,7 @@ from torch.optim.lr_scheduler import ReduceLROnPlateau
 from tqdm import tqdm
 
 import tactile
-from tactile.cli import add_debug, run
+from tactile.cli import Parser, add_debug, run
 from tactile.device.recording import load_dataset
 from tactile.errors import ConfigError, RecordingError
 from tactile.training.config import TrainConfig
@@ -340,7 +340,7 @@ def _log(progress: bool, msg: str) -> None:
 
 
 def build_parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(prog="tactile-train", description=__doc__.split("\n\n")[0])
+    p = Parser(prog="tactile-train", description=__doc__.split("\n\n")[0])
     p.add_argument("data", type=Path, help="dataset folder (takes: .csv + .json)")
     p.add_argument("--out", type=Path, required=True, help="run folder to write")
     p.add_argument("--config", type=Path, help="TOML file of settings (see TrainConfig)")
