@@ -15,6 +15,7 @@ from __future__ import annotations
 import argparse
 import json
 import math
+import os
 import signal
 import sys
 import time
@@ -26,7 +27,7 @@ import numpy as np
 import serial
 
 import tactile.device  # noqa: F401  (registers sim://)
-from tactile.cli import add_debug, run
+from tactile.cli import Parser, add_debug, float_in, int_in, run
 from tactile.device.decoder import Gap, Header, Samples, StreamDecoder
 from tactile.device.info import DeviceInfo
 from tactile.errors import DeviceError, ModelContractError
@@ -34,6 +35,7 @@ from tactile.runtime.model import Model
 from tactile.runtime.stream import Label, Smoother, Stream
 
 FORMATS = ("jsonl", "text", "csv")
+CPUS = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1
 
 
 @dataclass
@@ -174,9 +176,17 @@ def serve(args: argparse.Namespace, runner: Runner, decoder: StreamDecoder,
           stop: dict) -> None:
     """The serial loop: read, decode, classify; reconnect with backoff when the port vanishes."""
     summary = runner.summary
-    link = open_port(args.port, args.baud)
-    last_data = last_status = time.monotonic()
     deadline = summary.started + args.seconds
+    try:
+        link = open_port(args.port, args.baud)
+    except (serial.SerialException, DeviceError) as e:
+        if not args.wait:
+            raise
+        _say(f"{str(e).splitlines()[0]}; waiting for it")
+        link = _reconnect(args, stop, deadline, "opened")
+        if link is None:
+            return
+    last_data = last_status = time.monotonic()
     try:
         while not stop["flag"] and time.monotonic() < deadline:
             try:
@@ -209,16 +219,17 @@ def serve(args: argparse.Namespace, runner: Runner, decoder: StreamDecoder,
                      f"crc {st.crc_errors}  malformed {st.malformed}  "
                      f"discarded {st.bytes_discarded} B  reconnects {summary.reconnects}")
     finally:
-        link.close()
+        if link is not None:  # None: stopped (or out of time) while waiting to reconnect
+            link.close()
 
 
-def _reconnect(args: argparse.Namespace, stop: dict,
-               deadline: float = math.inf) -> serial.SerialBase | None:
+def _reconnect(args: argparse.Namespace, stop: dict, deadline: float = math.inf,
+               verb: str = "reconnected to") -> serial.SerialBase | None:
     delay = 0.1
     while not stop["flag"] and time.monotonic() < deadline:
         try:
             link = open_port(args.port, args.baud)
-            _say(f"reconnected to {args.port}")
+            _say(f"{verb} {args.port}")
             return link
         except (serial.SerialException, DeviceError):
             time.sleep(delay)
@@ -246,7 +257,7 @@ def _say(msg: str) -> None:
 
 
 def build_parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(
+    p = Parser(
         prog="tactile-run",
         description="Read the pen, print one label per window (stdout), keep going.",
         epilog="exit codes: 0 stopped cleanly, 1 bad arguments, 2 port cannot be opened or no "
@@ -257,18 +268,28 @@ def build_parser() -> argparse.ArgumentParser:
     src.add_argument("--port", help="device path or pyserial URL (sim://, socket://, ...); "
                      "default: the one likely pen attached")
     src.add_argument("--replay", type=Path, metavar="TAKE", help="a recorded take (.csv)")
-    p.add_argument("--baud", type=int, default=115200, help="UART baud rate (default 115200)")
-    p.add_argument("--hop", type=int, help="samples between windows (default: the model's)")
+    p.add_argument("--wait", action="store_true",
+                   help="if the port cannot be opened at start, wait for it (as after an "
+                   "unplug) instead of exiting with code 2; for a service started before the "
+                   "pen is plugged in")
+    p.add_argument("--baud", type=int_in(1), default=115200,
+                   help="UART baud rate (default 115200)")
+    p.add_argument("--hop", type=int_in(1),
+                   help="samples between windows (default: the model's)")
     p.add_argument("--format", choices=FORMATS, default="jsonl")
-    p.add_argument("--smooth", type=int, default=1, metavar="K",
+    p.add_argument("--smooth", type=int_in(1), default=1, metavar="K",
                    help="also report the label averaged over the last K windows")
-    p.add_argument("--hysteresis", type=float, default=0.0, metavar="MARGIN",
+    p.add_argument("--hysteresis", type=float_in(0.0, 1.0, low_open=False, high_open=True),
+                   default=0.0, metavar="MARGIN",
                    help="the smoothed label changes only when beaten by MARGIN")
-    p.add_argument("--threads", type=int, default=1, help="onnxruntime threads (default 1)")
-    p.add_argument("--seconds", type=float, default=math.inf, help="stop after this long")
-    p.add_argument("--stall-timeout", type=float, default=2.0,
+    p.add_argument("--threads", type=int_in(1, CPUS), default=1,
+                   help=f"onnxruntime threads, at most the {CPUS} cores (default 1)")
+    p.add_argument("--seconds", type=float_in(0.0), default=math.inf,
+                   help="stop after this long")
+    p.add_argument("--stall-timeout", type=float_in(0.0), default=2.0,
                    help="report a stall after this many seconds without data")
-    p.add_argument("--status-every", type=float, default=5.0, help="status line period, s")
+    p.add_argument("--status-every", type=float_in(0.0), default=5.0,
+                   help="status line period, s")
     add_debug(p)
     return p
 
@@ -276,11 +297,10 @@ def build_parser() -> argparse.ArgumentParser:
 def _main(args: argparse.Namespace) -> int:
     model = Model(args.model, threads=args.threads)
     c = model.contract
-    hop = args.hop or c.hop
+    hop = c.hop if args.hop is None else args.hop
     smoother = Smoother(args.smooth, args.hysteresis) if args.smooth > 1 or args.hysteresis \
         else None
-    stream = Stream(model.classify, c.classes, c.window, hop, len(c.channels),
-                    c.state_mode == "carry", model.state_shape, smoother)
+    stream = Stream.for_model(model, hop, smoother)
     summary = Summary()
     runner = Runner(model, stream, Printer(args.format, c.classes), summary)
     decoder = StreamDecoder()

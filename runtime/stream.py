@@ -8,6 +8,7 @@ when samples were lost). The serial loop is a few lines over it, and tests drive
 
 from __future__ import annotations
 
+import math
 import time
 from collections import deque
 from collections.abc import Callable
@@ -89,6 +90,10 @@ class Stream:
         carry: carry the LSTM state from window to window (else a zero state per window).
         state_shape: (layers, hidden) of the state tensors.
         smoother: optional :class:`Smoother` whose label is reported beside the raw one.
+        rate_hz: the pen's sample rate, which times the samples of an :meth:`accept` call
+            after its first (else each call must give ``period_us``).
+
+    :meth:`for_model` takes all of these from a model's contract.
     """
 
     def __init__(
@@ -101,6 +106,7 @@ class Stream:
         carry: bool,
         state_shape: tuple[int, int],
         smoother: Smoother | None = None,
+        rate_hz: float | None = None,
     ) -> None:
         if window < 1 or hop < 1:
             raise ConfigError(f"window {window} and hop {hop} must be >= 1")
@@ -115,7 +121,20 @@ class Stream:
         self.carry = carry
         self.state_shape = state_shape
         self.smoother = smoother
+        if rate_hz is not None and not (math.isfinite(rate_hz) and rate_hz > 0):
+            raise ConfigError(f"rate_hz {rate_hz}: must be a finite number > 0")
+        self.period_us = None if rate_hz is None else 1e6 / rate_hz
         self.reset()
+
+    @classmethod
+    def for_model(cls, model, hop: int | None = None,
+                  smoother: Smoother | None = None) -> Stream:
+        """A stream for a :class:`~tactile.runtime.model.Model`: window, hop (unless given),
+        channels, state mode and sample rate from its contract."""
+        c = model.contract
+        return cls(model.classify, c.classes, c.window, c.hop if hop is None else hop,
+                   len(c.channels), c.state_mode == "carry", model.state_shape, smoother,
+                   rate_hz=c.sample_rate_hz)
 
     def reset(self) -> None:
         """Forget the buffered samples and the state (after a gap or on request)."""
@@ -134,16 +153,34 @@ class Stream:
         """Samples were lost: no window may span the gap, and a carried state is void."""
         self.reset()
 
-    def accept(self, values: np.ndarray, seq: int, t_us: int, period_us: float = 0.0) -> None:
-        """Append samples (n, channels) in the channels' units; ``seq``/``t_us`` of the first."""
+    def accept(self, values: np.ndarray, seq: int, t_us: int,
+               period_us: float | None = None) -> None:
+        """Append samples (n, channels) in the channels' units; ``seq``/``t_us`` of the first,
+        the others ``period_us`` apart (by default the stream's ``rate_hz``)."""
         values = np.asarray(values, dtype=np.float32)
         if values.ndim != 2 or values.shape[1] != self.channels:
             raise ConfigError(f"samples of shape {values.shape}: expected (n, {self.channels})")
         n = len(values)
+        if period_us is None:
+            period_us = self.period_us
+        if period_us is None:
+            if n > 1:
+                raise ConfigError(f"{n} samples in one call need period_us (or the stream's "
+                                  "rate_hz) to time all but the first")
+            period_us = 0.0
         self._buf = np.concatenate([self._buf, values])
         self._seq = np.concatenate([self._seq, seq + np.arange(n)])
         self._t = np.concatenate([self._t, t_us + np.round(np.arange(n) * period_us)
                                   .astype(np.int64)])
+        self._trim()
+
+    def _trim(self) -> None:
+        """Drop the samples no window needs any more (with a hop longer than the window, those
+        between windows too, also when they arrive after the previous window was made)."""
+        drop = min(self._next_end - self.window - self._base, len(self._buf))
+        if drop > 0:
+            self._buf, self._seq, self._t = self._buf[drop:], self._seq[drop:], self._t[drop:]
+            self._base += drop
 
     def ready(self) -> bool:
         """True while a window is due: its last sample has arrived."""
@@ -165,10 +202,7 @@ class Stream:
         if self.carry:
             self.h, self.c = h, c
         self._next_end += self.hop
-        drop = self._next_end - self.window - self._base  # samples no window needs any more
-        if drop > 0:
-            self._buf, self._seq, self._t = self._buf[drop:], self._seq[drop:], self._t[drop:]
-            self._base += drop
+        self._trim()
         p = probs[0]
         k = int(p.argmax())
         smoothed = self.classes[self.smoother(p)] if self.smoother is not None else None

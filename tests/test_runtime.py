@@ -11,6 +11,7 @@ import time
 import numpy as np
 import pytest
 import torch
+from conftest import REPO
 
 from tactile.device.info import pen_info
 from tactile.device.protocol_sim import forget_unplugs
@@ -34,8 +35,9 @@ def fake_classify(x, h, c):
     return p, h + 1, c + 1
 
 
-def make_stream(window=5, hop=2, carry=False, smoother=None):
-    return Stream(fake_classify, ("a", "b", "c"), window, hop, 1, carry, (1, 2), smoother)
+def make_stream(window=5, hop=2, carry=False, smoother=None, rate_hz=100.0):
+    return Stream(fake_classify, ("a", "b", "c"), window, hop, 1, carry, (1, 2), smoother,
+                  rate_hz=rate_hz)
 
 
 def drain(stream):
@@ -45,18 +47,20 @@ def drain(stream):
     return out
 
 
-def test_windows_every_hop_in_order_whatever_the_chunking(rng):
+@pytest.mark.parametrize("hop", [2, 5, 7, 13])  # window 5: overlapping, back to back, apart
+def test_windows_every_hop_in_order_whatever_the_chunking(hop):
     values = np.arange(40, dtype=np.float32)[:, None]
-    for chunks in ([40], [1] * 40, [3, 7, 1, 20, 9]):
-        s = make_stream()
+    for chunks in ([40], [1] * 40, [3, 7, 1, 20, 9], [8, 32]):
+        s = make_stream(hop=hop)
         labels, i = [], 0
         for n in chunks:
             s.accept(values[i : i + n], seq=100 + i, t_us=i * 10_000, period_us=10_000)
             i += n
             labels += drain(s)
-        # windows end at samples 4, 6, 8, ..., 38
-        assert [lab.seq for lab in labels] == [100 + e for e in range(4, 40, 2)]
-        assert [lab.probabilities["a"] for lab in labels] == [float(e - 4) for e in range(4, 40, 2)]
+        # windows end at samples 4, 4 + hop, 4 + 2 hop, ...
+        assert [lab.seq for lab in labels] == [100 + e for e in range(4, 40, hop)], chunks
+        assert [lab.probabilities["a"] for lab in labels] == [
+            float(e - 4) for e in range(4, 40, hop)]
         assert labels[0].t_us == 40_000
 
 
@@ -185,14 +189,28 @@ def test_parity_from_bytes_to_labels(models, mode):
     assert all(b - a == hop for c in chains for a, b in zip(c, c[1:]))
 
 
+def test_samples_of_one_call_are_timed_by_the_rate():
+    s = make_stream(rate_hz=100.0)
+    s.accept(np.arange(9.0)[:, None], seq=10, t_us=5_000_000)
+    assert [(lab.seq, lab.t_us) for lab in drain(s)] == [
+        (14, 5_040_000), (16, 5_060_000), (18, 5_080_000)]
+    s = make_stream(rate_hz=None)
+    s.accept(np.zeros((1, 1)), seq=0, t_us=0)  # one sample needs no period
+    with pytest.raises(ConfigError, match="need period_us"):
+        s.accept(np.zeros((4, 1)), seq=1, t_us=10_000)
+    s.accept(np.zeros((4, 1)), seq=1, t_us=10_000, period_us=20_000)
+    assert drain(s)[0].t_us == 10_000 + 3 * 20_000
+
+
 def test_library_api_in_a_few_lines(models):
+    """The example of docs/runtime.md."""
     model = Model(models["window"][1])
     c = model.contract
-    stream = Stream(model.classify, c.classes, c.window, c.hop, len(c.channels),
-                    c.state_mode == "carry", model.state_shape)
-    stream.accept(np.zeros((120, len(c.channels)), np.float32), seq=0, t_us=0)
+    stream = Stream.for_model(model)
+    stream.accept(np.zeros((120, len(c.channels)), np.float32), seq=0, t_us=1_000_000)
     labels = drain(stream)
     assert [lab.seq for lab in labels] == [49, 74, 99]
+    assert [lab.t_us for lab in labels] == [1_490_000, 1_740_000, 1_990_000]  # 100 Hz
     assert all(lab.label in c.classes and 0 <= lab.probability <= 1 for lab in labels)
 
 
@@ -290,3 +308,69 @@ def test_device_contract_mismatch_names_both_sides(models, tmp_path):
     assert code == 3
     assert "device channels ['pressure_0'" in err and "model's ['accel_x'" in err
     assert '"label"' not in out
+
+
+SHIPPED = REPO / "models" / "pen-exp2.onnx"
+
+
+@pytest.mark.parametrize("option, value, says", [
+    ("--threads", "100000", "must be in 1.."), ("--threads", "0", "must be in 1.."),
+    ("--hop", "0", "must be >= 1"), ("--smooth", "-1", "must be >= 1"),
+    ("--hysteresis", "1", "must be >= 0.0 and < 1.0"), ("--seconds", "nan", "must be > 0"),
+    ("--stall-timeout", "0", "must be > 0"), ("--baud", "fast", "'fast' is not an integer"),
+])
+def test_bad_option_values_are_refused_in_one_line(option, value, says):
+    code, out, err = run_cli(["--model", str(SHIPPED), "--port", "loop://", option, value])
+    assert code == 1 and out == ""
+    assert err.strip().splitlines() == [f"tactile-run: error: argument {option}: " + err.split(
+        f"argument {option}: ", 1)[1].strip()]
+    assert says in err
+
+
+def test_wait_for_a_port_that_is_not_there_yet():
+    """Without --wait an absent port is exit 2; with it, tactile-run waits and then labels."""
+    import socket
+    import threading
+
+    from tactile.device.simlink import LinkConfig, PenLink
+
+    probe = socket.socket()
+    probe.bind(("127.0.0.1", 0))
+    port = probe.getsockname()[1]
+    probe.close()  # nothing listens there now
+    url = f"socket://127.0.0.1:{port}"
+    code, _, err = run_cli(["--model", str(SHIPPED), "--port", url])
+    assert code == 2 and len(err.strip().splitlines()) == 1
+
+    data = PenLink(LinkConfig(texture="paper", seed=2)).produce(300)  # 3 s of the pen
+
+    def serve_later():
+        time.sleep(1.5)
+        with socket.create_server(("127.0.0.1", port)) as srv:
+            conn, _ = srv.accept()
+            with conn:
+                conn.sendall(data)
+                time.sleep(2.0)
+
+    th = threading.Thread(target=serve_later, daemon=True)
+    th.start()
+    code, out, err = run_cli(["--model", str(SHIPPED), "--port", url, "--wait",
+                              "--seconds", "5"])
+    th.join(timeout=10)
+    assert code == 0, err
+    assert "waiting for it" in err and f"opened {url}" in err
+    labels = [json.loads(ln) for ln in out.splitlines() if '"label"' in ln]
+    assert [lab["seq"] for lab in labels] == list(range(49, 300, 25))  # hop 25 from seq 0
+
+
+def test_a_closed_stdout_stops_quietly():
+    """`tactile-run ... | head -1`: no traceback, no error line, exit 0."""
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "tactile.runtime.cli", "--model", str(SHIPPED), "--port",
+         "sim://?texture=paper&seed=1&speed=max&seconds=60"],
+        stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    first = proc.stdout.readline()
+    proc.stdout.close()
+    err = proc.stderr.read()
+    assert proc.wait(timeout=30) == 0, err
+    assert json.loads(first)["seq"] == 49 and "error" not in err and "Traceback" not in err
