@@ -123,6 +123,8 @@ class PenLink:
         self.rng = np.random.default_rng([config.seed, 0x11AC])
         self.injected = Injected()
         self.info = self.sim.info
+        self._scale = np.array([ch.scale for ch in self.info.channels])
+        self._offset = np.array([ch.offset for ch in self.info.channels])
         self.seq = 0  # the pen's sample counter since it (re)started
         skip = round(restart_at_s * config.rate)
         while skip > 0:  # advance the motion, not the counter
@@ -169,8 +171,10 @@ class PenLink:
             if cfg.drop and self.rng.random() < cfg.drop:
                 self.injected.dropped_frames += 1
                 self.injected.dropped_samples += k
-            elif cfg.format == "csv":
-                out += self._fault("".join(",".join(map(str, r)) + "\n" for r in raw).encode())
+            elif cfg.format == "csv":  # values in their units, as PROTOCOL.md asks of CSV
+                vals = raw * self._scale + self._offset
+                out += self._fault("".join(",".join(f"{v:.7g}" for v in r) + "\n"
+                                           for r in vals).encode())
             else:
                 out += self._fault(encode_samples(self.seq, t_us, raw))
             self.seq += k

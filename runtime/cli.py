@@ -16,6 +16,7 @@ import argparse
 import json
 import math
 import os
+import re
 import signal
 import sys
 import time
@@ -30,7 +31,7 @@ import tactile.device  # noqa: F401  (registers sim://)
 from tactile.cli import Parser, add_debug, float_in, int_in, run
 from tactile.device.decoder import Gap, Header, Samples, StreamDecoder
 from tactile.device.info import DeviceInfo
-from tactile.errors import DeviceError, ModelContractError
+from tactile.errors import DeviceError, ModelContractError, RecordingError
 from tactile.runtime.model import Model
 from tactile.runtime.stream import Label, Smoother, Stream
 
@@ -68,8 +69,8 @@ class Printer:
 
     def __init__(self, fmt: str, classes: tuple[str, ...], out=sys.stdout) -> None:
         self.fmt, self.classes, self.out = fmt, classes, out
-        if fmt == "csv":
-            cols = ["t", "seq", "label", "p", "latency_ms", "smoothed", *classes]
+        if fmt == "csv":  # an event is a row of its own: its seq (if any) and `event` filled
+            cols = ["t", "seq", "label", "p", "latency_ms", "smoothed", *classes, "event"]
             print(",".join(cols), file=out, flush=True)
 
     def label(self, lab: Label) -> None:
@@ -82,13 +83,18 @@ class Printer:
         else:
             probs = ",".join(f"{lab.probabilities[c]:.6f}" for c in self.classes)
             line = (f"{lab.t_us / 1e6:.6f},{lab.seq},{lab.label},{lab.probability:.6f},"
-                    f"{lab.latency_ms:.3f},{lab.smoothed or ''},{probs}")
+                    f"{lab.latency_ms:.3f},{lab.smoothed or ''},{probs},")
         print(line, file=self.out, flush=True)
 
     def event(self, kind: str, **fields) -> None:
-        """Gaps and resets: a JSON object in jsonl mode, a comment line otherwise."""
+        """Gaps, stalls and reconnects: a JSON object in jsonl mode, a row with the `event`
+        column filled in csv mode, a ``#`` comment line in text mode."""
         if self.fmt == "jsonl":
             print(json.dumps({"event": kind, **fields}), file=self.out, flush=True)
+        elif self.fmt == "csv":
+            what = " ".join([kind, *(f"{k}={v}" for k, v in fields.items() if k != "seq")])
+            empty = "," * (len(self.classes) + 4)
+            print(f",{fields.get('seq', '')}{empty},{what}", file=self.out, flush=True)
         else:
             print(f"# {kind} " + " ".join(f"{k}={v}" for k, v in fields.items()),
                   file=self.out, flush=True)
@@ -101,6 +107,15 @@ def check_device(model: Model, info: DeviceInfo) -> None:
     if got != want:
         raise ModelContractError(
             f"device channels {list(got)} do not match the model's {list(want)} (names and order)"
+        )
+    got_units = tuple(ch.unit for ch in info.channels)
+    if info.device == "csv":  # a CSV device declares no units and no rate (PROTOCOL.md)
+        _say(f"CSV device: its values are taken in the model's units "
+             f"{list(model.contract.units)}, at the model's {model.contract.sample_rate_hz:g} Hz")
+    elif got_units != model.contract.units:
+        raise ModelContractError(
+            f"device units {list(got_units)} do not match the model's "
+            f"{list(model.contract.units)}"
         )
     if not math.isclose(info.sample_rate_hz, model.contract.sample_rate_hz, rel_tol=1e-3):
         raise ModelContractError(
@@ -168,8 +183,11 @@ def find_port() -> str:
 def open_port(port: str, baud: int) -> serial.SerialBase:
     try:
         return serial.serial_for_url(port, baudrate=baud, timeout=0.05)
-    except ValueError as e:
-        raise DeviceError(f"cannot open {port}: {e}") from None
+    except (ValueError, serial.SerialException) as e:
+        msg = str(e).splitlines()[0] if str(e) else type(e).__name__
+        # pyserial names the port in some messages ("[Errno 2] could not open port P: ...")
+        msg = re.sub(r"^.*could not open port .*?: (?=\[Errno)", "", msg)
+        raise DeviceError(f"cannot open {port}: {msg}") from None
 
 
 def serve(args: argparse.Namespace, runner: Runner, decoder: StreamDecoder,
@@ -187,6 +205,7 @@ def serve(args: argparse.Namespace, runner: Runner, decoder: StreamDecoder,
         if link is None:
             return
     last_data = last_status = time.monotonic()
+    stalled = False  # one stall event per silence; the status line says how long it lasts
     try:
         while not stop["flag"] and time.monotonic() < deadline:
             try:
@@ -202,22 +221,25 @@ def serve(args: argparse.Namespace, runner: Runner, decoder: StreamDecoder,
                 runner.stream.reset()
                 runner.printer.event("reconnect", port=args.port)
                 last_data = time.monotonic()
+                stalled = False
                 continue
             now = time.monotonic()
             if data:
-                last_data = now
+                last_data, stalled = now, False
                 runner.handle(decoder.feed(data))
-            elif now - last_data > args.stall_timeout:
+            elif not stalled and now - last_data > args.stall_timeout:
+                stalled = True
                 summary.stalls += 1
                 _say(f"no data for {now - last_data:.1f} s")
                 runner.printer.event("stall", seconds=round(now - last_data, 1))
-                last_data = now
             if now - last_status >= args.status_every:
                 last_status = now
                 st = decoder.stats
+                silent = f"  no data for {now - last_data:.0f} s" if stalled else ""
                 _say(f"windows {summary.windows}  gaps {st.gaps} (lost {st.samples_lost})  "
                      f"crc {st.crc_errors}  malformed {st.malformed}  "
-                     f"discarded {st.bytes_discarded} B  reconnects {summary.reconnects}")
+                     f"rejected {st.csv_rejected}  discarded {st.bytes_discarded} B  "
+                     f"reconnects {summary.reconnects}{silent}")
     finally:
         if link is not None:  # None: stopped (or out of time) while waiting to reconnect
             link.close()
@@ -237,17 +259,26 @@ def _reconnect(args: argparse.Namespace, stop: dict, deadline: float = math.inf,
     return None
 
 
-def replay(path: Path, runner: Runner) -> None:
-    """Run a recorded take through the same stream, as fast as possible."""
+def replay(path: Path, runner: Runner, stop: dict) -> None:
+    """Run a recorded take through the same stream, as fast as possible (until stopped)."""
     from tactile.device.recording import read_take
 
     take = read_take(path)
+    if len(take.seq) == 0:
+        raise RecordingError(f"{path}: the take holds no samples")
+    if take.truncated:
+        _say(f"{path}: its last row was cut short (the recording stopped mid-write); "
+             "it is left out")
     runner.handle([Header(take.info)])
     for a, b in take.segments():
+        if stop["flag"]:
+            break
         if a > 0:
             runner.handle([Gap(int(take.seq[a]), int(take.seq[a] - take.seq[a - 1] - 1),
                                "recorded")])
         for i in range(a, b, 256):
+            if stop["flag"]:
+                return
             j = min(i + 256, b)
             runner.handle([Samples(int(take.seq[i]), int(take.t_us[i]), take.raw[i:j])])
 
@@ -276,7 +307,9 @@ def build_parser() -> argparse.ArgumentParser:
                    help="UART baud rate (default 115200)")
     p.add_argument("--hop", type=int_in(1),
                    help="samples between windows (default: the model's)")
-    p.add_argument("--format", choices=FORMATS, default="jsonl")
+    p.add_argument("--format", choices=FORMATS, default="jsonl",
+                   help="jsonl (default): one JSON object per window or event; csv: a header, "
+                   "one row per window or event; text: for people")
     p.add_argument("--smooth", type=int_in(1), default=1, metavar="K",
                    help="also report the label averaged over the last K windows")
     p.add_argument("--hysteresis", type=float_in(0.0, 1.0, low_open=False, high_open=True),
@@ -303,12 +336,12 @@ def _main(args: argparse.Namespace) -> int:
     stream = Stream.for_model(model, hop, smoother)
     summary = Summary()
     runner = Runner(model, stream, Printer(args.format, c.classes), summary)
-    decoder = StreamDecoder()
+    decoder = StreamDecoder(csv_rate_hz=c.sample_rate_hz)
     stop = {"flag": False}
     for s in (signal.SIGINT, signal.SIGTERM):
         signal.signal(s, lambda *_: stop.__setitem__("flag", True))
     if args.replay:
-        replay(args.replay, runner)
+        replay(args.replay, runner, stop)
     else:
         if args.port is None:
             args.port = find_port()

@@ -143,6 +143,7 @@ class Stream:
         self._t = np.zeros(0, np.int64)
         self._base = 0  # index (since reset) of _buf[0]
         self._next_end = self.window  # index one past the next window's last sample
+        self._last_seq: int | None = None  # the next accept must continue from it
         layers, hidden = self.state_shape
         self.h = np.zeros((layers, 1, hidden), np.float32)
         self.c = np.zeros((layers, 1, hidden), np.float32)
@@ -156,11 +157,18 @@ class Stream:
     def accept(self, values: np.ndarray, seq: int, t_us: int,
                period_us: float | None = None) -> None:
         """Append samples (n, channels) in the channels' units; ``seq``/``t_us`` of the first,
-        the others ``period_us`` apart (by default the stream's ``rate_hz``)."""
+        the others ``period_us`` apart (by default the stream's ``rate_hz``). ``seq`` must
+        continue the previous call's (after lost samples call :meth:`gap` first), and every
+        value must be a finite number: a :class:`ConfigError` says which rule was broken."""
         values = np.asarray(values, dtype=np.float32)
         if values.ndim != 2 or values.shape[1] != self.channels:
             raise ConfigError(f"samples of shape {values.shape}: expected (n, {self.channels})")
         n = len(values)
+        if self._last_seq is not None and seq != self._last_seq + 1:
+            raise ConfigError(f"seq {seq} does not follow {self._last_seq}: call gap() after "
+                              "lost samples, reset() to start over")
+        if not np.isfinite(values).all():
+            raise ConfigError("samples with NaN or inf values (a window must be all numbers)")
         if period_us is None:
             period_us = self.period_us
         if period_us is None:
@@ -172,6 +180,7 @@ class Stream:
         self._seq = np.concatenate([self._seq, seq + np.arange(n)])
         self._t = np.concatenate([self._t, t_us + np.round(np.arange(n) * period_us)
                                   .astype(np.int64)])
+        self._last_seq = seq + n - 1
         self._trim()
 
     def _trim(self) -> None:

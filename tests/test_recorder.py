@@ -118,8 +118,11 @@ def test_recorder_reads_csv_devices(tmp_path):
     take = read_take(res.takes[0])
     assert take.channels[:2] == ("pressure_0", "pressure_1")  # from the names line
     assert len(take.seq) == 200
-    truth = PenSimulator("desk", 7).read(200)
-    np.testing.assert_array_equal(take.raw, truth)
+    sim = PenSimulator("desk", 7)
+    scale = np.array([ch.scale for ch in sim.info.channels])
+    offset = np.array([ch.offset for ch in sim.info.channels])
+    truth = sim.read(200) * scale + offset  # a CSV device sends its values in units
+    np.testing.assert_allclose(take.raw, truth, rtol=1e-6, atol=1e-9)  # 7 significant digits
 
 
 def test_recorder_over_a_pty(tmp_path):

@@ -374,3 +374,106 @@ def test_a_closed_stdout_stops_quietly():
     err = proc.stderr.read()
     assert proc.wait(timeout=30) == 0, err
     assert json.loads(first)["seq"] == 49 and "error" not in err and "Traceback" not in err
+
+
+def test_accept_refuses_a_jump_in_seq_and_non_finite_values():
+    s = make_stream()
+    s.accept(np.zeros((30, 1)), seq=0, t_us=0)
+    with pytest.raises(ConfigError, match="seq 5000 does not follow 29: call gap"):
+        s.accept(np.zeros((3, 1)), seq=5000, t_us=0)
+    with pytest.raises(ConfigError, match="seq 10 does not follow 29"):
+        s.accept(np.zeros((3, 1)), seq=10, t_us=0)  # backwards
+    with pytest.raises(ConfigError, match="NaN or inf"):
+        s.accept(np.array([[np.nan]]), seq=30, t_us=0)
+    drain(s)
+    s.gap()
+    s.accept(np.zeros((5, 1)), seq=5000, t_us=0)  # after gap() any seq starts a new run
+    assert [lab.seq for lab in drain(s)] == [5004]
+
+
+def test_csv_device_is_read_in_units_and_labels_as_the_binary_one():
+    """A CSV-line pen sends values in their units (PROTOCOL.md): the same samples as the
+    binary pen give the same labels, and tactile-run says how it reads such a device."""
+    runs = {}
+    for fmt in ("binary", "csv"):
+        code, out, err = run_cli(["--model", str(SHIPPED), "--port",
+                                  f"sim://?texture=non_contact&seed=3&format={fmt}&speed=max"
+                                  "&seconds=3", "--seconds", "2"])
+        assert code == 0, err
+        runs[fmt] = {x["seq"]: x for x in map(json.loads, out.splitlines()) if "label" in x}
+    assert "CSV device: its values are taken in the model's units" in err
+    common = sorted(set(runs["binary"]) & set(runs["csv"]))
+    assert len(common) >= 8
+    for q in common:  # 7 significant digits in the CSV text
+        b, c = runs["binary"][q], runs["csv"][q]
+        assert b["label"] == c["label"]
+        assert max(abs(b["probs"][k] - c["probs"][k]) for k in b["probs"]) < 1e-3
+
+
+def test_device_units_must_be_the_models():
+    from tactile.device.info import ChannelSpec, DeviceInfo
+    from tactile.runtime.cli import check_device
+
+    model = Model(SHIPPED)
+    c = model.contract
+    chans = [ChannelSpec(n, "mV" if n == "pressure_0" else u, 1.0)
+             for n, u in zip(c.channels, c.units)]
+    with pytest.raises(ModelContractError, match=r"device units \['mV'.* the model's \['N'"):
+        check_device(model, DeviceInfo(c.sample_rate_hz, tuple(chans), "pen"))
+
+
+def test_csv_output_gives_events_their_own_column():
+    import csv
+    import io
+
+    code, out, err = run_cli(["--model", str(SHIPPED), "--port",
+                              "sim://?texture=paper&seed=4&speed=max&seconds=6&drop=0.005",
+                              "--seconds", "4", "--format", "csv"])
+    assert code == 0, err
+    rows = list(csv.DictReader(io.StringIO(out)))
+    labels = [r for r in rows if r["label"]]
+    events = [r for r in rows if r["event"]]
+    assert len(labels) >= 5 and len(events) >= 1 and len(labels) + len(events) == len(rows)
+    gaps = [r for r in events if r["event"].startswith("gap missing=")]
+    assert gaps and all(int(r["seq"]) > 0 for r in gaps)
+    assert all(r["event"].startswith("stall seconds=") for r in events if r not in gaps)
+    assert all(r["event"] == "" and float(r["p"]) > 0 for r in labels)
+
+
+def test_one_silence_is_one_stall():
+    code, out, err = run_cli(["--model", str(SHIPPED), "--port", "loop://", "--seconds", "2.5",
+                              "--stall-timeout", "0.3", "--status-every", "0.5"])
+    assert code == 0, err
+    summary = json.loads(err.split("tactile-run: summary ", 1)[1].splitlines()[0])
+    assert summary["stalls"] == 1
+    assert [json.loads(ln)["event"] for ln in out.splitlines()] == ["stall"]
+    assert "no data for 2 s" in err or "no data for 1 s" in err  # the status line goes on
+
+
+def test_replay_refuses_an_empty_take_and_says_when_the_last_row_is_cut(models, tmp_path):
+    take = next((models["data"]).glob("paper-*.csv"))
+    lines = take.read_text().splitlines(keepends=True)
+    meta = take.with_suffix(".json")
+    head = next(i for i, ln in enumerate(lines) if ln[:1].isdigit())  # first data row
+    for name, text in (("empty", "".join(lines[:head])), ("cut", "".join(lines)[:-7])):
+        (tmp_path / f"{name}.csv").write_text(text)
+        (tmp_path / f"{name}.json").write_text(meta.read_text())
+    _, onnx_path = models["window"]
+    code, out, err = run_cli(["--model", str(onnx_path), "--replay", str(tmp_path / "empty.csv")])
+    assert code == 1 and "holds no samples" in err and out == ""
+    code, out, err = run_cli(["--model", str(onnx_path), "--replay", str(tmp_path / "cut.csv")])
+    assert code == 0 and "last row was cut short" in err
+    assert len([ln for ln in out.splitlines() if '"label"' in ln]) == (599 - 50) // 25 + 1
+
+
+def test_sigint_stops_a_replay(tmp_path):
+    (take,) = make_dataset(tmp_path, takes=1, textures=("paper",), seconds=3600, seed=1)
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "tactile.runtime.cli", "--model", str(SHIPPED), "--replay",
+         str(take)], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    proc.stdout.readline()
+    proc.send_signal(signal.SIGINT)
+    out, err = proc.communicate(timeout=60)
+    assert proc.returncode == 0, err
+    summary = json.loads(err.split("tactile-run: summary ", 1)[1].splitlines()[0])
+    assert 1 <= summary["windows"] < (360_000 - 50) // 25 // 2  # stopped well before the end
