@@ -153,8 +153,7 @@ def sustained_rate(model_path: Path, seconds: float = 60.0) -> float:
     data = link.produce(int(seconds * 100))
     model = Model(model_path)
     c = model.contract
-    stream = Stream(model.classify, c.classes, c.window, c.hop, len(c.channels),
-                    c.state_mode == "carry", model.state_shape)
+    stream = Stream.for_model(model)
     with open(os.devnull, "w") as null:
         runner = Runner(model, stream, Printer("jsonl", c.classes, null), Summary())
         dec = StreamDecoder()

@@ -39,7 +39,7 @@ class LinkConfig:
     speed: float = 1.0  # x real time; math.inf = as fast as the reader reads ("max")
     seconds: float = math.inf  # the pen stops sending after this much stream time
     per_frame: int = 1  # samples per frame
-    format: str = "binary"  # or "csv"
+    format: str = "binary"  # or "csv": a names line, then one line per sample in its units
     garbage: float = 0.0
     flip: float = 0.0
     drop: float = 0.0

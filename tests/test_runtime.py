@@ -477,3 +477,13 @@ def test_sigint_stops_a_replay(tmp_path):
     assert proc.returncode == 0, err
     summary = json.loads(err.split("tactile-run: summary ", 1)[1].splitlines()[0])
     assert 1 <= summary["windows"] < (360_000 - 50) // 25 // 2  # stopped well before the end
+
+
+def test_the_library_example_in_the_docs_runs(monkeypatch):
+    text = (REPO / "docs" / "runtime.md").read_text()
+    start = text.index("```python\nimport numpy as np") + len("```python\n")
+    code = text[start : text.index("```", start)]
+    monkeypatch.chdir(SHIPPED.parent)
+    scope: dict = {}
+    exec(code.replace('"model.onnx"', f'"{SHIPPED.name}"'), scope)
+    assert scope["label"].seq == 99 and scope["label"].t_us == 990_000  # 100 Hz from seq 0
