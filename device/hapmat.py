@@ -1,6 +1,10 @@
 """Import the HapMat recordings (a 6-axis IMU on a hand-held stick, 5 materials, 100 Hz) as takes.
 
-    tactile-import-hapmat PATH/hapmat_stick_imu.npz --out data/hapmat
+    tactile-import-hapmat "PATH/HapMat dataset" --out data/hapmat   # the upstream CSV files
+    tactile-import-hapmat PATH/hapmat_stick_imu.npz --out data/hapmat  # or the bundled arrays
+
+The recordings come from https://github.com/henryyantq/haptic-kinematics (MIT licence), folder
+``HapMat dataset``: one ``<Material> 1.csv`` per material with a ``time`` column.
 
 Each material's 60 s session becomes one take labelled with the material in lower case. Channels
 map onto the pen's names: ``accel_x..z`` from HapMat's accelerometer (g, gravity already
@@ -13,6 +17,7 @@ from __future__ import annotations
 
 import argparse
 import math
+import re
 import sys
 from pathlib import Path
 
@@ -34,42 +39,84 @@ CHANNELS = (
 SOURCE_COLUMNS = ("accel_x", "accel_y", "accel_z", "rota_x", "rota_y", "rota_z")
 
 
-def import_hapmat(npz: Path, out: Path) -> list[Path]:
-    """Write one take per material; returns the CSV paths."""
+def _read_npz(npz: Path) -> tuple[list[str], list[np.ndarray], float, str]:
+    """The bundled form: ``X`` (class, sample, channel), ``classes``, ``channels``, ``fs_hz``."""
     try:
         d = np.load(npz, allow_pickle=False)
         x, classes, names = d["X"], d["classes"], [str(c) for c in d["channels"]]
         rate = float(d["fs_hz"])
+        origin = str(d["source"]) if "source" in d.files else "HapMat"
     except (OSError, KeyError, ValueError) as e:
         raise RecordingError(f"{npz}: not the HapMat .npz ({e})") from None
     try:
         cols = [names.index(c) for c in SOURCE_COLUMNS]
     except ValueError:
         raise RecordingError(f"{npz}: channels {names} lack one of {SOURCE_COLUMNS}") from None
+    return [str(c) for c in classes], [x[k][:, cols] for k in range(len(classes))], rate, origin
+
+
+def _read_csv_folder(folder: Path) -> tuple[list[str], list[np.ndarray], float, str]:
+    """The upstream form: a folder of ``<Material> 1.csv`` files (``HapMat dataset/``), each
+    with a header ``time,accel_x,...,rota_z`` and one row per sample."""
+    files = sorted(folder.glob("*.csv"))
+    if not files:
+        raise RecordingError(f"{folder}: no .csv files (expected the HapMat dataset folder)")
+    classes, series, rates = [], [], []
+    for f in files:
+        header = f.open().readline().strip().split(",")
+        missing = [c for c in ("time", *SOURCE_COLUMNS) if c not in header]
+        if missing:
+            raise RecordingError(f"{f}: not a HapMat recording (no column {missing[0]!r})")
+        try:
+            table = np.loadtxt(f, delimiter=",", skiprows=1, ndmin=2)
+        except ValueError as e:
+            raise RecordingError(f"{f}: unreadable rows ({e})") from None
+        t = table[:, header.index("time")]
+        step = np.diff(t)
+        if len(t) < 2 or not np.allclose(step, step.mean(), rtol=0.01, atol=1e-6):
+            raise RecordingError(f"{f}: time column is not evenly spaced")
+        classes.append(re.sub(r"\s+\d+$", "", f.stem))  # "Paper 1" -> "Paper"
+        series.append(table[:, [header.index(c) for c in SOURCE_COLUMNS]])
+        rates.append(1.0 / step.mean())
+    if len(set(classes)) != len(classes):
+        raise RecordingError(f"{folder}: more than one recording of one material {classes}")
+    rate = round(float(np.mean(rates)), 6)
+    return classes, series, rate, "HapMat (haptic-kinematics repository, CSV files)"
+
+
+def import_hapmat(source: Path, out: Path) -> list[Path]:
+    """Write one take per material from the bundled ``.npz`` or the upstream folder of CSVs;
+    returns the CSV paths."""
+    source = Path(source)
+    if source.is_dir():
+        classes, series, rate, origin = _read_csv_folder(source)
+    else:
+        classes, series, rate, origin = _read_npz(source)
     info = DeviceInfo(rate, CHANNELS, device="hapmat-stick-imu")
     to_deg = np.array([1, 1, 1, 180 / math.pi, 180 / math.pi, 180 / math.pi])
     paths = []
-    for k, material in enumerate(classes):
-        values = x[k][:, cols].astype(np.float64) * to_deg  # (n, 6)
+    for material, x in zip(classes, series):
+        values = x.astype(np.float64) * to_deg  # (n, 6)
         if not np.all(np.isfinite(values)):
-            raise RecordingError(f"{npz}: {material} holds NaN or inf")
+            raise RecordingError(f"{source}: {material} holds NaN or inf")
         label = str(material).lower()
         extra = {
             "absent_channels": ["pressure_0", "pressure_1"],
-            "origin": str(d["source"]) if "source" in d.files else "HapMat",
+            "origin": origin,
             "licence": "MIT (HapMat, haptic-kinematics repository)",
             "user": 0,
             "notes": "accel has gravity removed upstream; gyro from rota_* (rad/s -> deg/s)",
         }
         name = f"hapmat-{label}"
-        with TakeWriter(out, label, info, f"hapmat:{npz.name}", name=name, extra=extra) as w:
+        with TakeWriter(out, label, info, f"hapmat:{source.name}", name=name,
+                        extra=extra) as w:
             w.write(0, 0, values)
         paths.append(w.csv_path)
     return paths
 
 
 def _main(args: argparse.Namespace) -> int:
-    for p in import_hapmat(args.npz, args.out):
+    for p in import_hapmat(args.source, args.out):
         print(p)
     return 0
 
@@ -78,7 +125,9 @@ def main(argv: list[str] | None = None) -> int:
     p = Parser(
         prog="tactile-import-hapmat", description="Import the HapMat stick-IMU recordings."
     )
-    p.add_argument("npz", type=Path, help="hapmat_stick_imu.npz")
+    p.add_argument("source", type=Path,
+                   help="the upstream 'HapMat dataset' folder of CSV files, or the bundled "
+                   "hapmat_stick_imu.npz")
     p.add_argument("--out", type=Path, required=True, help="dataset folder to write")
     add_debug(p)
     return run("tactile-import-hapmat", _main, p.parse_args(argv))

@@ -216,6 +216,38 @@ def test_hapmat_import(tmp_path):
     np.testing.assert_allclose(fabric.values()[:, 3:], np.degrees(raw[0][:, 6:9].astype(float)))
 
 
+def test_hapmat_import_from_the_upstream_csv_files(tmp_path):
+    """The upstream folder (one `<Material> 1.csv` each, as in the source repository) gives the
+    same takes as the bundled arrays, to the CSV text's 6 decimals."""
+    from conftest import HAPMAT
+
+    if not HAPMAT.is_file():
+        pytest.skip(f"shared HapMat data not found at {HAPMAT.name} beside the repository")
+    d = np.load(HAPMAT)
+    folder = tmp_path / "HapMat dataset"
+    folder.mkdir()
+    names = ",".join(["time", *[str(c) for c in d["channels"]]])
+    for k, material in enumerate(d["classes"]):
+        rows = np.column_stack([d["t"], d["X"][k]])
+        np.savetxt(folder / f"{material} 1.csv", rows, delimiter=",", header=names,
+                   comments="", fmt=["%.2f"] + ["%.6f"] * d["X"].shape[2])
+    import_hapmat(folder, tmp_path / "from_csv")
+    import_hapmat(HAPMAT, tmp_path / "from_npz")
+    a = {t.label: t for t in load_dataset(tmp_path / "from_csv")}
+    b = {t.label: t for t in load_dataset(tmp_path / "from_npz")}
+    assert sorted(a) == sorted(b) == ["fabric", "leather", "metal", "paper", "wood"]
+    for label in a:
+        assert a[label].info.sample_rate_hz == b[label].info.sample_rate_hz == 100.0
+        assert a[label].channels == b[label].channels
+        np.testing.assert_allclose(a[label].values(), b[label].values(), rtol=1e-6, atol=1e-4)
+    (tmp_path / "empty_dir").mkdir()
+    with pytest.raises(RecordingError, match="no .csv files"):
+        import_hapmat(tmp_path / "empty_dir", tmp_path)
+    (folder / "Paper 1.csv").write_text("t,ax\n0,1\n")
+    with pytest.raises(RecordingError, match="not a HapMat recording"):
+        import_hapmat(folder, tmp_path / "bad")
+
+
 def test_bad_recordings_are_refused(tmp_path):
     info = PenSimulator("paper").info
     with TakeWriter(tmp_path, "paper", info, name="t") as w:
