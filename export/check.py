@@ -82,9 +82,14 @@ def describe(path: Path, model: onnx.ModelProto, c: ModelContract) -> str:
         f"  emd       {'none' if emd is None else emd}",
         f"  exported  parity {'passed' if c.parity.get('passed') else 'FAILED'} "
         f"(max |dp| {c.parity.get('max_abs_prob_diff')}); test accuracy "
-        f"{c.training_metrics.get('accuracy')}",
+        f"{_fmt(c.training_metrics.get('accuracy'))}",
     ]
     return "\n".join(lines)
+
+
+def _fmt(value) -> str:
+    """A recorded figure for people: four decimals if it is a number."""
+    return f"{value:.4f}" if isinstance(value, float) else str(value)
 
 
 def _reparity(path: Path, c: ModelContract, run_dir: Path, data: Path | None,
@@ -126,7 +131,7 @@ def _accuracy(path: Path, c: ModelContract, data: Path) -> None:
     acc = float((labels == probe.y).mean())
     print(f"windows checked  {len(probe)} ({probe.source})")
     print(f"accuracy         {acc:.4f} (recorded at training: "
-          f"{c.training_metrics.get('accuracy')})")
+          f"{_fmt(c.training_metrics.get('accuracy'))})")
 
 
 def build_parser() -> argparse.ArgumentParser:
