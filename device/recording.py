@@ -16,7 +16,9 @@ import io
 import json
 import math
 import os
+import re
 import time
+import warnings
 from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
@@ -219,32 +221,66 @@ def read_take(path: str | os.PathLike) -> Take:
         raise RecordingError(f"{json_path}: bad device or label ({e})") from None
     if not isinstance(label, str) or not label:
         raise RecordingError(f"{json_path}: label must be a non-empty string")
-    text = csv_path.read_text(encoding="ascii", errors="replace")
-    truncated = bool(text) and not text.endswith("\n")
-    lines = text.split("\n")
-    if truncated:
-        lines = lines[:-1]  # a killed writer's half line: everything before it is whole
-    columns = lines[0].split(",") if lines and lines[0] else []
-    expected = [*FIXED_COLUMNS, *info.channel_names]
-    if columns != expected:
-        raise RecordingError(f"{csv_path}: columns {columns} do not match the metadata {expected}")
-    rows = [ln for ln in lines[1:] if ln]
-    n, c = len(rows), len(info.channels)
-    try:
-        table = np.array([r.split(",") for r in rows], dtype=object).reshape(n, c + 2)
-        seq = table[:, 0].astype(np.int64)
-        t_us = table[:, 1].astype(np.int64)
-        body = table[:, 2:].astype(str)
-        integer = n > 0 and not any(("." in v or "e" in v.lower()) for v in body.ravel())
-        raw = body.astype(np.int64) if integer or n == 0 else body.astype(np.float64)
-    except (ValueError, OverflowError) as e:
-        raise RecordingError(f"{csv_path}: unreadable rows ({e})") from None
+    with open(csv_path, "rb") as f:  # complete lines: a killed writer leaves a half one
+        complete = sum(chunk.count(b"\n") for chunk in iter(lambda: f.read(1 << 20), b""))
+        size = f.tell()
+        f.seek(max(size - 1, 0))
+        truncated = size > 0 and f.read(1) != b"\n"
+    c = len(info.channels)
+    with open(csv_path, encoding="ascii", errors="replace", newline="") as f:
+        head = f.readline().rstrip("\r\n")
+        columns = head.split(",") if head else []
+        expected = [*FIXED_COLUMNS, *info.channel_names]
+        if columns != expected:
+            raise RecordingError(
+                f"{csv_path}: columns {columns} do not match the metadata {expected}")
+        # numpy's C parser straight from the file: a few bytes a value in memory (a long take
+        # must replay on a small board), and its errors name the row and column
+        try:
+            with warnings.catch_warnings():
+                warnings.simplefilter("ignore", UserWarning)  # "input contained no data"
+                table = np.loadtxt(f, delimiter=",", comments=None, ndmin=2, dtype=np.float64,
+                                   max_rows=max(complete - 1, 0))
+        except ValueError:
+            raise RecordingError(f"{csv_path}: {_first_bad_row(csv_path, c + 2)}") from None
+        f.seek(0)
+        f.readline()  # the header
+        integer = not any(re.search(r"[.eE]", line) for line in f)
+    n = len(table)
+    if n and table.shape[1] != c + 2:
+        raise RecordingError(f"{csv_path}: rows of {table.shape[1]} values, expected {c + 2}")
+    table = table.reshape(n, c + 2)
+    if n and not np.all(np.isfinite(table[:, :2])):
+        raise RecordingError(f"{csv_path}: seq or t_us not a finite number")
+    seq, t_us = table[:, 0].astype(np.int64), table[:, 1].astype(np.int64)
+    if n and not (np.array_equal(seq, table[:, 0]) and np.array_equal(t_us, table[:, 1])):
+        raise RecordingError(f"{csv_path}: seq and t_us must be integers")
+    integer = integer and n > 0  # written from counts: no decimal point or exponent
+    raw = table[:, 2:].astype(np.int64) if integer else table[:, 2:]
     if n and not np.all(np.isfinite(raw)):
         raise RecordingError(f"{csv_path}: holds NaN or inf values")
     if n and np.any(np.diff(seq) <= 0):
         bad = int(np.flatnonzero(np.diff(seq) <= 0)[0]) + 2
         raise RecordingError(f"{csv_path}: seq not increasing at data row {bad}")
     return Take(csv_path, meta, info, seq, t_us, raw.reshape(n, c), truncated)
+
+
+def _first_bad_row(csv_path: Path, width: int) -> str:
+    """What is wrong with the first unreadable data row (the error path only)."""
+    with open(csv_path, encoding="ascii", errors="replace") as f:
+        f.readline()
+        for k, line in enumerate(f, start=1):
+            fields = line.rstrip("\r\n").split(",")
+            if line.strip() == "":
+                continue
+            if len(fields) != width:
+                return f"data row {k} (line {k + 1}) has {len(fields)} values, expected {width}"
+            for v in fields:
+                try:
+                    float(v)
+                except ValueError:
+                    return f"data row {k} (line {k + 1}): {v!r} is not a number"
+    return "unreadable rows"
 
 
 def iter_takes(folder: str | os.PathLike) -> Iterator[Path]:

@@ -263,6 +263,12 @@ def test_bad_recordings_are_refused(tmp_path):
     csv.write_text(text + "2,0,1,1,1,1,1,1,1,1\n")
     with pytest.raises(RecordingError, match="seq not increasing"):
         read_take(csv)
+    csv.write_text(text + "5,50000,1,1,1\n")
+    with pytest.raises(RecordingError, match=r"data row 6 \(line 7\) has 5 values, expected 10"):
+        read_take(csv)
+    csv.write_text(text + "5,50000,1,1,1,x1,1,1,1,1\n")
+    with pytest.raises(RecordingError, match=r"data row 6 \(line 7\): 'x1' is not a number"):
+        read_take(csv)
     meta = json.loads((tmp_path / "t.json").read_text())
     (tmp_path / "t.json").write_text(json.dumps({**meta, "format": "other"}))
     with pytest.raises(RecordingError, match="not a tactile-recording"):
