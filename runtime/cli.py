@@ -248,14 +248,20 @@ def serve(args: argparse.Namespace, runner: Runner, decoder: StreamDecoder,
 def _reconnect(args: argparse.Namespace, stop: dict, deadline: float = math.inf,
                verb: str = "reconnected to") -> serial.SerialBase | None:
     delay = 0.1
+    since = last_status = time.monotonic()
     while not stop["flag"] and time.monotonic() < deadline:
         try:
             link = open_port(args.port, args.baud)
             _say(f"{verb} {args.port}")
             return link
         except (serial.SerialException, DeviceError):
-            time.sleep(delay)
+            until = min(time.monotonic() + delay, deadline)
+            while not stop["flag"] and time.monotonic() < until:  # a stop is not kept waiting
+                time.sleep(0.05)
             delay = min(delay * 2, 2.0)
+        if time.monotonic() - last_status >= args.status_every:  # the status line goes on
+            last_status = time.monotonic()
+            _say(f"waiting for {args.port} for {last_status - since:.0f} s")
     return None
 
 

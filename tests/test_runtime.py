@@ -487,3 +487,19 @@ def test_the_library_example_in_the_docs_runs(monkeypatch):
     scope: dict = {}
     exec(code.replace('"model.onnx"', f'"{SHIPPED.name}"'), scope)
     assert scope["label"].seq == 99 and scope["label"].t_us == 990_000  # 100 Hz from seq 0
+
+
+def test_a_stop_while_the_pen_is_unplugged_is_clean():
+    forget_unplugs()
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "tactile.runtime.cli", "--model", str(SHIPPED), "--port",
+         "sim://?texture=paper&seed=2&speed=2&unplug=1:30", "--status-every", "0.5"],
+        stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    time.sleep(4)  # unplugged after 1 s of the pen's time (0.5 s at 2x): waiting since then
+    proc.send_signal(signal.SIGINT)
+    out, err = proc.communicate(timeout=20)
+    forget_unplugs()
+    assert proc.returncode == 0, err
+    assert "waiting for sim://" in err and "Traceback" not in err
+    summary = json.loads(err.split("tactile-run: summary ", 1)[1].splitlines()[0])
+    assert summary["reconnects"] == 0  # stopped while still waiting for the pen
