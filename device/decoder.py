@@ -414,6 +414,10 @@ class StreamDecoder:
         events.append(Samples(host, t_us, np.asarray([values], dtype=np.float64)))
 
 
+FLOAT32_MAX = 3.4028234663852886e38
+"""The largest float32: a CSV value beyond it would become inf in the model's input."""
+
+
 def _csv_kind(line: bytes):
     """Classify a CSV line: ``"skip"`` (blank/comment), ``None`` (unreadable),
     ``("row", width, values)`` or ``("names", width, names)``."""
@@ -430,8 +434,8 @@ def _csv_kind(line: bytes):
         if all(_NAME.match(f) for f in fields) and len(set(fields)) == len(fields):
             return ("names", len(fields), tuple(fields))
         return None
-    if not all(math.isfinite(v) for v in values):  # NaN/inf never enter the pipeline
-        return None
+    if not all(abs(v) <= FLOAT32_MAX for v in values):  # NaN, inf and float32 overflow
+        return None  # never enter the pipeline (the model reads float32)
     return ("row", len(values), values)
 
 

@@ -19,6 +19,7 @@ import argparse
 import math
 import re
 import sys
+import warnings
 from pathlib import Path
 
 import numpy as np
@@ -63,23 +64,35 @@ def _read_csv_folder(folder: Path) -> tuple[list[str], list[np.ndarray], float, 
         raise RecordingError(f"{folder}: no .csv files (expected the HapMat dataset folder)")
     classes, series, rates = [], [], []
     for f in files:
-        header = f.open().readline().strip().split(",")
+        with open(f, encoding="ascii", errors="replace") as fh:
+            header = fh.readline().strip().split(",")
         missing = [c for c in ("time", *SOURCE_COLUMNS) if c not in header]
         if missing:
             raise RecordingError(f"{f}: not a HapMat recording (no column {missing[0]!r})")
         try:
-            table = np.loadtxt(f, delimiter=",", skiprows=1, ndmin=2)
+            with warnings.catch_warnings():
+                warnings.simplefilter("ignore", UserWarning)  # "input contained no data"
+                table = np.loadtxt(f, delimiter=",", skiprows=1, ndmin=2)
         except ValueError as e:
-            raise RecordingError(f"{f}: unreadable rows ({e})") from None
+            msg = str(e).splitlines()[0] if str(e) else type(e).__name__
+            raise RecordingError(f"{f}: unreadable rows ({msg})") from None
+        if len(table) < 2:
+            raise RecordingError(f"{f}: fewer than 2 data rows")
+        if table.shape[1] != len(header):
+            raise RecordingError(f"{f}: rows of {table.shape[1]} values under a header of "
+                                 f"{len(header)} columns")
         t = table[:, header.index("time")]
         step = np.diff(t)
-        if len(t) < 2 or not np.allclose(step, step.mean(), rtol=0.01, atol=1e-6):
+        if not np.allclose(step, step.mean(), rtol=0.01, atol=1e-6):
             raise RecordingError(f"{f}: time column is not evenly spaced")
         classes.append(re.sub(r"\s+\d+$", "", f.stem))  # "Paper 1" -> "Paper"
         series.append(table[:, [header.index(c) for c in SOURCE_COLUMNS]])
         rates.append(1.0 / step.mean())
     if len(set(classes)) != len(classes):
         raise RecordingError(f"{folder}: more than one recording of one material {classes}")
+    if max(rates) - min(rates) > 1e-3 * max(rates):
+        found = ", ".join(f"{c} {r:g} Hz" for c, r in zip(classes, rates))
+        raise RecordingError(f"{folder}: the files' sample rates differ ({found})")
     rate = round(float(np.mean(rates)), 6)
     return classes, series, rate, "HapMat (haptic-kinematics repository, CSV files)"
 

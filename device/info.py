@@ -33,6 +33,10 @@ class ChannelSpec:
             raise FrameError("channel name must not be empty")
         if not (math.isfinite(self.scale) and self.scale != 0 and math.isfinite(self.offset)):
             raise FrameError(f"channel {self.name}: scale must be finite, non-zero; offset finite")
+        # every int16 count must stay a finite float32 in units (the model's input)
+        if 32768 * abs(self.scale) + abs(self.offset) > 3.4e38:
+            raise FrameError(f"channel {self.name}: scale {self.scale:g} and offset "
+                             f"{self.offset:g} overflow float32 values")
 
 
 @dataclass(frozen=True)

@@ -221,9 +221,8 @@ def read_take(path: str | os.PathLike) -> Take:
         raise RecordingError(f"{json_path}: bad device or label ({e})") from None
     if not isinstance(label, str) or not label:
         raise RecordingError(f"{json_path}: label must be a non-empty string")
-    with open(csv_path, "rb") as f:  # complete lines: a killed writer leaves a half one
-        complete = sum(chunk.count(b"\n") for chunk in iter(lambda: f.read(1 << 20), b""))
-        size = f.tell()
+    with open(csv_path, "rb") as f:  # a killed writer leaves a half line at the end
+        size = f.seek(0, os.SEEK_END)
         f.seek(max(size - 1, 0))
         truncated = size > 0 and f.read(1) != b"\n"
     c = len(info.channels)
@@ -239,8 +238,9 @@ def read_take(path: str | os.PathLike) -> Take:
         try:
             with warnings.catch_warnings():
                 warnings.simplefilter("ignore", UserWarning)  # "input contained no data"
-                table = np.loadtxt(f, delimiter=",", comments=None, ndmin=2, dtype=np.float64,
-                                   max_rows=max(complete - 1, 0))
+                whole = (line for line in f if line.endswith("\n"))  # only the last is cut
+                table = np.loadtxt(whole, delimiter=",", comments=None, ndmin=2,
+                                   dtype=np.float64)
         except ValueError:
             raise RecordingError(f"{csv_path}: {_first_bad_row(csv_path, c + 2)}") from None
         f.seek(0)
@@ -250,15 +250,13 @@ def read_take(path: str | os.PathLike) -> Take:
     if n and table.shape[1] != c + 2:
         raise RecordingError(f"{csv_path}: rows of {table.shape[1]} values, expected {c + 2}")
     table = table.reshape(n, c + 2)
-    if n and not np.all(np.isfinite(table[:, :2])):
-        raise RecordingError(f"{csv_path}: seq or t_us not a finite number")
+    if n and not np.all(np.isfinite(table)):  # before any cast to integers
+        raise RecordingError(f"{csv_path}: holds NaN or inf values")
     seq, t_us = table[:, 0].astype(np.int64), table[:, 1].astype(np.int64)
     if n and not (np.array_equal(seq, table[:, 0]) and np.array_equal(t_us, table[:, 1])):
         raise RecordingError(f"{csv_path}: seq and t_us must be integers")
     integer = integer and n > 0  # written from counts: no decimal point or exponent
     raw = table[:, 2:].astype(np.int64) if integer else table[:, 2:]
-    if n and not np.all(np.isfinite(raw)):
-        raise RecordingError(f"{csv_path}: holds NaN or inf values")
     if n and np.any(np.diff(seq) <= 0):
         bad = int(np.flatnonzero(np.diff(seq) <= 0)[0]) + 2
         raise RecordingError(f"{csv_path}: seq not increasing at data row {bad}")

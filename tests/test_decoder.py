@@ -270,17 +270,17 @@ def test_random_bytes_never_raise_or_invent(data, mode):
 def test_csv_auto_detected_with_names_and_rejections():
     text = (
         b"boot: ok!\r\nax,ay,az\r\n1,2,3\r\n4,5,6\r\n7,x,9\r\n1,2\r\nnan,1,2\r\n# c\r\n\r\n"
-        b"8 ,9, 10\r\n"
+        b"1e39,0,0\r\n8 ,9, 10\r\n"  # 1e39 is finite, but inf as the model's float32
     )
     events, stats = decode(text)
     assert StreamDecoder().mode == "auto"
     header = next(e for e in events if isinstance(e, Header))
     assert header.info.channel_names == ("ax", "ay", "az")
     seqs, rows = delivered(events)
-    assert seqs.tolist() == [0, 1, 5]
+    assert seqs.tolist() == [0, 1, 6]
     np.testing.assert_array_equal(rows, [[1, 2, 3], [4, 5, 6], [8, 9, 10]])
-    assert [e for e in events if isinstance(e, Gap)] == [Gap(5, 3, "rejected")]
-    assert stats.csv_rows == 3 and stats.csv_rejected == 4  # boot: ok!, 7,x,9, 1,2, nan
+    assert [e for e in events if isinstance(e, Gap)] == [Gap(6, 4, "rejected")]
+    assert stats.csv_rows == 3 and stats.csv_rejected == 5  # boot: ok!, 7,x,9, 1,2, nan, 1e39
 
 
 def test_csv_without_names_and_blank_separated():

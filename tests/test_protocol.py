@@ -134,6 +134,9 @@ def test_device_info_validation():
         DeviceInfo(float("nan"), (ChannelSpec("a", "g"),))
     with pytest.raises(FrameError, match="scale"):
         ChannelSpec("a", "g", 0.0)
+    with pytest.raises(FrameError, match="overflow float32"):
+        ChannelSpec("a", "g", 1e35)  # 32767 counts would be inf in the model's float32 input
+    ChannelSpec("a", "g", 1e33)  # 3.3e37 at full scale: representable
     with pytest.raises(FrameError, match="channels"):
         DeviceInfo(100.0, ())
 

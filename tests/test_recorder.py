@@ -8,6 +8,7 @@ import signal
 import subprocess
 import sys
 import time
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -248,6 +249,46 @@ def test_hapmat_import_from_the_upstream_csv_files(tmp_path):
         import_hapmat(folder, tmp_path / "bad")
 
 
+def _hapmat_folder(folder: Path, rates: dict[str, float], n: int = 300) -> dict:
+    """A folder laid out as upstream's: `<Material> 1.csv`, a time column, 9 IMU columns."""
+    folder.mkdir()
+    rng = np.random.default_rng(5)
+    cols = "time,accel_x,accel_y,accel_z,gyro_x,gyro_y,gyro_z,rota_x,rota_y,rota_z"
+    data = {}
+    for material, rate in rates.items():
+        x = np.round(rng.normal(0, 0.1, (n, 9)), 6)
+        rows = np.column_stack([np.arange(n) / rate, x])
+        np.savetxt(folder / f"{material} 1.csv", rows, delimiter=",", header=cols,
+                   comments="", fmt=["%.2f"] + ["%.6f"] * 9)
+        data[material.lower()] = x
+    return data
+
+
+def test_hapmat_csv_folder_import_without_the_shared_data(tmp_path):
+    data = _hapmat_folder(tmp_path / "HapMat dataset", {"Paper": 100.0, "Wood": 100.0})
+    import_hapmat(tmp_path / "HapMat dataset", tmp_path / "out")
+    takes = {t.label: t for t in load_dataset(tmp_path / "out")}
+    assert sorted(takes) == ["paper", "wood"]
+    for label, take in takes.items():
+        assert take.info.sample_rate_hz == 100.0 and len(take.seq) == 300
+        v = take.values()  # accel_x..z as they are, gyro_x..z from rota_x..z in deg/s
+        np.testing.assert_allclose(v[:, :3], data[label][:, :3], rtol=0, atol=1e-12)
+        np.testing.assert_allclose(v[:, 3:], np.degrees(data[label][:, 6:9]), rtol=1e-12)
+    _hapmat_folder(tmp_path / "mixed", {"Paper": 100.0, "Wood": 50.0})
+    with pytest.raises(RecordingError, match="sample rates differ"):
+        import_hapmat(tmp_path / "mixed", tmp_path / "out2")
+    short = tmp_path / "short"
+    _hapmat_folder(short, {"Paper": 100.0})
+    text = (short / "Paper 1.csv").read_text().splitlines()
+    (short / "Paper 1.csv").write_text("\n".join([text[0], *(",".join(r.split(",")[:5])
+                                                             for r in text[1:])]) + "\n")
+    with pytest.raises(RecordingError, match="rows of 5 values under a header of 10"):
+        import_hapmat(short, tmp_path / "out3")
+    (short / "Paper 1.csv").write_text(text[0] + "\n")
+    with pytest.raises(RecordingError, match="fewer than 2 data rows"):
+        import_hapmat(short, tmp_path / "out4")
+
+
 def test_bad_recordings_are_refused(tmp_path):
     info = PenSimulator("paper").info
     with TakeWriter(tmp_path, "paper", info, name="t") as w:
@@ -263,6 +304,12 @@ def test_bad_recordings_are_refused(tmp_path):
     csv.write_text(text + "2,0,1,1,1,1,1,1,1,1\n")
     with pytest.raises(RecordingError, match="seq not increasing"):
         read_take(csv)
+    csv.write_text(text + "5,50000,1,1,1,nan,1,1,1,1\n")  # an integer take: refused, not cast
+    with pytest.raises(RecordingError, match="NaN or inf"):
+        read_take(csv)
+    csv.write_text(text + "\n" + "5,50000,1,1,1,1,1,1,1,1\n6,60000,1,1,1,1,1,1,1,12")
+    cut = read_take(csv)  # a blank line before the cut last row changes nothing
+    assert cut.truncated and cut.seq.tolist() == [0, 1, 2, 3, 4, 5]
     csv.write_text(text + "5,50000,1,1,1\n")
     with pytest.raises(RecordingError, match=r"data row 6 \(line 7\) has 5 values, expected 10"):
         read_take(csv)
