@@ -32,10 +32,7 @@ class Serial(SerialBase):
             raise SerialException("Port must be configured before it can be used.")
         if self.is_open:
             raise SerialException("Port is already open.")
-        try:
-            self.config = self.from_url(self._port)
-        except ConfigError as e:
-            raise SerialException(str(e)) from None
+        self.config = self.from_url(self._port)  # a bad option: ConfigError, a ValueError
         restart_at = 0.0
         with _LOCK:
             state = _UNPLUGGED.get(self._port)

@@ -24,6 +24,7 @@ import tactile.device  # noqa: F401  (registers sim://)
 from tactile.cli import Parser, add_debug, run
 from tactile.device.decoder import Gap, Header, Samples, StreamDecoder
 from tactile.device.info import DeviceInfo
+from tactile.device.ports import open_port, wait_for_port
 from tactile.device.recording import TakeWriter
 from tactile.errors import ConfigError, DeviceError
 
@@ -36,14 +37,6 @@ class RecordResult:
     samples: int = 0
     reconnects: int = 0
     stats: dict = field(default_factory=dict)
-
-
-def open_port(port: str, baud: int, timeout: float = 0.1) -> serial.SerialBase:
-    """Open a device path or any pyserial URL (``sim://``, ``socket://``, ``loop://``...)."""
-    try:
-        return serial.serial_for_url(port, baudrate=baud, timeout=timeout)
-    except ValueError as e:  # pyserial's "invalid URL" and bad settings
-        raise DeviceError(f"cannot open {port}: {e}") from None
 
 
 class Recorder:
@@ -127,7 +120,7 @@ def record(
         stop["flag"] = True
 
     old = {s: signal.signal(s, on_signal) for s in (signal.SIGINT, signal.SIGTERM)}
-    link = open_port(port, baud)
+    link = open_port(port, baud, timeout=0.1)
     last_data = last_report = time.monotonic()
     try:
         while not stop["flag"]:
@@ -137,7 +130,8 @@ def record(
                 _say(f"port lost ({e}); reconnecting", progress=True)
                 if rec.writer:
                     rec.writer.flush()
-                link = _reconnect(port, baud, stop)
+                link = wait_for_port(port, baud, stop, lambda m: _say(m, progress=True),
+                                     timeout=0.1)
                 if link is None:
                     break
                 rec.result.reconnects += 1
@@ -159,23 +153,11 @@ def record(
                 break
     finally:
         rec.close(decoder)
-        link.close()
+        if link is not None:  # None: stopped while waiting to reconnect
+            link.close()
         for s, h in old.items():
             signal.signal(s, h)
     return rec.result
-
-
-def _reconnect(port: str, baud: int, stop: dict) -> serial.SerialBase | None:
-    delay = 0.1
-    while not stop["flag"]:
-        try:
-            link = open_port(port, baud)
-            _say(f"reconnected to {port}", progress=True)
-            return link
-        except (serial.SerialException, DeviceError):
-            time.sleep(delay)
-            delay = min(delay * 2, 2.0)
-    return None
 
 
 def _progress(label: str, done_s: float, total_s: float, decoder: StreamDecoder) -> None:

@@ -4,8 +4,9 @@
     tactile-run --model model.onnx --port "sim://?texture=paper&seed=3"
     tactile-run --model model.onnx --replay data/paper-....csv      # offline, as fast as it can
 
-Labels go to stdout (JSON Lines by default; ``--format text|csv``), diagnostics to stderr: a
-status line every few seconds, gap and reconnect events, and a summary at the end. Exit codes:
+Labels and events (gaps, stalls, reconnects) go to stdout (JSON Lines by default; ``--format
+text|csv``), diagnostics to stderr: a status line every few seconds, a line for each stall and
+reconnection, and a summary at the end. Exit codes:
 0 stopped cleanly (SIGINT/SIGTERM, end of replay or of ``--seconds``), 1 bad arguments, 2 port
 cannot be opened or no pen found, 3 the model or the device does not honour the contract.
 """
@@ -16,7 +17,6 @@ import argparse
 import json
 import math
 import os
-import re
 import signal
 import sys
 import time
@@ -31,7 +31,8 @@ import tactile.device  # noqa: F401  (registers sim://)
 from tactile.cli import Parser, add_debug, float_in, int_in, run
 from tactile.device.decoder import Gap, Header, Samples, StreamDecoder
 from tactile.device.info import DeviceInfo
-from tactile.errors import DeviceError, ModelContractError, RecordingError
+from tactile.device.ports import PortAbsent, open_port, wait_for_port
+from tactile.errors import ConfigError, DeviceError, ModelContractError, RecordingError
 from tactile.runtime.model import Model
 from tactile.runtime.stream import Label, Smoother, Stream
 
@@ -101,7 +102,8 @@ class Printer:
 
 
 def check_device(model: Model, info: DeviceInfo) -> None:
-    """The device's header must give the model's channels, in order, at its rate."""
+    """The device's header must give the model's channels, in order, in its units, at its rate
+    (a CSV-line device, which declares neither units nor rate, is taken in the model's)."""
     want = model.contract.channels
     got = info.channel_names
     if got != want:
@@ -109,7 +111,7 @@ def check_device(model: Model, info: DeviceInfo) -> None:
             f"device channels {list(got)} do not match the model's {list(want)} (names and order)"
         )
     got_units = tuple(ch.unit for ch in info.channels)
-    if info.device == "csv":  # a CSV device declares no units and no rate (PROTOCOL.md)
+    if info.device == "csv" and not any(got_units):  # a CSV device: no units, no rate
         _say(f"CSV device: its values are taken in the model's units "
              f"{list(model.contract.units)}, at the model's {model.contract.sample_rate_hz:g} Hz")
     elif got_units != model.contract.units:
@@ -180,16 +182,6 @@ def find_port() -> str:
     )
 
 
-def open_port(port: str, baud: int) -> serial.SerialBase:
-    try:
-        return serial.serial_for_url(port, baudrate=baud, timeout=0.05)
-    except (ValueError, serial.SerialException) as e:
-        msg = str(e).splitlines()[0] if str(e) else type(e).__name__
-        # pyserial names the port in some messages ("[Errno 2] could not open port P: ...")
-        msg = re.sub(r"^.*could not open port .*?: (?=\[Errno)", "", msg)
-        raise DeviceError(f"cannot open {port}: {msg}") from None
-
-
 def serve(args: argparse.Namespace, runner: Runner, decoder: StreamDecoder,
           stop: dict) -> None:
     """The serial loop: read, decode, classify; reconnect with backoff when the port vanishes."""
@@ -197,11 +189,12 @@ def serve(args: argparse.Namespace, runner: Runner, decoder: StreamDecoder,
     deadline = summary.started + args.seconds
     try:
         link = open_port(args.port, args.baud)
-    except (serial.SerialException, DeviceError) as e:
+    except PortAbsent as e:
         if not args.wait:
             raise
         _say(f"{str(e).splitlines()[0]}; waiting for it")
-        link = _reconnect(args, stop, deadline, "opened")
+        link = wait_for_port(args.port, args.baud, stop, _say, deadline, "opened",
+                             args.status_every)
         if link is None:
             return
     last_data = last_status = time.monotonic()
@@ -213,7 +206,8 @@ def serve(args: argparse.Namespace, runner: Runner, decoder: StreamDecoder,
             except serial.SerialException as e:
                 _say(f"port lost ({e}); reconnecting")
                 link.close()
-                link = _reconnect(args, stop, deadline)
+                link = wait_for_port(args.port, args.baud, stop, _say, deadline,
+                                     status_every=args.status_every)
                 if link is None:
                     break
                 summary.reconnects += 1
@@ -243,26 +237,6 @@ def serve(args: argparse.Namespace, runner: Runner, decoder: StreamDecoder,
     finally:
         if link is not None:  # None: stopped (or out of time) while waiting to reconnect
             link.close()
-
-
-def _reconnect(args: argparse.Namespace, stop: dict, deadline: float = math.inf,
-               verb: str = "reconnected to") -> serial.SerialBase | None:
-    delay = 0.1
-    since = last_status = time.monotonic()
-    while not stop["flag"] and time.monotonic() < deadline:
-        try:
-            link = open_port(args.port, args.baud)
-            _say(f"{verb} {args.port}")
-            return link
-        except (serial.SerialException, DeviceError):
-            until = min(time.monotonic() + delay, deadline)
-            while not stop["flag"] and time.monotonic() < until:  # a stop is not kept waiting
-                time.sleep(0.05)
-            delay = min(delay * 2, 2.0)
-        if time.monotonic() - last_status >= args.status_every:  # the status line goes on
-            last_status = time.monotonic()
-            _say(f"waiting for {args.port} for {last_status - since:.0f} s")
-    return None
 
 
 def replay(path: Path, runner: Runner, stop: dict) -> None:
@@ -306,7 +280,7 @@ def build_parser() -> argparse.ArgumentParser:
                      "default: the one likely pen attached")
     src.add_argument("--replay", type=Path, metavar="TAKE", help="a recorded take (.csv)")
     p.add_argument("--wait", action="store_true",
-                   help="if the port cannot be opened at start, wait for it (as after an "
+                   help="with --port: if the port is absent at start, wait for it (as after an "
                    "unplug) instead of exiting with code 2; for a service started before the "
                    "pen is plugged in")
     p.add_argument("--baud", type=int_in(1), default=115200,
@@ -334,6 +308,8 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def _main(args: argparse.Namespace) -> int:
+    if args.wait and args.port is None:
+        raise ConfigError("--wait needs --port (the device to wait for)")
     model = Model(args.model, threads=args.threads)
     c = model.contract
     hop = c.hop if args.hop is None else args.hop

@@ -17,6 +17,7 @@ import serial
 import tactile.device  # noqa: F401  (registers sim://)
 from tactile.device.decoder import StreamDecoder
 from tactile.device.hapmat import import_hapmat
+from tactile.device.ports import PortAbsent, open_port
 from tactile.device.protocol_sim import forget_unplugs
 from tactile.device.recorder import main as record_main
 from tactile.device.recorder import record
@@ -24,7 +25,7 @@ from tactile.device.recording import TakeWriter, load_dataset, read_take
 from tactile.device.sim_cli import make_dataset
 from tactile.device.simlink import LinkConfig, PenLink
 from tactile.device.simulator import PenSimulator
-from tactile.errors import ConfigError, RecordingError
+from tactile.errors import ConfigError, DeviceError, RecordingError
 
 
 def read_all(url: str) -> bytes:
@@ -61,8 +62,15 @@ def test_sim_url_is_deterministic_and_complete():
     ],
 )
 def test_sim_url_rejects_bad_options(url, message):
-    with pytest.raises(serial.SerialException, match=message):
+    """A bad option is a ValueError, as pyserial raises for a bad setting: a port that can never
+    open, not one that is absent for now (the tools do not wait for it)."""
+    with pytest.raises(ConfigError, match=message):
         serial.serial_for_url(url)
+    with pytest.raises(DeviceError, match=message) as err:
+        open_port(url, 115200)
+    assert not isinstance(err.value, PortAbsent)
+    with pytest.raises(PortAbsent, match="cannot open /dev/no-such-pen"):
+        open_port("/dev/no-such-pen", 115200)
 
 
 def test_link_faults_are_counted_exactly_by_the_decoder():
@@ -177,6 +185,26 @@ def test_ctrl_c_finishes_the_take(tmp_path):
     assert proc.returncode == 0, err
     take = read_take(out.strip())
     assert take.meta["complete"] and len(take.seq) > 100
+
+
+def test_ctrl_c_while_the_pen_is_unplugged_finishes_the_take(tmp_path):
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "tactile.device.recorder", "--port",
+         "sim://?texture=desk&seed=1&speed=4&unplug=2:30", "--label", "desk", "--out",
+         str(tmp_path)],
+        stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+    )
+    for _ in range(500):  # until the pen is unplugged and the recorder waits for it
+        line = proc.stderr.readline()
+        if not line or "port lost" in line:
+            break
+    assert "port lost" in line
+    proc.send_signal(signal.SIGINT)
+    code = proc.wait(timeout=20)
+    out, err = proc.stdout.read(), proc.stderr.read()
+    assert code == 0 and "Traceback" not in err, err
+    take = read_take(out.strip())
+    assert take.meta["complete"] and 100 <= len(take.seq) <= 200  # before the unplug at 2 s
 
 
 def test_cli_errors_are_one_line(tmp_path, capsys):

@@ -327,40 +327,59 @@ def test_bad_option_values_are_refused_in_one_line(option, value, says):
     assert says in err
 
 
+def finish(proc, timeout: float = 30) -> tuple[str, str]:
+    """Wait for ``proc`` and read the rest of its output through the same buffered pipes as
+    the lines read before (``communicate`` would read past them and lose those buffered)."""
+    proc.wait(timeout=timeout)  # the outputs are small: no pipe fills while waiting
+    return proc.stdout.read(), proc.stderr.read()
+
+
+def stderr_until(proc, text: str, limit: int = 200) -> list[str]:
+    """Read ``proc``'s stderr lines until one contains ``text`` (event-driven, not slept)."""
+    lines = []
+    for _ in range(limit):
+        line = proc.stderr.readline()
+        if not line:
+            break
+        lines.append(line)
+        if text in line:
+            return lines
+    raise AssertionError(f"{text!r} never appeared on stderr: {lines}")
+
+
 def test_wait_for_a_port_that_is_not_there_yet():
     """Without --wait an absent port is exit 2; with it, tactile-run waits and then labels."""
     import socket
-    import threading
 
     from tactile.device.simlink import LinkConfig, PenLink
 
-    probe = socket.socket()
-    probe.bind(("127.0.0.1", 0))
-    port = probe.getsockname()[1]
-    probe.close()  # nothing listens there now
-    url = f"socket://127.0.0.1:{port}"
-    code, _, err = run_cli(["--model", str(SHIPPED), "--port", url])
-    assert code == 2 and len(err.strip().splitlines()) == 1
-
-    data = PenLink(LinkConfig(texture="paper", seed=2)).produce(300)  # 3 s of the pen
-
-    def serve_later():
-        time.sleep(1.5)
-        with socket.create_server(("127.0.0.1", port)) as srv:
-            conn, _ = srv.accept()
-            with conn:
-                conn.sendall(data)
-                time.sleep(2.0)
-
-    th = threading.Thread(target=serve_later, daemon=True)
-    th.start()
-    code, out, err = run_cli(["--model", str(SHIPPED), "--port", url, "--wait",
-                              "--seconds", "5"])
-    th.join(timeout=10)
-    assert code == 0, err
-    assert "waiting for it" in err and f"opened {url}" in err
-    labels = [json.loads(ln) for ln in out.splitlines() if '"label"' in ln]
-    assert [lab["seq"] for lab in labels] == list(range(49, 300, 25))  # hop 25 from seq 0
+    # bound but not listening: connections are refused, and no other process can take the port
+    srv = socket.socket()
+    srv.bind(("127.0.0.1", 0))
+    url = f"socket://127.0.0.1:{srv.getsockname()[1]}"
+    try:
+        code, _, err = run_cli(["--model", str(SHIPPED), "--port", url])
+        assert code == 2 and len(err.strip().splitlines()) == 1 and "cannot open" in err
+        proc = subprocess.Popen(
+            [sys.executable, "-m", "tactile.runtime.cli", "--model", str(SHIPPED), "--port",
+             url, "--wait", "--seconds", "20"],
+            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+        early = stderr_until(proc, "waiting for it")
+        srv.listen()
+        conn, _ = srv.accept()
+        with conn:
+            conn.sendall(PenLink(LinkConfig(texture="paper", seed=2)).produce(300))  # 3 s
+            first = json.loads(proc.stdout.readline())  # a label: the data got through
+            proc.send_signal(signal.SIGINT)
+            out, err = finish(proc)
+    finally:
+        srv.close()
+    assert proc.returncode == 0, err
+    assert f"opened {url}" in "".join(early) + err
+    labels = [first, *(json.loads(ln) for ln in out.splitlines() if '"label"' in ln)]
+    assert labels[0]["seq"] == 49
+    seqs = [lab["seq"] for lab in labels]
+    assert seqs == list(range(49, 49 + 25 * len(labels), 25)), (seqs, err)
 
 
 def test_a_closed_stdout_stops_quietly():
@@ -371,8 +390,9 @@ def test_a_closed_stdout_stops_quietly():
         stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     first = proc.stdout.readline()
     proc.stdout.close()
+    code = proc.wait(timeout=30)  # fails (TimeoutExpired) rather than hangs if it never stops
     err = proc.stderr.read()
-    assert proc.wait(timeout=30) == 0, err
+    assert code == 0, err
     assert json.loads(first)["seq"] == 49 and "error" not in err and "Traceback" not in err
 
 
@@ -473,7 +493,7 @@ def test_sigint_stops_a_replay(tmp_path):
          str(take)], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     proc.stdout.readline()
     proc.send_signal(signal.SIGINT)
-    out, err = proc.communicate(timeout=60)
+    out, err = finish(proc, timeout=60)
     assert proc.returncode == 0, err
     summary = json.loads(err.split("tactile-run: summary ", 1)[1].splitlines()[0])
     assert 1 <= summary["windows"] < (360_000 - 50) // 25 // 2  # stopped well before the end
@@ -490,16 +510,14 @@ def test_the_library_example_in_the_docs_runs(monkeypatch):
 
 
 def test_a_stop_while_the_pen_is_unplugged_is_clean():
-    forget_unplugs()
     proc = subprocess.Popen(
         [sys.executable, "-m", "tactile.runtime.cli", "--model", str(SHIPPED), "--port",
          "sim://?texture=paper&seed=2&speed=2&unplug=1:30", "--status-every", "0.5"],
         stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
-    time.sleep(4)  # unplugged after 1 s of the pen's time (0.5 s at 2x): waiting since then
+    early = stderr_until(proc, "waiting for sim://")  # unplugged, and waiting for the pen
     proc.send_signal(signal.SIGINT)
-    out, err = proc.communicate(timeout=20)
-    forget_unplugs()
+    out, err = finish(proc)
     assert proc.returncode == 0, err
-    assert "waiting for sim://" in err and "Traceback" not in err
+    assert "port lost" in "".join(early) and "Traceback" not in err
     summary = json.loads(err.split("tactile-run: summary ", 1)[1].splitlines()[0])
     assert summary["reconnects"] == 0  # stopped while still waiting for the pen
