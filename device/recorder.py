@@ -21,12 +21,12 @@ from pathlib import Path
 import serial
 
 import tactile.device  # noqa: F401  (registers sim://)
-from tactile.cli import Parser, add_debug, run
+from tactile.cli import Parser, add_debug, float_in, int_in, run
 from tactile.device.decoder import Gap, Header, Samples, StreamDecoder
 from tactile.device.info import DeviceInfo
 from tactile.device.ports import open_port, wait_for_port
 from tactile.device.recording import TakeWriter
-from tactile.errors import ConfigError, DeviceError
+from tactile.errors import DeviceError
 
 MAX_EARLY = 100_000  # samples held while waiting for the first header (binary mode)
 
@@ -183,17 +183,17 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--port", required=True, help="/dev/ttyACM0, sim://?texture=paper, socket://...")
     p.add_argument("--label", required=True, help="the texture being stroked, e.g. paper")
     p.add_argument("--out", required=True, type=Path, help="dataset folder (created if missing)")
-    p.add_argument("--seconds", type=float, default=math.inf, help="stop after this much data")
-    p.add_argument("--baud", type=int, default=115200, help="UART baud rate (default 115200)")
-    p.add_argument("--csv-rate", type=float, default=100.0, help="rate of CSV-mode devices, Hz")
+    p.add_argument("--seconds", type=float_in(0.0), default=math.inf,
+                   help="stop after this much data")
+    p.add_argument("--baud", type=int_in(1), default=115200, help="UART baud rate (default 115200)")
+    p.add_argument("--csv-rate", type=float_in(0.0), default=100.0,
+                   help="rate of CSV-mode devices, Hz")
     p.add_argument("--quiet", action="store_true", help="no progress lines on stderr")
     add_debug(p)
     return p
 
 
 def _main(args: argparse.Namespace) -> int:
-    if not (args.seconds > 0):
-        raise ConfigError(f"--seconds {args.seconds}: must be > 0")
     res = record(
         args.port, args.label, args.out, args.seconds, args.baud, args.csv_rate,
         progress=not args.quiet,

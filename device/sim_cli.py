@@ -20,7 +20,7 @@ import tty
 import zlib
 from pathlib import Path
 
-from tactile.cli import Parser, add_debug, run
+from tactile.cli import Parser, add_debug, float_in, int_in, run
 from tactile.device.recording import TakeWriter
 from tactile.device.simlink import LinkConfig, PenLink
 from tactile.device.simulator import TEXTURES, PenSimulator
@@ -110,19 +110,22 @@ def build_parser() -> argparse.ArgumentParser:
     mode = p.add_mutually_exclusive_group(required=True)
     mode.add_argument("--pty", action="store_true", help="serve the pen on a pseudo-terminal")
     mode.add_argument("--dataset", type=Path, metavar="OUT", help="write a synthetic dataset")
-    p.add_argument("--takes", type=int, default=10, help="takes (simulated users) per texture")
+    p.add_argument("--takes", type=int_in(1), default=10,
+                   help="takes (simulated users) per texture")
     p.add_argument("--textures", default=",".join(TEXTURES),
                    help=f"comma-separated subset of: {', '.join(TEXTURES)}")
-    p.add_argument("--seconds", type=float, default=None,
+    p.add_argument("--seconds", type=float_in(0.0), default=None,
                    help="seconds per take (dataset, default 60) or of streaming (pty, default: "
                    "until stopped)")
-    p.add_argument("--seed", type=int, default=0, help="base seed (default 0)")
-    p.add_argument("--rate", type=float, default=100.0, help="sample rate, Hz (default 100)")
-    p.add_argument("--first-take", type=int, default=0, help="index of the first simulated user")
+    p.add_argument("--seed", type=int_in(0), default=0, help="base seed (default 0)")
+    p.add_argument("--rate", type=float_in(10.0, 10_000.0, low_open=False), default=100.0,
+                   help="sample rate, Hz (default 100)")
+    p.add_argument("--first-take", type=int_in(0), default=0,
+                   help="index of the first simulated user")
     p.add_argument("--texture", default="paper", help="texture on the pty (default paper)")
     p.add_argument("--link", default="", metavar="OPTIONS",
                    help="more pty link options as for sim://, e.g. 'garbage=0.01&stall=5:1'")
-    p.add_argument("--speed", type=float, default=1.0, help="pty speed, x real time")
+    p.add_argument("--speed", type=float_in(0.0), default=1.0, help="pty speed, x real time")
     add_debug(p)
     return p
 

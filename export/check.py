@@ -18,7 +18,7 @@ import numpy as np
 import onnx
 import torch
 
-from tactile.cli import Parser, add_debug, run
+from tactile.cli import Parser, add_debug, int_in, run
 from tactile.contract import OPSET, ModelContract
 from tactile.errors import ModelContractError
 
@@ -139,7 +139,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("model", type=Path, help="ONNX file to check")
     p.add_argument("--run", type=Path, help="run folder: re-run parity against its PyTorch model")
     p.add_argument("--data", type=Path, help="dataset folder: windows to check on")
-    p.add_argument("--windows", type=int, default=256, help="at most this many windows")
+    p.add_argument("--windows", type=int_in(1), default=256, help="at most this many windows")
     add_debug(p)
     return p
 

@@ -19,7 +19,7 @@ from pathlib import Path
 import onnx
 import torch
 
-from tactile.cli import Parser, add_debug, run
+from tactile.cli import Parser, add_debug, int_in, run
 from tactile.export.check import load_contract
 from tactile.export.graph import build_graph
 from tactile.export.metadata import attach, contract_for
@@ -112,7 +112,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--data", type=Path, help="dataset folder holding the run's test takes")
     p.add_argument("--int8", action="store_true",
                    help="write an onnxruntime dynamic-int8 model (default: float32)")
-    p.add_argument("--windows", type=int, default=256,
+    p.add_argument("--windows", type=int_in(1), default=256,
                    help="at most this many windows for the parity check (default 256)")
     add_debug(p)
     return p

@@ -94,6 +94,8 @@ class Printer:
             print(json.dumps({"event": kind, **fields}), file=self.out, flush=True)
         elif self.fmt == "csv":
             what = " ".join([kind, *(f"{k}={v}" for k, v in fields.items() if k != "seq")])
+            if any(ch in what for ch in ',"\r\n'):  # e.g. a port name: quoted as CSV quotes
+                what = '"' + what.replace('"', '""') + '"'
             empty = "," * (len(self.classes) + 4)
             print(f",{fields.get('seq', '')}{empty},{what}", file=self.out, flush=True)
         else:

@@ -213,9 +213,12 @@ def test_cli_errors_are_one_line(tmp_path, capsys):
     assert code == 2 and len(err) == 1 and "texture 'velvet'" in err[0]
     code = record_main(["--port", "/dev/does-not-exist", "--label", "x", "--out", str(tmp_path)])
     assert code == 2 and "does-not-exist" in capsys.readouterr().err
-    code = record_main(["--port", "loop://", "--label", "x", "--out", str(tmp_path),
-                        "--seconds", "-1"])
-    assert code == 1 and "--seconds" in capsys.readouterr().err
+    with pytest.raises(SystemExit) as stop:  # an argument error: argparse stops, with code 1
+        record_main(["--port", "loop://", "--label", "x", "--out", str(tmp_path),
+                     "--seconds", "-1"])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert stop.value.code == 1 and err == [
+        "tactile-record: error: argument --seconds: -1 must be > 0.0 (see --help)"]
 
 
 def test_dataset_of_simulated_users(tmp_path):

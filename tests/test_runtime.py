@@ -521,3 +521,19 @@ def test_a_stop_while_the_pen_is_unplugged_is_clean():
     assert "port lost" in "".join(early) and "Traceback" not in err
     summary = json.loads(err.split("tactile-run: summary ", 1)[1].splitlines()[0])
     assert summary["reconnects"] == 0  # stopped while still waiting for the pen
+
+
+def test_csv_event_rows_keep_their_columns_whatever_the_text():
+    import csv
+    import io
+
+    from tactile.runtime.cli import Printer
+
+    buf = io.StringIO()
+    printer = Printer("csv", ("a", "b"), buf)
+    printer.event("reconnect", port='socket://h:1,"x"')
+    printer.event("gap", seq=7, missing=2, reason="drop")
+    header, *rows = list(csv.reader(io.StringIO(buf.getvalue())))
+    assert all(len(r) == len(header) for r in rows)
+    assert rows[0][-1] == 'reconnect port=socket://h:1,"x"' and rows[0][1] == ""
+    assert rows[1][1] == "7" and rows[1][-1] == "gap missing=2 reason=drop"
