@@ -13,7 +13,7 @@ import numpy as np
 import onnxruntime as ort
 
 from tactile.contract import ModelContract
-from tactile.errors import ModelContractError
+from tactile.errors import ConfigError, ModelContractError
 
 
 def session_options(threads: int = 1) -> ort.SessionOptions:
@@ -44,6 +44,8 @@ class Model:
     """
 
     def __init__(self, path: str | os.PathLike, threads: int = 1) -> None:
+        if not (isinstance(threads, int) and threads >= 1):
+            raise ConfigError(f"threads {threads!r}: must be an integer >= 1")
         path = Path(path)
         if not path.is_file():
             raise ModelContractError(f"{path}: no such model file")

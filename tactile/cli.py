@@ -79,8 +79,8 @@ def int_in(low: int, high: int | None = None) -> Callable[[str], int]:
 
 def float_in(low: float, high: float = math.inf, low_open: bool = True,
              high_open: bool = False) -> Callable[[str], float]:
-    """An argparse type: a number between ``low`` and ``high`` (open or closed ends); ``inf``
-    is accepted only as an open-ended upper bound's value when ``high`` is infinite."""
+    """An argparse type: a number between ``low`` and ``high``, each end open or closed. NaN
+    never passes; ``inf`` passes only when ``high`` is infinite (``--seconds inf``)."""
 
     def parse(text: str) -> float:
         try:
@@ -134,4 +134,5 @@ def add_debug(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--debug", action="store_true", help="show the full traceback on errors")
 
 
-__all__ = ["ConfigError", "Parser", "run", "add_debug", "exit_code", "EXIT_DEVICE", "EXIT_USAGE"]
+__all__ = ["ConfigError", "Parser", "run", "add_debug", "exit_code", "float_in", "int_in",
+           "EXIT_DEVICE", "EXIT_USAGE"]

@@ -537,3 +537,8 @@ def test_csv_event_rows_keep_their_columns_whatever_the_text():
     assert all(len(r) == len(header) for r in rows)
     assert rows[0][-1] == 'reconnect port=socket://h:1,"x"' and rows[0][1] == ""
     assert rows[1][1] == "7" and rows[1][-1] == "gap missing=2 reason=drop"
+
+
+def test_the_model_object_refuses_a_thread_count_below_one():
+    with pytest.raises(ConfigError, match="threads 0: must be an integer >= 1"):
+        Model(SHIPPED, threads=0)
