@@ -6,6 +6,10 @@ what is wrong in one line (exit code 3). With ``--run`` it re-runs the parity co
 the run's PyTorch model (on ``--data``'s test windows if given, else simulated or random ones)
 and prints the table; exit 3 on failure. With ``--data`` alone it runs the file on the data's
 windows and prints its accuracy beside the one recorded at export.
+
+On a board (no ``[train]`` extra: no onnx, no torch) it checks what the runtime will: loads the
+file with onnxruntime, validates the contract and the graph's signature as ``tactile-run`` does,
+and runs one window through it; ``--run`` and ``--data`` need the extra.
 """
 
 from __future__ import annotations
@@ -13,14 +17,16 @@ from __future__ import annotations
 import argparse
 import sys
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
-import onnx
-import torch
 
 from tactile.cli import Parser, add_debug, int_in, run
 from tactile.contract import OPSET, ModelContract
-from tactile.errors import ModelContractError
+from tactile.errors import ConfigError, ModelContractError
+
+if TYPE_CHECKING:
+    import onnx
 
 # onnx TensorProto element types as onnxruntime spells them (the contract's spelling)
 _TYPES = {1: "tensor(float)", 2: "tensor(uint8)", 3: "tensor(int8)", 6: "tensor(int32)",
@@ -30,6 +36,8 @@ _TYPES = {1: "tensor(float)", 2: "tensor(uint8)", 3: "tensor(int8)", 6: "tensor(
 def load_contract(path: str | Path) -> tuple[onnx.ModelProto, ModelContract]:
     """Load ``path`` and validate its contract; raises :class:`ModelContractError` naming the
     first problem (prefixed with the file name)."""
+    import onnx
+
     path = Path(path)
     data = path.read_bytes()  # OSError if missing: a usage error, not a contract one
     try:
@@ -70,10 +78,12 @@ def signature(values, initializers=()) -> list[tuple[str, str, list]]:
     return out
 
 
-def describe(path: Path, model: onnx.ModelProto, c: ModelContract) -> str:
+def describe(path: Path, c: ModelContract, opset: int | None = OPSET) -> str:
+    """What the file holds, for people (``opset`` None: not checked)."""
     emd = c.preprocessing.get("emd")
+    checked = f"opset {opset}, " if opset is not None else ""
     lines = [
-        f"{path}: contract ok (format {c.format_version}, opset {OPSET}, "
+        f"{path}: contract ok (format {c.format_version}, {checked}"
         f"{path.stat().st_size / 1e3:.1f} kB, quantization {c.quantization})",
         f"  classes   {', '.join(c.classes)}",
         f"  channels  {', '.join(f'{n} [{u}]' for n, u in zip(c.channels, c.units))}",
@@ -144,10 +154,36 @@ def build_parser() -> argparse.ArgumentParser:
     return p
 
 
+def board_check(path: Path) -> None:
+    """The check with onnxruntime only: what ``tactile-run`` loads, validates and runs."""
+    from tactile.runtime.model import Model
+
+    model = Model(path)  # contract and signature, as tactile-run checks them (exit 3)
+    c = model.contract
+    h, cc = model.zero_state()
+    probs, _, _ = model.classify(np.zeros((1, c.window, len(c.channels)), np.float32), h, cc)
+    if probs.shape != (1, len(c.classes)) or not (np.isfinite(probs).all()
+                                                  and abs(float(probs.sum()) - 1.0) < 1e-3):
+        raise ModelContractError(f"{path}: a zero window gives probabilities {probs.tolist()}, "
+                                 f"not {len(c.classes)} finite values summing to 1")
+    print(describe(path, c, opset=None))
+    print("  checked   with onnxruntime only (the [train] extra is not installed): the contract, "
+          "the graph's signature, one window; the extra adds onnx.checker and the opset check")
+
+
 def _main(args: argparse.Namespace) -> int:
+    try:
+        import onnx  # noqa: F401
+        import torch
+    except ModuleNotFoundError:  # a board: no onnx, no torch (the [train] extra)
+        if args.run is not None or args.data is not None:
+            raise ConfigError("--run and --data need the [train] extra: "
+                              "pip install 'tactile-pen[train]'") from None
+        board_check(args.model)
+        return 0
     torch.set_num_threads(1)  # one core's figures; also avoids contention on a small board
-    model, contract = load_contract(args.model)
-    print(describe(args.model, model, contract))
+    _, contract = load_contract(args.model)
+    print(describe(args.model, contract))
     if args.run is not None:
         if not _reparity(args.model, contract, args.run, args.data, args.windows):
             raise ModelContractError(f"{args.model}: parity against {args.run} failed "

@@ -127,7 +127,6 @@ def _with_extra(module: str, prog: str) -> Callable[[], int]:
 train_main = _with_extra("tactile.training.train", "tactile-train")
 eval_main = _with_extra("tactile.training.evaluate", "tactile-eval")
 export_main = _with_extra("tactile.export.cli", "tactile-export")
-check_main = _with_extra("tactile.export.check", "tactile-check")
 
 
 def add_debug(parser: argparse.ArgumentParser) -> None:

@@ -71,7 +71,7 @@ def test_commands_needing_an_extra_say_so_in_one_line():
     """On a board (no torch, no onnx) the training and export commands are installed too; each
     must name the extra it needs instead of printing an import traceback."""
     scripts = tomllib.loads((REPO / "pyproject.toml").read_text())["project"]["scripts"]
-    for prog in ("tactile-train", "tactile-eval", "tactile-export", "tactile-check"):
+    for prog in ("tactile-train", "tactile-eval", "tactile-export"):
         module, func = scripts[prog].split(":")
         code = _BLOCK_TRAIN + f"from {module} import {func}\nsys.argv = ['{prog}', '--help']\n" \
             f"sys.exit({func}())\n"
@@ -107,3 +107,28 @@ def test_a_bad_argument_is_one_line_and_exit_1():
         assert out.returncode == 1, (prog, out.returncode, out.stderr)
         lines = out.stderr.strip().splitlines()
         assert len(lines) == 1 and lines[0].startswith(f"{prog}: error: "), (prog, lines)
+
+
+def test_tactile_check_on_a_board_checks_what_the_runtime_loads(tmp_path):
+    """Without onnx and torch, tactile-check validates with onnxruntime only and runs a window;
+    a broken file is still exit 3, and the options that need PyTorch name the extra."""
+    shipped = REPO / "models" / "pen-exp2.onnx"
+    junk = tmp_path / "junk.onnx"
+    junk.write_bytes(b"not onnx")
+
+    def check(*args):
+        code = _BLOCK_TRAIN + "from tactile.export.check import main\n" \
+            f"sys.exit(main({list(args)!r}))\n"
+        return subprocess.run([sys.executable, "-c", code], capture_output=True, text=True)
+
+    out = check(str(shipped))
+    assert out.returncode == 0, out.stderr
+    assert "contract ok" in out.stdout and "with onnxruntime only" in out.stdout
+    assert "opset" not in out.stdout.splitlines()[0]  # not checked here, so not claimed
+    out = check(str(junk))
+    assert out.returncode == 3 and "not a loadable ONNX model" in out.stderr
+    out = check(str(shipped), "--data", str(tmp_path))
+    assert out.returncode == 1 and "need the [train] extra" in out.stderr
+    full = subprocess.run([sys.executable, "-m", "tactile.export.check", str(shipped)],
+                          capture_output=True, text=True)
+    assert full.returncode == 0 and "opset 18" in full.stdout.splitlines()[0], full.stderr
