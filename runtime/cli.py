@@ -14,6 +14,7 @@ cannot be opened or no pen found, 3 the model or the device does not honour the 
 from __future__ import annotations
 
 import argparse
+import csv
 import json
 import math
 import os
@@ -71,20 +72,25 @@ class Printer:
     def __init__(self, fmt: str, classes: tuple[str, ...], out=sys.stdout) -> None:
         self.fmt, self.classes, self.out = fmt, classes, out
         if fmt == "csv":  # an event is a row of its own: its seq (if any) and `event` filled
-            cols = ["t", "seq", "label", "p", "latency_ms", "smoothed", *classes, "event"]
-            print(",".join(cols), file=out, flush=True)
+            self._csv = csv.writer(out, lineterminator="\n")  # quotes what needs quoting
+            self._row(["t", "seq", "label", "p", "latency_ms", "smoothed", *classes, "event"])
+
+    def _row(self, cells: list) -> None:
+        self._csv.writerow(cells)
+        self.out.flush()
 
     def label(self, lab: Label) -> None:
+        if self.fmt == "csv":
+            self._row([f"{lab.t_us / 1e6:.6f}", lab.seq, lab.label, f"{lab.probability:.6f}",
+                       f"{lab.latency_ms:.3f}", lab.smoothed or "",
+                       *(f"{lab.probabilities[c]:.6f}" for c in self.classes), ""])
+            return
         if self.fmt == "jsonl":
             line = json.dumps(lab.to_dict())
-        elif self.fmt == "text":
+        else:
             smooth = f" ({lab.smoothed})" if lab.smoothed else ""
             line = f"{lab.t_us / 1e6:10.2f} s  #{lab.seq:<8d} {lab.label}{smooth}  " \
                    f"p={lab.probability:.3f}"
-        else:
-            probs = ",".join(f"{lab.probabilities[c]:.6f}" for c in self.classes)
-            line = (f"{lab.t_us / 1e6:.6f},{lab.seq},{lab.label},{lab.probability:.6f},"
-                    f"{lab.latency_ms:.3f},{lab.smoothed or ''},{probs},")
         print(line, file=self.out, flush=True)
 
     def event(self, kind: str, **fields) -> None:
@@ -94,10 +100,7 @@ class Printer:
             print(json.dumps({"event": kind, **fields}), file=self.out, flush=True)
         elif self.fmt == "csv":
             what = " ".join([kind, *(f"{k}={v}" for k, v in fields.items() if k != "seq")])
-            if any(ch in what for ch in ',"\r\n'):  # e.g. a port name: quoted as CSV quotes
-                what = '"' + what.replace('"', '""') + '"'
-            empty = "," * (len(self.classes) + 4)
-            print(f",{fields.get('seq', '')}{empty},{what}", file=self.out, flush=True)
+            self._row(["", fields.get("seq", ""), *[""] * (len(self.classes) + 4), what])
         else:
             print(f"# {kind} " + " ".join(f"{k}={v}" for k, v in fields.items()),
                   file=self.out, flush=True)
