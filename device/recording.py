@@ -221,10 +221,13 @@ def read_take(path: str | os.PathLike) -> Take:
         raise RecordingError(f"{json_path}: bad device or label ({e})") from None
     if not isinstance(label, str) or not label:
         raise RecordingError(f"{json_path}: label must be a non-empty string")
-    with open(csv_path, "rb") as f:  # a killed writer leaves a half line at the end
-        size = f.seek(0, os.SEEK_END)
+    with open(csv_path, "rb") as f:
+        f.readline()  # the header (its names hold an "e")
+        # values written from counts have no decimal point and no exponent
+        integer = not any(_DECIMAL.search(chunk) for chunk in iter(lambda: f.read(1 << 20), b""))
+        size = f.tell()
         f.seek(max(size - 1, 0))
-        truncated = size > 0 and f.read(1) != b"\n"
+        truncated = size > 0 and f.read(1) != b"\n"  # a killed writer's half line at the end
     c = len(info.channels)
     with open(csv_path, encoding="ascii", errors="replace", newline="") as f:
         head = f.readline().rstrip("\r\n")
@@ -234,7 +237,7 @@ def read_take(path: str | os.PathLike) -> Take:
             raise RecordingError(
                 f"{csv_path}: columns {columns} do not match the metadata {expected}")
         # numpy's C parser straight from the file: a few bytes a value in memory (a long take
-        # must replay on a small board), and its errors name the row and column
+        # must replay on a small board); an unreadable row is then found and named
         try:
             with warnings.catch_warnings():
                 warnings.simplefilter("ignore", UserWarning)  # "input contained no data"
@@ -243,9 +246,6 @@ def read_take(path: str | os.PathLike) -> Take:
                                    dtype=np.float64)
         except ValueError:
             raise RecordingError(f"{csv_path}: {_first_bad_row(csv_path, c + 2)}") from None
-        f.seek(0)
-        f.readline()  # the header
-        integer = not any(re.search(r"[.eE]", line) for line in f)
     n = len(table)
     if n and table.shape[1] != c + 2:
         raise RecordingError(f"{csv_path}: rows of {table.shape[1]} values, expected {c + 2}")
@@ -255,12 +255,15 @@ def read_take(path: str | os.PathLike) -> Take:
     seq, t_us = table[:, 0].astype(np.int64), table[:, 1].astype(np.int64)
     if n and not (np.array_equal(seq, table[:, 0]) and np.array_equal(t_us, table[:, 1])):
         raise RecordingError(f"{csv_path}: seq and t_us must be integers")
-    integer = integer and n > 0  # written from counts: no decimal point or exponent
+    integer = integer and n > 0
     raw = table[:, 2:].astype(np.int64) if integer else table[:, 2:]
     if n and np.any(np.diff(seq) <= 0):
         bad = int(np.flatnonzero(np.diff(seq) <= 0)[0]) + 2
         raise RecordingError(f"{csv_path}: seq not increasing at data row {bad}")
     return Take(csv_path, meta, info, seq, t_us, raw.reshape(n, c), truncated)
+
+
+_DECIMAL = re.compile(rb"[.eE]")
 
 
 def _first_bad_row(csv_path: Path, width: int) -> str:
