@@ -57,8 +57,8 @@ BUDGET = {
     "evaluate": 20,
     "finish": 31,
 }
-SIFT_SHORTEST = 173  # nodes run by one sift with few knots (later IMFs): PCR_ALWAYS steps
-SIFT_LONGEST = 198  # ... and with many knots (every PCR step)
+SIFT_SHORTEST = 174  # nodes run by one sift with few knots (later IMFs): PCR_ALWAYS steps
+SIFT_LONGEST = 201  # ... and with many knots (every PCR step)
 SIFT_LARGE = 356  # nodes one sift runs from THOMAS_ROWS rows on (Thomas solver, no Ifs)
 
 

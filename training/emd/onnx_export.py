@@ -47,6 +47,7 @@ from .spline import (
     THOMAS_ROWS,
     decoupled_after,
     pcr_last,
+    pcr_rows,
     pcr_step,
     pcr_steps,
     thomas_solve,
@@ -370,6 +371,8 @@ def _sift_graph(
     base = slot_base(h)
     sys, xy, j1, ks, n_ext, hk, sl = prepare(h, marks, base)
     m = sys[2:3]
+    if not large:
+        sys = pcr_rows(sys)  # the example the PCR steps are traced on
     r1 = {1: "rows"}
     r2 = {2: "rows"}
 
@@ -377,6 +380,8 @@ def _sift_graph(
         # made: slot_base's four tensors, then (small body) the end samples for TopK.
         ends = None if large else made[4]
         sys, *rest = prepare(h, marks, made[:4], ends=ends, large=large)
+        if not large:
+            sys = pcr_rows(sys)
         for step in range(always):
             sys = pcr_step(sys, 1 << step)
         done = [] if large else [decoupled_after(rest[1], step) for step in range(always, steps)]

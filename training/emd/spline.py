@@ -91,38 +91,59 @@ def pcr_steps(k: int) -> int:
     return max(1, math.ceil(math.log2(k)))
 
 
-def _eliminate(sys: Tensor, st: int) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+def pcr_rows(sys: Tensor) -> Tensor:
+    """(3, ..., K) unit-diagonal rows [sub-diagonal, super-diagonal, right-hand side] -> the
+    (4, ..., K) rows :func:`pcr_step` takes: the diagonal itself (ones) appended, so that each
+    step subtracts a row's own ``[r, 1]`` and normalises with one node each."""
+    return F.pad(sys, (0, 0) * (sys.dim() - 1) + (0, 1), value=1.0)
+
+
+_PICK_LO = (0, 4, 2, 1)  # a times [a, c, r, 1, 0] of row j - st -> [a a, 0, a r, a c]
+_PICK_HI = (4, 1, 2, 0)  # c times [a, c, r, 1, 0] of row j + st -> [0, c c, c r, c a]
+_OWN = (0.0, 0.0, 1.0, 1.0)  # what each new row subtracts of its own: [0, 0, r, 1]
+
+
+def _eliminate(sys: Tensor, st: int) -> Tensor:
     """One PCR elimination of rows j -/+ st from every row j.
 
-    Returns the new rows' unnormalised sub-diagonal, super-diagonal and right-hand side and the
-    negated new diagonal, each (1, ..., K): the new diagonal is 1 - a c_{j-st} - c a_{j+st},
-    and dividing by its negative folds the signs of the new off-diagonals in.
+    Returns (4, ..., K): the new rows' unnormalised sub-diagonal, super-diagonal and
+    right-hand side and the negated new diagonal, ``[a a_lo, c c_hi, a r_lo + c r_hi - r,
+    a c_lo + c a_hi - 1]`` (``lo``/``hi``: row j -/+ st). Dividing by the negated diagonal folds
+    the signs of the new off-diagonals in and turns the last row into the unit diagonal again.
+
+    Each shifted copy is one ``Pad`` that also appends a zero row, so that one gather on the
+    first axis lines the products up (onnxruntime gathers whole rows there for less than a
+    ``Split`` or a ``Concat`` costs); the sums are those of the plain formulas, in their
+    order, so the result is the same bit for bit.
     """
-    dn = F.pad(sys, (st, -st))  # (3, ..., K): [a, c, r] of row j - st (zero beyond the ends)
-    up = F.pad(sys, (-st, st))  # (3, ..., K): [a, c, r] of row j + st
-    a, c, r = sys.split(1)  # (1, ..., K) each
-    lo_a, lo_c, lo_r = (a * dn).split(1)  # a_j [a, c, r]_{j-st}
-    hi_a, hi_c, hi_r = (c * up).split(1)  # c_j [a, c, r]_{j+st}
-    return lo_a, hi_c, lo_r + hi_r - r, lo_c + hi_a - 1.0
+    pads = (0, 0) * (sys.dim() - 2)
+    lo = F.pad(sys, (st, -st) + pads + (0, 1))  # (5, ..., K): [a, c, r, 1, 0] of row j - st
+    hi = F.pad(sys, (-st, st) + pads + (0, 1))  # (5, ..., K): the same of row j + st
+    dev = sys.device
+    a, c = (sys.index_select(0, torch.tensor([i], device=dev)) for i in (0, 1))  # (1, ..., K)
+    pick_lo, pick_hi = (torch.tensor(p, device=dev) for p in (_PICK_LO, _PICK_HI))
+    own = torch.tensor(_OWN, dtype=sys.dtype, device=dev).reshape(4, *[1] * (sys.dim() - 1))
+    return (a * lo).index_select(0, pick_lo) + (c * hi).index_select(0, pick_hi) - sys * own
 
 
 def pcr_step(sys: Tensor, st: int) -> Tensor:
     """One PCR step: couple every row to the rows ``2 st`` away instead of ``st``.
 
     Args:
-        sys: (3, ..., K) unit-diagonal rows [sub-diagonal, super-diagonal, right-hand side],
-            coupling row j to rows j -/+ st.
+        sys: (4, ..., K) unit-diagonal rows [sub-diagonal, super-diagonal, right-hand side,
+            diagonal (1)] (:func:`pcr_rows`), coupling row j to rows j -/+ st.
 
     Returns:
-        (3, ..., K) the same kind of rows, coupling row j to rows j -/+ 2 st.
+        (4, ..., K) the same kind of rows, coupling row j to rows j -/+ 2 st.
     """
-    a, c, r, neg_diag = _eliminate(sys, st)
-    return torch.cat([a, c, r]) / neg_diag
+    rows = _eliminate(sys, st)
+    return rows / rows.index_select(0, torch.tensor([3], device=sys.device))
 
 
 def pcr_last(sys: Tensor, st: int) -> Tensor:
-    """The final PCR step, computing only the solution: (3, ..., K) -> (1, ..., K)."""
-    _, _, r, neg_diag = _eliminate(sys, st)
+    """The final PCR step, computing only the solution: (4, ..., K) -> (1, ..., K)."""
+    rows = _eliminate(sys, st)
+    r, neg_diag = (rows.index_select(0, torch.tensor([i], device=sys.device)) for i in (2, 3))
     return r / neg_diag
 
 
@@ -151,6 +172,7 @@ def pcr_solve(sys: Tensor, j1: Tensor | None = None) -> Tensor:
         (1, ..., K) solution.
     """
     steps = pcr_steps(int(sys.shape[-1]))
+    sys = pcr_rows(sys)
     for step in range(steps):
         if j1 is not None and j1.numel() and bool(decoupled_after(j1, step)):
             return sys[2:3]
