@@ -6,6 +6,7 @@ import argparse
 import importlib
 import math
 import os
+import signal
 import sys
 from collections.abc import Callable
 
@@ -124,6 +125,35 @@ def _with_extra(module: str, prog: str) -> Callable[[], int]:
     return main
 
 
+class _Stopped(BaseException):
+    """SIGINT or SIGTERM before a long-running command installed its own handlers."""
+
+
+def _guarded_start(module: str, prog: str) -> Callable[[], int]:
+    """An entry point for the long-running commands (``tactile-run``, ``tactile-record``): a
+    SIGINT or SIGTERM that arrives while the command starts (importing numpy and
+    onnxruntime, loading the model: about half a second) stops it with one line and exit 0,
+    as one later does, instead of a ``KeyboardInterrupt`` traceback (SIGINT) or an exit
+    without a word (SIGTERM). The command replaces these handlers with its own (which finish
+    the take or print the summary) before it reads any data."""
+
+    def main() -> int:
+        def stop(signum, frame):
+            raise _Stopped(signal.Signals(signum).name)
+
+        for sig in (signal.SIGINT, signal.SIGTERM):
+            signal.signal(sig, stop)
+        try:
+            return importlib.import_module(module).main()
+        except _Stopped as e:
+            print(f"{prog}: stopped by {e}", file=sys.stderr)
+            return EXIT_OK
+
+    return main
+
+
+run_main = _guarded_start("tactile.runtime.cli", "tactile-run")
+record_main = _guarded_start("tactile.device.recorder", "tactile-record")
 train_main = _with_extra("tactile.training.train", "tactile-train")
 eval_main = _with_extra("tactile.training.evaluate", "tactile-eval")
 export_main = _with_extra("tactile.export.cli", "tactile-export")

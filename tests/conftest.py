@@ -2,6 +2,9 @@
 
 from __future__ import annotations
 
+import subprocess
+import sys
+import time
 from pathlib import Path
 
 import numpy as np
@@ -41,3 +44,24 @@ def pen_stream(n: int, per_frame: int = 1, seed: int = 0, header_every: int = 10
 @pytest.fixture
 def rng():
     return np.random.default_rng(12345)
+
+
+def start_and_signal(entry: str, args: list[str], sig: int) -> tuple[int, str, str]:
+    """Start a console entry point (``tactile.cli:<entry>``) in a subprocess, send ``sig`` the
+    moment it handles SIGTERM (Python itself handles only SIGINT, so that is when the entry
+    point's own handlers are in place, before its imports), and return (exit code, stdout,
+    stderr). Linux only: it reads the caught-signal mask in ``/proc/<pid>/status``."""
+    code = f"import sys; from tactile.cli import {entry}; sys.exit({entry}())"
+    proc = subprocess.Popen([sys.executable, "-c", code, *args], stdout=subprocess.PIPE,
+                            stderr=subprocess.PIPE, text=True)
+    status = Path(f"/proc/{proc.pid}/status")
+    deadline = time.monotonic() + 20
+    while time.monotonic() < deadline and proc.poll() is None:
+        caught = next((ln for ln in status.read_text().splitlines() if ln.startswith("SigCgt:")),
+                      "SigCgt: 0")
+        if int(caught.split()[1], 16) >> (15 - 1) & 1:  # SIGTERM is signal 15
+            break
+        time.sleep(0.001)
+    proc.send_signal(sig)
+    out, err = proc.communicate(timeout=30)
+    return proc.returncode, out, err

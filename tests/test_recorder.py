@@ -13,6 +13,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import serial
+from conftest import start_and_signal
 
 import tactile.device  # noqa: F401  (registers sim://)
 from tactile.device.decoder import StreamDecoder
@@ -205,6 +206,16 @@ def test_ctrl_c_while_the_pen_is_unplugged_finishes_the_take(tmp_path):
     assert code == 0 and "Traceback" not in err, err
     take = read_take(out.strip())
     assert take.meta["complete"] and 100 <= len(take.seq) <= 200  # before the unplug at 2 s
+
+
+@pytest.mark.skipif(not Path("/proc/self/status").exists(), reason="reads /proc")
+def test_a_signal_while_starting_stops_cleanly(tmp_path):
+    """SIGINT while the recorder imports and starts: one line, exit 0, no take, no traceback."""
+    code, out, err = start_and_signal(
+        "record_main", ["--port", "sim://?texture=desk&seed=1", "--label", "desk", "--out",
+                        str(tmp_path)], signal.SIGINT)
+    assert code == 0 and out == "" and err == "tactile-record: stopped by SIGINT\n", err
+    assert not list(tmp_path.glob("**/*.csv"))
 
 
 def test_cli_errors_are_one_line(tmp_path, capsys):

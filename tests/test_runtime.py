@@ -7,11 +7,12 @@ import signal
 import subprocess
 import sys
 import time
+from pathlib import Path
 
 import numpy as np
 import pytest
 import torch
-from conftest import REPO
+from conftest import REPO, start_and_signal
 
 from tactile.device.info import pen_info
 from tactile.device.protocol_sim import forget_unplugs
@@ -380,6 +381,17 @@ def test_wait_for_a_port_that_is_not_there_yet():
     assert labels[0]["seq"] == 49
     seqs = [lab["seq"] for lab in labels]
     assert seqs == list(range(49, 49 + 25 * len(labels), 25)), (seqs, err)
+
+
+@pytest.mark.skipif(not Path("/proc/self/status").exists(), reason="reads /proc")
+@pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGTERM])
+def test_a_signal_while_starting_stops_cleanly(sig):
+    """SIGINT/SIGTERM during the imports and the model load (about half a second): one line and
+    exit 0, not a KeyboardInterrupt traceback or a silent death."""
+    code, out, err = start_and_signal(
+        "run_main", ["--model", str(SHIPPED), "--port", "sim://?texture=paper&seed=1"], sig)
+    assert code == 0, err
+    assert out == "" and err == f"tactile-run: stopped by {signal.Signals(sig).name}\n", err
 
 
 def test_a_closed_stdout_stops_quietly():
