@@ -122,6 +122,7 @@ def record(
     old = {s: signal.signal(s, on_signal) for s in (signal.SIGINT, signal.SIGTERM)}
     link = open_port(port, baud, timeout=0.1)
     last_data = last_report = time.monotonic()
+    stalled = False  # one message per silence, and one when the data come back
     try:
         while not stop["flag"]:
             try:
@@ -136,19 +137,22 @@ def record(
                     break
                 rec.result.reconnects += 1
                 decoder.reconnected()
-                last_data = time.monotonic()
+                last_data, stalled = time.monotonic(), False
                 continue
             now = time.monotonic()
             if data:
-                last_data = now
+                if stalled:
+                    _say(f"data again after {now - last_data:.1f} s without", progress=True)
+                last_data, stalled = now, False
                 rec.handle(decoder.feed(data), decoder)
-            elif now - last_data > stall_timeout:
+            elif not stalled and now - last_data > stall_timeout:
+                stalled = True
                 _say(f"no data for {now - last_data:.1f} s", progress=True)
-                last_data = now
             rate = decoder.info.sample_rate_hz if decoder.info else csv_rate_hz
             if progress and now - last_report >= 1.0:
                 last_report = now
-                _progress(label, rec.result.samples / rate, seconds, decoder)
+                silent = now - last_data if stalled else None
+                _progress(label, rec.result.samples / rate, seconds, decoder, silent)
             if rec.result.samples >= rec.max_samples:
                 break
     finally:
@@ -160,12 +164,15 @@ def record(
     return rec.result
 
 
-def _progress(label: str, done_s: float, total_s: float, decoder: StreamDecoder) -> None:
+def _progress(
+    label: str, done_s: float, total_s: float, decoder: StreamDecoder, silent: float | None
+) -> None:
     st = decoder.stats
     total = "" if math.isinf(total_s) else f" / {total_s:.0f} s"
+    quiet = "" if silent is None else f"  no data for {silent:.0f} s"
     _say(
         f"[{label}] {done_s:6.1f} s{total}  samples {st.samples}  gaps {st.gaps} "
-        f"(lost {st.samples_lost})  errors {st.errors}",
+        f"(lost {st.samples_lost})  errors {st.errors}{quiet}",
         progress=True,
     )
 
