@@ -21,7 +21,7 @@ from pathlib import Path
 import serial
 
 import tactile.device  # noqa: F401  (registers sim://)
-from tactile.cli import Parser, add_debug, float_in, int_in, run
+from tactile.cli import Parser, add_debug, float_in, int_in, run, started
 from tactile.device.decoder import Gap, Header, Samples, StreamDecoder
 from tactile.device.info import DeviceInfo
 from tactile.device.ports import open_port, wait_for_port
@@ -119,6 +119,7 @@ def record(
     def on_signal(signum, frame):  # finish the take, do not die mid-write
         stop["flag"] = True
 
+    started()
     old = {s: signal.signal(s, on_signal) for s in (signal.SIGINT, signal.SIGTERM)}
     link = open_port(port, baud, timeout=0.1)
     last_data = last_report = time.monotonic()
@@ -142,7 +143,7 @@ def record(
             now = time.monotonic()
             if data:
                 if stalled:
-                    _say(f"data again after {now - last_data:.1f} s without", progress=True)
+                    _say(f"data again after a {now - last_data:.1f} s silence", progress=True)
                 last_data, stalled = now, False
                 rec.handle(decoder.feed(data), decoder)
             elif not stalled and now - last_data > stall_timeout:
@@ -169,7 +170,7 @@ def _progress(
 ) -> None:
     st = decoder.stats
     total = "" if math.isinf(total_s) else f" / {total_s:.0f} s"
-    quiet = "" if silent is None else f"  no data for {silent:.0f} s"
+    quiet = "" if silent is None else f"  no data for {silent:.1f} s"
     _say(
         f"[{label}] {done_s:6.1f} s{total}  samples {st.samples}  gaps {st.gaps} "
         f"(lost {st.samples_lost})  errors {st.errors}{quiet}",

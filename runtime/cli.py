@@ -29,7 +29,7 @@ import numpy as np
 import serial
 
 import tactile.device  # noqa: F401  (registers sim://)
-from tactile.cli import Parser, add_debug, float_in, int_in, run
+from tactile.cli import Parser, add_debug, float_in, int_in, run, started
 from tactile.device.decoder import Gap, Header, Samples, StreamDecoder
 from tactile.device.info import DeviceInfo
 from tactile.device.ports import PortAbsent, open_port, wait_for_port
@@ -325,6 +325,7 @@ def _main(args: argparse.Namespace) -> int:
     runner = Runner(model, stream, Printer(args.format, c.classes), summary)
     decoder = StreamDecoder(csv_rate_hz=c.sample_rate_hz)
     stop = {"flag": False}
+    started()
     for s in (signal.SIGINT, signal.SIGTERM):
         signal.signal(s, lambda *_: stop.__setitem__("flag", True))
     if args.replay:

@@ -129,21 +129,34 @@ class _Stopped(BaseException):
     """SIGINT or SIGTERM before a long-running command installed its own handlers."""
 
 
+_starting = [False]  # True from a guarded entry point's start until the command's started()
+
+
+def started() -> None:
+    """Say that the command is about to install its own SIGINT/SIGTERM handlers: from here on
+    the start-up guard (:func:`_guarded_start`) no longer stops the process. A signal that
+    still reaches it (after a library call put the previous handlers back, while the summary
+    is printed) is ignored: the command has already stopped reading and is finishing."""
+    _starting[0] = False
+
+
 def _guarded_start(module: str, prog: str) -> Callable[[], int]:
     """An entry point for the long-running commands (``tactile-run``, ``tactile-record``): a
     SIGINT or SIGTERM that arrives while the command starts (importing numpy and
     onnxruntime, loading the model: about half a second) stops it with one line and exit 0,
     as one later does, instead of a ``KeyboardInterrupt`` traceback (SIGINT) or an exit
-    without a word (SIGTERM). The command replaces these handlers with its own (which finish
-    the take or print the summary) before it reads any data."""
+    without a word (SIGTERM). The command calls :func:`started` and replaces these handlers
+    with its own (which finish the take or print the summary) before it reads any data."""
 
     def main() -> int:
         def stop(signum, frame):
-            raise _Stopped(signal.Signals(signum).name)
+            if _starting[0]:
+                raise _Stopped(signal.Signals(signum).name)
 
-        for sig in (signal.SIGINT, signal.SIGTERM):
-            signal.signal(sig, stop)
         try:
+            _starting[0] = True
+            for sig in (signal.SIGINT, signal.SIGTERM):
+                signal.signal(sig, stop)
             return importlib.import_module(module).main()
         except _Stopped as e:
             print(f"{prog}: stopped by {e}", file=sys.stderr)

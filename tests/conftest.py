@@ -62,6 +62,11 @@ def start_and_signal(entry: str, args: list[str], sig: int) -> tuple[int, str, s
         if int(caught.split()[1], 16) >> (15 - 1) & 1:  # SIGTERM is signal 15
             break
         time.sleep(0.001)
-    proc.send_signal(sig)
-    out, err = proc.communicate(timeout=30)
+    try:
+        proc.send_signal(sig)
+        out, err = proc.communicate(timeout=30)
+    finally:
+        if proc.poll() is None:  # it did not stop: fail, without leaving it running
+            proc.kill()
+            proc.wait()
     return proc.returncode, out, err

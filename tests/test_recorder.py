@@ -217,7 +217,7 @@ def test_one_stall_message_per_silence(tmp_path, capsys):
     starts = [ln for ln in err.splitlines() if ln.startswith("no data for")]
     ends = [ln for ln in err.splitlines() if ln.startswith("data again after")]
     assert len(starts) == 1 and len(ends) == 1, err
-    assert 1.7 <= float(ends[0].split()[3]) <= 3.0, ends  # the silence lasted 2 s (wall time)
+    assert 1.7 <= float(ends[0].split()[4]) <= 3.0, ends  # the silence lasted 2 s (wall time)
     take = read_take(res.takes[0])
     assert res.stats["gaps"] == 1 and res.stats["samples_lost"] == 200
     assert len(take.seq) == 300
