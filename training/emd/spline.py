@@ -114,7 +114,8 @@ def _eliminate(sys: Tensor, st: int) -> Tensor:
     Each shifted copy is one ``Pad`` that also appends a zero row, so that one gather on the
     first axis lines the products up (onnxruntime gathers whole rows there for less than a
     ``Split`` or a ``Concat`` costs); the sums are those of the plain formulas, in their
-    order, so the result is the same bit for bit.
+    order, so the values are the same (a zero may change sign: ``x - 0 * a``), and the EMD's
+    outputs the same bytes.
     """
     pads = (0, 0) * (sys.dim() - 2)
     lo = F.pad(sys, (st, -st) + pads + (0, 1))  # (5, ..., K): [a, c, r, 1, 0] of row j - st
@@ -185,8 +186,8 @@ def pcr_solve(sys: Tensor, j1: Tensor | None = None) -> Tensor:
 THOMAS_ROWS = 64
 """Rows (windows x channels) from which :func:`solve` uses :func:`thomas_solve`.
 
-The two solvers trade differently in onnxruntime: PCR is at most ``5 x 13`` nodes on
-full-width tensors (fewer once the systems decouple), the Thomas algorithm about ``8 K`` nodes
+The two solvers trade differently in onnxruntime: PCR is at most 67 nodes (five steps of
+13 or 14 and the diagonal's row) on full-width tensors (fewer once the systems decouple), the Thomas algorithm about ``8 K`` nodes
 on one column each. With few rows every node costs about the same fixed microsecond, so fewer
 nodes win; with many rows the work per element decides, and the Thomas algorithm does
 ``O(K)`` of it against PCR's ``O(K log K)``. ``bench/emd.py --solvers`` measures the
