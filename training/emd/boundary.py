@@ -70,14 +70,19 @@ def boundary_knots(
     # Left side takes sources [far, near], right side [near, far]: ascending positions at once.
     kvec = torch.tensor([[1.0, 0.0], [0.0, 1.0]], dtype=dt, device=dev)
     kvec = kvec.reshape(2, 2, 1) if rows_last else kvec
-    first = q.narrow(ax, 1, 1)  # (2, R, side, 1)
-    other = first.flip(0)  # the other envelope's first extremum
+    # Single entries and the envelope swap by index (onnxruntime's Gather costs less than the
+    # Slice that narrow and flip become).
+    def pick(t: Tensor, dim: int, *i: int) -> Tensor:
+        return t.index_select(dim, torch.tensor(i, device=dev))
+
+    first = pick(q, ax, 1)  # (2, R, side, 1)
+    other = pick(first, 0, 1, 0)  # the other envelope's first extremum
     is_f = first < other  # (2, R, side, 1): this envelope plays F
     f0 = torch.minimum(first, other)
     # Case 1 seen from either envelope: sigma_F * (S[end] - vG0) > 0, i.e. G's own
     # sigma_G * (vG0 - S[end]) > 0 (sigma_G = -sigma_F), read from G's row when this one is F.
-    own = v.narrow(ax, 1, 1) - v.narrow(ax, 0, 1)  # (2, R, side, 1): signed values
-    case1 = torch.where(is_f, own.flip(0), own) > 0
+    own = pick(v, ax, 1) - pick(v, ax, 0)  # (2, R, side, 1): signed values
+    case1 = torch.where(is_f, pick(own, 0, 1, 0), own) > 0
     # Fallback: the outermost case-1 knot of F (source F[min(2, nF-1)]) or of G (source
     # G[min(1, nG-1)]) would not reach past the end (list index + 1: the end sample is first).
     own_last = torch.gather(q, ax, torch.minimum(is_f.to(dt) + 2.0, n).long())
