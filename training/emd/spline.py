@@ -186,13 +186,14 @@ def pcr_solve(sys: Tensor, j1: Tensor | None = None) -> Tensor:
 THOMAS_ROWS = 64
 """Rows (windows x channels) from which :func:`solve` uses :func:`thomas_solve`.
 
-The two solvers trade differently in onnxruntime: PCR is at most 67 nodes (five steps of
-13 or 14 and the diagonal's row) on full-width tensors (fewer once the systems decouple), the Thomas algorithm about ``8 K`` nodes
-on one column each. With few rows every node costs about the same fixed microsecond, so fewer
-nodes win; with many rows the work per element decides, and the Thomas algorithm does
-``O(K)`` of it against PCR's ``O(K log K)``. ``bench/emd.py --solvers`` measures the
-crossover for 50-sample windows (32-48 rows with fresh sessions, where the two exported bodies
-also differ in how they find the end extrema; 64 costs a few percent in between).
+The two solvers trade differently in onnxruntime: PCR is at most 67 nodes (five steps of 13 or
+14 and the diagonal's row) on full-width tensors (fewer once the systems decouple), the Thomas
+algorithm about ``8 K`` nodes on one column each. With few rows every node costs about the same
+fixed microsecond, so fewer nodes win; with many rows the work per element decides, and the
+Thomas algorithm does ``O(K)`` of it against PCR's ``O(K log K)``. ``bench/emd.py --solvers``
+measures the crossover for 50-sample windows (32-48 rows with fresh sessions, where the two
+exported bodies also differ in how they find the end extrema; 64 costs a few percent in
+between).
 """
 
 
