@@ -37,6 +37,7 @@ class RecordResult:
     samples: int = 0
     reconnects: int = 0
     stats: dict = field(default_factory=dict)
+    stopped_by: str | None = None  # the signal that ended the recording, if one did
 
 
 class Recorder:
@@ -118,8 +119,12 @@ def record(
 
     def on_signal(signum, frame):  # finish the take, do not die mid-write
         stop["flag"] = True
+        rec.result.stopped_by = rec.result.stopped_by or signal.Signals(signum).name
 
-    started()
+    rec.result.stopped_by = started()
+    if rec.result.stopped_by:  # a signal while the command was starting: no port, no take
+        rec.close(decoder)
+        return rec.result
     old = {s: signal.signal(s, on_signal) for s in (signal.SIGINT, signal.SIGTERM)}
     link = open_port(port, baud, timeout=0.1)
     last_data = last_report = time.monotonic()
@@ -216,6 +221,10 @@ def _main(args: argparse.Namespace) -> int:
         file=sys.stderr,
     )
     if not res.takes:
+        if res.stopped_by:
+            print(f"tactile-record: stopped by {res.stopped_by} before any data",
+                  file=sys.stderr)
+            return 0
         raise DeviceError(f"no data received from {args.port}")
     return 0
 

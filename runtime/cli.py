@@ -325,10 +325,12 @@ def _main(args: argparse.Namespace) -> int:
     runner = Runner(model, stream, Printer(args.format, c.classes), summary)
     decoder = StreamDecoder(csv_rate_hz=c.sample_rate_hz)
     stop = {"flag": False}
-    started()
+    early = started()
     for s in (signal.SIGINT, signal.SIGTERM):
         signal.signal(s, lambda *_: stop.__setitem__("flag", True))
-    if args.replay:
+    if early:
+        _say(f"stopped by {early} while starting")
+    elif args.replay:
         replay(args.replay, runner, stop)
     else:
         if args.port is None:

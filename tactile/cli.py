@@ -125,42 +125,38 @@ def _with_extra(module: str, prog: str) -> Callable[[], int]:
     return main
 
 
-class _Stopped(BaseException):
-    """SIGINT or SIGTERM before a long-running command installed its own handlers."""
+_start = {"guarded": False, "signal": None}  # see _guarded_start() and started()
 
 
-_starting = [False]  # True from a guarded entry point's start until the command's started()
-
-
-def started() -> None:
-    """Say that the command is about to install its own SIGINT/SIGTERM handlers: from here on
-    the start-up guard (:func:`_guarded_start`) no longer stops the process. A signal that
-    still reaches it (after a library call put the previous handlers back, while the summary
-    is printed) is ignored: the command has already stopped reading and is finishing."""
-    _starting[0] = False
+def started() -> str | None:
+    """Called by a long-running command just before it installs its own SIGINT/SIGTERM
+    handlers. Returns the name of a signal that arrived while it was starting under
+    :func:`_guarded_start` (the command then stops at once, cleanly), else None. From here on
+    the start-up handlers ignore signals: one that still reaches them (after a library call
+    put the previous handlers back, while the summary is printed) finds the command finishing
+    anyway."""
+    _start["guarded"] = False
+    return _start["signal"]
 
 
 def _guarded_start(module: str, prog: str) -> Callable[[], int]:
     """An entry point for the long-running commands (``tactile-run``, ``tactile-record``): a
-    SIGINT or SIGTERM that arrives while the command starts (importing numpy and
-    onnxruntime, loading the model: about half a second) stops it with one line and exit 0,
-    as one later does, instead of a ``KeyboardInterrupt`` traceback (SIGINT) or an exit
-    without a word (SIGTERM). The command calls :func:`started` and replaces these handlers
-    with its own (which finish the take or print the summary) before it reads any data."""
+    SIGINT or SIGTERM that arrives while the command starts (importing numpy and onnxruntime,
+    loading the model: about half a second) is remembered, and the command stops cleanly as
+    soon as it has started (:func:`started`), instead of dying with a ``KeyboardInterrupt``
+    traceback (SIGINT) or without a word (SIGTERM). The handlers only take note: an exception
+    raised from a handler while a C extension initialises becomes onnxruntime's
+    ``ImportError: initialization failed``."""
 
     def main() -> int:
-        def stop(signum, frame):
-            if _starting[0]:
-                raise _Stopped(signal.Signals(signum).name)
+        def note(signum, frame):
+            if _start["guarded"] and _start["signal"] is None:
+                _start["signal"] = signal.Signals(signum).name
 
-        try:
-            _starting[0] = True
-            for sig in (signal.SIGINT, signal.SIGTERM):
-                signal.signal(sig, stop)
-            return importlib.import_module(module).main()
-        except _Stopped as e:
-            print(f"{prog}: stopped by {e}", file=sys.stderr)
-            return EXIT_OK
+        _start["guarded"] = True
+        for sig in (signal.SIGINT, signal.SIGTERM):
+            signal.signal(sig, note)
+        return importlib.import_module(module).main()
 
     return main
 

@@ -49,8 +49,9 @@ def rng():
 def start_and_signal(entry: str, args: list[str], sig: int) -> tuple[int, str, str]:
     """Start a console entry point (``tactile.cli:<entry>``) in a subprocess, send ``sig`` the
     moment it handles SIGTERM (Python itself handles only SIGINT, so that is when the entry
-    point's own handlers are in place, before its imports), and return (exit code, stdout,
-    stderr). Linux only: it reads the caught-signal mask in ``/proc/<pid>/status``."""
+    point's start-up handlers are in place, before its imports: the signal lands while it
+    imports numpy and onnxruntime), and return (exit code, stdout, stderr). Linux only: it
+    reads the caught-signal mask in ``/proc/<pid>/status``."""
     code = f"import sys; from tactile.cli import {entry}; sys.exit({entry}())"
     proc = subprocess.Popen([sys.executable, "-c", code, *args], stdout=subprocess.PIPE,
                             stderr=subprocess.PIPE, text=True)
