@@ -139,7 +139,7 @@ def started() -> str | None:
     return _start["signal"]
 
 
-def _guarded_start(module: str, prog: str) -> Callable[[], int]:
+def _guarded_start(module: str) -> Callable[[], int]:
     """An entry point for the long-running commands (``tactile-run``, ``tactile-record``): a
     SIGINT or SIGTERM that arrives while the command starts (importing numpy and onnxruntime,
     loading the model: about half a second) is remembered, and the command stops cleanly as
@@ -161,8 +161,8 @@ def _guarded_start(module: str, prog: str) -> Callable[[], int]:
     return main
 
 
-run_main = _guarded_start("tactile.runtime.cli", "tactile-run")
-record_main = _guarded_start("tactile.device.recorder", "tactile-record")
+run_main = _guarded_start("tactile.runtime.cli")
+record_main = _guarded_start("tactile.device.recorder")
 train_main = _with_extra("tactile.training.train", "tactile-train")
 eval_main = _with_extra("tactile.training.evaluate", "tactile-eval")
 export_main = _with_extra("tactile.export.cli", "tactile-export")
