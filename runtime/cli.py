@@ -33,7 +33,7 @@ from tactile.cli import Parser, add_debug, float_in, int_in, run, started
 from tactile.device.decoder import Gap, Header, Samples, StreamDecoder
 from tactile.device.info import DeviceInfo
 from tactile.device.ports import PortAbsent, open_port, wait_for_port
-from tactile.errors import ConfigError, DeviceError, ModelContractError, RecordingError
+from tactile.errors import DeviceError, ModelContractError, RecordingError
 from tactile.runtime.model import Model
 from tactile.runtime.stream import Label, Smoother, Stream
 
@@ -69,7 +69,9 @@ class Summary:
 class Printer:
     """Writes labels and events in the chosen format, flushing each line."""
 
-    def __init__(self, fmt: str, classes: tuple[str, ...], out=sys.stdout) -> None:
+    def __init__(self, fmt: str, classes: tuple[str, ...], out=None) -> None:
+        # sys.stdout as it is now, not as it was at import (contextlib.redirect_stdout works)
+        out = sys.stdout if out is None else out
         self.fmt, self.classes, self.out = fmt, classes, out
         if fmt == "csv":  # an event is a row of its own: its seq (if any) and `event` filled
             self._csv = csv.writer(out, lineterminator="\n")  # quotes what needs quoting
@@ -172,19 +174,42 @@ class Runner:
                     self.printer.label(lab)
 
 
-def find_port() -> str:
-    """The one likely pen among the serial devices, or a DeviceError listing the candidates."""
+def find_port(wait: bool = False) -> str | None:
+    """The one likely pen among the serial devices (a USB serial device), or a DeviceError
+    listing the candidates. With ``wait``, no likely pen is not an error: it returns None, for
+    :func:`wait_for_pen` to look again."""
     from serial.tools import list_ports
 
     ports = list(list_ports.comports())
     likely = [p for p in ports if p.vid is not None or "ACM" in p.device or "USB" in p.device]
     if len(likely) == 1:
         return likely[0].device
+    if wait and not likely:
+        return None
     listing = ", ".join(f"{p.device} ({p.description})" for p in ports) or "none"
     raise DeviceError(
         f"{'no' if not likely else 'more than one'} likely pen found; give --port "
         f"(serial devices: {listing})"
     )
+
+
+PEN_POLL_S = 0.5  # how often --wait without --port looks for a pen
+
+
+def wait_for_pen(stop: dict, deadline: float) -> str | None:
+    """``--wait`` without ``--port``: look for the one likely pen until it is attached, the user
+    stops, or ``deadline`` (monotonic) passes (None for the last two). More than one likely
+    pen is an error at once: waiting would not tell them apart."""
+    said = False
+    while not stop["flag"] and time.monotonic() < deadline:
+        port = find_port(wait=True)
+        if port is not None:
+            return port
+        if not said:
+            _say("no likely pen attached; waiting for one")
+            said = True
+        time.sleep(PEN_POLL_S)
+    return None
 
 
 def serve(args: argparse.Namespace, runner: Runner, decoder: StreamDecoder,
@@ -285,9 +310,9 @@ def build_parser() -> argparse.ArgumentParser:
                      "default: the one likely pen attached")
     src.add_argument("--replay", type=Path, metavar="TAKE", help="a recorded take (.csv)")
     p.add_argument("--wait", action="store_true",
-                   help="with --port: if the port is absent at start, wait for it (as after an "
-                   "unplug) instead of exiting with code 2; for a service started before the "
-                   "pen is plugged in")
+                   help="if the port is absent at start, wait for it (as after an unplug) "
+                   "instead of exiting with code 2; without --port, wait until one likely pen "
+                   "is attached; for a service started before the pen is plugged in")
     p.add_argument("--baud", type=int_in(1), default=115200,
                    help="UART baud rate (default 115200)")
     p.add_argument("--hop", type=int_in(1),
@@ -313,8 +338,6 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def _main(args: argparse.Namespace) -> int:
-    if args.wait and args.port is None:
-        raise ConfigError("--wait needs --port (the device to wait for)")
     model = Model(args.model, threads=args.threads)
     c = model.contract
     hop = c.hop if args.hop is None else args.hop
@@ -334,8 +357,11 @@ def _main(args: argparse.Namespace) -> int:
         replay(args.replay, runner, stop)
     else:
         if args.port is None:
-            args.port = find_port()
-        serve(args, runner, decoder, stop)
+            found = wait_for_pen(stop, summary.started + args.seconds) if args.wait \
+                else find_port()
+            args.port = found
+        if args.port is not None:  # None: stopped while waiting for a pen
+            serve(args, runner, decoder, stop)
     print("tactile-run: summary " + json.dumps(summary.to_dict(decoder.stats.as_dict())),
           file=sys.stderr, flush=True)
     return 0

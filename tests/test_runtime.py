@@ -383,6 +383,61 @@ def test_wait_for_a_port_that_is_not_there_yet():
     assert seqs == list(range(49, 49 + 25 * len(labels), 25)), (seqs, err)
 
 
+class _FakePort:
+    """What ``serial.tools.list_ports.comports()`` lists."""
+
+    def __init__(self, device: str, vid: int | None = None, description: str = "n/a"):
+        self.device, self.vid, self.description = device, vid, description
+
+
+def test_with_no_port_it_takes_the_one_likely_pen_or_lists_the_candidates(monkeypatch):
+    from serial.tools import list_ports
+
+    from tactile.errors import DeviceError
+    from tactile.runtime import cli
+
+    attached: list[_FakePort] = []
+    monkeypatch.setattr(list_ports, "comports", lambda: list(attached))
+    with pytest.raises(DeviceError, match=r"no likely pen found; give --port \(serial devices: "
+                       r"none\)"):
+        cli.find_port()
+    assert cli.find_port(wait=True) is None  # --wait looks again instead
+    attached.append(_FakePort("/dev/ttyS0", description="16550A UART"))  # not a USB device
+    with pytest.raises(DeviceError, match=r"no likely pen found.*/dev/ttyS0 \(16550A UART\)"):
+        cli.find_port()
+    attached.append(_FakePort("/dev/ttyACM0", vid=0x2341, description="pen"))
+    assert cli.find_port() == "/dev/ttyACM0" == cli.find_port(wait=True)
+    attached.append(_FakePort("/dev/ttyUSB0", vid=0x0403, description="FT232R"))
+    for wait in (False, True):  # two pens: waiting would not tell them apart
+        with pytest.raises(DeviceError, match="more than one likely pen.*ttyACM0.*ttyUSB0"):
+            cli.find_port(wait=wait)
+
+
+def test_wait_without_a_port_waits_for_the_one_likely_pen(monkeypatch, capsys):
+    """--wait and no --port: nothing attached for three looks, then the pen (a sim:// URL in the
+    device's place): labels from its first window on, one waiting line, exit 0."""
+    from serial.tools import list_ports
+
+    from tactile.runtime import cli
+
+    looks = []
+    pen = _FakePort("sim://?texture=paper&seed=1&speed=max&seconds=2", vid=0x2341)
+
+    def comports():
+        looks.append(time.monotonic())
+        return [] if len(looks) <= 3 else [pen]
+
+    monkeypatch.setattr(list_ports, "comports", comports)
+    monkeypatch.setattr(cli, "PEN_POLL_S", 0.01)
+    monkeypatch.setattr(signal, "signal", lambda *a: None)  # leave pytest's handlers alone
+    code = cli.main(["--model", str(SHIPPED), "--wait", "--seconds", "3"])
+    out, err = capsys.readouterr()
+    assert code == 0, err
+    assert len(looks) == 4 and err.count("no likely pen attached; waiting for one") == 1, err
+    seqs = [json.loads(ln)["seq"] for ln in out.splitlines() if '"label"' in ln]
+    assert seqs[:3] == [49, 74, 99] and len(seqs) >= 7, seqs  # 2 s of pen: 7 windows
+
+
 @pytest.mark.skipif(not Path("/proc/self/status").exists(), reason="reads /proc")
 @pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGTERM])
 def test_a_signal_while_starting_stops_cleanly(sig):
