@@ -121,15 +121,17 @@ def record(
         stop["flag"] = True
         rec.result.stopped_by = rec.result.stopped_by or signal.Signals(signum).name
 
-    rec.result.stopped_by = started()
-    if rec.result.stopped_by:  # a signal while the command was starting: no port, no take
-        rec.close(decoder)
-        return rec.result
     old = {s: signal.signal(s, on_signal) for s in (signal.SIGINT, signal.SIGTERM)}
-    link = open_port(port, baud, timeout=0.1)
-    last_data = last_report = time.monotonic()
+    early = started()  # after our handlers are in place: no signal falls between the two
+    if early:  # a signal while the command was starting: no port, no take
+        stop["flag"] = True
+        rec.result.stopped_by = rec.result.stopped_by or early
+    link = None
     stalled = False  # one message per silence, and one when the data come back
     try:
+        if not stop["flag"]:
+            link = open_port(port, baud, timeout=0.1)
+        last_data = last_report = time.monotonic()
         while not stop["flag"]:
             try:
                 data = link.read(4096)
@@ -163,7 +165,7 @@ def record(
                 break
     finally:
         rec.close(decoder)
-        if link is not None:  # None: stopped while waiting to reconnect
+        if link is not None:  # None: stopped before opening it, or while waiting to reconnect
             link.close()
         for s, h in old.items():
             signal.signal(s, h)
@@ -192,6 +194,9 @@ def build_parser() -> argparse.ArgumentParser:
     p = Parser(
         prog="tactile-record",
         description="Record labelled takes from a pen (device path or pyserial URL).",
+        epilog="Ctrl-C or SIGTERM finishes the take (written and closed) and exits 0; stopped "
+               "before the port gave any data, it exits 0 and says so. Exit 2: the port cannot "
+               "be opened, or it gave no usable data before the end.",
     )
     p.add_argument("--port", required=True, help="/dev/ttyACM0, sim://?texture=paper, socket://...")
     p.add_argument("--label", required=True, help="the texture being stroked, e.g. paper")
@@ -221,10 +226,14 @@ def _main(args: argparse.Namespace) -> int:
         file=sys.stderr,
     )
     if not res.takes:
-        if res.stopped_by:
+        if res.stopped_by and not st.get("bytes_in"):  # stopped, and the port was silent
             print(f"tactile-record: stopped by {res.stopped_by} before any data",
                   file=sys.stderr)
             return 0
+        if st.get("bytes_in"):
+            raise DeviceError(
+                f"no take recorded from {args.port}: {st['bytes_in']} bytes read, "
+                f"{st.get('samples', 0)} samples decoded (a binary pen's samples need its header)")
         raise DeviceError(f"no data received from {args.port}")
     return 0
 

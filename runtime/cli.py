@@ -196,19 +196,30 @@ def find_port(wait: bool = False) -> str | None:
 PEN_POLL_S = 0.5  # how often --wait without --port looks for a pen
 
 
-def wait_for_pen(stop: dict, deadline: float) -> str | None:
+def wait_for_pen(stop: dict, deadline: float, status_every: float) -> str | None:
     """``--wait`` without ``--port``: look for the one likely pen until it is attached, the user
-    stops, or ``deadline`` (monotonic) passes (None for the last two). More than one likely
-    pen is an error at once: waiting would not tell them apart."""
+    stops, or ``deadline`` (monotonic, from ``--seconds``) passes (None for the last two; the
+    deadline says so on stderr). More than one likely pen is an error at once: waiting would
+    not tell them apart. A status line every ``status_every`` seconds while it waits."""
+    start = last_status = time.monotonic()
     said = False
-    while not stop["flag"] and time.monotonic() < deadline:
+    while not stop["flag"]:
         port = find_port(wait=True)
         if port is not None:
             return port
         if not said:
             _say("no likely pen attached; waiting for one")
             said = True
-        time.sleep(PEN_POLL_S)
+        next_look = time.monotonic() + PEN_POLL_S
+        while not stop["flag"] and time.monotonic() < min(next_look, deadline):
+            time.sleep(0.05)  # short naps: a stop or the deadline is acted on at once
+        now = time.monotonic()
+        if now >= deadline:
+            _say(f"no pen attached after {now - start:.1f} s (--seconds); stopping")
+            return None
+        if now - last_status >= status_every:
+            last_status = now
+            _say(f"still no likely pen attached ({now - start:.0f} s)")
     return None
 
 
@@ -348,18 +359,17 @@ def _main(args: argparse.Namespace) -> int:
     runner = Runner(model, stream, Printer(args.format, c.classes), summary)
     decoder = StreamDecoder(csv_rate_hz=c.sample_rate_hz)
     stop = {"flag": False}
-    early = started()
     for s in (signal.SIGINT, signal.SIGTERM):
         signal.signal(s, lambda *_: stop.__setitem__("flag", True))
+    early = started()  # after our handlers are in place: no signal falls between the two
     if early:
         _say(f"stopped by {early} while starting")
     elif args.replay:
         replay(args.replay, runner, stop)
     else:
         if args.port is None:
-            found = wait_for_pen(stop, summary.started + args.seconds) if args.wait \
-                else find_port()
-            args.port = found
+            args.port = wait_for_pen(stop, summary.started + args.seconds, args.status_every) \
+                if args.wait else find_port()
         if args.port is not None:  # None: stopped while waiting for a pen
             serve(args, runner, decoder, stop)
     print("tactile-run: summary " + json.dumps(summary.to_dict(decoder.stats.as_dict())),

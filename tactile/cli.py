@@ -146,12 +146,18 @@ def _guarded_start(module: str) -> Callable[[], int]:
     soon as it has started (:func:`started`), instead of dying with a ``KeyboardInterrupt``
     traceback (SIGINT) or without a word (SIGTERM). The handlers only take note: an exception
     raised from a handler while a C extension initialises becomes onnxruntime's
-    ``ImportError: initialization failed``."""
+    ``ImportError: initialization failed``. A second signal while starting ends the process at
+    once, by that signal (a start stuck on a slow disk can still be interrupted)."""
 
     def main() -> int:
         def note(signum, frame):
-            if _start["guarded"] and _start["signal"] is None:
+            if not _start["guarded"]:
+                return
+            if _start["signal"] is None:
                 _start["signal"] = signal.Signals(signum).name
+            else:  # a second one: the start is stuck, or the user insists: die by it at once
+                signal.signal(signum, signal.SIG_DFL)
+                os.kill(os.getpid(), signum)
 
         _start["guarded"] = True
         for sig in (signal.SIGINT, signal.SIGTERM):

@@ -438,6 +438,22 @@ def test_wait_without_a_port_waits_for_the_one_likely_pen(monkeypatch, capsys):
     assert seqs[:3] == [49, 74, 99] and len(seqs) >= 7, seqs  # 2 s of pen: 7 windows
 
 
+def test_wait_without_a_port_ends_with_seconds(monkeypatch, capsys):
+    from serial.tools import list_ports
+
+    from tactile.runtime import cli
+
+    monkeypatch.setattr(list_ports, "comports", lambda: [])
+    monkeypatch.setattr(signal, "signal", lambda *a: None)
+    code = cli.main(["--model", str(SHIPPED), "--wait", "--seconds", "0.4"])
+    out, err = capsys.readouterr()
+    assert code == 0 and out == "", err
+    lines = err.splitlines()
+    assert lines[0] == "tactile-run: no likely pen attached; waiting for one", err
+    assert lines[1].startswith("tactile-run: no pen attached after 0.") and "stopping" in lines[1]
+    assert '"windows": 0' in lines[2] and len(lines) == 3, err
+
+
 @pytest.mark.skipif(not Path("/proc/self/status").exists(), reason="reads /proc")
 @pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGTERM])
 def test_a_signal_while_starting_stops_cleanly(sig):
