@@ -32,7 +32,7 @@ import tactile.device  # noqa: F401  (registers sim://)
 from tactile.cli import Parser, add_debug, float_in, int_in, run, started
 from tactile.device.decoder import Gap, Header, Samples, StreamDecoder
 from tactile.device.info import DeviceInfo
-from tactile.device.ports import PortAbsent, open_port, wait_for_port
+from tactile.device.ports import PortAbsent, keep_trying, open_port, wait_for_port
 from tactile.errors import DeviceError, ModelContractError, RecordingError
 from tactile.runtime.model import Model
 from tactile.runtime.stream import Label, Smoother, Stream
@@ -197,30 +197,20 @@ PEN_POLL_S = 0.5  # how often --wait without --port looks for a pen
 
 
 def wait_for_pen(stop: dict, deadline: float, status_every: float) -> str | None:
-    """``--wait`` without ``--port``: look for the one likely pen until it is attached, the user
-    stops, or ``deadline`` (monotonic, from ``--seconds``) passes (None for the last two; the
-    deadline says so on stderr). More than one likely pen is an error at once: waiting would
-    not tell them apart. A status line every ``status_every`` seconds while it waits."""
-    start = last_status = time.monotonic()
-    said = False
-    while not stop["flag"]:
-        port = find_port(wait=True)
-        if port is not None:
-            return port
-        if not said:
-            _say("no likely pen attached; waiting for one")
-            said = True
-        next_look = time.monotonic() + PEN_POLL_S
-        while not stop["flag"] and time.monotonic() < min(next_look, deadline):
-            time.sleep(0.05)  # short naps: a stop or the deadline is acted on at once
-        now = time.monotonic()
-        if now >= deadline:
-            _say(f"no pen attached after {now - start:.1f} s (--seconds); stopping")
-            return None
-        if now - last_status >= status_every:
-            last_status = now
-            _say(f"still no likely pen attached ({now - start:.0f} s)")
-    return None
+    """``--wait`` without ``--port``: look for the one likely pen (:func:`find_port`) every
+    :data:`PEN_POLL_S` s until it is attached, the user stops, or ``deadline`` (monotonic, from
+    ``--seconds``) passes (None for the last two; the deadline says so on stderr). More than one
+    likely pen is an error at once: waiting would not tell them apart."""
+    start = time.monotonic()
+    port = find_port(wait=True)
+    if port is not None:
+        return port
+    _say("no likely pen attached; waiting for one")
+    port = keep_trying(lambda: find_port(wait=True), stop, _say, "a likely pen", deadline,
+                       status_every, (PEN_POLL_S, PEN_POLL_S))
+    if port is None and not stop["flag"]:
+        _say(f"no pen attached after {time.monotonic() - start:.1f} s (--seconds); stopping")
+    return port
 
 
 def serve(args: argparse.Namespace, runner: Runner, decoder: StreamDecoder,
