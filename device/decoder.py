@@ -21,7 +21,7 @@ from typing import Literal
 
 import numpy as np
 
-from tactile.device.info import ChannelSpec, DeviceInfo
+from tactile.device.info import FLOAT32_MAX, ChannelSpec, DeviceInfo
 from tactile.device.protocol import (
     MAX_ENCODED,
     SEQ_MODULO,
@@ -412,10 +412,6 @@ class StreamDecoder:
         self.stats.samples += 1
         t_us = round(host * 1e6 / self.info.sample_rate_hz)
         events.append(Samples(host, t_us, np.asarray([values], dtype=np.float64)))
-
-
-FLOAT32_MAX = 3.4028234663852886e38
-"""The largest float32: a CSV value beyond it would become inf in the model's input."""
 
 
 def _csv_kind(line: bytes):

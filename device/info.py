@@ -11,6 +11,9 @@ from dataclasses import dataclass
 
 from tactile.errors import FrameError
 
+FLOAT32_MAX = 3.4028234663852886e38
+"""The largest float32: a value in units beyond it would become inf in the model's input."""
+
 PROTOCOL_VERSION = 1
 MAX_CHANNELS = 32
 MAX_NAME = 32  # bytes of UTF-8 in a channel name, unit or device string
@@ -34,7 +37,7 @@ class ChannelSpec:
         if not (math.isfinite(self.scale) and self.scale != 0 and math.isfinite(self.offset)):
             raise FrameError(f"channel {self.name}: scale must be finite, non-zero; offset finite")
         # every int16 count must stay a finite float32 in units (the model's input)
-        if 32768 * abs(self.scale) + abs(self.offset) > 3.4e38:
+        if 32768 * abs(self.scale) + abs(self.offset) > FLOAT32_MAX:
             raise FrameError(f"channel {self.name}: scale {self.scale:g} and offset "
                              f"{self.offset:g} overflow float32 values")
 
