@@ -19,14 +19,13 @@ import argparse
 import math
 import re
 import sys
-import warnings
 from pathlib import Path
 
 import numpy as np
 
 from tactile.cli import Parser, add_debug, run
 from tactile.device.info import ChannelSpec, DeviceInfo
-from tactile.device.recording import TakeWriter
+from tactile.device.recording import TakeWriter, load_numbers
 from tactile.errors import RecordingError
 
 CHANNELS = (
@@ -70,9 +69,7 @@ def _read_csv_folder(folder: Path) -> tuple[list[str], list[np.ndarray], float, 
         if missing:
             raise RecordingError(f"{f}: not a HapMat recording (no column {missing[0]!r})")
         try:
-            with warnings.catch_warnings():
-                warnings.simplefilter("ignore", UserWarning)  # "input contained no data"
-                table = np.loadtxt(f, delimiter=",", skiprows=1, ndmin=2)
+            table = load_numbers(f, skiprows=1)
         except ValueError as e:
             msg = str(e).splitlines()[0] if str(e) else type(e).__name__
             raise RecordingError(f"{f}: unreadable rows ({msg})") from None

@@ -239,11 +239,8 @@ def read_take(path: str | os.PathLike) -> Take:
         # numpy's C parser straight from the file: a few bytes a value in memory (a long take
         # must replay on a small board); an unreadable row is then found and named
         try:
-            with warnings.catch_warnings():
-                warnings.simplefilter("ignore", UserWarning)  # "input contained no data"
-                whole = (line for line in f if line.endswith("\n"))  # only the last is cut
-                table = np.loadtxt(whole, delimiter=",", comments=None, ndmin=2,
-                                   dtype=np.float64)
+            whole = (line for line in f if line.endswith("\n"))  # only the last is cut
+            table = load_numbers(whole, comments=None)
         except ValueError:
             raise RecordingError(f"{csv_path}: {_first_bad_row(csv_path, c + 2)}") from None
     n = len(table)
@@ -264,6 +261,15 @@ def read_take(path: str | os.PathLike) -> Take:
 
 
 _DECIMAL = re.compile(rb"[.eE]")
+
+
+def load_numbers(source, **kwargs) -> np.ndarray:
+    """``np.loadtxt`` of comma-separated numbers as a (rows, columns) float64 table; no rows is
+    an empty table, without numpy's "input contained no data" warning. ``ValueError`` on an
+    unreadable row, as numpy raises it."""
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", UserWarning)
+        return np.loadtxt(source, delimiter=",", ndmin=2, dtype=np.float64, **kwargs)
 
 
 def _first_bad_row(csv_path: Path, width: int) -> str:
