@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import subprocess
 import sys
+import threading
 import time
 from pathlib import Path
 
@@ -39,6 +40,27 @@ def pen_stream(n: int, per_frame: int = 1, seed: int = 0, header_every: int = 10
         spans.append((len(out), len(out) + len(f), s, len(raw[s : s + per_frame])))
         out += f
     return bytes(out), spans, raw
+
+
+@pytest.fixture
+def reap():
+    """``reap(proc, seconds=60)``: kill a test's subprocess after ``seconds`` (a blocking read
+    of its output then ends, and the test fails instead of hanging) and, at the end of the
+    test, if it is still running."""
+    watched: list[tuple[subprocess.Popen, threading.Timer]] = []
+
+    def watch(proc: subprocess.Popen, seconds: float = 60) -> subprocess.Popen:
+        timer = threading.Timer(seconds, proc.kill)
+        timer.start()
+        watched.append((proc, timer))
+        return proc
+
+    yield watch
+    for proc, timer in watched:
+        timer.cancel()
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
 
 
 @pytest.fixture
