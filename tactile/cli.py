@@ -140,14 +140,15 @@ def started() -> str | None:
 
 
 def _guarded_start(module: str) -> Callable[[], int]:
-    """An entry point for the long-running commands (``tactile-run``, ``tactile-record``): a
-    SIGINT or SIGTERM that arrives while the command starts (importing numpy and onnxruntime,
-    loading the model: about half a second) is remembered, and the command stops cleanly as
-    soon as it has started (:func:`started`), instead of dying with a ``KeyboardInterrupt``
-    traceback (SIGINT) or without a word (SIGTERM). The handlers only take note: an exception
-    raised from a handler while a C extension initialises becomes onnxruntime's
-    ``ImportError: initialization failed``. A second signal while starting ends the process at
-    once, by that signal (a start stuck on a slow disk can still be interrupted)."""
+    """An entry point for the long-running commands (``tactile-run``, ``tactile-record``): a SIGINT
+    or SIGTERM that arrives while the command starts (importing numpy and onnxruntime,
+    loading the model: 0.1-0.2 s on the development VM) is remembered, and the command
+    stops cleanly as soon as it has started (:func:`started`), instead of dying with a
+    ``KeyboardInterrupt`` traceback (SIGINT) or without a word (SIGTERM). The handlers only
+    take note: an exception raised from a handler while a C extension initialises becomes
+    onnxruntime's ``ImportError: initialization failed``. A second signal while starting
+    ends the process at once, by that signal (a start stuck on a slow disk can still be
+    interrupted)."""
 
     def main() -> int:
         def note(signum, frame):

@@ -460,7 +460,7 @@ def test_wait_without_a_port_ends_with_seconds(monkeypatch, capsys):
 @pytest.mark.skipif(not Path("/proc/self/status").exists(), reason="reads /proc")
 @pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGTERM])
 def test_a_signal_while_starting_stops_cleanly(sig):
-    """SIGINT/SIGTERM during the imports and the model load (about half a second): it stops as
+    """SIGINT/SIGTERM during the imports and the model load (0.1-0.2 s here): it stops as
     soon as it has started, with the summary and exit 0, not a traceback (a KeyboardInterrupt,
     or onnxruntime's "initialization failed" when it lands in its import) or a silent death."""
     code, out, err = start_and_signal(
