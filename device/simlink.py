@@ -157,6 +157,10 @@ class PenLink:
                 self.injected.samples += lost
                 self.injected.stalled_samples += lost
                 self._stall_done = True
+                if math.isfinite(cfg.seconds):  # the stall's samples count against `seconds`
+                    n = min(n, max(0, round(cfg.seconds * cfg.rate) - self.sim.n_read))
+                    if n == 0:
+                        break
             if self.seq >= self._next_header:  # header at start, then once a second
                 if cfg.format == "binary":
                     out += self._fault(encode_header(self.info))

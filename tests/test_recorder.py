@@ -89,6 +89,22 @@ def test_link_faults_are_counted_exactly_by_the_decoder():
     assert dec.stats.samples == inj.samples - inj.dropped_samples
 
 
+def test_the_link_gives_the_same_bytes_however_it_is_read():
+    """The bytes (and the faults) depend on the config only, not on how many samples each call
+    asks for; a stall's samples count against ``seconds`` (one large call used to overshoot)."""
+    query = "texture=desk&seed=8&garbage=0.05&drop=0.03&flip=0.001&stall=4:0.5&seconds=10"
+    outputs = []
+    for chunk in (1, 7, 1000, 100_000):
+        link = PenLink(LinkConfig.from_query(query))
+        data = b""
+        while not link.finished:
+            data += link.produce(chunk)
+        outputs.append((data, link.injected))
+    assert all(o == outputs[0] for o in outputs[1:])
+    inj = outputs[0][1]
+    assert inj.samples == 1000 and inj.stalled_samples == 50 and inj.frames == 950
+
+
 def test_recorder_over_sim_with_faults(tmp_path):
     url = "sim://?texture=mouse_pad&seed=5&speed=max&garbage=0.02&flip=0.0005&drop=0.02&stall=3:0.3"
     res = record(url, "mouse_pad", tmp_path, seconds=8, progress=False)
