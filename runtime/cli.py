@@ -261,6 +261,9 @@ def serve(args: argparse.Namespace, runner: Runner, decoder: StreamDecoder,
                 last_status = now
                 st = decoder.stats
                 silent = f"  no data for {now - last_data:.0f} s" if stalled else ""
+                if runner.info is None and summary.before_header:
+                    silent += (f"  no device header yet: {summary.before_header} samples "
+                               "left unclassified")
                 _say(f"windows {summary.windows}  gaps {st.gaps} (lost {st.samples_lost})  "
                      f"crc {st.crc_errors}  malformed {st.malformed}  "
                      f"rejected {st.csv_rejected}  discarded {st.bytes_discarded} B  "
@@ -270,8 +273,10 @@ def serve(args: argparse.Namespace, runner: Runner, decoder: StreamDecoder,
             link.close()
 
 
-def replay(path: Path, runner: Runner, stop: dict) -> None:
-    """Run a recorded take through the same stream, as fast as possible (until stopped)."""
+def replay(path: Path, runner: Runner, stop: dict, deadline: float = math.inf) -> None:
+    """Run a recorded take through the same stream, as fast as possible, until its end, a stop
+    or ``deadline`` (monotonic, from ``--seconds``: the rest of the take is left out, with a
+    line that says where it stopped)."""
     from tactile.device.recording import read_take
 
     take = read_take(path)
@@ -289,6 +294,9 @@ def replay(path: Path, runner: Runner, stop: dict) -> None:
                                "recorded")])
         for i in range(a, b, 256):
             if stop["flag"]:
+                return
+            if time.monotonic() >= deadline:
+                _say(f"--seconds: stopped at sample {i} of {len(take.seq)} of {path}")
                 return
             j = min(i + 256, b)
             runner.handle([Samples(int(take.seq[i]), int(take.t_us[i]), take.raw[i:j])])
@@ -329,7 +337,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--threads", type=int_in(1, CPUS), default=1,
                    help=f"onnxruntime threads, at most the {CPUS} cores (default 1)")
     p.add_argument("--seconds", type=float_in(0.0), default=math.inf,
-                   help="stop after this long")
+                   help="stop after this long (wall time; with --replay too)")
     p.add_argument("--stall-timeout", type=float_in(0.0), default=2.0,
                    help="report a stall after this many seconds without data")
     p.add_argument("--status-every", type=float_in(0.0), default=5.0,
@@ -355,7 +363,7 @@ def _main(args: argparse.Namespace) -> int:
     if early:
         _say(f"stopped by {early} while starting")
     elif args.replay:
-        replay(args.replay, runner, stop)
+        replay(args.replay, runner, stop, summary.started + args.seconds)
     else:
         if args.port is None:
             args.port = wait_for_pen(stop, summary.started + args.seconds, args.status_every) \

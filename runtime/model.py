@@ -38,20 +38,27 @@ class Model:
     Args:
         path: the ``.onnx`` file written by ``tactile-export``.
         threads: onnxruntime intra-op threads (1 suits a board running one pen).
+        options: onnxruntime session options to use instead of ``session_options(threads)``
+            (start from :func:`session_options` and change what you need, e.g. allow spinning
+            or parallel execution); then ``threads`` is not used and must be left at 1.
 
     Raises :class:`ModelContractError` (a one-line message naming the problem) if the file is
     missing, not ONNX, not made by the exporter, or its graph does not match its metadata.
     """
 
-    def __init__(self, path: str | os.PathLike, threads: int = 1) -> None:
+    def __init__(self, path: str | os.PathLike, threads: int = 1,
+                 options: ort.SessionOptions | None = None) -> None:
         if not (isinstance(threads, int) and threads >= 1):
             raise ConfigError(f"threads {threads!r}: must be an integer >= 1")
+        if options is not None and threads != 1:
+            raise ConfigError("give threads or options, not both (set the threads in options)")
         path = Path(path)
         if not path.is_file():
             raise ModelContractError(f"{path}: no such model file")
         try:
             self.session = ort.InferenceSession(
-                str(path), session_options(threads), providers=["CPUExecutionProvider"]
+                str(path), options if options is not None else session_options(threads),
+                providers=["CPUExecutionProvider"],
             )
         except Exception as e:  # noqa: BLE001  (onnxruntime raises its own untyped errors)
             first = str(e).strip().splitlines()[0] if str(e).strip() else type(e).__name__

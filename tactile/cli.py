@@ -8,6 +8,7 @@ import math
 import os
 import signal
 import sys
+import traceback
 from collections.abc import Callable
 
 from tactile.errors import ConfigError, DeviceError, ModelContractError, TactileError
@@ -40,8 +41,8 @@ def run(prog: str, body: Callable[[argparse.Namespace], int], args: argparse.Nam
         os.dup2(devnull, sys.stdout.fileno())  # so that the interpreter's final flush is quiet
         return EXIT_OK
     except (TactileError, OSError, ValueError) as e:
-        if getattr(args, "debug", False):
-            raise
+        if getattr(args, "debug", False):  # the traceback, then the same line and exit code
+            traceback.print_exc()
         msg = str(e).splitlines()[0] if str(e) else type(e).__name__
         print(f"{prog}: error: {msg}", file=sys.stderr)
         return exit_code(e)

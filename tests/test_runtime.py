@@ -5,8 +5,10 @@ from __future__ import annotations
 import json
 import re
 import signal
+import socket
 import subprocess
 import sys
+import threading
 import time
 from pathlib import Path
 
@@ -18,6 +20,7 @@ from conftest import REPO, start_and_signal
 from tactile.device.info import pen_info
 from tactile.device.protocol_sim import forget_unplugs
 from tactile.device.sim_cli import make_dataset
+from tactile.device.simlink import LinkConfig, PenLink
 from tactile.device.simulator import PenSimulator
 from tactile.errors import ConfigError, ModelContractError
 from tactile.runtime.model import Model
@@ -117,10 +120,29 @@ def models(tmp_path_factory):
                                                                carry_steps=2))):
         cfg = TrainConfig(epochs=2, hidden=12, layers=2, threads=1, **kw)
         train(data, root / mode, cfg, progress=False)
+        if mode == "carry":
+            remember(root / mode)
         export_run(root / mode, root / f"{mode}.onnx", log=lambda *_: None)
         out[mode] = (root / mode, root / f"{mode}.onnx")
     out["data"] = data
     return out
+
+
+def remember(run_dir: Path) -> None:
+    """Open the LSTM's forget gates wide, so that the carried state still matters a window later.
+
+    Two epochs leave a tiny model that forgets its state within a 50-sample window (a zero and a
+    large initial state gave the same probabilities), so a runtime that never carried state would
+    pass the carry-mode parity test. With the forget-gate biases raised by 8 the cell state
+    persists across windows; the parity test checks that it moves the probabilities.
+    """
+    path = run_dir / "checkpoint.pt"
+    ck = torch.load(path, weights_only=True)
+    hidden = ck["config"]["hidden"]
+    for name, value in ck["state_dict"].items():
+        if "lstm.bias_hh" in name:  # PyTorch's gate order: input, forget, cell, output
+            value[hidden : 2 * hidden] += 8.0
+    torch.save(ck, path)
 
 
 def run_cli(args, timeout=60):
@@ -187,6 +209,10 @@ def test_parity_from_bytes_to_labels(models, mode):
     want = np.array([ref[lab["seq"]] for lab in labels])
     np.testing.assert_allclose(got, want, atol=1e-4, rtol=0)
     assert [lab["label"] for lab in labels] == [classes[i] for i in want.argmax(1)]
+    if mode == "carry":  # the comparison can tell carried state from state reset every window
+        fresh = torch_probs(run_dir, raw, [[s] for c in chains for s in c])
+        moved = max(np.abs(fresh[s] - ref[s]).max() for c in chains for s in c[1:])
+        assert moved > 1e-2, moved
     hop = 25 if mode == "window" else 50
     assert all(b - a == hop for c in chains for a, b in zip(c, c[1:]))
 
@@ -241,6 +267,48 @@ def test_faults_are_survived_and_counted(models):
     assert "status" not in out and "windows" in err  # status lines go to stderr
 
 
+def test_fault_counts_match_what_was_injected(models):
+    """Garbage, drops and a stall through tactile-run: its summary counts what the link did."""
+    _, onnx_path = models["window"]
+    query = "texture=desk&seed=8&speed=max&seconds=10&garbage=0.05&drop=0.03&stall=4:0.5"
+    link = PenLink(LinkConfig.from_query(query))  # the same link, replayed here for its counts
+    while not link.finished:
+        link.produce(1000)
+    inj = link.injected
+    assert inj.garbage_bytes > 500 and inj.dropped_frames > 10 and inj.stalled_samples == 50
+    code, out, err = run_cli(["--model", str(onnx_path), "--port", f"sim://?{query}",
+                              "--seconds", "3", "--stall-timeout", "0.5"])
+    assert code == 0, err
+    lines = [json.loads(line) for line in out.splitlines()]
+    dec = json.loads(err.split("tactile-run: summary ", 1)[1].splitlines()[0])["decoder"]
+    assert dec["bytes_discarded"] == inj.garbage_bytes
+    lost = inj.dropped_samples + inj.stalled_samples
+    assert dec["samples"] == inj.samples - lost
+    assert lost - dec["samples_lost"] in (0, 1)  # a drop at the very end is no gap
+    gaps = [x for x in lines if x.get("event") == "gap"]
+    assert len(gaps) == dec["gaps"] and sum(g["missing"] for g in gaps) == dec["samples_lost"]
+    assert any(g["missing"] == 50 for g in gaps)  # the 0.5 s stall
+    labels = [x for x in lines if "label" in x]
+    assert len(labels) >= 10
+    starts = [g["seq"] for g in gaps]  # a gap event names the first sample after the gap
+    assert not any(lab["seq"] - 49 < s <= lab["seq"] for lab in labels for s in starts)
+
+
+def test_replay_stops_at_seconds(models, tmp_path):
+    """--seconds ends a replay too, with a line saying where, and a summary of what was done."""
+    _, onnx_path = models["window"]
+    (take,) = make_dataset(tmp_path, takes=1, textures=("paper",), seconds=600, seed=6)
+    code, out, err = run_cli(["--model", str(onnx_path), "--replay", str(take), "--seconds",
+                              "0.05"])
+    assert code == 0, err
+    summary = json.loads(err.split("tactile-run: summary ", 1)[1].splitlines()[0])
+    full = (60_000 - 50) // 25 + 1
+    assert summary["windows"] == len(out.splitlines()) < full
+    stopped = re.search(r"--seconds: stopped at sample (\d+) of 60000 of ", err)
+    assert stopped, err
+    assert summary["windows"] == max(0, (int(stopped.group(1)) - 50) // 25 + 1)
+
+
 def test_sigterm_gives_a_summary_and_exit_0(models):
     _, onnx_path = models["window"]
     proc = subprocess.Popen(
@@ -292,6 +360,53 @@ def test_contract_errors_have_clear_messages_and_exit_codes(models, tmp_path):
     assert code == 2 and "no-such-pen" in err
     with pytest.raises(ModelContractError, match="no such model file"):
         Model(tmp_path / "none.onnx")
+    # --debug adds the traceback and keeps the line and the exit code
+    code, _, err = run_cli(["--model", str(tmp_path / "none.onnx"), "--port", "loop://",
+                            "--debug"])
+    assert code == 3 and "Traceback" in err
+    assert err.strip().splitlines()[-1].startswith("tactile-run: error: ")
+    code, _, err = run_cli(["--model", str(onnx_path), "--port", "/dev/no-such-pen", "--debug"])
+    assert code == 2 and "Traceback" in err
+
+
+def edited_take(models, tmp_path, name, edit):
+    """A copy of a recorded take whose header (the JSON beside it) ``edit`` changes."""
+    src = next(models["data"].glob("paper-*.csv"))
+    meta = json.loads(src.with_suffix(".json").read_text())
+    rows = src.read_text().splitlines()
+    columns = rows[0].split(",")
+    edit(meta["device"], columns)
+    (tmp_path / f"{name}.json").write_text(json.dumps(meta))
+    (tmp_path / f"{name}.csv").write_text("\n".join([",".join(columns), *rows[1:]]) + "\n")
+    return tmp_path / f"{name}.csv"
+
+
+def test_a_device_other_in_order_units_or_rate_is_refused(models, tmp_path):
+    """The same channels in another order, another unit or another rate: exit 3 before any
+    window, one line naming both sides."""
+    _, onnx_path = models["window"]
+
+    def swap(device, columns):  # gyro_x and gyro_y trade places, in the header and the columns
+        ch = device["channels"]
+        i, j = [k for k, c in enumerate(ch) if c["name"] in ("gyro_x", "gyro_y")]
+        ch[i], ch[j] = ch[j], ch[i]
+        columns[i + 2], columns[j + 2] = columns[j + 2], columns[i + 2]
+
+    def millivolts(device, columns):
+        device["channels"][0]["unit"] = "mV"
+
+    cases = [(["--replay", str(edited_take(models, tmp_path, "order", swap))],
+              "'gyro_y', 'gyro_x'", "'gyro_x', 'gyro_y'"),
+             (["--replay", str(edited_take(models, tmp_path, "units", millivolts))],
+              "device units ['mV'", "model's ['N'"),
+             (["--port", "sim://?texture=paper&speed=max&seconds=2&rate=50"],
+              "device rate 50 Hz", "model's 100 Hz")]
+    for args, device_side, model_side in cases:
+        code, out, err = run_cli(["--model", str(onnx_path), *args])
+        assert code == 3, err
+        line = err.strip().splitlines()[-1]
+        assert device_side in line and model_side in line, line
+        assert '"label"' not in out
 
 
 def test_device_contract_mismatch_names_both_sides(models, tmp_path):
@@ -351,7 +466,6 @@ def stderr_until(proc, text: str, limit: int = 200) -> list[str]:
 
 def test_wait_for_a_port_that_is_not_there_yet(reap):
     """Without --wait an absent port is exit 2; with it, tactile-run waits and then labels."""
-    import socket
 
     from tactile.device.simlink import LinkConfig, PenLink
 
@@ -383,6 +497,40 @@ def test_wait_for_a_port_that_is_not_there_yet(reap):
     assert labels[0]["seq"] == 49
     seqs = [lab["seq"] for lab in labels]
     assert seqs == list(range(49, 49 + 25 * len(labels), 25)), (seqs, err)
+
+
+def test_a_pen_without_header_is_reported_in_the_status_line():
+    """Sample frames but never a header (faulty firmware): no window, and the status line
+    says why instead of counting nothing."""
+    from tactile.device.protocol import encode_samples
+
+    raw = PenSimulator("paper", seed=3).read(200)
+    frames = b"".join(encode_samples(i, i * 10_000, raw[i : i + 1]) for i in range(200))
+    srv = socket.socket()
+    srv.settimeout(30)
+    srv.bind(("127.0.0.1", 0))
+    srv.listen()
+    url = f"socket://127.0.0.1:{srv.getsockname()[1]}"
+
+    def serve_once():
+        conn, _ = srv.accept()
+        with conn:
+            conn.sendall(frames)
+            time.sleep(4)
+
+    server = threading.Thread(target=serve_once, daemon=True)
+    server.start()
+    try:
+        code, out, err = run_cli(["--model", str(SHIPPED), "--port", url, "--seconds", "3",
+                                  "--status-every", "0.2"])
+    finally:
+        server.join(10)
+        srv.close()
+    assert code == 0, err
+    assert '"label"' not in out
+    assert "no device header yet: 200 samples left unclassified" in err
+    summary = json.loads(err.split("tactile-run: summary ", 1)[1].splitlines()[0])
+    assert summary["samples_before_header"] == 200 and summary["windows"] == 0
 
 
 class _FakePort:
@@ -631,3 +779,25 @@ def test_csv_event_rows_keep_their_columns_whatever_the_text():
 def test_the_model_object_refuses_a_thread_count_below_one():
     with pytest.raises(ConfigError, match="threads 0: must be an integer >= 1"):
         Model(SHIPPED, threads=0)
+
+
+def test_the_session_settings_are_the_board_defaults_and_can_be_replaced():
+    import onnxruntime as ort
+
+    from tactile.runtime.model import session_options
+
+    def spinning(model):
+        entries = model.session.get_session_options().get_session_config_entry
+        return entries("session.intra_op.allow_spinning")
+
+    board = Model(SHIPPED).session.get_session_options()
+    assert board.intra_op_num_threads == 1 and board.inter_op_num_threads == 1
+    assert board.execution_mode == ort.ExecutionMode.ORT_SEQUENTIAL
+    assert spinning(Model(SHIPPED)) == "0"
+    so = session_options(2)
+    so.add_session_config_entry("session.intra_op.allow_spinning", "1")
+    mine = Model(SHIPPED, options=so)
+    assert mine.session.get_session_options().intra_op_num_threads == 2
+    assert spinning(mine) == "1"
+    with pytest.raises(ConfigError, match="threads or options, not both"):
+        Model(SHIPPED, threads=2, options=so)
