@@ -51,10 +51,39 @@ def test_the_built_wheel_requires_no_torch(tmp_path):
     assert base_names == {"numpy", "onnxruntime", "pyserial"}, base
     extras = [ln for ln in lines if ln.startswith("Requires-Dist:") and "torch" in ln]
     assert extras and all("extra == \"train\"" in ln for ln in extras)
+    # and what those pull in turn, from the installed distributions' own metadata (markers
+    # evaluated for this machine, no extras): the whole set pip would install, without a network
+    closure = requirement_closure([ln.split(":", 1)[1].strip() for ln in base])
+    assert {"numpy", "onnxruntime", "pyserial"} <= closure
+    assert not closure & {"torch", "onnx", "onnxscript", "pyemd", "emd-signal", "scipy"}, closure
     # the wheel carries every stage and the protocol spec, not only what the editable install sees
     for module in ("tactile/runtime/cli.py", "tactile/training/emd/module.py",
                    "tactile/export/cli.py", "tactile/device/PROTOCOL.md", "tactile/contract.py"):
         assert module in names, module
+
+
+def requirement_closure(requirements: list[str]) -> set[str]:
+    """Names of the distributions that ``requirements`` need, transitively (no extras)."""
+    from importlib.metadata import PackageNotFoundError, requires
+
+    from packaging.requirements import Requirement
+    from packaging.utils import canonicalize_name
+
+    seen: set[str] = set()
+    todo = list(requirements)
+    while todo:
+        req = Requirement(todo.pop())
+        if req.marker is not None and not req.marker.evaluate({"extra": ""}):
+            continue
+        name = canonicalize_name(req.name)
+        if name in seen:
+            continue
+        seen.add(name)
+        try:
+            todo += requires(name) or []
+        except PackageNotFoundError:  # pragma: no cover  (the test environment has them all)
+            raise AssertionError(f"{name} is required but not installed here") from None
+    return seen
 
 
 _BLOCK_TRAIN = (
