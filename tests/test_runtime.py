@@ -175,14 +175,14 @@ def torch_probs(run_dir, raw: np.ndarray, chains: list[list[int]]) -> dict[int, 
 
 
 @pytest.mark.parametrize("mode", ["window", "carry"])
-def test_parity_from_bytes_to_labels(models, mode):
+def test_parity_from_bytes_to_labels(models, mode, reap):
     """Simulated pen on a pty -> tactile-run -> labels, equal to PyTorch on the same samples."""
     run_dir, onnx_path = models[mode]
-    sim = subprocess.Popen(
+    sim = reap(subprocess.Popen(  # killed after 60 s: a readline that never returns fails
         [sys.executable, "-m", "tactile.device.sim_cli", "--pty", "--texture", "desk",
          "--seed", "11", "--speed", "5", "--seconds", "120"],
         stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
-    )
+    ))
     try:
         port = sim.stdout.readline().strip()
         code, out, err = run_cli(["--model", str(onnx_path), "--port", port, "--seconds", "4"])
