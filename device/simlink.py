@@ -49,8 +49,10 @@ class LinkConfig:
     def __post_init__(self) -> None:
         if self.texture not in TEXTURES:
             raise ConfigError(f"texture {self.texture!r}: must be one of {', '.join(TEXTURES)}")
-        if not (0 < self.rate <= 10_000):
-            raise ConfigError(f"rate {self.rate!r}: must be in (0, 10000] Hz")
+        if not (10 <= self.rate <= 10_000):  # the simulator's range
+            raise ConfigError(f"rate {self.rate!r}: must be in [10, 10000] Hz")
+        if self.seed < 0:
+            raise ConfigError(f"seed {self.seed!r}: must be >= 0")
         if not self.speed > 0:
             raise ConfigError(f"speed {self.speed!r}: must be > 0 or 'max'")
         if not 1 <= self.per_frame <= 32:
@@ -87,7 +89,7 @@ def _convert(key: str, value: str):
     if key in ("stall", "unplug"):
         t, d = value.split(":")
         t, d = float(t), float(d)
-        if not (t >= 0 and d > 0):
+        if not (math.isfinite(t) and math.isfinite(d) and t >= 0 and d > 0):
             raise ValueError
         return (t, d)
     if key == "speed" and value == "max":
@@ -143,24 +145,41 @@ class PenLink:
     def finished(self) -> bool:
         return self.stream_time >= self.config.seconds - 1e-9
 
-    def produce(self, n: int) -> bytes:
-        """The bytes for the next ``n`` samples (fewer at the end of ``seconds``)."""
+    def _left(self) -> float:
+        """Samples the pen still makes before ``seconds`` (inf without an end)."""
         cfg = self.config
-        if math.isfinite(cfg.seconds):
-            n = min(n, max(0, round(cfg.seconds * cfg.rate) - self.sim.n_read))
+        if not math.isfinite(cfg.seconds):
+            return math.inf
+        return max(0, round(cfg.seconds * cfg.rate) - self.sim.n_read)
+
+    def _whole_frames(self, n: int) -> int:
+        """``n`` rounded down to whole frames of ``per_frame``, except for the stream's last
+        frame, which may be short: frames do not depend on how the reader asks."""
+        left = self._left()
+        if n >= left:
+            return int(left)
+        return n - n % self.config.per_frame
+
+    def produce(self, n: int) -> bytes:
+        """The bytes for up to ``n`` more samples, in whole frames of ``per_frame`` (so fewer
+        when ``n`` is not a multiple of it, or at the end of ``seconds``). A reader asks again for
+        what is due, as the ``sim://`` port and the pty server do: the bytes and the faults are
+        the same whatever the sizes asked."""
+        cfg = self.config
+        n = self._whole_frames(n)
         out = bytearray()
         while n > 0:
             if cfg.stall and not self._stall_done and self.stream_time >= cfg.stall[0]:
-                lost = round(cfg.stall[1] * cfg.rate)
+                # the stall's samples count against `seconds` too: none past the stream's end
+                lost = int(min(round(cfg.stall[1] * cfg.rate), self._left()))
                 self.sim.read(lost)
                 self.seq += lost
                 self.injected.samples += lost
                 self.injected.stalled_samples += lost
                 self._stall_done = True
-                if math.isfinite(cfg.seconds):  # the stall's samples count against `seconds`
-                    n = min(n, max(0, round(cfg.seconds * cfg.rate) - self.sim.n_read))
-                    if n == 0:
-                        break
+                n = self._whole_frames(n)
+                if n == 0:
+                    break
             if self.seq >= self._next_header:  # header at start, then once a second
                 if cfg.format == "binary":
                     out += self._fault(encode_header(self.info))

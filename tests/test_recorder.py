@@ -89,20 +89,42 @@ def test_link_faults_are_counted_exactly_by_the_decoder():
     assert dec.stats.samples == inj.samples - inj.dropped_samples
 
 
-def test_the_link_gives_the_same_bytes_however_it_is_read():
+def read_link(query: str, chunk: int) -> tuple[bytes, object, list[int]]:
+    """Read a whole link the way the sim:// port does: ask for what is due, ``chunk`` samples
+    more each time. Returns the bytes, the link's counts and the sizes of the frames."""
+    from tactile.device.decoder import Samples
+
+    link = PenLink(LinkConfig.from_query(query))
+    data, due, sizes = b"", 0, []
+    dec = StreamDecoder()
+    while not link.finished:
+        due += chunk
+        got = link.produce(max(0, due - link.sim.n_read))
+        sizes += [len(ev.raw) for ev in dec.feed(got) if isinstance(ev, Samples)]
+        data += got
+    return data, link.injected, sizes
+
+
+@pytest.mark.parametrize("per_frame", [1, 4])
+def test_the_link_gives_the_same_bytes_however_it_is_read(per_frame):
     """The bytes (and the faults) depend on the config only, not on how many samples each call
-    asks for; a stall's samples count against ``seconds`` (one large call used to overshoot)."""
-    query = "texture=desk&seed=8&garbage=0.05&drop=0.03&flip=0.001&stall=4:0.5&seconds=10"
-    outputs = []
-    for chunk in (1, 7, 1000, 100_000):
-        link = PenLink(LinkConfig.from_query(query))
-        data = b""
-        while not link.finished:
-            data += link.produce(chunk)
-        outputs.append((data, link.injected))
-    assert all(o == outputs[0] for o in outputs[1:])
+    asks for; a stall's samples count against ``seconds`` (one large call used to overshoot),
+    and frames hold ``per_frame`` samples (only the stream's last may hold fewer)."""
+    query = ("texture=desk&seed=8&garbage=0.05&drop=0.03&flip=0.001&stall=4:0.5&seconds=10"
+             f"&per_frame={per_frame}")
+    outputs = [read_link(query, chunk) for chunk in (1, 3, 7, 1000, 100_000)]
+    assert all(o[:2] == outputs[0][:2] for o in outputs[1:])
     inj = outputs[0][1]
-    assert inj.samples == 1000 and inj.stalled_samples == 50 and inj.frames == 950
+    assert inj.samples == 1000 and inj.stalled_samples == 50
+    assert inj.frames == -(-950 // per_frame)
+    sizes = outputs[-1][2]  # frames the decoder saw (dropped and garbled ones aside)
+    assert set(sizes[:-1]) == {per_frame} and 1 <= sizes[-1] <= per_frame
+
+
+def test_a_stall_ends_with_the_stream():
+    """A stall past ``seconds`` loses only the samples before the end."""
+    _, inj, _ = read_link("texture=desk&seed=1&stall=9.8:5&seconds=10", 1000)
+    assert inj.samples == 1000 and inj.stalled_samples == 20
 
 
 def test_recorder_over_sim_with_faults(tmp_path):
