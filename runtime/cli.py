@@ -22,6 +22,7 @@ import signal
 import sys
 import time
 from collections import Counter
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -273,9 +274,10 @@ def serve(args: argparse.Namespace, runner: Runner, decoder: StreamDecoder,
             link.close()
 
 
-def replay(path: Path, runner: Runner, stop: dict, deadline: float = math.inf) -> None:
+def replay(path: Path, runner: Runner, stop: dict, deadline: float = math.inf,
+           clock: Callable[[], float] = time.monotonic) -> None:
     """Run a recorded take through the same stream, as fast as possible, until its end, a stop
-    or ``deadline`` (monotonic, from ``--seconds``: the rest of the take is left out, with a
+    or ``deadline`` (on ``clock``, from ``--seconds``: the rest of the take is left out, with a
     line that says where it stopped)."""
     from tactile.device.recording import read_take
 
@@ -295,8 +297,9 @@ def replay(path: Path, runner: Runner, stop: dict, deadline: float = math.inf) -
         for i in range(a, b, 256):
             if stop["flag"]:
                 return
-            if time.monotonic() >= deadline:
-                _say(f"--seconds: stopped at sample {i} of {len(take.seq)} of {path}")
+            if clock() >= deadline:
+                _say(f"--seconds: stopped before seq {int(take.seq[i])} ({i} of the "
+                     f"{len(take.seq)} samples of {path} done)")
                 return
             j = min(i + 256, b)
             runner.handle([Samples(int(take.seq[i]), int(take.t_us[i]), take.raw[i:j])])

@@ -50,6 +50,9 @@ class Model:
                  options: ort.SessionOptions | None = None) -> None:
         if not (isinstance(threads, int) and threads >= 1):
             raise ConfigError(f"threads {threads!r}: must be an integer >= 1")
+        if options is not None and not isinstance(options, ort.SessionOptions):
+            raise ConfigError("options: an onnxruntime.SessionOptions, not "
+                              f"{type(options).__name__}")
         if options is not None and threads != 1:
             raise ConfigError("give threads or options, not both (set the threads in options)")
         path = Path(path)
