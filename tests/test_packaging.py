@@ -52,7 +52,7 @@ def test_the_built_wheel_requires_no_torch(tmp_path):
     extras = [ln for ln in lines if ln.startswith("Requires-Dist:") and "torch" in ln]
     assert extras and all("extra == \"train\"" in ln for ln in extras)
     # and what those pull in turn, from the installed distributions' own metadata (markers
-    # evaluated for this machine, no extras): the whole set pip would install, without a network
+    # evaluated for this machine): the set a no-extras install brings, read without a network
     closure = requirement_closure([ln.split(":", 1)[1].strip() for ln in base])
     assert {"numpy", "onnxruntime", "pyserial"} <= closure
     assert not closure & {"torch", "onnx", "onnxscript", "pyemd", "emd-signal", "scipy"}, closure
@@ -63,27 +63,31 @@ def test_the_built_wheel_requires_no_torch(tmp_path):
 
 
 def requirement_closure(requirements: list[str]) -> set[str]:
-    """Names of the distributions that ``requirements`` need, transitively (no extras)."""
+    """Names of the distributions that ``requirements`` need, transitively, as the versions
+    installed here declare them (a dependency's own extras, ``foo[bar]``, are followed)."""
     from importlib.metadata import PackageNotFoundError, requires
 
     from packaging.requirements import Requirement
     from packaging.utils import canonicalize_name
 
     seen: set[str] = set()
-    todo = list(requirements)
+    todo = [(r, frozenset()) for r in requirements]
     while todo:
-        req = Requirement(todo.pop())
-        if req.marker is not None and not req.marker.evaluate({"extra": ""}):
+        text, extras = todo.pop()
+        req = Requirement(text)
+        if req.marker is not None and not any(
+                req.marker.evaluate({"extra": e}) for e in (extras or {""})):
             continue
         name = canonicalize_name(req.name)
-        if name in seen:
+        key = f"{name}[{','.join(sorted(req.extras))}]"
+        if key in seen:
             continue
-        seen.add(name)
+        seen.add(key)
         try:
-            todo += requires(name) or []
+            todo += [(r, frozenset(req.extras)) for r in requires(name) or []]
         except PackageNotFoundError:  # pragma: no cover  (the test environment has them all)
             raise AssertionError(f"{name} is required but not installed here") from None
-    return seen
+    return {k.split("[")[0] for k in seen}
 
 
 _BLOCK_TRAIN = (
