@@ -84,7 +84,9 @@ class Serial(SerialBase):
         if now < self._silent_until or self.link.finished:
             return
         if math.isinf(cfg.speed):
-            want = max(0, 4096 - len(self._buf)) // 16 + 1
+            # at least one whole frame (produce() makes whole frames only), so a read of
+            # 4096 bytes never waits for its timeout on a nearly full buffer
+            want = max(cfg.per_frame, max(0, 4096 - len(self._buf)) // 16 + 1)
         else:
             due_s = self._stream0 + (now - self._t0) * cfg.speed
             want = int((due_s - self.link.stream_time) * cfg.rate)
