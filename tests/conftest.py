@@ -7,9 +7,13 @@ import sys
 import threading
 import time
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 import pytest
+
+if TYPE_CHECKING:
+    from tactile.device.simlink import Injected
 
 REPO = Path(__file__).resolve().parents[1]
 SHARED = REPO.parent / "shared"
@@ -93,3 +97,20 @@ def start_and_signal(entry: str, args: list[str], sig: int) -> tuple[int, str, s
             proc.kill()
             proc.wait()
     return proc.returncode, out, err
+
+
+def read_link(query: str, chunk: int) -> tuple[bytes, Injected, list[int]]:
+    """Read a whole link the way the sim:// port does: ask for what is due, ``chunk`` samples
+    more each time. Returns the bytes, the link's counts and the sizes of the frames."""
+    from tactile.device.decoder import Samples, StreamDecoder
+    from tactile.device.simlink import LinkConfig, PenLink
+
+    link = PenLink(LinkConfig.from_query(query))
+    data, due, sizes = b"", 0, []
+    dec = StreamDecoder()
+    while not link.finished:
+        due += chunk
+        got = link.produce(max(0, due - link.sim.n_read))
+        sizes += [len(ev.raw) for ev in dec.feed(got) if isinstance(ev, Samples)]
+        data += got
+    return data, link.injected, sizes

@@ -13,7 +13,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import serial
-from conftest import start_and_signal
+from conftest import read_link, start_and_signal
 
 import tactile.device  # noqa: F401  (registers sim://)
 from tactile.device.decoder import StreamDecoder
@@ -87,22 +87,6 @@ def test_link_faults_are_counted_exactly_by_the_decoder():
     # a dropped frame at the very end cannot be seen as a gap; all others are
     assert inj.dropped_samples - dec.stats.samples_lost in (0, 1)
     assert dec.stats.samples == inj.samples - inj.dropped_samples
-
-
-def read_link(query: str, chunk: int) -> tuple[bytes, object, list[int]]:
-    """Read a whole link the way the sim:// port does: ask for what is due, ``chunk`` samples
-    more each time. Returns the bytes, the link's counts and the sizes of the frames."""
-    from tactile.device.decoder import Samples
-
-    link = PenLink(LinkConfig.from_query(query))
-    data, due, sizes = b"", 0, []
-    dec = StreamDecoder()
-    while not link.finished:
-        due += chunk
-        got = link.produce(max(0, due - link.sim.n_read))
-        sizes += [len(ev.raw) for ev in dec.feed(got) if isinstance(ev, Samples)]
-        data += got
-    return data, link.injected, sizes
 
 
 @pytest.mark.parametrize("per_frame", [1, 4])

@@ -15,12 +15,11 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
-from conftest import REPO, start_and_signal
+from conftest import REPO, read_link, start_and_signal
 
 from tactile.device.info import pen_info
 from tactile.device.protocol_sim import forget_unplugs
 from tactile.device.sim_cli import make_dataset
-from tactile.device.simlink import LinkConfig, PenLink
 from tactile.device.simulator import PenSimulator
 from tactile.errors import ConfigError, ModelContractError
 from tactile.runtime.model import Model
@@ -126,6 +125,11 @@ def models(tmp_path_factory):
         out[mode] = (root / mode, root / f"{mode}.onnx")
     out["data"] = data
     return out
+
+
+def summary_of(err: str) -> dict:
+    """The JSON summary tactile-run prints on stderr when it stops."""
+    return json.loads(err.split("tactile-run: summary ", 1)[1].splitlines()[0])
 
 
 def remember(run_dir: Path) -> None:
@@ -255,7 +259,7 @@ def test_faults_are_survived_and_counted(models):
     lines = [json.loads(line) for line in out.splitlines()]
     events = [x["event"] for x in lines if "event" in x]
     assert "reconnect" in events and "stall" in events and "gap" in events
-    summary = json.loads(err.split("tactile-run: summary ", 1)[1].splitlines()[0])
+    summary = summary_of(err)
     assert summary["reconnects"] == 1 and summary["stalls"] >= 1
     dec = summary["decoder"]
     assert dec["restarts"] == 1 and dec["bytes_discarded"] > 0
@@ -272,16 +276,13 @@ def test_fault_counts_match_what_was_injected(models):
     """Garbage, drops and a stall through tactile-run: its summary counts what the link did."""
     _, onnx_path = models["window"]
     query = "texture=desk&seed=8&speed=max&seconds=10&garbage=0.05&drop=0.03&stall=4:0.5"
-    link = PenLink(LinkConfig.from_query(query))  # the same link, replayed here for its counts
-    while not link.finished:
-        link.produce(1000)
-    inj = link.injected
+    _, inj, _ = read_link(query, 1000)  # the same link, replayed here for its counts
     assert inj.garbage_bytes > 500 and inj.dropped_frames > 10 and inj.stalled_samples == 50
     code, out, err = run_cli(["--model", str(onnx_path), "--port", f"sim://?{query}",
                               "--seconds", "6", "--stall-timeout", "0.5"])  # about 1 s needed
     assert code == 0, err
     lines = [json.loads(line) for line in out.splitlines()]
-    dec = json.loads(err.split("tactile-run: summary ", 1)[1].splitlines()[0])["decoder"]
+    dec = summary_of(err)["decoder"]
     assert dec["bytes_discarded"] == inj.garbage_bytes
     lost = inj.dropped_samples + inj.stalled_samples
     assert dec["samples"] == inj.samples - lost
@@ -331,7 +332,7 @@ def test_sigterm_gives_a_summary_and_exit_0(models):
     proc.send_signal(signal.SIGTERM)
     out, err = proc.communicate(timeout=10)
     assert proc.returncode == 0, err
-    summary = json.loads(err.split("tactile-run: summary ", 1)[1].splitlines()[0])
+    summary = summary_of(err)
     assert summary["windows"] >= 3 and sum(summary["labels"].values()) == summary["windows"]
     assert len([ln for ln in out.splitlines() if " p=" in ln]) == summary["windows"]
 
@@ -550,7 +551,7 @@ def test_a_pen_without_header_is_reported_in_the_status_line():
         srv.close()
     assert code == 0, err
     assert '"label"' not in out
-    summary = json.loads(err.split("tactile-run: summary ", 1)[1].splitlines()[0])
+    summary = summary_of(err)
     assert summary["samples_before_header"] > 0 and summary["windows"] == 0
     said = [int(n) for n in re.findall(r"no device header yet: (\d+) samples left", err)]
     assert said and said == sorted(said) and said[-1] <= summary["samples_before_header"]
@@ -724,7 +725,7 @@ def test_one_silence_is_one_stall():
     code, out, err = run_cli(["--model", str(SHIPPED), "--port", "loop://", "--seconds", "2.5",
                               "--stall-timeout", "0.3", "--status-every", "0.5"])
     assert code == 0, err
-    summary = json.loads(err.split("tactile-run: summary ", 1)[1].splitlines()[0])
+    summary = summary_of(err)
     assert summary["stalls"] == 1
     assert [json.loads(ln)["event"] for ln in out.splitlines()] == ["stall"]
     assert "no data for 2 s" in err or "no data for 1 s" in err  # the status line goes on
@@ -755,7 +756,7 @@ def test_sigint_stops_a_replay(tmp_path, reap):
     proc.send_signal(signal.SIGINT)
     out, err = finish(proc, timeout=60)
     assert proc.returncode == 0, err
-    summary = json.loads(err.split("tactile-run: summary ", 1)[1].splitlines()[0])
+    summary = summary_of(err)
     assert 1 <= summary["windows"] < (360_000 - 50) // 25 // 2  # stopped well before the end
 
 
@@ -779,7 +780,7 @@ def test_a_stop_while_the_pen_is_unplugged_is_clean(reap):
     out, err = finish(proc)
     assert proc.returncode == 0, err
     assert "port lost" in "".join(early) and "Traceback" not in err
-    summary = json.loads(err.split("tactile-run: summary ", 1)[1].splitlines()[0])
+    summary = summary_of(err)
     assert summary["reconnects"] == 0  # stopped while still waiting for the pen
 
 
