@@ -261,14 +261,14 @@ def serve(args: argparse.Namespace, runner: Runner, decoder: StreamDecoder,
             if now - last_status >= args.status_every:
                 last_status = now
                 st = decoder.stats
-                silent = f"  no data for {now - last_data:.0f} s" if stalled else ""
+                notes = f"  no data for {now - last_data:.0f} s" if stalled else ""
                 if runner.info is None and summary.before_header:
-                    silent += (f"  no device header yet: {summary.before_header} samples "
-                               "left unclassified")
+                    notes += (f"  no device header yet: {summary.before_header} samples "
+                              "left unclassified")
                 _say(f"windows {summary.windows}  gaps {st.gaps} (lost {st.samples_lost})  "
                      f"crc {st.crc_errors}  malformed {st.malformed}  "
                      f"rejected {st.csv_rejected}  discarded {st.bytes_discarded} B  "
-                     f"reconnects {summary.reconnects}{silent}")
+                     f"reconnects {summary.reconnects}{notes}")
     finally:
         if link is not None:  # None: stopped (or out of time) while waiting to reconnect
             link.close()
