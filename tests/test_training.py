@@ -231,9 +231,9 @@ def test_refit_trains_on_train_and_validation_for_the_best_epoch_count(dataset, 
     seen = []
     real = tr._train
 
-    def spy(model, w, f_all, n_epochs, progress, val=None):
+    def spy(model, w, f_all, n_epochs, ctx, val=None, resume=None):
         seen.append((len(w), n_epochs, val is None))
-        return real(model, w, f_all, n_epochs, progress, val)
+        return real(model, w, f_all, n_epochs, ctx, val, resume)
 
     monkeypatch.setattr(tr, "_train", spy)
     cfg = TrainConfig(epochs=3, hidden=8, layers=1, threads=1, split="time",
