@@ -174,8 +174,24 @@ def _guarded_start(module: str) -> Callable[[], int]:
 
 run_main = _guarded_start("tactile.runtime.cli")
 record_main = _guarded_start("tactile.device.recorder")
-train_main = _with_extra("tactile.training.train", "tactile-train")
-eval_main = _with_extra("tactile.training.evaluate", "tactile-eval")
+def _interruptible(entry: Callable[[], int], prog: str) -> Callable[[], int]:
+    """A Ctrl-C that the command does not handle itself (while torch imports, say) ends it
+    with one line and exit 130, the shell's code for SIGINT, not a traceback."""
+
+    def main() -> int:
+        try:
+            return entry()
+        except KeyboardInterrupt:
+            print(f"{prog}: interrupted", file=sys.stderr)
+            return 130
+
+    return main
+
+
+train_main = _interruptible(_with_extra("tactile.training.train", "tactile-train"),
+                            "tactile-train")
+eval_main = _interruptible(_with_extra("tactile.training.evaluate", "tactile-eval"),
+                           "tactile-eval")
 export_main = _with_extra("tactile.export.cli", "tactile-export")
 plot_main = _with_extra("tactile.training.plot", "tactile-plot")
 

@@ -161,3 +161,13 @@ def test_force_overwrites_a_run(dataset, tmp_path, capsys):
     assert (run / "checkpoint.pt").read_bytes() == first  # untouched
     assert train_main([*again, "--force"]) == 0
     assert torch.load(run / "checkpoint.pt", weights_only=True)["config"]["seed"] == 5
+
+
+def test_an_unhandled_ctrl_c_in_a_torch_command_is_one_line_and_130(capsys):
+    from tactile.cli import _interruptible
+
+    def starting() -> int:
+        raise KeyboardInterrupt  # as SIGINT does while torch imports
+
+    assert _interruptible(starting, "tactile-train")() == EXIT_INTERRUPTED
+    assert capsys.readouterr().err == "tactile-train: interrupted\n"

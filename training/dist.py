@@ -67,6 +67,11 @@ class Dist:
 
     # --- collectives on CPU tensors (identity for one process) ---------------------------------
 
+    def barrier(self) -> None:
+        """Wait until every process gets here."""
+        if self.world > 1:
+            td.barrier(group=self._cpu_group)
+
     def any(self, flag: bool) -> bool:
         """True on every process when ``flag`` is True on any (a Ctrl-C stops them all)."""
         if self.world == 1:

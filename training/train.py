@@ -215,13 +215,16 @@ def train(data: Path, out: Path, cfg: TrainConfig, progress: bool = True, *,
         except Interrupted:
             interrupted = True
     model.to("cpu")
+    norm = dict(mean=mean, std=std, emd_index=emd_index, center_index=center_index)
+    if interrupted:  # the others wait for rank 0's files: torchrun ends the job at a failure
+        saved = _save_interrupted(out, data, cfg, model, ctx, parts, feats, classes, takes,
+                                  split, norm) if dist.is_main else {"interrupted": True}
+        dist.barrier()
+        dist.finish()
+        return saved
     dist.finish()
     if not dist.is_main:
-        return {"interrupted": interrupted}
-    if interrupted:
-        return _save_interrupted(out, data, cfg, model, ctx, parts, feats, classes, takes,
-                                 split, dict(mean=mean, std=std, emd_index=emd_index,
-                                             center_index=center_index))
+        return {"interrupted": False}
     test_probs = predict(model, parts["test"], feats=feats["test"])
     metrics = summary(parts["test"].y, test_probs, classes)
     metrics.update(per_take(parts["test"], test_probs, [t.path.stem for t in takes]))
@@ -239,8 +242,7 @@ def train(data: Path, out: Path, cfg: TrainConfig, progress: bool = True, *,
         threads=threads, device=str(device), processes=dist.world, seed=cfg.seed,
         interrupted=False,
     )
-    _write_run(out, cfg, model, metrics, history, classes, takes, split,
-               dict(mean=mean, std=std, emd_index=emd_index, center_index=center_index))
+    _write_run(out, cfg, model, metrics, history, classes, takes, split, norm)
     (out / RESUME).unlink(missing_ok=True)  # finished: nothing left to resume
     return metrics
 
