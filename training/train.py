@@ -1,4 +1,4 @@
-"""``tactile-train DATA --out RUN/``: recordings in, an evaluated checkpoint out.
+"""Train a classifier on a dataset folder and write an evaluated run: tactile-train DATA --out RUN.
 
 Reads top to bottom: load takes -> split by user/take/time -> cut windows -> normalisation from
 the training windows -> features (EMD once, up front) -> train with Adam and early stopping on
