@@ -171,3 +171,11 @@ def test_an_unhandled_ctrl_c_in_a_torch_command_is_one_line_and_130(capsys):
 
     assert _interruptible(starting, "tactile-train")() == EXIT_INTERRUPTED
     assert capsys.readouterr().err == "tactile-train: interrupted\n"
+
+
+def test_sigint_after_the_last_epoch_still_saves_the_finished_run(dataset, tmp_path):
+    cfg = TrainConfig(**{**SMALL, "epochs": 2, "patience": 2})
+    m = train(dataset, tmp_path / "r", cfg, progress=False, on_epoch=sigint_after("fit", 2))
+    assert m["interrupted"] is False and m["epochs_run"] == 2 and m["shifted"]["mean"] >= 0
+    assert (tmp_path / "r" / "checkpoint.pt").is_file()
+    assert not (tmp_path / "r" / RESUME).exists()

@@ -208,42 +208,47 @@ def train(data: Path, out: Path, cfg: TrainConfig, progress: bool = True, *,
     feature_s = time.perf_counter() - t0
     model.to(device)
     ctx = Context(cfg, log, dist, device, None, on_epoch)
+    norm = dict(mean=mean, std=std, emd_index=emd_index, center_index=center_index)
+    # Ctrl-C stops at the next batch; after the last epoch it is only noted (the run is saved)
     with Stop(dist) as ctx.stop:
         try:
             history = _fit(model, parts, feats, ctx, resume)
-            interrupted = False
         except Interrupted:
-            interrupted = True
-    model.to("cpu")
-    norm = dict(mean=mean, std=std, emd_index=emd_index, center_index=center_index)
-    if interrupted:  # the others wait for rank 0's files: torchrun ends the job at a failure
-        saved = _save_interrupted(out, data, cfg, model, ctx, parts, feats, classes, takes,
-                                  split, norm) if dist.is_main else {"interrupted": True}
-        dist.barrier()
+            model.to("cpu")
+            saved = _save_interrupted(out, data, cfg, model, ctx, parts, feats, classes, takes,
+                                      split, norm) if dist.is_main else {"interrupted": True}
+            dist.barrier()  # the others wait for rank 0's files: torchrun ends a failed job
+            dist.finish()
+            return saved
+        model.to("cpu")
         dist.finish()
-        return saved
-    dist.finish()
-    if not dist.is_main:
-        return {"interrupted": False}
-    test_probs = predict(model, parts["test"], feats=feats["test"])
-    metrics = summary(parts["test"].y, test_probs, classes)
-    metrics.update(per_take(parts["test"], test_probs, [t.path.stem for t in takes]))
-    rate = takes[0].info.sample_rate_hz
-    metrics["shifted"] = shifted(model, takes, classes, channels, split.test, cfg.window,
-                                 cfg.hop, rate)
-    metrics.update(
-        classes=list(classes), channels=list(channels), split=split.description,
-        split_windows={k: len(w) for k, w in parts.items()}, best_epoch=history["best_epoch"],
-        val_accuracy=history["val_acc"][history["best_epoch"]],
-        refit_epochs=history.get("refit_epochs", 0),
-        epochs_run=len(history["train_loss"]), centered=[channels[i] for i in center_index],
-        feature_seconds=round(feature_s, 1),
-        train_seconds=round(time.perf_counter() - t_start, 1),
-        threads=threads, device=str(device), processes=dist.world, seed=cfg.seed,
-        interrupted=False,
-    )
-    _write_run(out, cfg, model, metrics, history, classes, takes, split, norm)
-    (out / RESUME).unlink(missing_ok=True)  # finished: nothing left to resume
+        if not dist.is_main:
+            return {"interrupted": False}
+        metrics = _test_metrics(model, parts, feats, takes, classes)
+        metrics["shifted"] = shifted(model, takes, classes, channels, split.test, cfg.window,
+                                     cfg.hop, takes[0].info.sample_rate_hz)
+        metrics.update(
+            classes=list(classes), channels=list(channels), split=split.description,
+            split_windows={k: len(w) for k, w in parts.items()},
+            best_epoch=history["best_epoch"],
+            val_accuracy=history["val_acc"][history["best_epoch"]],
+            refit_epochs=history.get("refit_epochs", 0),
+            epochs_run=len(history["train_loss"]), centered=[channels[i] for i in center_index],
+            feature_seconds=round(feature_s, 1),
+            train_seconds=round(time.perf_counter() - t_start, 1),
+            threads=threads, device=str(device), processes=dist.world, seed=cfg.seed,
+            interrupted=False,
+        )
+        _write_run(out, cfg, model, metrics, history, classes, takes, split, norm)
+        (out / RESUME).unlink(missing_ok=True)  # finished: nothing left to resume
+    return metrics
+
+
+def _test_metrics(model: TextureModel, parts: dict, feats: dict, takes, classes) -> dict:
+    """Window and per-take figures on the test split."""
+    probs = predict(model, parts["test"], feats=feats["test"])
+    metrics = summary(parts["test"].y, probs, classes)
+    metrics.update(per_take(parts["test"], probs, [t.path.stem for t in takes]))
     return metrics
 
 
@@ -519,9 +524,7 @@ def _save_interrupted(out: Path, data: Path, cfg: TrainConfig, model: TextureMod
     else:  # a refit stopped half-way: the first phase's best model is the best there is
         best, history = snap["fit_best"], snap["fit_history"]
     model.head.load_state_dict(best)
-    probs = predict(model, parts["test"], feats=feats["test"])
-    metrics = summary(parts["test"].y, probs, classes)
-    metrics.update(per_take(parts["test"], probs, [t.path.stem for t in takes]))
+    metrics = _test_metrics(model, parts, feats, takes, classes)
     metrics.update(
         classes=list(classes), channels=list(cfg.channels), split=split.description,
         split_windows={k: len(w) for k, w in parts.items()}, best_epoch=history["best_epoch"],
