@@ -179,3 +179,20 @@ def test_sigint_after_the_last_epoch_still_saves_the_finished_run(dataset, tmp_p
     assert m["interrupted"] is False and m["epochs_run"] == 2 and m["shifted"]["mean"] >= 0
     assert (tmp_path / "r" / "checkpoint.pt").is_file()
     assert not (tmp_path / "r" / RESUME).exists()
+
+
+def test_a_resume_state_that_does_not_fit_is_one_line(dataset, tmp_path, capsys):
+    run = tmp_path / "r"
+    cfg = TrainConfig(**{**SMALL, "epochs": 2, "patience": 2})
+    assert train(dataset, run, cfg, progress=False, on_epoch=sigint_after("fit", 1))[
+        "interrupted"]
+    capsys.readouterr()
+    saved = torch.load(run / RESUME, weights_only=True)
+    saved["state"]["head"] = {"lstm.weight_ih_l0": torch.zeros(2, 2)}
+    torch.save(saved, run / RESUME)
+    assert train_main(["--resume", str(run), "--quiet"]) == 1
+    err = capsys.readouterr().err
+    assert "resume.pt: the saved state does not fit this run" in err and err.count("\n") == 1
+    (run / RESUME).write_bytes(b"garbage")
+    assert train_main(["--resume", str(run)]) == 1
+    assert "not a readable resume state" in capsys.readouterr().err

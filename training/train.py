@@ -499,13 +499,20 @@ def _snapshot(phase: str, s: dict, head: nn.Module, opt, sched, gen, aug, ctx: C
 
 
 def _restore(r: dict, head: nn.Module, opt, sched, gen, aug) -> dict:
-    head.load_state_dict(r["head"])
-    opt.load_state_dict(r["opt"])
-    if sched is not None:
-        sched.load_state_dict(r["sched"])
-    _set_rng_state(r["rng"], gen, aug)
-    return {k: copy.deepcopy(r[k]) for k in ("epoch", "best", "best_state", "stale", "history",
-                                             "ema")}
+    """Put the saved state back; a state that does not fit (edited, or from another version)
+    is a RecordingError, not a traceback."""
+    try:
+        head.load_state_dict(r["head"])
+        opt.load_state_dict(r["opt"])
+        if sched is not None:
+            sched.load_state_dict(r["sched"])
+        _set_rng_state(r["rng"], gen, aug)
+        return {k: copy.deepcopy(r[k]) for k in ("epoch", "best", "best_state", "stale",
+                                                 "history", "ema")}
+    except (KeyError, TypeError, ValueError, RuntimeError, AttributeError) as e:
+        first = " ".join(str(e).split())[:120]
+        raise RecordingError(f"{RESUME}: the saved state does not fit this run "
+                             f"({type(e).__name__}: {first})") from None
 
 
 def _save_interrupted(out: Path, data: Path, cfg: TrainConfig, model: TextureModel,
