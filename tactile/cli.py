@@ -174,6 +174,8 @@ def _guarded_start(module: str) -> Callable[[], int]:
 
 run_main = _guarded_start("tactile.runtime.cli")
 record_main = _guarded_start("tactile.device.recorder")
+
+
 def _interruptible(entry: Callable[[], int], prog: str) -> Callable[[], int]:
     """A Ctrl-C that the command does not handle itself (while torch imports, say) ends it
     with one line and exit 130, the shell's code for SIGINT, not a traceback."""
