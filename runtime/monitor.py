@@ -317,7 +317,7 @@ def _main(args: argparse.Namespace) -> int:
     if args.serve:
         from tactile.runtime.serve import Live, parse_address
 
-        live = Live(*parse_address(args.serve), status=dict, say=_say)
+        live = Live(*parse_address(args.serve), status=dict, say=_say, labels=False)
     begin = time.monotonic()
     deadline = begin + args.seconds
     link = Link(port, args.baud, stop, deadline)

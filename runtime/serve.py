@@ -77,6 +77,7 @@ class _Viewer:
     address: str
     queue: queue.Queue = field(default_factory=lambda: queue.Queue(QUEUE))
     dropped: int = 0
+    gone: threading.Event = field(default_factory=threading.Event)
 
 
 class _Server(ThreadingHTTPServer):
@@ -93,12 +94,16 @@ class Live:
             published as a ``status`` object; keep it to reading numbers.
         say: gets the diagnostics lines (the address, refused viewers).
         max_clients: viewers at a time.
+        write_timeout: a viewer that takes nothing for this long (s) is disconnected (its
+            browser reconnects by itself when it can).
+        labels: whether labels will come (False: ``tactile-monitor``, the page shows no label).
     """
 
     def __init__(self, host: str, port: int, status: Callable[[], dict],
                  say: Callable[[str], None] = lambda m: print(m, file=sys.stderr, flush=True),
-                 max_clients: int = MAX_CLIENTS, write_timeout: float = WRITE_TIMEOUT_S) -> None:
-        self.status, self.say = status, say
+                 max_clients: int = MAX_CLIENTS, write_timeout: float = WRITE_TIMEOUT_S,
+                 labels: bool = True) -> None:
+        self.status, self.say, self.labels = status, say, labels
         self.max_clients, self.write_timeout = max_clients, write_timeout
         self._lock = threading.Lock()
         self._viewers: list[_Viewer] = []
@@ -162,7 +167,7 @@ class Live:
     def _header(self, info: DeviceInfo) -> None:
         self._info = info
         self._every = max(1, round(info.sample_rate_hz / SAMPLE_HZ))
-        self.publish({"event": "header", "device": info.device,
+        self.publish({"event": "header", "device": info.device, "labels": self.labels,
                       "sample_rate_hz": info.sample_rate_hz, "every": self._every,
                       "channels": [{"name": c.name, "unit": c.unit} for c in info.channels]})
 
@@ -193,6 +198,11 @@ class Live:
         self.publish({"event": "status", **st}, _last)
         return now, samples
 
+    @property
+    def viewers(self) -> int:
+        with self._lock:
+            return len(self._viewers)
+
     def latest_status(self) -> bytes:
         with self._lock:
             data = self._latest.get("status", b"data: {}\n\n")
@@ -217,19 +227,20 @@ class Live:
         with self._lock:
             if v in self._viewers:
                 self._viewers.remove(v)
+        v.gone.set()
 
     def close(self, drain_s: float = 2.0) -> None:
         """A last ``status`` and ``end`` to every viewer, up to ``drain_s`` s for them to take
-        what is queued, then stop listening. Says how many viewers were served."""
+        what is queued (each viewer's thread ends once it has written its last message), then
+        stop listening. Says how many viewers were served."""
         self.closing.set()
         self._publish_status((time.monotonic(), None), _last=True)
         self.publish({"event": "end"}, _last=True)
         deadline = time.monotonic() + drain_s
-        while time.monotonic() < deadline:
-            with self._lock:
-                if all(v.queue.empty() for v in self._viewers):
-                    break
-            time.sleep(0.02)
+        with self._lock:
+            viewers = list(self._viewers)
+        for v in viewers:
+            v.gone.wait(max(0.0, deadline - time.monotonic()))
         self._server.shutdown()
         self._server.server_close()
         self.say(f"live page: viewers {self.served} served, {self.refused} refused; "

@@ -11,6 +11,7 @@ const view = { channels: [], every: 1, rate: 100, points: 0, samples: 0, total: 
 function setState(s) { document.body.dataset.state = s; $("state").textContent = s; }
 
 function onHeader(h) {
+  document.body.dataset.labels = h.labels === false ? "no" : "yes";
   view.rate = h.sample_rate_hz; view.every = h.every || 1;
   view.points = Math.max(2, Math.round(SPAN_S * view.rate / view.every));
   $("device").textContent = `${h.device} · ${h.sample_rate_hz} Hz · ${h.channels.length} channels`;
@@ -35,9 +36,8 @@ function onSamples(m) {
     view.channels.forEach((c, k) => { c.data[i] = row[k]; });
     view.total += 1;
   }
-  view.samples += m.values.length * m.every;
+  view.samples += m.values.length;
   $("samples").textContent = view.samples;
-  $("samples").dataset.rows = view.total;
   const last = m.values[m.values.length - 1];
   view.channels.forEach((c, k) => { c.value.textContent = fmt(last[k]) + (c.unit ? " " + c.unit : ""); });
   if (document.body.dataset.state !== "live") setState("live");
@@ -107,7 +107,7 @@ function draw() {
     if (hi - lo < 1e-9) { hi += 0.5; lo -= 0.5; }
     const x = (j) => (j + view.points - n) / (view.points - 1) * (w - 1);
     const y = (v) => h - 2 - (v - lo) / (hi - lo) * (h - 4);
-    g.strokeStyle = "#c9480b"; g.lineWidth = dpr;
+    g.strokeStyle = "rgba(201, 72, 11, 0.45)"; g.lineWidth = dpr;
     for (const m of view.marks) {
       const j = m - (view.total - n);
       if (j >= 0 && j < n) { g.beginPath(); g.moveTo(x(j), 0); g.lineTo(x(j), h); g.stroke(); }
