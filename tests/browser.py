@@ -15,6 +15,7 @@ import os
 import shutil
 import subprocess
 import threading
+import time
 from pathlib import Path
 
 # Without the networking switches, Chromium's own connections (updates, sync, QUIC probes) are
@@ -97,7 +98,7 @@ class Browser:
         return answer["result"]
 
     def open(self, url: str) -> None:
-        """A new page showing ``url``, which later calls address."""
+        """A new page showing ``url`` (loaded when this returns), which later calls address."""
         target = self.call("Target.createTarget", {"url": "about:blank"}, session=False)
         self.session = self.call("Target.attachToTarget",
                                  {"targetId": target["targetId"], "flatten": True},
@@ -106,6 +107,11 @@ class Browser:
                   {"width": self.width, "height": self.height, "deviceScaleFactor": 1,
                    "mobile": False})
         self.call("Page.navigate", {"url": url})
+        end = time.monotonic() + self.timeout
+        while self.evaluate("location.href + ' ' + document.readyState") != f"{url} complete":
+            if time.monotonic() > end:
+                raise TimeoutError(f"{url} did not load in {self.timeout} s")
+            time.sleep(0.05)
 
     def evaluate(self, expression: str):
         """The value of a JavaScript expression in the page (JSON-able)."""
