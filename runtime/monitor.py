@@ -51,6 +51,7 @@ class Watch:
     reconnects: int = 0
     stalls: int = 0
     arrivals: deque = field(default_factory=deque)  # (monotonic s, samples so far)
+    first_data: float | None = None  # monotonic time of the first bytes
 
     def handle(self, events: list) -> None:
         for ev in events:
@@ -220,6 +221,7 @@ def watch_loop(args: argparse.Namespace, link: Link, stop: dict, deadline: float
         now = time.monotonic()
         if data:
             last_data, stalled = now, False
+            watch.first_data = watch.first_data or now
             events = decoder.feed(data)
             for ev in events:
                 if isinstance(ev, Header) and (watch.info is None or ev.changed):
@@ -256,10 +258,12 @@ def _link_status(decoder: StreamDecoder) -> dict:
     return link_status(decoder.stats)
 
 
-def verdict(watch: Watch, decoder: StreamDecoder, seconds: float) -> str:
-    """One line: alive (rate received against the declared one) and sane (errors, channels)."""
+def verdict(watch: Watch, decoder: StreamDecoder, end: float) -> str:
+    """One line: alive (the rate received from the first bytes to ``end``, monotonic, against
+    the declared one) and sane (errors, gaps, flat or saturated channels)."""
     st = decoder.stats
     declared = watch.info.sample_rate_hz if watch.info else math.nan
+    seconds = end - watch.first_data if watch.first_data is not None else 0.0
     got = st.samples / seconds if seconds > 0 else math.nan
     notes = watch.problems()
     if st.errors:
@@ -336,7 +340,7 @@ def _main(args: argparse.Namespace) -> int:
         st = decoder.stats
         raise DeviceError(f"no samples from {port} in {took:.1f} s ({st.bytes_in} bytes read; "
                           f"{st.bytes_discarded} not decodable)")
-    _say(verdict(watch, decoder, took))
+    _say(verdict(watch, decoder, time.monotonic()))
     return 0
 
 

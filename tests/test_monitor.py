@@ -53,7 +53,7 @@ def test_figures_are_over_the_last_second_in_units(capsys):
         np.testing.assert_allclose(rows[name], want, rtol=6e-4, atol=1e-9)  # 4 digits shown
     link = out.rstrip().splitlines()[-1]
     assert link.startswith("link: frames 202  samples 200  crc 0  malformed 0  gaps 0 (lost 0)")
-    assert re.search(r"tactile-monitor: alive and sane: 200 samples in 1\.\d s", err)
+    assert re.search(r"tactile-monitor: alive and sane: 200 samples in \d+\.\d s", err)
 
 
 def test_link_faults_are_counted_and_named(capsys):
