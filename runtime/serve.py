@@ -19,6 +19,7 @@ one gets 503 and a line saying so.
 
 from __future__ import annotations
 
+import ipaddress
 import json
 import queue
 import socket
@@ -85,6 +86,10 @@ class _Server(ThreadingHTTPServer):
     live: Live
 
 
+class _Server6(_Server):
+    address_family = socket.AF_INET6
+
+
 class Live:
     """The server and its viewers.
 
@@ -112,10 +117,8 @@ class Live:
         self._every = 1
         self.served = self.refused = self.dropped = self.published = 0
         self.closing = threading.Event()
-        family = socket.AF_INET6 if ":" in host else socket.AF_INET
-        server_cls = type("_Server", (_Server,), {"address_family": family})
         try:
-            self._server = server_cls((host, port), _Handler)
+            self._server = (_Server6 if ":" in host else _Server)((host, port), _Handler)
         except OSError as e:
             raise ConfigError(f"--serve {host}:{port}: cannot listen there ({e.strerror or e})"
                               ) from None
@@ -197,6 +200,15 @@ class Live:
             st.update(viewers=len(self._viewers), dropped=self.dropped, refused=self.refused)
         self.publish({"event": "status", **st}, _last)
         return now, samples
+
+    def host_allowed(self, host_header: str) -> bool:
+        """Bound to loopback, the page answers only to requests that name a loopback host: a
+        web page elsewhere cannot read it through a name that resolves to 127.0.0.1 (DNS
+        rebinding). Bound to another address, any name (the board's, a phone's view of it)."""
+        if not ipaddress.ip_address(self._server.server_address[0]).is_loopback:
+            return True
+        name = host_header.rsplit(":", 1)[0] if not host_header.endswith("]") else host_header
+        return name.strip("[]").lower() in ("localhost", "127.0.0.1", "::1")
 
     @property
     def viewers(self) -> int:
@@ -285,7 +297,10 @@ class _Handler(BaseHTTPRequestHandler):
     def _answer(self, body: bool) -> None:
         path = self.path.split("?", 1)[0]
         live = self.server.live
-        if path in _FILES:
+        if not live.host_allowed(self.headers.get("Host", "")):
+            self._send(HTTPStatus.FORBIDDEN, b"this page answers to localhost names only\n",
+                       "text/plain; charset=utf-8", body)
+        elif path in _FILES:
             name, ctype = _FILES[path]
             data = resources.files("tactile.runtime").joinpath("web", name).read_bytes()
             self._send(HTTPStatus.OK, data, ctype, body)

@@ -51,7 +51,7 @@ class Viewer:
 
     def __init__(self, live: Live) -> None:
         self.sock = socket.create_connection(("127.0.0.1", live.port), timeout=10)
-        self.sock.sendall(b"GET /events HTTP/1.1\r\nHost: t\r\n\r\n")
+        self.sock.sendall(b"GET /events HTTP/1.1\r\nHost: 127.0.0.1\r\n\r\n")
         self.file = self.sock.makefile("rb")
         self.status_line = self.file.readline().decode()
         while self.file.readline() not in (b"\r\n", b""):  # the headers
@@ -107,6 +107,10 @@ def test_endpoints_are_read_only_and_unknown_paths_404(live):
     assert get(live, "/events", "HEAD")[0] == 200 and live.served == 0  # HEAD joins nobody
     assert get(live, "/nothing")[0:3:2] == (404, b"no such page: /nothing\n")
     assert get(live, "/../etc/passwd")[0] == 404
+    conn = http.client.HTTPConnection("127.0.0.1", live.port, timeout=10)
+    conn.request("GET", "/", headers={"Host": f"evil.example:{live.port}"})  # DNS rebinding
+    assert conn.getresponse().status == 403
+    conn.close()
     for method in ("POST", "PUT", "DELETE", "PATCH"):
         status, headers, body = get(live, "/", method)
         assert (status, headers["Allow"]) == (405, "GET, HEAD"), method
@@ -169,7 +173,7 @@ def stuck_viewer(port: int) -> socket.socket:
     s = socket.socket(socket.AF_INET, socket.SOCK_STREAM)
     s.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 4096)
     s.connect(("127.0.0.1", port))
-    s.sendall(b"GET /events HTTP/1.1\r\nHost: t\r\n\r\n")
+    s.sendall(b"GET /events HTTP/1.1\r\nHost: 127.0.0.1\r\n\r\n")
     return s
 
 
