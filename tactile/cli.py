@@ -174,6 +174,7 @@ def _guarded_start(module: str) -> Callable[[], int]:
 
 run_main = _guarded_start("tactile.runtime.cli")
 record_main = _guarded_start("tactile.device.recorder")
+monitor_main = _guarded_start("tactile.runtime.monitor")
 
 
 def _interruptible(entry: Callable[[], int], prog: str) -> Callable[[], int]:
