@@ -161,3 +161,12 @@ def test_plots_mark_the_best_epoch_and_show_counts(tmp_path, monkeypatch):
     assert lines == [2, 2]  # epoch 2 (1-based) on both panels
     assert texts == ["0.75\n(3)", "0.25\n(1)", "0.00\n(0)", "1.00\n(4)"]
     assert (tmp_path / "curves.png").stat().st_size > 1000
+
+
+def test_eval_help_reads_as_a_sentence(capsys):
+    with pytest.raises(SystemExit) as e:
+        eval_main(["--help"])
+    assert e.value.code == 0
+    description = capsys.readouterr().out.split("\n\n")[1].replace("\n", " ")
+    assert description.startswith("Evaluate a trained run on a dataset") and \
+        description.endswith(".")
