@@ -208,7 +208,7 @@ def split_takes(takes: list[Take], cfg: TrainConfig) -> Split:
     def names(part: set[int]) -> list[str]:
         return sorted({group_names[groups[i]] for i in part})
 
-    unit = "user" if len(group_names) < len(takes) else "take"
+    unit = "user" if cfg.split == "user" and all("user" in t.meta for t in takes) else "take"
     description = (
         f"{cfg.split}: test {cfg.test + ' = ' if cfg.test else ''}{_names(names(test))}; "
         f"validation {cfg.val + ' = ' if cfg.val else ''}{_names(names(val))}; "
