@@ -188,6 +188,21 @@ def test_onnxruntime_matches_sklearn_over_the_grid(cases, kind):
                 check(compare(ref_of(n), got, d, x, n), (kind, k, f, n))
 
 
+def test_the_tie_explanation_accepts_a_tie_and_rejects_a_wrong_atom():
+    """The grid has no disagreement; this checks that the explanation it would apply tells a
+    tie (two atoms equally correlated with the window) from a code that took a wrong atom."""
+    rng = np.random.default_rng(7)
+    d = rng.standard_normal((30, 12))
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    x = (d[2] + d[5]).astype(np.float32)  # <d2, x> = <d5, x> = 1 + <d2, d5>: an exact tie
+    first = sklearn_order(d, x, 1)
+    assert first in ([2], [5])
+    other = 7 - first[0]  # the tied atom scikit-learn did not take
+    assert 0 <= tie_gap(d, x, first, {other}) < 1e-6
+    wrong = int(np.argmin(np.abs(d @ x)))  # the atom least correlated with x
+    assert tie_gap(d, x, first, {wrong}) > 0.1
+
+
 def test_default_non_zeros_are_sklearns():
     """``transform_n_nonzero_coefs=None``: int(features / 10), at least 1, at most atoms; the
     paper's sizes give 17 (vibration, 176 features), 2 (pressure, 25), 9 (electrodes, 95)."""
