@@ -19,8 +19,9 @@ raw 12-bit ADC counts as recorded: unit ``count``, scale 1.
 
 Every input is checked before anything is written: a file that is not HDF5, a trial group whose
 name or datasets are not as above, lengths that disagree, values that are not 12-bit counts, or
-a trial given twice, is one line naming the file and the dataset, exit code 1. A take that
-already exists in the output folder is an error too (importing twice would duplicate data).
+a trial given twice, is one line naming the file and the dataset, exit code 1. A take of the
+same name already in the output folder is refused too (importing twice would duplicate data),
+or replaced with ``--force``.
 """
 
 from __future__ import annotations
@@ -37,7 +38,7 @@ import numpy as np
 
 from tactile.cli import Parser, add_debug, run
 from tactile.device.info import ChannelSpec, DeviceInfo
-from tactile.device.recording import TakeWriter
+from tactile.device.recording import TakeWriter, dataset_folder, replace_takes
 from tactile.errors import RecordingError
 
 RATE_HZ = 100.0
@@ -160,9 +161,10 @@ def _metadata(trial: Trial, stamps: np.ndarray) -> dict:
     }
 
 
-def import_biotac(files: list[Path], out: Path) -> list[Path]:
+def import_biotac(files: list[Path], out: Path, force: bool = False) -> list[Path]:
     """Write one take per trial of ``files`` into the dataset folder ``out``; returns the CSV
-    paths. Everything is read and checked before the first take is written."""
+    paths. Everything is read and checked before the first take is written; takes of the same
+    names already in ``out`` are refused, or replaced with ``force``."""
     files = [Path(p) for p in files]
     handles = {p: _open(p) for p in files}
     try:
@@ -174,12 +176,10 @@ def import_biotac(files: list[Path], out: Path) -> list[Path]:
             if t.group in seen:
                 raise RecordingError(f"{t.file}: trial {t.group} also in {seen[t.group]}")
             seen[t.group] = t.file
-            for suffix in (".csv", ".json"):
-                if (Path(out) / (t.group + suffix)).exists():
-                    raise RecordingError(f"{Path(out) / (t.group + suffix)}: already exists "
-                                         "(import into a new folder)")
         for t in trials:  # check every trial (no data kept) before writing any
             read_trial(handles[t.file], t)
+        out = dataset_folder(out)
+        replace_takes(out, [t.group for t in trials], force)
         info = DeviceInfo(RATE_HZ, channels(), device="biotac-bolt")
         paths = []
         for t in trials:
@@ -195,7 +195,7 @@ def import_biotac(files: list[Path], out: Path) -> list[Path]:
 
 
 def _main(args: argparse.Namespace) -> int:
-    for p in import_biotac(args.files, args.out):
+    for p in import_biotac(args.files, args.out, args.force):
         print(p)
     return 0
 
@@ -206,6 +206,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("files", type=Path, nargs="+", metavar="FILE.h5",
                    help="one HDF5 file per object (e.g. cork.h5), one group per trial")
     p.add_argument("--out", type=Path, required=True, help="dataset folder to write")
+    p.add_argument("--force", action="store_true", help="replace takes of the same names")
     add_debug(p)
     return run("tactile-import-biotac", _main, p.parse_args(argv))
 

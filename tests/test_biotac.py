@@ -176,14 +176,22 @@ def test_other_bad_inputs(tmp_path):
     with pytest.raises(RecordingError, match="empty.h5: no trial groups"):
         import_biotac([tmp_path / "empty.h5"], tmp_path / "out")
     write_h5(tmp_path / "a.h5", {"cork_pdc100_1cm_01": 30})
-    write_h5(tmp_path / "b.h5", {"cork_pdc100_1cm_01": 30})
+    write_h5(tmp_path / "b.h5", {"cork_pdc100_1cm_01": 30}, seed=1)
     with pytest.raises(RecordingError, match=r"b.h5: trial cork_pdc100_1cm_01 also in .*a.h5"):
         import_biotac([tmp_path / "a.h5", tmp_path / "b.h5"], tmp_path / "out")
     assert not (tmp_path / "out").exists()
     import_biotac([tmp_path / "a.h5"], tmp_path / "out")
-    with pytest.raises(RecordingError, match=r"cork_pdc100_1cm_01.csv: already exists"):
+    with pytest.raises(RecordingError, match=r"cork_pdc100_1cm_01.csv and 1 more files already "
+                       "exist: choose another folder, or --force to replace them"):
         import_biotac([tmp_path / "a.h5"], tmp_path / "out")  # twice would duplicate the trial
+    import_biotac([tmp_path / "b.h5"], tmp_path / "out", force=True)  # b's data replace a's
     assert len(list((tmp_path / "out").glob("*.csv"))) == 1
+    take = read_take(tmp_path / "out" / "cork_pdc100_1cm_01.csv")
+    with h5py.File(tmp_path / "b.h5", "r") as f:
+        assert np.array_equal(take.raw[:, 0], f["cork_pdc100_1cm_01/finger_0/pac"][:, 0])
+    (tmp_path / "file").write_text("")
+    with pytest.raises(RecordingError, match="file: not a folder"):
+        import_biotac([tmp_path / "a.h5"], tmp_path / "file")
 
 
 def test_without_h5py_the_command_names_its_extra():
