@@ -46,13 +46,13 @@ class SparseCoder(nn.Module):
     """Orthogonal matching pursuit with a fixed number of non-zeros.
 
     Args:
-        dictionary: (atoms, features) as scikit-learn stores it (``components_``); rows are
-            usually unit-norm (dictionary learning makes them so) but need not be.
+        dictionary: (atoms, features) as scikit-learn stores it (``components_``); rows of
+            any norm (dictionary learning keeps them at norm <= 1). Held as float32 constants.
         n_nonzero: atoms per code, 1 .. atoms (scikit-learn's limit). Beyond ``features`` the
             residual vanishes and a row stops early, as in scikit-learn.
 
-    Input ``(batch, features)``; output codes ``(batch, atoms)`` in the input's dtype, at most
-    ``n_nonzero`` non-zero per row.
+    Input ``(batch, features)`` float32 (scikit-learn's thresholds for float32 windows);
+    output codes ``(batch, atoms)`` float32, at most ``n_nonzero`` non-zero per row.
     """
 
     def __init__(self, dictionary: np.ndarray | Tensor, n_nonzero: int) -> None:
