@@ -104,15 +104,16 @@ class Recorder:
         self.unfit = 0
         self.result.takes.append(self.writer.csv_path)
 
-    def _close(self, decoder: StreamDecoder) -> None:
-        """Close the take: complete, unless a write failed (its error was raised already)."""
+    def _close(self, decoder: StreamDecoder, complete: bool = True) -> None:
+        """Close the take: complete unless told otherwise or a write failed."""
         if self.writer is not None:
             writer, self.writer = self.writer, None
             writer.set_decoder_stats(decoder.stats)
-            writer.close()
+            writer.close(complete)
 
-    def close(self, decoder: StreamDecoder) -> None:
-        self._close(decoder)
+    def close(self, decoder: StreamDecoder, complete: bool = True) -> None:
+        """Close the take (``complete``: False when the recording ended on an error)."""
+        self._close(decoder, complete)
         self.result.stats = decoder.stats.as_dict()
 
 
@@ -178,7 +179,7 @@ def record(
             if rec.result.samples >= rec.max_samples:
                 break
     finally:
-        rec.close(decoder)
+        rec.close(decoder, complete=sys.exc_info()[0] is None)  # an error: not complete
         if link is not None:  # None: stopped before opening it, or while waiting to reconnect
             link.close()
         for s, h in old.items():

@@ -186,6 +186,7 @@ class TakeWriter:
         self._lock = threading.Lock()  # the CSV's end and self.meta
         self._flush_lock = threading.Lock()  # one flush at a time
         self._error: str | None = None  # set by the first failed write: the take is frozen
+        self._told = False  # whether a caller has been raised that error
         self._dirty = True
         self.flushes = 0
         self.csv_path, self._fd = _create(self.folder, stem)
@@ -250,23 +251,34 @@ class TakeWriter:
     def _append(self, data: bytes, path: Path) -> None:
         """Write ``data`` at the CSV's end (caller holds the lock, or is the constructor)."""
         if self._error:
-            raise RecordingError(self._error)
+            self._raise()
         try:
             _write_all(self._fd, data)
         except OSError as e:
             self._error = f"{path}: cannot write ({_why(e)}); the take keeps what came before"
-            raise RecordingError(self._error) from None
+            self._raise()
 
     def _tick(self, period: float) -> None:
         while not self._stop.wait(period):
             if self._dirty and not self._error:
                 try:
-                    self.flush()
-                except RecordingError:  # kept in self._error: the next write raises it
+                    self._flush()
+                except RecordingError:  # kept in self._error: the next call raises it
                     pass
 
     def flush(self) -> None:
         """Make everything written so far durable, and the JSON up to date."""
+        try:
+            self._flush()
+        except RecordingError:
+            self._told = True
+            raise
+
+    def _raise(self) -> None:
+        self._told = True
+        raise RecordingError(self._error) from None
+
+    def _flush(self) -> None:
         with self._flush_lock:
             with self._lock:
                 if self._error:
@@ -287,20 +299,22 @@ class TakeWriter:
                 raise RecordingError(self._error) from None
             self.flushes += 1
 
-    def close(self) -> None:
-        """Stop the clock; mark the take complete unless a write failed. Raises
-        :class:`RecordingError` if this last flush fails (an earlier failure was raised when
-        it happened and is not raised again)."""
+    def close(self, complete: bool = True) -> None:
+        """Stop the clock; mark the take complete (unless ``complete`` is False, or a write
+        failed). Raises
+        :class:`RecordingError` if this last flush fails, or if the clock's flush failed and
+        no call has raised that yet (a failure already raised is not raised again)."""
         if self._fd < 0:
             return
         self._stop.set()
         self._clock.join()
-        failed = self._error is not None
         try:
-            if not failed:
+            if self._error is None:
                 with self._lock:
-                    self.meta["complete"] = True
+                    self.meta["complete"] = complete
                 self.flush()
+            elif not self._told:
+                self._raise()
         finally:
             os.close(self._fd)
             self._fd = -1
@@ -313,8 +327,8 @@ class TakeWriter:
     def __enter__(self) -> TakeWriter:
         return self
 
-    def __exit__(self, *exc) -> None:
-        self.close()
+    def __exit__(self, kind, *exc) -> None:
+        self.close(complete=kind is None)  # a block that raised did not finish the take
 
 
 def _why(e: OSError) -> str:

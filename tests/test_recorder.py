@@ -625,3 +625,29 @@ def test_version_1_takes_still_read(tmp_path):
     (tmp_path / "t.json").write_text(json.dumps(meta))
     take = read_take(tmp_path / "t.csv")
     assert take.segments() == [(0, 3), (3, 5)]
+
+
+def test_a_failed_clock_flush_is_raised_at_close(tmp_path, monkeypatch):
+    """The JSON cannot be rewritten during a silence (only the clock runs then): close()
+    raises it, naming the JSON, and the take is not marked complete; a block that raised does
+    not mark its take complete either."""
+    import errno
+
+    from tactile.device import recording
+
+    def no_space(path, text):
+        raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
+
+    w = TakeWriter(tmp_path, "paper", pen_info(), name="q", flush_every_s=0.02)
+    w.write(0, 0, np.ones((3, 8), np.int16))
+    monkeypatch.setattr(recording, "_replace_file", no_space)
+    _wait_for(lambda: w.error is not None, "a failed flush by the clock")
+    with pytest.raises(RecordingError, match=r"q\.json: cannot write \(No space left"):
+        w.close()
+    monkeypatch.undo()
+    take = read_take(tmp_path / "q.csv")
+    assert not take.meta["complete"] and take.seq.tolist() == [0, 1, 2]
+    with pytest.raises(ZeroDivisionError), TakeWriter(tmp_path, "paper", pen_info(), name="r") as w:
+        w.write(0, 0, np.ones((3, 8), np.int16))
+        1 / 0  # noqa: B018
+    assert not read_take(tmp_path / "r.csv").meta["complete"]
