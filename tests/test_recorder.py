@@ -651,3 +651,42 @@ def test_a_failed_clock_flush_is_raised_at_close(tmp_path, monkeypatch):
         w.write(0, 0, np.ones((3, 8), np.int16))
         1 / 0  # noqa: B018
     assert not read_take(tmp_path / "r.csv").meta["complete"]
+
+
+@pytest.mark.parametrize("json_text", ['{"format": "tactile-recording", "version": 1, "label": '
+                                       '"paper", "device": {"sample_rate_hz": -1, "channels": '
+                                       '[{"name": "a", "unit": "N"}]}}', "[" * 100_000, "null"])
+def test_a_command_reading_a_bad_take_says_one_line_and_exits_1(tmp_path, json_text):
+    """A dataset command over a take whose JSON is hostile: exit 1 (bad input, not the device's
+    2), one line naming the JSON, no traceback."""
+    _meta_of(tmp_path)
+    (tmp_path / "t.json").write_text(json_text)
+    proc = subprocess.run([sys.executable, "-c", "import sys; from tactile.training.summary "
+                           "import main; sys.exit(main())", str(tmp_path)],
+                          capture_output=True, text=True, timeout=120)
+    assert proc.returncode == 1, proc.stderr
+    assert proc.stderr.count("\n") == 1 and str(tmp_path / "t.json") in proc.stderr
+
+
+def test_frames_of_another_width_before_the_header_through_the_decoder(tmp_path):
+    """The issue's case on the wire: 3-channel frames, then the 8-channel header and frames.
+    Whatever the decoder makes of the first ones, the take is complete, holds all 8-channel
+    samples, and says how many samples it left out."""
+    from tactile.device.decoder import Samples
+    from tactile.device.protocol import encode_header, encode_samples
+
+    info = pen_info()
+    raw = np.arange(40 * 8, dtype=np.int16).reshape(40, 8)
+    stream = b"".join(encode_samples(k, k * 10_000, np.ones((1, 3), np.int16))
+                      for k in range(5))
+    stream += encode_header(info) + b"".join(
+        encode_samples(k, k * 10_000, raw[k - 5 : k - 4]) for k in range(5, 45))
+    rec, dec = Recorder(tmp_path, "paper", "test"), StreamDecoder()
+    events = dec.feed(stream)
+    narrow = sum(len(e.raw) for e in events if isinstance(e, Samples) and e.raw.shape[1] == 3)
+    rec.handle(events, dec)
+    rec.close(dec)
+    take = read_take(rec.result.takes[0])
+    assert take.meta["complete"]
+    np.testing.assert_array_equal(take.raw, raw)
+    assert sum(g["missing"] for g in take.meta["gaps"] if g["reason"] == "rejected") == narrow
