@@ -690,3 +690,26 @@ def test_frames_of_another_width_before_the_header_through_the_decoder(tmp_path)
     assert take.meta["complete"]
     np.testing.assert_array_equal(take.raw, raw)
     assert sum(g["missing"] for g in take.meta["gaps"] if g["reason"] == "rejected") == narrow
+
+
+def test_a_file_size_limit_stops_the_real_recorder_cleanly(tmp_path):
+    """The operating system refuses the CSV's growth (RLIMIT_FSIZE at 20 kB, a real EFBIG from
+    write(2), as a full disk gives ENOSPC): tactile-record exits 1 with one line naming the CSV;
+    the take keeps the rows that fit, every one the pen's, and is not complete."""
+    import resource
+
+    def limit():
+        signal.signal(signal.SIGXFSZ, signal.SIG_IGN)  # the write fails instead of killing
+        resource.setrlimit(resource.RLIMIT_FSIZE, (20_000, 20_000))
+
+    proc = subprocess.run(
+        [sys.executable, "-c", "import sys; from tactile.cli import record_main; "
+         "sys.exit(record_main())", "--port", "sim://?texture=desk&seed=4&speed=max",
+         "--label", "desk", "--out", str(tmp_path), "--seconds", "60", "--quiet"],
+        capture_output=True, text=True, timeout=120, preexec_fn=limit)
+    (csv,) = tmp_path.glob("*.csv")
+    assert proc.returncode == 1 and "Traceback" not in proc.stderr, proc.stderr
+    assert f"tactile-record: error: {csv}: cannot write (File too large)" in proc.stderr
+    take = read_take(csv)
+    assert not take.meta["complete"] and len(take.seq) > 100
+    assert_samples_are_the_pen(take, "desk", 4)
