@@ -3,10 +3,10 @@
     tactile-record --port sim://?texture=paper --label paper --seconds 60 --out data/
 
 Data (the paths of the takes written) goes to stdout, progress and diagnostics to stderr. Ctrl-C
-or SIGTERM finishes the take cleanly; a killed recorder leaves a readable take that holds every
-sample it had received and every gap among them. A vanished port is reopened with backoff and
-the take goes on after a ``restart`` gap. A header change (another pen, another layout) starts a
-new take.
+or SIGTERM finishes the take cleanly; a killed recorder leaves a readable take holding every
+sample that had reached it after the pen's header, and every gap among them. A vanished port is
+reopened with backoff and the take goes on after a ``restart`` gap. A header change (another
+pen, another layout) starts a new take.
 """
 
 from __future__ import annotations
