@@ -32,7 +32,7 @@ import numpy as np
 from tactile.device.decoder import DecoderStats, Gap
 from tactile.device.info import DeviceInfo
 from tactile.device.take_meta import FORMAT, VERSION, read_meta
-from tactile.errors import RecordingError
+from tactile.errors import ConfigError, RecordingError
 
 FIXED_COLUMNS = ("seq", "t_us")
 GAP_LINE = re.compile(r"# gap seq=(\d+) missing=(\d+) reason=([a-z_]+)\n")
@@ -196,6 +196,8 @@ class TakeWriter:
         flush_every_s: float = 1.0,
     ) -> None:
         check_label(label)
+        if not (isinstance(flush_every_s, int | float) and 0 < flush_every_s < math.inf):
+            raise ConfigError(f"flush_every_s {flush_every_s!r}: must be a positive number")
         self.folder = dataset_folder(folder)
         started = time.gmtime()
         stem = name or f"{label}-{time.strftime('%Y%m%dT%H%M%SZ', started)}"
