@@ -174,6 +174,7 @@ def _guarded_start(module: str) -> Callable[[], int]:
 
 run_main = _guarded_start("tactile.runtime.cli")
 record_main = _guarded_start("tactile.device.recorder")
+monitor_main = _guarded_start("tactile.runtime.monitor")
 train_main = _with_extra("tactile.training.train", "tactile-train")
 eval_main = _with_extra("tactile.training.evaluate", "tactile-eval")
 export_main = _with_extra("tactile.export.cli", "tactile-export")
