@@ -105,7 +105,7 @@ def float_in(low: float, high: float = math.inf, low_open: bool = True,
 
 # What each optional extra brings: a command that needs one says so in one line.
 _EXTRA_OF = {"torch": "train", "onnx": "train", "onnxscript": "train", "tqdm": "train",
-             "matplotlib": "train"}
+             "matplotlib": "train", "sklearn": "train", "h5py": "biotac"}
 
 
 def _with_extra(module: str, prog: str) -> Callable[[], int]:
@@ -197,6 +197,7 @@ eval_main = _interruptible(_with_extra("tactile.training.evaluate", "tactile-eva
                            "tactile-eval")
 export_main = _with_extra("tactile.export.cli", "tactile-export")
 plot_main = _with_extra("tactile.training.plot", "tactile-plot")
+import_biotac_main = _with_extra("tactile.device.biotac", "tactile-import-biotac")
 
 
 def add_debug(parser: argparse.ArgumentParser) -> None:
