@@ -176,7 +176,8 @@ def board_check(path: Path) -> None:
     """The check with onnxruntime only: what ``tactile-run`` loads, validates and runs."""
     from tactile.runtime.model import Model
 
-    model = Model(path)  # contract and signature, as tactile-run checks them (exit 3)
+    model = Model(path)  # contract, signature and outputs, as tactile-run checks them (exit 3)
+    model.probe(2)  # and the batch axis really dynamic
     c = model.contract
     h, cc = model.zero_state()
     probs, _, _ = model.classify(np.zeros((1, c.window, len(c.channels)), np.float32), h, cc)
@@ -204,7 +205,8 @@ def _main(args: argparse.Namespace) -> int:
     _, contract = load_contract(args.model)
     from tactile.runtime.model import Model
 
-    Model(args.model)  # runs zero windows: outputs of the declared shapes, as tactile-run checks
+    Model(args.model).probe(2)  # outputs of the declared shapes at batch 1 (as tactile-run
+    # checks at load) and 2 (the batch axis really dynamic)
     print(describe(args.model, contract))
     if args.run is not None:
         if not _reparity(args.model, contract, args.run, args.data, args.windows):

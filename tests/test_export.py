@@ -449,7 +449,8 @@ LIES = {
     "wide_probs": ({"probs_width": 3}, "output 'probs' has width 3, the contract declares 2"),
     "wide_state": ({"hidden_out": 16}, "output 'h_out' has width 16, the contract declares 8"),
     "fixed_batch": ({"fixed_batch": True},
-                    r"output 'probs' has shape \(1, 2\), the contract declares \(2, 2\)"),
+                    r"output 'probs' has shape \(1, 2\), the contract declares \(2, 2\) "
+                    r"\(batch 2\)"),
 }
 
 
@@ -465,17 +466,25 @@ def test_a_well_formed_hand_built_graph_loads(tmp_path):
 def test_outputs_wider_than_declared_are_refused_at_load(tmp_path, capsys, lie):
     """tactile-check and tactile-run both refuse the file in one line, exit 3, naming the
     output and its real width, before any data is read (no port is opened: sim:// would
-    stream forever)."""
+    stream forever). A fixed batch of 1 is what the runtime runs: tactile-check and
+    Model.classify at batch 2 refuse it."""
     from tactile.runtime.cli import main as run_main
     from tactile.runtime.model import Model
 
     kwargs, message = LIES[lie]
     path = _lying_model(tmp_path / f"{lie}.onnx", **kwargs)
-    with pytest.raises(ModelContractError, match=message):
-        Model(path)
-    for prog, main, argv in (("tactile-check", check_main, [str(path)]),
-                             ("tactile-run", run_main, ["--model", str(path), "--port",
-                                                        "sim://?texture=paper"])):
+    if lie == "fixed_batch":
+        model = Model(path)
+        with pytest.raises(ModelContractError, match=message):
+            model.classify(np.zeros((2, 50, 2), np.float32), *model.zero_state(2))
+    else:
+        with pytest.raises(ModelContractError, match=message):
+            Model(path)
+    runs = [("tactile-check", check_main, [str(path)])]
+    if lie != "fixed_batch":
+        runs.append(("tactile-run", run_main, ["--model", str(path), "--port",
+                                               "sim://?texture=paper"]))
+    for prog, main, argv in runs:
         assert main(argv) == 3, prog
         err = capsys.readouterr().err.strip()
         assert len(err.splitlines()) == 1 and err.startswith(f"{prog}: error: {path}: "), err
