@@ -8,17 +8,16 @@ of a class in turn, blocks of consecutive windows from a seeded position in each
 
 from __future__ import annotations
 
-import hashlib
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
 from tactile.device.info import PEN_CHANNELS
-from tactile.device.recording import Take, load_dataset
+from tactile.device.recording import load_dataset
 from tactile.device.simulator import TEXTURES, PenSimulator
 from tactile.errors import RecordingError
-from tactile.training.data import cut
+from tactile.training.data import cut, find_test_split
 
 CARRY_STEPS = 24
 """Consecutive windows per simulated or random run (the contract asks for >= 20)."""
@@ -52,55 +51,6 @@ def probe_windows(ck: dict, data: Path | None = None, max_windows: int = 256) ->
         probe = random_windows(ck)
     block = CARRY_STEPS if ck["config"].get("state") == "carry" else 1
     return stratified(probe, max_windows, block)
-
-
-def take_fingerprint(take: Take) -> str:
-    """A take's identity by content: 16 hex digits of the SHA-256 of its label, channel names,
-    sequence numbers, timestamps and raw samples. Two folders holding takes of the same names
-    but other recordings give other fingerprints. Training records those of its test takes in
-    the checkpoint (``test_fingerprints``: {take file name: fingerprint})."""
-    h = hashlib.sha256()
-    h.update(repr((str(take.label), tuple(take.channels))).encode())
-    for a in (take.seq, take.t_us, take.raw):
-        arr = np.ascontiguousarray(a)
-        h.update(f"{arr.dtype.str}{arr.shape}".encode())
-        h.update(arr.tobytes())
-    return h.hexdigest()[:16]
-
-
-def find_test_split(takes: list[Take], test_rows: object, fingerprints: object,
-               folder: str) -> tuple[dict[int, tuple[int, int]] | None, str, bool]:
-    """Which rows of ``takes`` are a run's test split, recognised by content.
-
-    Args:
-        takes: the dataset's takes; test_rows: the run's ``{take file name: [start, end)}``;
-        fingerprints: its ``{take file name: take_fingerprint}`` (absent in runs trained before
-        they were recorded); both read defensively (anything malformed counts as absent).
-        folder: the dataset's name, for the description.
-
-    Returns:
-        rows: {take index: (start, end)}, or None for every row of every take.
-        scope: what the rows are, for people.
-        verified: True when every test take was found with the recorded fingerprint.
-    """
-    names = [t.path.name for t in takes]
-    rows_ok = isinstance(test_rows, dict) and test_rows and all(
-        isinstance(v, (list, tuple)) and len(v) == 2 and all(isinstance(i, int) for i in v)
-        for v in test_rows.values())
-    if not rows_ok or not all(n in names for n in test_rows):
-        return None, f"every take of {folder} ({len(takes)} takes)", False
-    rows = {names.index(n): (int(r[0]), int(r[1])) for n, r in test_rows.items()}
-    fps_ok = isinstance(fingerprints, dict) and all(
-        isinstance(fingerprints.get(n), str) for n in test_rows)
-    if not fps_ok:
-        return rows, (f"the takes of {folder} named like the run's test split ({len(rows)} takes; "
-                      "the run recorded no fingerprints, so their content is not verified)"), False
-    differ = [n for n in test_rows
-              if take_fingerprint(takes[names.index(n)]) != fingerprints[n]]
-    if differ:
-        return None, (f"every take of {folder} ({len(takes)} takes; {len(differ)} named like "
-                      f"the run's test takes hold other recordings, e.g. {differ[0]})"), False
-    return rows, f"the run's test split in {folder} ({len(rows)} takes, matched by content)", True
 
 
 def from_dataset(ck: dict, data: Path) -> Probe:

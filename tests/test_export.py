@@ -510,12 +510,12 @@ def test_stream_refuses_a_classify_function_returning_the_wrong_width():
 
 def test_test_takes_are_recognised_by_content(dataset, tmp_path):
     from tactile.device.recording import load_dataset
-    from tactile.export.windows import find_test_split, take_fingerprint
+    from tactile.training.data import find_test_split
 
     takes = load_dataset(dataset)
     names = [t.path.name for t in takes]
     test_rows = {names[0]: [0, 300], names[2]: [100, 400]}
-    fps = {n: take_fingerprint(takes[names.index(n)]) for n in test_rows}
+    fps = {n: takes[names.index(n)].fingerprint() for n in test_rows}
     rows, scope, verified = find_test_split(takes, test_rows, fps, "d")
     assert verified and rows == {0: (0, 300), 2: (100, 400)}, scope
     assert scope.startswith("the run's test split in d (2 takes, matched by content)")
@@ -537,7 +537,6 @@ def test_test_takes_are_recognised_by_content(dataset, tmp_path):
 
 def test_check_data_says_what_it_measured(dataset, root, tmp_path, capsys):
     from tactile.device.recording import load_dataset
-    from tactile.export.windows import take_fingerprint
     from tactile.training.train import CHECKPOINT
 
     src, _, _, _, _ = _build("lstm1", GRID["lstm1"], dataset, root)
@@ -545,7 +544,7 @@ def test_check_data_says_what_it_measured(dataset, root, tmp_path, capsys):
     run.mkdir()
     ck = torch.load(src / CHECKPOINT, weights_only=True)
     by_name = {t.path.name: t for t in load_dataset(dataset)}
-    ck["test_fingerprints"] = {n: take_fingerprint(by_name[n]) for n in ck["test_rows"]}
+    ck["test_fingerprints"] = {n: by_name[n].fingerprint() for n in ck["test_rows"]}
     torch.save(ck, run / CHECKPOINT)  # what the training side records
     out = tmp_path / "m.onnx"
     export_run(run, out, log=lambda s: None)
