@@ -42,6 +42,7 @@ from tactile.training.data import (
 )
 from tactile.training.evaluate import _runs, predict, shifted, summary, table
 from tactile.training.model import TextureModel
+from tactile.training.sampling import epoch_order
 
 CHECKPOINT = "checkpoint.pt"
 CHECKPOINT_FORMAT = "tactile-checkpoint"
@@ -187,7 +188,7 @@ def _train(model: TextureModel, w: Windows, f_all: torch.Tensor, n_epochs: int, 
     epochs = tqdm(range(n_epochs), desc="epochs", disable=not progress, file=sys.stderr)
     for epoch in epochs:
         model.train()
-        order = units[torch.randperm(len(units), generator=gen).numpy()]
+        order = epoch_order(units, cfg.epoch_windows, gen)
         total, count = 0.0, 0
         for i in tqdm(range(0, len(order), cfg.batch_size), desc=f"epoch {epoch + 1}",
                       disable=not progress, leave=False, file=sys.stderr):
@@ -282,7 +283,7 @@ def load_checkpoint(run_dir: Path) -> tuple[TextureModel, dict]:
     if ck.get("version") != CHECKPOINT_VERSION:
         raise RecordingError(f"{path}: checkpoint version {ck.get('version')}, "
                              f"this package reads {CHECKPOINT_VERSION}")
-    cfg = TrainConfig.from_dict(ck["config"])
+    cfg = TrainConfig.from_dict({"front": "none", **ck["config"]})  # before fronts: none
     model = TextureModel(cfg, len(ck["classes"]), torch.tensor(ck["mean"]),
                          torch.tensor(ck["std"]), list(ck["emd_index"]), list(ck["center_index"]))
     model.load_state_dict(ck["state_dict"])
