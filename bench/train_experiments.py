@@ -26,7 +26,7 @@ from tactile.device.recording import load_dataset
 from tactile.device.sim_cli import make_dataset
 from tactile.training.config import TrainConfig
 from tactile.training.data import channel_index, classes_of, cut, split_takes
-from tactile.training.train import train
+from tactile.training.train import parse_sets, train
 
 HAPMAT = (Path(__file__).resolve().parents[2] / "shared" / "datasets" / "hapmat"
           / "hapmat_stick_imu.npz")
@@ -165,10 +165,12 @@ def main() -> None:
     p.add_argument("--threads", type=int, default=2)
     p.add_argument("--hapmat", type=Path, default=HAPMAT)
     p.add_argument("--only", choices=("exp1", "exp2", "hapmat"), action="append")
+    p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
+                   help="change a default for every run, as tactile-train --set")
     p.add_argument("--seeds", type=_seeds, default=(0, 1, 2),
                    help="HapMat: comma-separated seeds, one LSTM run each (default 0,1,2)")
     args = p.parse_args()
-    base = TrainConfig(threads=args.threads)
+    base = parse_sets(args.set, TrainConfig(threads=args.threads))
     if args.epochs is not None:
         base = base.replace(epochs=args.epochs)
     todo = args.only or ["exp1", "exp2", "hapmat"]

@@ -40,9 +40,9 @@ class TrainConfig:
     so that the model does not key on one user's signal levels; an epoch is ``epoch_windows``
     training windows drawn at random without replacement (0 or more than there are: all of
     them; with ``state='carry'`` runs of ``carry_steps`` windows), and training stops when the
-    validation loss has not improved for ``patience`` epochs (at most ``epochs``). Options: ``schedule``
-    of the learning rate (``constant``, ``plateau``: halved when the validation loss stalls for
-    ``patience // 4`` epochs, ``cosine``: down to ``lr / 100`` over ``epochs``),
+    validation loss has not improved for ``patience`` epochs (at most ``epochs``). Options:
+    ``schedule`` of the learning rate (``constant``, ``plateau``: halved when the validation loss
+    stalls for ``patience // 4`` epochs, ``cosine``: down to ``lr / 100`` over ``epochs``),
     ``label_smoothing`` of the training targets, ``ema`` (the decay per step of an exponential
     moving average of the weights, which is what is validated and kept; 0: off) and ``refit``:
     ``on`` trains again from scratch on training + validation windows for the best epoch count,
