@@ -217,7 +217,8 @@ def _train(model: TextureModel, w: Windows, f_all: torch.Tensor, n_epochs: int, 
             if ema is not None:
                 with torch.no_grad():
                     for k, v in head.state_dict().items():
-                        ema[k].mul_(cfg.ema).add_(v, alpha=1 - cfg.ema)
+                        if v.is_floating_point():  # not a step counter (batch norm's)
+                            ema[k].mul_(cfg.ema).add_(v, alpha=1 - cfg.ema)
             total += float(loss.detach()) * len(rows)
             count += len(rows)
         history["train_loss"].append(total / count)
