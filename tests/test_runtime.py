@@ -775,7 +775,7 @@ def test_a_stop_while_the_pen_is_unplugged_is_clean(reap):
         [sys.executable, "-m", "tactile.runtime.cli", "--model", str(SHIPPED), "--port",
          "sim://?texture=paper&seed=2&speed=2&unplug=1:30", "--status-every", "0.5"],
         stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True))
-    early = stderr_until(proc, "waiting for sim://")  # unplugged, and waiting for the pen
+    early = stderr_until(proc, "waiting for the pen")  # unplugged, and waiting for it
     proc.send_signal(signal.SIGINT)
     out, err = finish(proc)
     assert proc.returncode == 0, err
