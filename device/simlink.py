@@ -293,8 +293,10 @@ class PenLink:
         return data
 
     def _fault(self, data: bytes) -> tuple[bytes, bool]:
+        """``data`` with garbage before it and bits flipped, and whether the frame itself
+        (not the garbage) came through intact."""
         cfg = self.config
-        intact = True
+        intact, size = True, len(data)
         if cfg.garbage and self.rng.random() < cfg.garbage:
             g = self.rng.integers(1, 256, int(self.rng.integers(1, 33))).astype(np.uint8)
             self.injected.garbage_bytes += len(g)
@@ -307,5 +309,5 @@ class PenLink:
                 arr[hit] ^= (1 << bits).astype(np.uint8)
                 self.injected.flipped_bytes += int(hit.sum())
                 data = arr.tobytes()
-                intact = False
+                intact = not hit[len(data) - size :].any()
         return data, intact
