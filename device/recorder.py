@@ -23,7 +23,7 @@ from tactile.cli import Parser, add_debug, float_in, int_in, run, started
 from tactile.device.decoder import Gap, Header, Samples, StreamDecoder
 from tactile.device.info import DeviceInfo
 from tactile.device.ports import PenId, open_port, read_some, reconnect, usb_serial
-from tactile.device.recording import TakeWriter
+from tactile.device.recording import TakeWriter, check_label, dataset_folder
 from tactile.errors import DeviceError
 
 MAX_EARLY = 100_000  # samples held while waiting for the first header (binary mode)
@@ -218,6 +218,8 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def _main(args: argparse.Namespace) -> int:
+    check_label(args.label)  # before the port opens: a mistake costs no take
+    dataset_folder(args.out)
     res = record(
         args.port, args.label, args.out, args.seconds, args.baud, args.csv_rate,
         progress=not args.quiet,
