@@ -251,3 +251,26 @@ def test_what_makes_the_same_pen():
     assert PenId(csv("a", "b", "c")).differs(csv("ch0", "ch1", "ch2")) is None
     assert "2 CSV channels, not 3" in PenId(csv("a", "b", "c")).differs(csv("a", "b"))
     assert "not the 'csv' one" in PenId(csv("a", "b", "c")).differs(base)
+
+
+def test_the_recorder_keeps_the_bytes_that_came_with_a_disconnect(tmp_path, reap):
+    """tactile-record on a socket pen that sends 3 s of samples and hangs up at once: the take
+    holds all 300 (they arrived together with the disconnect)."""
+    from tactile.device.recording import read_take
+
+    srv, url = listening()
+    proc = reap(subprocess.Popen(
+        [sys.executable, "-m", "tactile.device.recorder", "--port", url, "--label", "paper",
+         "--out", str(tmp_path), "--seconds", "3"],
+        stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True), 120)
+    try:
+        conn, _ = srv.accept()
+        with conn:  # sent once it reports progress: its socket:// open is over
+            assert proc.stderr.readline().startswith("[paper]")
+            conn.sendall(PenLink(LinkConfig(texture="paper", seed=2)).produce(300))
+        out, err = proc.communicate(timeout=60)
+    finally:
+        srv.close()
+    assert proc.returncode == 0, err
+    take = read_take(out.strip())
+    assert list(take.seq) == list(range(300))
