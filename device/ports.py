@@ -55,23 +55,23 @@ class PortBusy(PortAbsent):
 
 
 def holders(port: str) -> list[str]:
-    """Other processes that have ``port`` open, as ``"pid N (command line)"``, from
-    ``/proc/*/fd`` (only those this user may inspect; empty where there is no ``/proc``)."""
+    """The processes holding ``port``'s exclusive lock, as ``"pid N (command line)"``, from
+    ``/proc/locks`` (empty where there is none, or when they are hidden from us)."""
     try:
-        target = os.path.realpath(port)
-        pids = [p for p in os.listdir("/proc") if p.isdigit() and int(p) != os.getpid()]
+        st = os.stat(port)
+        inode = f"{os.major(st.st_dev):02x}:{os.minor(st.st_dev):02x}:{st.st_ino}"
+        with open("/proc/locks") as f:
+            pids = [p[4] for p in (ln.split() for ln in f)
+                    if len(p) > 5 and p[1] == "FLOCK" and p[5] == inode]
     except OSError:
         return []
     found = []
-    for pid in pids:
+    for pid in dict.fromkeys(pids):
         try:
-            fds = os.listdir(f"/proc/{pid}/fd")
-            if not any(os.readlink(f"/proc/{pid}/fd/{fd}") == target for fd in fds):
-                continue
             with open(f"/proc/{pid}/cmdline", "rb") as f:
                 cmd = f.read().replace(b"\0", b" ").decode(errors="replace").strip()
         except OSError:  # gone, or not ours to look at
-            continue
+            cmd = ""
         found.append(f"pid {pid} ({cmd[:120]})" if cmd else f"pid {pid}")
     return found
 
