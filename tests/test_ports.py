@@ -179,7 +179,9 @@ def test_after_an_unplug_only_the_same_pen_is_taken_back(reap):
             else:
                 labels.append((len(events), x["seq"]))
         proc.send_signal(signal.SIGINT)
-        out, rest = proc.communicate(timeout=30)
+        proc.stdout.read()  # to its end, through the pipes readline() buffered
+        rest = proc.stderr.read()
+        proc.wait(timeout=30)
     finally:
         done.set()
         srv.close()
