@@ -16,7 +16,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from tactile.device.info import MAX_CHANNELS, ChannelSpec, DeviceInfo
+from tactile.device.info import ChannelSpec, DeviceInfo
 from tactile.errors import FrameError
 
 DELIMITER = 0x00
@@ -24,6 +24,9 @@ TYPE_HEADER = 0x01
 TYPE_SAMPLES = 0x02
 SEQ_MODULO = 1 << 32  # sequence numbers and device timestamps are u32 and wrap
 MAX_SAMPLES_PER_FRAME = 32
+# Binary frames carry at most 32 channels (recordings take more: info.MAX_CHANNELS), so that
+# a microcontroller's frame buffer stays MAX_BODY bytes; see PROTOCOL.md.
+WIRE_MAX_CHANNELS = 32
 MAX_BODY = 2560  # largest frame body (type .. last data byte, CRC excluded), in bytes
 # (the largest header, 32 channels with 32-byte names and units, is 2409 bytes; the largest
 # samples frame, 32 x 32 int16, is 2059)
@@ -100,6 +103,9 @@ def _text(s: str) -> bytes:
 
 def header_body(info: DeviceInfo) -> bytes:
     """Body of a header frame (type 0x01)."""
+    if len(info.channels) > WIRE_MAX_CHANNELS:
+        raise FrameError(f"{len(info.channels)} channels: a header frame carries "
+                         f"1..{WIRE_MAX_CHANNELS}")
     parts = [
         _HEADER_HEAD.pack(
             TYPE_HEADER,
@@ -127,9 +133,10 @@ def samples_body(seq: int, t_us: int, raw: np.ndarray) -> bytes:
     if raw.ndim != 2:
         raise FrameError(f"samples must be 2-D (n_samples, n_channels), got shape {raw.shape}")
     n, c = raw.shape
-    if not (1 <= n <= MAX_SAMPLES_PER_FRAME and 1 <= c <= MAX_CHANNELS):
+    if not (1 <= n <= MAX_SAMPLES_PER_FRAME and 1 <= c <= WIRE_MAX_CHANNELS):
         raise FrameError(
-            f"{n} samples x {c} channels: must be 1..{MAX_SAMPLES_PER_FRAME} x 1..{MAX_CHANNELS}"
+            f"{n} samples x {c} channels: "
+            f"must be 1..{MAX_SAMPLES_PER_FRAME} x 1..{WIRE_MAX_CHANNELS}"
         )
     if raw.dtype != np.int16:
         if np.any(raw < -32768) or np.any(raw > 32767):
@@ -183,7 +190,7 @@ def parse_body(body: bytes) -> SamplesFrame | HeaderFrame | None:
         if len(body) < _SAMPLES_HEAD.size:
             return None
         _, seq, t_us, c, n = _SAMPLES_HEAD.unpack_from(body)
-        if not (1 <= c <= MAX_CHANNELS and 1 <= n <= MAX_SAMPLES_PER_FRAME):
+        if not (1 <= c <= WIRE_MAX_CHANNELS and 1 <= n <= MAX_SAMPLES_PER_FRAME):
             return None
         if len(body) != _SAMPLES_HEAD.size + 2 * n * c:
             return None
@@ -199,6 +206,8 @@ def parse_body(body: bytes) -> SamplesFrame | HeaderFrame | None:
 
 def _parse_header(body: bytes) -> DeviceInfo:
     _, version, rate, c, fmt = _HEADER_HEAD.unpack_from(body)
+    if not 1 <= c <= WIRE_MAX_CHANNELS:
+        raise ValueError(f"{c} channels")
     if fmt != SAMPLE_FORMAT_INT16:
         raise ValueError(f"unknown sample format {fmt}")
     pos = _HEADER_HEAD.size

@@ -162,6 +162,17 @@ def test_eval_cli_json(trained, dataset, capsys):
     assert out["scope"] == "the run's test split"
     assert out["accuracy"] == pytest.approx(metrics["accuracy"])
     assert set(out["shifted"]) == {"-0.2s", "-0.1s", "+0.1s", "+0.2s", "mean"}
+    # the majority vote per take, beside the window accuracy: one entry per test take
+    ck = torch.load(run / "checkpoint.pt", weights_only=True)
+    assert {n + ".csv" for n in out["per_take"]} == set(ck["test_rows"])
+    assert out["takes"] == len(ck["test_rows"])
+    right = sum(v["vote"] == v["label"] for v in out["per_take"].values())
+    assert out["take_accuracy"] == pytest.approx(right / out["takes"])
+    assert eval_main([str(run), str(dataset)]) == 0
+    text = capsys.readouterr().out
+    assert f"per take (majority vote): {out['take_accuracy']:.3f} over {out['takes']} takes" \
+        in text
+    assert "shifted windows (robustness): -0.2s " in text
 
 
 def test_carry_emd_and_linear_variants_train(dataset, tmp_path):
@@ -231,9 +242,9 @@ def test_refit_trains_on_train_and_validation_for_the_best_epoch_count(dataset, 
     seen = []
     real = tr._train
 
-    def spy(model, w, f_all, n_epochs, progress, val=None):
+    def spy(model, w, f_all, n_epochs, ctx, val=None, resume=None):
         seen.append((len(w), n_epochs, val is None))
-        return real(model, w, f_all, n_epochs, progress, val)
+        return real(model, w, f_all, n_epochs, ctx, val, resume)
 
     monkeypatch.setattr(tr, "_train", spy)
     cfg = TrainConfig(epochs=3, hidden=8, layers=1, threads=1, split="time",
