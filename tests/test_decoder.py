@@ -294,7 +294,7 @@ def test_csv_without_names_and_blank_separated():
 def test_csv_split_anywhere_gives_the_same_result(rng):
     text = b"".join(b"%d,%d,%d\n" % (i, -i, 2 * i) for i in range(200))
     ref, _ = decode(text)
-    events, _ = feed_chunked(text, rng)
+    events, _ = feed_chunked(text, rng, StreamDecoder(line_start=True))
     assert delivered(events)[0].tolist() == delivered(ref)[0].tolist() == list(range(200))
 
 
