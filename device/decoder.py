@@ -352,7 +352,10 @@ class StreamDecoder:
             self._t_last = t
         else:
             diff = (parsed.seq - self._dev_next) % SEQ_MODULO
-            if diff < _HALF:  # forward: in order, or a drop of `diff` samples
+            if diff < _HALF and self._restarted(diff, t):
+                self._restart(parsed.seq, events)
+                host, s_u = self._host_next, parsed.seq
+            elif diff < _HALF:  # forward: in order, or a drop of `diff` samples
                 host = self._host_next + diff
                 s_u = self._dev_next_u + diff
                 if diff:
@@ -393,10 +396,11 @@ class StreamDecoder:
         new samples), ``"late"`` or ``"restart"``.
 
         A re-sent frame repeats samples we delivered, with their contents and device times; a
-        device that restarted counts again with other contents. What went back into samples we
-        no longer remember is late when it belongs to this run of the device (not before its
-        first frame, and no header since the last frame: a device sends its header when it
-        starts), else the device restarted."""
+        device that restarted counts again with other contents. A frame that went back but
+        holds none of the samples remembered is late (its samples were reported lost) when it
+        is recent (within ``replay_window``), either within the span remembered or with no
+        header since the last frame (a device sends its header when it starts), and its device
+        time fits (when a rate is known); else the device restarted."""
         end = min(s_u + len(raw), self._dev_next_u)
         period = self._period_us(estimate_only=True)
         matched = 0
@@ -416,9 +420,33 @@ class StreamDecoder:
             matched += hi - lo
         if matched:
             return "tail" if s_u + len(raw) > self._dev_next_u else "duplicate"
-        if s_u >= self._session_first_u and not self._header_since_samples:
+        oldest = self._history[0][0] if self._history else self._dev_next_u
+        recent = s_u >= self._dev_next_u - self.replay_window
+        if recent and (s_u >= oldest or not self._header_since_samples):
+            if self._history and period is not None:  # and its device time fits this run
+                hs, ht, _ = self._history[-1]
+                skew = (t - ht + round((hs - s_u) * period) + _HALF) % SEQ_MODULO - _HALF
+                if abs(skew) > max(2 * period, 1000):
+                    return "restart"
             return "late"
         return "restart"
+
+    def _restarted(self, ahead: int, t: int) -> bool:
+        """A frame ``ahead`` samples past the next expected one whose device time says
+        otherwise (by the header's rate, else the rate the remembered frames show, else
+        ``csv_rate_hz`` for a jump): the device restarted and its count happens to be where
+        the old one was, or ahead (its header, which says so, may have been lost)."""
+        if self._t_last is None:
+            return False
+        period = self._period_us(estimate_only=True)
+        if period is None:
+            if not ahead:
+                return False
+            period = self._period_us()
+        last_n = len(self._history[-1][2]) if self._history else 1
+        expect = round((ahead + last_n) * period)
+        skew = ((t - self._t_last) - expect + _HALF) % SEQ_MODULO - _HALF
+        return abs(skew) > max(2 * period, 1000)
 
     def _remember(self, s_u: int, t: int, raw: np.ndarray) -> None:
         self._history.append((s_u, t, raw))

@@ -250,8 +250,7 @@ def find_frame(chunk: bytes, width: int | None = None) -> tuple[
     ``len(chunk)``, when there is none) and ``failure`` says why the whole chunk was not a frame
     (``"crc"``: it has a frame's structure, but the CRC differs; ``"malformed"``: anything else).
 
-    ``width``, when known, is the channel count a samples frame must have. A header is found
-    only if its version is one of :data:`SUPPORTED_VERSIONS` when it is glued to other bytes.
+    ``width``, when known, is the channel count a samples frame found in the search must have.
     The search costs O(len(chunk)) whatever the bytes (see :class:`_SuffixSearch`).
     """
     return _SuffixSearch(chunk, width).run()
@@ -268,15 +267,11 @@ _COUNT = rb"[\x01-\x20]"  # 1..32: MAX_CHANNELS and MAX_SAMPLES_PER_FRAME
 @cache
 def _candidates(width: int | None) -> re.Pattern:
     channels = _COUNT if width is None else re.escape(bytes([width]))
-    versions = b"".join(re.escape(bytes([v])) for v in sorted(SUPPORTED_VERSIONS))
     return re.compile(
         rb"(?=[\x02-\xff]\x02.{8}" + channels + _COUNT  # samples: code, type, seq, t, c, n
-        + rb"|[\x03-\xff]\x01[" + versions + rb"].{4}" + _COUNT + rb"\x01)",  # header
+        + rb"|[\x02-\xff]\x01.{5}" + _COUNT + rb"\x01)",  # header: version, rate, c, format
         re.DOTALL,
     )
-
-
-_VERSIONS = np.array(sorted(SUPPORTED_VERSIONS))
 
 
 def _header_min(c):
@@ -343,13 +338,20 @@ class _SuffixSearch:
         failure = "malformed"
         if n < MIN_ENCODED:
             return None, n, failure
+        if _candidates(None).match(chunk) and _plausible(chunk, 0, n):  # the whole chunk
+            decoded = cobs_decode(chunk)
+            if decoded is not None and len(decoded) >= 3:
+                body = decoded[:-2]
+                if crc16(body) == int.from_bytes(decoded[-2:], "little"):
+                    parsed = parse_body(body)
+                    if parsed is not None:
+                        return parsed, 0, ""
+                else:
+                    failure = "crc"
         shift = _shift_table()
-        starts = self._starts()
-        if (not starts or starts[0] != 0) and chunk[0] >= 3 and chunk[1] == TYPE_HEADER \
-                and chunk[8] == SAMPLE_FORMAT_INT16 and 1 <= chunk[7] <= MAX_CHANNELS \
-                and _plausible(chunk, 0, n):
-            starts.insert(0, 0)  # a whole header of any version: the receiver reports it
-        for i in starts:
+        for i in self._starts():
+            if i == 0:
+                continue
             length = self._walk(i)
             if chunk[i + 1] == TYPE_SAMPLES:
                 if length != _SAMPLES_HEAD.size + 2 * chunk[i + 10] * chunk[i + 11] + 2:
@@ -359,17 +361,10 @@ class _SuffixSearch:
             tail = self.tail[i]
             residue = shift[length * 512 + 0xFF] ^ shift[length * 512 + 256 + 0xFF] ^ self.crc[i]
             if residue != binascii.crc_hqx(tail, tail[0] | tail[1] << 8):
-                if i == 0:
-                    failure = "crc"
                 continue
             decoded = cobs_decode(chunk[i:])
             parsed = parse_body(decoded[:-2]) if decoded is not None else None
             if parsed is None:
-                continue
-            if i == 0:
-                return parsed, 0, ""
-            if isinstance(parsed, HeaderFrame) \
-                    and parsed.info.protocol_version not in SUPPORTED_VERSIONS:
                 continue
             if isinstance(parsed, SamplesFrame) and self.width is not None \
                     and parsed.raw.shape[1] != self.width:
@@ -401,7 +396,7 @@ class _SuffixSearch:
         samples = (code >= 2) & (kind == TYPE_SAMPLES) & chans & (k >= 1) \
             & (k <= MAX_SAMPLES_PER_FRAME) & (want >= lo) & (want <= hi)
         hc = a[7 : m + 7]
-        header = (code >= 3) & (kind == TYPE_HEADER) & np.isin(a[2 : m + 2], _VERSIONS) \
+        header = (code >= 2) & (kind == TYPE_HEADER) \
             & (hc >= 1) & (hc <= MAX_CHANNELS) & (a[8 : m + 8] == SAMPLE_FORMAT_INT16) \
             & (_header_min(hc) <= hi) & (_header_max(hc) >= lo)
         return np.flatnonzero(samples | header).tolist()
