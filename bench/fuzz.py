@@ -430,12 +430,14 @@ def run(cases: int, seed: int = 0, jobs: int = 1) -> Totals:
         return run_range(seed, 0, cases)
     import multiprocessing
 
-    step = max(1, cases // (jobs * 8))
+    step = max(1, min(10_000, cases // (jobs * 8)))
     parts = [(seed, a, min(a + step, cases)) for a in range(0, cases, step)]
     total = Totals()
     with multiprocessing.get_context("fork").Pool(jobs) as pool:
         for part in pool.imap_unordered(_run_range_args, parts):
             total.add(part)
+            print(f"  ... {total.cases} cases, {total.failures} failures", file=sys.stderr,
+                  flush=True)
     return total
 
 

@@ -140,8 +140,8 @@ class StreamDecoder:
             by its contents (a frame going back that matches them is a duplicate, one that
             contradicts them means the device restarted).
         line_start: the first byte fed begins a line (a file). A port opened on a running
-            device begins anywhere, so by default the first CSV line is not taken as data: its
-            first number may be cut.
+            device begins anywhere, so by default a first CSV line that is a row is not taken
+            as data: its first number may be cut (a names line is taken).
     """
 
     def __init__(
@@ -241,11 +241,9 @@ class StreamDecoder:
             line = bytes(buf[start:end])
             first = start == 0 and self._line_partial
             start = end + 1
-            if first:  # may be cut: not evidence
-                continue
             kind = _csv_kind(line) if len(line) <= MAX_CSV_LINE else None
-            if kind == "skip":
-                continue
+            if kind == "skip" or (first and kind is not None and kind[0] == "row"):
+                continue  # a row that may be cut is no evidence
             if kind is not None and kind[0] == "row" and self._det_prev == kind[1]:
                 return "csv"
             self._det_prev = None if kind is None else kind[1]
@@ -498,7 +496,11 @@ class StreamDecoder:
         while (end := buf.find(b"\n", max(start, self._scan))) >= 0:
             line = bytes(buf[start:end])
             start = end + 1
-            if self._line_partial:  # the line the port was opened in: maybe cut
+            if self._line_partial and len(line) <= MAX_CSV_LINE \
+                    and _csv_kind(line) not in (None, "skip") and _csv_kind(line)[0] == "names":
+                self._line_partial = False  # a names line as a board prints it at start-up
+                self._on_line(line, events)
+            elif self._line_partial:  # the line the port was opened in: a row may be cut
                 self._line_partial = False
                 self._csv_reject(len(line) + 1)
             elif len(line) > MAX_CSV_LINE:
