@@ -44,6 +44,7 @@ CSV_AGREE = 3  # readable CSV lines of one width in a row that decide the stream
 CSV_HOLD = 64  # lines held at most while the CSV width is undecided
 REPLAY_WINDOW = 4096  # delivered samples remembered to recognise a re-sent frame
 _HALF = SEQ_MODULO // 2
+_MIN_PERIOD_US, _MAX_PERIOD_US = 1, 10_000_000  # sample rates from 1 MHz down to 0.1 Hz
 _NAME = re.compile(r"[A-Za-z_][A-Za-z0-9_./\-]*")
 # Plain decimal numbers as a board prints them: sign, digits, point, exponent. Nothing else
 # (no "1_0", "0x10", "inf", "nan", non-ASCII digits).
@@ -398,7 +399,8 @@ class StreamDecoder:
         holds none of the samples remembered is late (its samples were reported lost) when it
         is recent (within ``replay_window``), either within the span remembered or with no
         header since the last frame (a device sends its header when it starts), and its device
-        time fits (when a rate is known); else the device restarted."""
+        time fits (by the rate when one is known, else it is earlier by what a rate between
+        0.1 Hz and 1 MHz explains); else the device restarted."""
         end = min(s_u + len(raw), self._dev_next_u)
         period = self._period_us(estimate_only=True)
         matched = 0
@@ -421,10 +423,14 @@ class StreamDecoder:
         oldest = self._history[0][0] if self._history else self._dev_next_u
         recent = s_u >= self._dev_next_u - self.replay_window
         if recent and (s_u >= oldest or not self._header_since_samples):
-            if self._history and period is not None:  # and its device time fits this run
+            if self._history:  # and its device time fits this run of the device
                 hs, ht, _ = self._history[-1]
-                skew = (t - ht + round((hs - s_u) * period) + _HALF) % SEQ_MODULO - _HALF
-                if abs(skew) > max(2 * period, 1000):
+                if period is not None:
+                    skew = (t - ht + round((hs - s_u) * period) + _HALF) % SEQ_MODULO - _HALF
+                    if abs(skew) > max(2 * period, 1000):
+                        return "restart"
+                elif not (hs - s_u) * _MIN_PERIOD_US <= (ht - t) % SEQ_MODULO \
+                        <= (hs - s_u) * _MAX_PERIOD_US:  # earlier by what some rate explains
                     return "restart"
             return "late"
         return "restart"
