@@ -468,11 +468,17 @@ def clean_frames(nbytes: int) -> bytes:
 
 
 def _crafted(nbytes: int) -> bytes:
-    """Chunks of MAX_ENCODED bytes in which every offset looks like the start of a samples
-    frame of 8 channels whose length runs to the chunk's end (each passes the cheap tests)."""
-    unit = bytearray(b"\x0d\x02" + b"\x01" * 8 + b"\x08\x01" + b"\x01")
-    chunk = (unit * (MAX_ENCODED // len(unit) + 1))[:MAX_ENCODED]
-    return (bytes(chunk) + b"\x00") * (nbytes // (MAX_ENCODED + 1) + 1)
+    """Chunks in which every 13th byte starts a valid COBS chain to the chunk's end with a
+    samples frame's type, channel and sample counts that give exactly that length: each
+    candidate passes every test but the CRC (the search's worst case)."""
+    units = (MAX_ENCODED // 13) * 13
+    chunk = bytearray(b"\x0d\x02" + b"\x01" * 8 + b"\x01\x01\x01") * (units // 13)
+    for i in range(0, units, 13):
+        length = units - i - 1  # decoded length of chunk[i:]
+        pairs = [(c, k) for c in range(1, 33) for k in range(1, 33) if 13 + 2 * c * k == length]
+        if pairs:
+            chunk[i + 10], chunk[i + 11] = pairs[0]
+    return (bytes(chunk) + b"\x00") * (nbytes // (units + 1) + 1)
 
 
 def adversarial_inputs(nbytes: int) -> dict[str, tuple[str, bytes]]:
