@@ -44,7 +44,7 @@ CSV_AGREE = 3  # readable CSV lines of one width in a row that decide the stream
 CSV_HOLD = 64  # lines held at most while the CSV width is undecided
 REPLAY_WINDOW = 4096  # delivered samples remembered to recognise a re-sent frame
 _HALF = SEQ_MODULO // 2
-_MIN_PERIOD_US, _MAX_PERIOD_US = 1, 10_000_000  # sample rates from 1 MHz down to 0.1 Hz
+_MIN_PERIOD_US, _MAX_PERIOD_US = 1, 1_000_000  # sample rates from 1 MHz down to 1 Hz
 _NAME = re.compile(r"[A-Za-z_][A-Za-z0-9_./\-]*")
 # Plain decimal numbers as a board prints them: sign, digits, point, exponent. Nothing else
 # (no "1_0", "0x10", "inf", "nan", non-ASCII digits).
@@ -400,7 +400,7 @@ class StreamDecoder:
         is recent (within ``replay_window``), either within the span remembered or with no
         header since the last frame (a device sends its header when it starts), and its device
         time fits (by the rate when one is known, else it is earlier by what a rate between
-        0.1 Hz and 1 MHz explains); else the device restarted."""
+        1 Hz and 1 MHz explains); else the device restarted."""
         end = min(s_u + len(raw), self._dev_next_u)
         period = self._period_us(estimate_only=True)
         matched = 0

@@ -69,5 +69,5 @@ def test_throughput_inputs_are_what_they_say():
     search = _SuffixSearch(chunk, None)
     starts = [i for i in search._starts() if i % 13 == 0]  # the crafted ones
     # the crafted chunk's candidates each have the length their counts ask for
-    assert len(starts) > 30
+    assert len(starts) > 20
     assert all(search._walk(i) == 13 + 2 * chunk[i + 10] * chunk[i + 11] for i in starts)
