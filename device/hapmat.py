@@ -25,7 +25,7 @@ import numpy as np
 
 from tactile.cli import Parser, add_debug, run
 from tactile.device.info import ChannelSpec, DeviceInfo
-from tactile.device.recording import TakeWriter, load_numbers
+from tactile.device.recording import TakeWriter, dataset_folder, load_numbers, replace_takes
 from tactile.errors import RecordingError
 
 CHANNELS = (
@@ -94,15 +94,21 @@ def _read_csv_folder(folder: Path) -> tuple[list[str], list[np.ndarray], float, 
     return classes, series, rate, "HapMat (haptic-kinematics repository, CSV files)"
 
 
-def import_hapmat(source: Path, out: Path) -> list[Path]:
-    """Write one take per material from the bundled ``.npz`` or the upstream folder of CSVs;
-    returns the CSV paths."""
+def import_hapmat(source: Path, out: Path, force: bool = False) -> list[Path]:
+    """Write one take per material (``hapmat-<material>``) from the bundled ``.npz`` or the
+    upstream folder of CSVs; returns the CSV paths. Takes of those names already in ``out`` are
+    refused, or replaced with ``force``."""
     source = Path(source)
+    if not source.exists():
+        raise RecordingError(f"{source}: no such file or folder (give the 'HapMat dataset' "
+                             "folder of CSV files or hapmat_stick_imu.npz)")
     if source.is_dir():
         classes, series, rate, origin = _read_csv_folder(source)
     else:
         classes, series, rate, origin = _read_npz(source)
     info = DeviceInfo(rate, CHANNELS, device="hapmat-stick-imu")
+    out = dataset_folder(out)
+    replace_takes(out, [f"hapmat-{str(m).lower()}" for m in classes], force)
     to_deg = np.array([1, 1, 1, 180 / math.pi, 180 / math.pi, 180 / math.pi])
     paths = []
     for material, x in zip(classes, series):
@@ -126,7 +132,7 @@ def import_hapmat(source: Path, out: Path) -> list[Path]:
 
 
 def _main(args: argparse.Namespace) -> int:
-    for p in import_hapmat(args.source, args.out):
+    for p in import_hapmat(args.source, args.out, args.force):
         print(p)
     return 0
 
@@ -139,6 +145,7 @@ def main(argv: list[str] | None = None) -> int:
                    help="the upstream 'HapMat dataset' folder of CSV files, or the bundled "
                    "hapmat_stick_imu.npz")
     p.add_argument("--out", type=Path, required=True, help="dataset folder to write")
+    p.add_argument("--force", action="store_true", help="replace takes of the same names")
     add_debug(p)
     return run("tactile-import-hapmat", _main, p.parse_args(argv))
 

@@ -24,8 +24,9 @@ import tactile.device  # noqa: F401  (registers sim://)
 from tactile.cli import Parser, add_debug, float_in, int_in, run, started
 from tactile.device.decoder import Gap, Header, Samples, StreamDecoder
 from tactile.device.info import DeviceInfo
+from tactile.device.portlist import find_port
 from tactile.device.ports import open_port, wait_for_port
-from tactile.device.recording import TakeWriter
+from tactile.device.recording import TakeWriter, check_label, dataset_folder
 from tactile.errors import DeviceError
 
 MAX_EARLY = 100_000  # samples held while waiting for the first header (binary mode)
@@ -198,7 +199,8 @@ def build_parser() -> argparse.ArgumentParser:
                "before the port gave any data, it exits 0 and says so. Exit 2: the port cannot "
                "be opened, or it gave no usable data before the end.",
     )
-    p.add_argument("--port", required=True, help="/dev/ttyACM0, sim://?texture=paper, socket://...")
+    p.add_argument("--port", help="/dev/ttyACM0, sim://?texture=paper, socket://...; default: "
+                   "the one likely pen attached (as tactile-run; tactile-ports lists them)")
     p.add_argument("--label", required=True, help="the texture being stroked, e.g. paper")
     p.add_argument("--out", required=True, type=Path, help="dataset folder (created if missing)")
     p.add_argument("--seconds", type=float_in(0.0), default=math.inf,
@@ -212,6 +214,10 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def _main(args: argparse.Namespace) -> int:
+    check_label(args.label)  # before the port opens: a mistake costs no take
+    dataset_folder(args.out)
+    if args.port is None:
+        args.port = find_port()
     res = record(
         args.port, args.label, args.out, args.seconds, args.baud, args.csv_rate,
         progress=not args.quiet,

@@ -77,6 +77,48 @@ class Take:
         return [(a, b) for a, b in zip(bounds[:-1], bounds[1:], strict=True) if b > a]
 
 
+# A label names the take's files and a class; these are refused by FAT/exFAT cards (a board's
+# usual storage) or break the CSV/JSON pair: / \ : * ? " < > | , control characters.
+_LABEL_BAD = re.compile(r'[/\\:*?"<>|,\x00-\x1f\x7f]')
+LABEL_RULE = ("1-64 characters, not starting with '.' or a space, none of "
+              "/ \\ : * ? \" < > | , tab or newline")
+
+
+def check_label(label: str) -> str:
+    """``label`` if it can name a class and a take's files anywhere, else :class:`RecordingError`
+    stating :data:`LABEL_RULE`."""
+    if (not isinstance(label, str) or not 1 <= len(label) <= 64 or label != label.strip()
+            or label.startswith(".") or _LABEL_BAD.search(label)):
+        raise RecordingError(f"label {label!r}: must be {LABEL_RULE}")
+    return label
+
+
+def dataset_folder(folder: str | os.PathLike) -> Path:
+    """``folder`` as a dataset folder to write takes into, created if missing (with its parents);
+    :class:`RecordingError` naming it when it is a file or cannot be made."""
+    folder = Path(folder)
+    if folder.exists() and not folder.is_dir():
+        raise RecordingError(f"{folder}: not a folder (takes are written into a dataset folder)")
+    try:
+        folder.mkdir(parents=True, exist_ok=True)
+    except OSError as e:
+        raise RecordingError(f"{folder}: cannot make the dataset folder ({e.strerror})") from None
+    return folder
+
+
+def replace_takes(folder: Path, stems: list[str], force: bool) -> None:
+    """Before a command writes takes named ``stems`` into ``folder``: if any exists, refuse
+    (:class:`RecordingError` naming the first, the command neither overwrites nor duplicates a
+    dataset by being run twice) or, with ``force``, delete them."""
+    found = [p for s in stems for p in (folder / f"{s}.csv", folder / f"{s}.json") if p.exists()]
+    if found and not force:
+        more = f" and {len(found) - 1} more files" if len(found) > 1 else ""
+        raise RecordingError(f"{found[0]}{more} already exist: choose another folder, or "
+                             "--force to replace them")
+    for p in found:
+        p.unlink()
+
+
 class TakeWriter:
     """Writes one take; use as a context manager or call :meth:`close`.
 
@@ -99,10 +141,8 @@ class TakeWriter:
         extra: dict | None = None,
         flush_every_s: float = 1.0,
     ) -> None:
-        if not label or any(ch in label for ch in "/\\\n,") or label.startswith("."):
-            raise RecordingError(f"label {label!r}: must be non-empty, without / \\ , or newline")
-        self.folder = Path(folder)
-        self.folder.mkdir(parents=True, exist_ok=True)
+        check_label(label)
+        self.folder = dataset_folder(folder)
         started = time.gmtime()
         stem = name or f"{label}-{time.strftime('%Y%m%dT%H%M%SZ', started)}"
         self.csv_path = _unique(self.folder, stem)
@@ -201,6 +241,10 @@ def _unique(folder: Path, stem: str) -> Path:
 def read_take(path: str | os.PathLike) -> Take:
     """Read a take from its ``.csv`` or ``.json`` path. Raises :class:`RecordingError`."""
     path = Path(path)
+    if path.is_dir():
+        raise RecordingError(f"{path}: a folder, not a take (give the take's .csv file)")
+    if path.suffix not in (".csv", ".json"):
+        raise RecordingError(f"{path}: not a take (give the take's .csv file)")
     csv_path, json_path = path.with_suffix(".csv"), path.with_suffix(".json")
     for p in (csv_path, json_path):
         if not p.is_file():

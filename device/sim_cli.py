@@ -21,7 +21,7 @@ import zlib
 from pathlib import Path
 
 from tactile.cli import Parser, add_debug, float_in, int_in, run
-from tactile.device.recording import TakeWriter
+from tactile.device.recording import TakeWriter, dataset_folder, replace_takes
 from tactile.device.simlink import LinkConfig, PenLink
 from tactile.device.simulator import TEXTURES, PenSimulator
 from tactile.errors import ConfigError
@@ -40,13 +40,22 @@ def make_dataset(
     seed: int = 0,
     rate_hz: float = 100.0,
     first_take: int = 0,
+    force: bool = False,
 ) -> list[Path]:
-    """Write ``takes`` takes per texture; take k of every texture is simulated user k."""
+    """Write ``takes`` takes per texture; take k of every texture is simulated user k.
+
+    Takes are named ``<texture>-user<k>``: a folder that already holds one of them is refused
+    (so that a second run neither overwrites nor duplicates a dataset), unless ``force``, which
+    replaces those takes. Other takes in the folder are left alone (``first_take`` adds users).
+    """
     for t in textures:
         if t not in TEXTURES:
             raise ConfigError(f"texture {t!r}: must be one of {', '.join(TEXTURES)}")
     if takes < 1 or not seconds > 0:
         raise ConfigError(f"--takes {takes} and --seconds {seconds}: must be >= 1 and > 0")
+    out = dataset_folder(out)
+    replace_takes(out, [f"{t}-user{k:03d}" for k in range(first_take, first_take + takes)
+                        for t in textures], force)
     paths = []
     n = round(seconds * rate_hz)
     for k in range(first_take, first_take + takes):
@@ -126,6 +135,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--link", default="", metavar="OPTIONS",
                    help="more pty link options as for sim://, e.g. 'garbage=0.01&stall=5:1'")
     p.add_argument("--speed", type=float_in(0.0), default=1.0, help="pty speed, x real time")
+    p.add_argument("--force", action="store_true",
+                   help="replace takes of the same names in the --dataset folder")
     add_debug(p)
     return p
 
@@ -135,7 +146,7 @@ def _main(args: argparse.Namespace) -> int:
         textures = tuple(t.strip() for t in args.textures.split(",") if t.strip())
         t0 = time.perf_counter()
         paths = make_dataset(args.dataset, args.takes, textures, args.seconds or 60.0,
-                             args.seed, args.rate, args.first_take)
+                             args.seed, args.rate, args.first_take, args.force)
         print(f"tactile-sim: {len(paths)} takes in {args.dataset} "
               f"({time.perf_counter() - t0:.1f} s)", file=sys.stderr)
         return 0

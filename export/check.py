@@ -22,7 +22,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from tactile.cli import Parser, add_debug, int_in, run
-from tactile.contract import OPSET, ModelContract
+from tactile.contract import OPSET, ModelContract, model_file
 from tactile.errors import ConfigError, ModelContractError
 
 if TYPE_CHECKING:
@@ -172,6 +172,7 @@ def board_check(path: Path) -> None:
 
 
 def _main(args: argparse.Namespace) -> int:
+    model_file(args.model)  # missing or a folder: the line and exit code tactile-run gives
     try:
         import onnx  # noqa: F401
         import torch

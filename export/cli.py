@@ -20,6 +20,7 @@ import onnx
 import torch
 
 from tactile.cli import Parser, add_debug, int_in, run
+from tactile.errors import ConfigError
 from tactile.export.check import load_contract
 from tactile.export.graph import build_graph
 from tactile.export.metadata import attach, contract_for
@@ -36,7 +37,7 @@ def export_run(run_dir: Path, out: Path, data: Path | None = None, int8: bool = 
     Raises :class:`ParityError` (after logging the figures) when parity fails.
     """
     t0 = time.perf_counter()
-    run_dir, out = Path(run_dir), Path(out)
+    run_dir, out = Path(run_dir), output_file(out)
     model, ck = load_checkpoint(run_dir)
     graph = build_graph(model)
     t_build = time.perf_counter() - t0
@@ -56,7 +57,6 @@ def export_run(run_dir: Path, out: Path, data: Path | None = None, int8: bool = 
         report["int8"] = _tradeoff(graph, final, parity, q, ck)
         log(_tradeoff_line(report["int8"]))
     attach(final, contract_for(ck, figures, quantization, run_dir.resolve().name))
-    out.parent.mkdir(parents=True, exist_ok=True)
     with tempfile.NamedTemporaryFile(dir=out.parent, suffix=".onnx", delete=False) as tmp:
         tmp_path = Path(tmp.name)
     try:
@@ -70,6 +70,19 @@ def export_run(run_dir: Path, out: Path, data: Path | None = None, int8: bool = 
         tmp_path.unlink(missing_ok=True)
     report.update(seconds=round(time.perf_counter() - t0, 2), bytes=out.stat().st_size)
     return report
+
+
+def output_file(out: Path) -> Path:
+    """``out`` as the file to write, checked before any work: not a folder, in a folder that
+    exists (nothing is created that the user did not ask for). :class:`ConfigError` otherwise."""
+    out = Path(out)
+    if out.is_dir():
+        raise ConfigError(f"-o {out}: a folder; give the file to write, e.g. {out / 'model.onnx'}")
+    if not out.parent.is_dir():
+        raise ConfigError(f"-o {out}: no folder {out.parent} to write it in")
+    if not os.access(out.parent, os.W_OK):
+        raise ConfigError(f"-o {out}: cannot write in {out.parent}")
+    return out
 
 
 def _require(p: Parity, what: str) -> None:

@@ -26,17 +26,18 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 
-import numpy as np
 import serial
 
 import tactile.device  # noqa: F401  (registers sim://)
 from tactile.cli import Parser, add_debug, float_in, int_in, run, started
 from tactile.device.decoder import Gap, Header, Samples, StreamDecoder
 from tactile.device.info import DeviceInfo
+from tactile.device.portlist import find_port
 from tactile.device.ports import PortAbsent, keep_trying, open_port, wait_for_port
-from tactile.errors import DeviceError, ModelContractError, RecordingError
+from tactile.errors import ModelContractError, RecordingError
 from tactile.runtime.model import Model
 from tactile.runtime.stream import Label, Smoother, Stream
+from tactile.runtime.units import to_units
 
 FORMATS = ("jsonl", "text", "csv")
 CPUS = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1
@@ -134,22 +135,18 @@ def check_device(model: Model, info: DeviceInfo) -> None:
         )
 
 
-def units(info: DeviceInfo, raw: np.ndarray) -> np.ndarray:
-    """(n, C) raw counts -> values in the channels' units, as the model expects."""
-    scale = np.array([c.scale for c in info.channels], np.float64)
-    offset = np.array([c.offset for c in info.channels], np.float64)
-    return (raw * scale + offset).astype(np.float32)
-
-
 class Runner:
     """Decoder events -> stream -> labels. No I/O of its own beyond the printer."""
 
     def __init__(self, model: Model, stream: Stream, printer: Printer, summary: Summary):
         self.model, self.stream, self.printer, self.summary = model, stream, printer, summary
         self.info: DeviceInfo | None = None
+        self.tap: Callable[[object], None] | None = None  # sees each decoder event (--serve)
 
     def handle(self, events: list) -> None:
         for ev in events:
+            if self.tap is not None:
+                self.tap(ev)
             if isinstance(ev, Header):
                 check_device(self.model, ev.info)
                 if ev.changed:
@@ -164,7 +161,7 @@ class Runner:
                     self.summary.before_header += len(ev.raw)
                     continue
                 period = 1e6 / self.info.sample_rate_hz
-                self.stream.accept(units(self.info, ev.raw), ev.seq, ev.t_us, period)
+                self.stream.accept(to_units(self.info, ev.raw), ev.seq, ev.t_us, period)
                 while self.stream.ready():
                     lab = self.stream.classify()
                     self.summary.windows += 1
@@ -173,25 +170,6 @@ class Runner:
                         self.summary.first_label_s = round(
                             time.monotonic() - self.summary.started, 3)
                     self.printer.label(lab)
-
-
-def find_port(wait: bool = False) -> str | None:
-    """The one likely pen among the serial devices (a USB serial device), or a DeviceError
-    listing the candidates. With ``wait``, no likely pen is not an error: it returns None, for
-    :func:`wait_for_pen` to look again."""
-    from serial.tools import list_ports
-
-    ports = list(list_ports.comports())
-    likely = [p for p in ports if p.vid is not None or "ACM" in p.device or "USB" in p.device]
-    if len(likely) == 1:
-        return likely[0].device
-    if wait and not likely:
-        return None
-    listing = ", ".join(f"{p.device} ({p.description})" for p in ports) or "none"
-    raise DeviceError(
-        f"{'no' if not likely else 'more than one'} likely pen found; give --port "
-        f"(serial devices: {listing})"
-    )
 
 
 PEN_POLL_S = 0.5  # how often --wait without --port looks for a pen
@@ -345,6 +323,10 @@ def build_parser() -> argparse.ArgumentParser:
                    help="report a stall after this many seconds without data")
     p.add_argument("--status-every", type=float_in(0.0), default=5.0,
                    help="status line period, s")
+    p.add_argument("--serve", metavar="HOST:PORT",
+                   help="also serve a live, read-only web page of the channels, labels and link "
+                   "at http://HOST:PORT/ (PORT alone: on 127.0.0.1; port 0: a free one, said "
+                   "on stderr)")
     add_debug(p)
     return p
 
@@ -359,6 +341,11 @@ def _main(args: argparse.Namespace) -> int:
     summary = Summary()
     runner = Runner(model, stream, Printer(args.format, c.classes), summary)
     decoder = StreamDecoder(csv_rate_hz=c.sample_rate_hz)
+    live = None
+    if args.serve:
+        from tactile.runtime.serve import serve_runner
+
+        live = serve_runner(args.serve, runner, decoder, _say)
     stop = {"flag": False}
     for s in (signal.SIGINT, signal.SIGTERM):
         signal.signal(s, lambda *_: stop.__setitem__("flag", True))
@@ -373,6 +360,8 @@ def _main(args: argparse.Namespace) -> int:
                 if args.wait else find_port()
         if args.port is not None:  # None: stopped while waiting for a pen
             serve(args, runner, decoder, stop)
+    if live is not None:
+        live.close()
     print("tactile-run: summary " + json.dumps(summary.to_dict(decoder.stats.as_dict())),
           file=sys.stderr, flush=True)
     return 0

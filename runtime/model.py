@@ -7,12 +7,11 @@ Stateless: the LSTM state lives in each :class:`~tactile.runtime.stream.Stream`,
 from __future__ import annotations
 
 import os
-from pathlib import Path
 
 import numpy as np
 import onnxruntime as ort
 
-from tactile.contract import ModelContract
+from tactile.contract import ModelContract, model_file
 from tactile.errors import ConfigError, ModelContractError
 
 
@@ -55,9 +54,7 @@ class Model:
                               f"{type(options).__name__}")
         if options is not None and threads != 1:
             raise ConfigError("give threads or options, not both (set the threads in options)")
-        path = Path(path)
-        if not path.is_file():
-            raise ModelContractError(f"{path}: no such model file")
+        path = model_file(path)
         try:
             self.session = ort.InferenceSession(
                 str(path), options if options is not None else session_options(threads),

@@ -57,6 +57,9 @@ class Parser(argparse.ArgumentParser):
         if kwargs.get("description"):
             kwargs["description"] = kwargs["description"].replace("``", "")
         super().__init__(*args, **kwargs)
+        from tactile import __version__
+
+        self.add_argument("--version", action="version", version=f"%(prog)s {__version__}")
 
     def error(self, message: str):  # type: ignore[override]
         print(f"{self.prog}: error: {message} (see --help)", file=sys.stderr)
@@ -171,9 +174,11 @@ def _guarded_start(module: str) -> Callable[[], int]:
 
 run_main = _guarded_start("tactile.runtime.cli")
 record_main = _guarded_start("tactile.device.recorder")
+monitor_main = _guarded_start("tactile.runtime.monitor")
 train_main = _with_extra("tactile.training.train", "tactile-train")
 eval_main = _with_extra("tactile.training.evaluate", "tactile-eval")
 export_main = _with_extra("tactile.export.cli", "tactile-export")
+plot_main = _with_extra("tactile.training.plot", "tactile-plot")
 
 
 def add_debug(parser: argparse.ArgumentParser) -> None:

@@ -26,6 +26,7 @@ import json
 import math
 from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import Any
 
 from tactile.errors import ModelContractError
@@ -366,8 +367,20 @@ def _choice(meta: Mapping[str, str], key: str, allowed: tuple[str, ...]) -> str:
     return v
 
 
+def model_file(path: str | Path) -> Path:
+    """``path`` as a model file to load: :class:`ModelContractError` (exit 3) when it is missing
+    or a folder, with the same line in every command that loads a model."""
+    path = Path(path)
+    if path.is_dir():
+        raise ModelContractError(f"{path}: a folder, not a model file (give the .onnx file)")
+    if not path.is_file():
+        raise ModelContractError(f"{path}: no such model file")
+    return path
+
+
 __all__ = [
     "FORMAT", "FORMAT_VERSION", "PREPROCESSING_VERSION", "OPSET", "INPUTS", "OUTPUTS", "BATCH",
     "FLOAT", "KEYS", "REQUIRED", "OPTIONAL", "STATE_MODES", "MODELS", "QUANTIZATIONS",
-    "TensorSpec", "ModelContract",
+    "TensorSpec", "ModelContract", "model_file",
 ]
+

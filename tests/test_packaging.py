@@ -13,7 +13,8 @@ def test_runtime_and_device_import_without_torch():
     code = (
         "import sys, tactile.runtime, tactile.runtime.cli, tactile.runtime.model, "
         "tactile.runtime.stream, tactile.contract, tactile.device, tactile.device.decoder, "
-        "tactile.device.recorder, tactile.device.simlink\n"
+        "tactile.device.recorder, tactile.device.simlink, tactile.device.portlist, "
+        "tactile.runtime.serve, tactile.runtime.monitor, tactile.runtime.pen\n"
         "bad = sorted(m for m in sys.modules if m.split('.')[0] in ('torch', 'onnx', 'PyEMD'))\n"
         "print(','.join(bad))\n"
     )
@@ -58,7 +59,9 @@ def test_the_built_wheel_requires_no_torch(tmp_path):
     assert not closure & {"torch", "onnx", "onnxscript", "pyemd", "emd-signal", "scipy"}, closure
     # the wheel carries every stage and the protocol spec, not only what the editable install sees
     for module in ("tactile/runtime/cli.py", "tactile/training/emd/module.py",
-                   "tactile/export/cli.py", "tactile/device/PROTOCOL.md", "tactile/contract.py"):
+                   "tactile/export/cli.py", "tactile/device/PROTOCOL.md", "tactile/contract.py",
+                   "tactile/runtime/web/index.html", "tactile/runtime/web/app.js",
+                   "tactile/runtime/web/style.css"):
         assert module in names, module
 
 
@@ -118,7 +121,7 @@ def test_commands_needing_an_extra_say_so_in_one_line():
 def test_every_command_runs_with_its_dependencies():
     """The same entry points, with everything installed, reach the command's own --help."""
     scripts = tomllib.loads((REPO / "pyproject.toml").read_text())["project"]["scripts"]
-    assert len(scripts) == 8
+    assert len(scripts) == 12
     for prog, target in scripts.items():
         module, func = target.split(":")
         code = f"import sys\nfrom {module} import {func}\nsys.argv = ['{prog}', '--help']\n" \

@@ -1,0 +1,161 @@
+"""Command-line consistency: --version everywhere, output paths checked before any work, one
+message for a missing model, refused labels, no silent overwrite; tactile-data and tactile-plot."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+import tomllib
+from pathlib import Path
+
+import numpy as np
+import pytest
+from conftest import REPO
+
+from tactile import __version__
+from tactile.device.info import pen_info
+from tactile.device.recording import TakeWriter, check_label
+from tactile.errors import RecordingError
+
+SCRIPTS = sorted(tomllib.loads((REPO / "pyproject.toml").read_text())["project"]["scripts"])
+BIN = Path(sys.executable).parent
+
+
+def cli(name: str, *args: str, timeout: float = 120) -> tuple[int, str, str]:
+    """Run an installed console script; (exit code, stdout, stderr)."""
+    p = subprocess.run([str(BIN / name), *args], capture_output=True, text=True, timeout=timeout)
+    return p.returncode, p.stdout, p.stderr
+
+
+@pytest.mark.parametrize("name", SCRIPTS)
+def test_every_command_has_version(name):
+    code, out, err = cli(name, "--version")
+    assert (code, out.strip()) == (0, f"{name} {__version__}"), err
+
+
+def test_export_checks_its_output_path_before_any_work(tmp_path):
+    # the run folder does not exist either: the output is checked first, and nothing is made
+    code, _, err = cli("tactile-export", str(tmp_path / "run"), "-o", str(tmp_path))
+    assert code == 1 and "a folder" in err and len(err.strip().splitlines()) == 1
+    code, _, err = cli("tactile-export", str(tmp_path / "run"), "-o",
+                       str(tmp_path / "no" / "such" / "x.onnx"))
+    assert code == 1 and "no folder" in err
+    assert not (tmp_path / "no").exists()
+
+
+@pytest.mark.parametrize("kind", ["missing", "folder"])
+def test_a_bad_model_path_reads_the_same_in_run_and_check(tmp_path, kind):
+    path = tmp_path / "model.onnx"
+    if kind == "folder":
+        path.mkdir()
+    run = cli("tactile-run", "--model", str(path), "--port", "loop://")
+    check = cli("tactile-check", str(path))
+    want = "no such model file" if kind == "missing" else "a folder, not a model file"
+    for (code, _, err), prog in ((run, "tactile-run"), (check, "tactile-check")):
+        assert code == 3, err
+        assert err.strip() == f"{prog}: error: {path}: {want}" + (
+            " (give the .onnx file)" if kind == "folder" else "")
+
+
+def test_replay_of_a_folder_names_what_was_typed(tmp_path):
+    model = REPO / "models" / "pen-exp2.onnx"
+    code, _, err = cli("tactile-run", "--model", str(model), "--replay", str(tmp_path))
+    assert code == 1 and f"{tmp_path}: a folder, not a take" in err
+    code, _, err = cli("tactile-run", "--model", str(model), "--replay", str(tmp_path / "x"))
+    assert code == 1 and f"{tmp_path / 'x'}: not a take" in err and "x.csv" not in err
+
+
+def test_importer_and_recorder_say_what_is_wrong_with_their_paths(tmp_path):
+    code, _, err = cli("tactile-import-hapmat", str(tmp_path / "nothere"), "--out",
+                       str(tmp_path / "out"))
+    assert code == 1 and "nothere: no such file or folder" in err
+    a_file = tmp_path / "file"
+    a_file.write_text("x")
+    # the port would fail with exit 2: exit 1 shows the folder was checked before it opened
+    code, _, err = cli("tactile-record", "--port", "/dev/no-such-pen", "--label", "paper",
+                       "--out", str(a_file))
+    assert code == 1 and f"{a_file}: not a folder" in err
+
+
+@pytest.mark.parametrize("label", ["", " ", "a\tb", "a:b", "a*b", "a?b", 'a"b', "a<b", "a>b",
+                                   "a|b", "a/b", "a\\b", "a,b", "a\nb", ".hidden", " lead",
+                                   "trail ", "x" * 65])
+def test_labels_that_cards_or_csv_refuse_are_refused(label, tmp_path):
+    with pytest.raises(RecordingError, match="must be 1-64 characters"):
+        check_label(label)
+    with pytest.raises(RecordingError):
+        TakeWriter(tmp_path, label, pen_info())
+    assert not list(tmp_path.iterdir())
+
+
+@pytest.mark.parametrize("label", ["paper", "mouse_pad", "Non-woven cloth 2", "café", "x" * 64])
+def test_ordinary_labels_pass(label):
+    assert check_label(label) == label
+
+
+def test_recorder_refuses_a_bad_label_before_opening_the_port(tmp_path):
+    code, _, err = cli("tactile-record", "--port", "/dev/no-such-pen", "--label", "a:b",
+                       "--out", str(tmp_path))
+    assert code == 1 and "label 'a:b'" in err and ": * ?" in err
+
+
+def test_sim_dataset_neither_overwrites_nor_duplicates(tmp_path):
+    args = ("--dataset", str(tmp_path), "--takes", "1", "--seconds", "1", "--textures",
+            "paper,desk")
+    assert cli("tactile-sim", *args)[0] == 0
+    before = {p.name: p.read_bytes() for p in tmp_path.iterdir()}
+    code, _, err = cli("tactile-sim", *args, "--seed", "5")
+    assert code == 1 and "already exist" in err and "--force" in err
+    assert {p.name: p.read_bytes() for p in tmp_path.iterdir()} == before  # untouched
+    assert cli("tactile-sim", *args, "--seed", "5", "--force")[0] == 0
+    after = {p.name: p.read_bytes() for p in tmp_path.iterdir()}
+    assert sorted(after) == sorted(before)  # replaced, no "-2" copies
+    assert after["paper-user000.csv"] != before["paper-user000.csv"]  # another seed's data
+    # another user range adds to the folder
+    assert cli("tactile-sim", *args, "--first-take", "1")[0] == 0
+    assert len(list(tmp_path.glob("*.csv"))) == 4
+
+
+def _take(folder: Path, label: str, user: int, seqs: list[range]) -> None:
+    """A take whose rows are the given seq ranges (the jumps between them are gaps)."""
+    with TakeWriter(folder, label, pen_info(), "test", name=f"{label}-{user}",
+                    extra={"user": user}) as w:
+        for r in seqs:
+            w.write(r.start, r.start * 10_000, np.zeros((len(r), 8), np.int16))
+
+
+def test_data_summary_counts_takes_minutes_windows_and_gaps(tmp_path):
+    _take(tmp_path, "paper", 0, [range(0, 120)])                   # 1 segment of 120
+    _take(tmp_path, "paper", 1, [range(0, 60), range(70, 130)])    # 2 x 60, 10 lost (60..69)
+    _take(tmp_path, "desk", 1, [range(0, 49), range(50, 150)])  # 49 (no window) + 100, 1 lost
+    code, out, err = cli("tactile-data", str(tmp_path), "--json", "--window", "50", "--hop",
+                         "25")
+    assert code == 0, err
+    s = json.loads(out)
+    # windows by hand: (120-50)//25+1 = 3; 2 x ((60-50)//25+1) = 2; 0 + (100-50)//25+1 = 3
+    assert s["total"]["windows"] == 8
+    assert s["per_class"]["paper"]["windows"] == 5 and s["per_class"]["desk"]["windows"] == 3
+    assert s["total"]["gaps"] == 2 and s["total"]["samples_lost"] == 11
+    assert s["per_user"]["1"]["takes"] == 2 and s["per_user"]["1"]["classes"] == 2
+    assert s["total"]["minutes"] == pytest.approx((120 + 120 + 149) / 100 / 60, abs=1e-3)
+    assert s["sample_rate_hz"] == 100 and len(s["channels"]) == 8
+    code, out, _ = cli("tactile-data", str(tmp_path), "--window", "50", "--hop", "25")
+    assert code == 0 and "3 takes, 2 classes, 2 users" in out and "8 windows" in out
+    code, _, err = cli("tactile-data", str(tmp_path / "none"))
+    assert code == 1 and "not a folder" in err
+
+
+def test_plot_writes_pictures_and_refuses_what_it_cannot_plot(tmp_path):
+    _take(tmp_path, "paper", 0, [range(0, 60), range(70, 130)])
+    png = tmp_path / "take.png"
+    code, out, err = cli("tactile-plot", str(tmp_path / "paper-0.csv"), "-o", str(png))
+    assert code == 0, err
+    assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n" and png.stat().st_size > 10_000
+    code, _, err = cli("tactile-plot", str(tmp_path), "--summary", "-o", str(tmp_path / "s.png"))
+    assert code == 0 and (tmp_path / "s.png").stat().st_size > 10_000, err
+    code, _, err = cli("tactile-plot", str(tmp_path), "-o", str(tmp_path / "x.png"))
+    assert code == 1 and "add --summary" in err
+    code, _, err = cli("tactile-plot", str(tmp_path / "paper-0.csv"), "-o",
+                       str(tmp_path / "no" / "x.png"))
+    assert code == 1 and "folder that exists" in err

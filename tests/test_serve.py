@@ -1,0 +1,244 @@
+"""The live page's server (runtime/serve.py): endpoints, what /events carries, viewers that do
+not read, and tactile-run's labels on stdout while one such viewer is attached."""
+
+from __future__ import annotations
+
+import http.client
+import json
+import re
+import signal
+import socket
+import subprocess
+import sys
+import threading
+import time
+
+import numpy as np
+import pytest
+from conftest import REPO, pen_stream
+
+from tactile.device.decoder import Header, Samples
+from tactile.device.info import pen_info
+from tactile.errors import ConfigError
+from tactile.runtime.serve import QUEUE, Live, parse_address
+from tactile.runtime.stream import Label
+
+MODEL = REPO / "models" / "pen-exp2.onnx"
+
+
+@pytest.fixture
+def live():
+    said: list[str] = []
+    server = Live("127.0.0.1", 0, status=lambda: {"frames": 7}, say=said.append,
+                  max_clients=2)
+    server.said = said
+    yield server
+    if not server.closing.is_set():
+        server.close(drain_s=0.5)
+
+
+def get(live: Live, path: str, method: str = "GET") -> tuple[int, dict, bytes]:
+    conn = http.client.HTTPConnection("127.0.0.1", live.port, timeout=10)
+    conn.request(method, path)
+    r = conn.getresponse()
+    body = r.read()
+    conn.close()
+    return r.status, dict(r.getheaders()), body
+
+
+class Viewer:
+    """An /events reader: the messages one by one, as dicts."""
+
+    def __init__(self, live: Live) -> None:
+        self.sock = socket.create_connection(("127.0.0.1", live.port), timeout=10)
+        self.sock.sendall(b"GET /events HTTP/1.1\r\nHost: 127.0.0.1\r\n\r\n")
+        self.file = self.sock.makefile("rb")
+        self.status_line = self.file.readline().decode()
+        while self.file.readline() not in (b"\r\n", b""):  # the headers
+            pass
+
+    def next(self) -> dict:
+        while True:
+            line = self.file.readline()
+            if not line:
+                raise EOFError("the server closed the stream")
+            if line.startswith(b"data: "):
+                return json.loads(line[6:])
+
+    def close(self) -> None:
+        self.file.close()
+        self.sock.close()
+
+
+def wait_for(cond, what: str, limit: float = 30.0) -> None:
+    """Poll ``cond()`` until true (the limit only turns a hang into a failure)."""
+    end = time.monotonic() + limit
+    while not cond():
+        if time.monotonic() > end:
+            pytest.fail(f"never happened: {what}")
+        time.sleep(0.01)
+
+
+def test_addresses_bind_to_loopback_unless_told():
+    assert parse_address("8000") == ("127.0.0.1", 8000)
+    assert parse_address("0.0.0.0:0") == ("0.0.0.0", 0)
+    assert parse_address("[::1]:9000") == ("::1", 9000)
+    for bad in ("", "x", "host:", ":80", "1.2.3.4:70000", "h:-1"):
+        with pytest.raises(ConfigError, match="--serve"):
+            parse_address(bad)
+
+
+def test_port_0_picks_a_free_port_and_says_where(live):
+    assert live.port != 0 and live.url == f"http://127.0.0.1:{live.port}/"
+    assert live.said == [f"live page at {live.url} (read-only; at most 2 viewers)"]
+    with pytest.raises(ConfigError, match=f"127.0.0.1:{live.port}: cannot listen there"):
+        Live("127.0.0.1", live.port, status=dict, say=lambda m: None)  # taken
+
+
+def test_endpoints_are_read_only_and_unknown_paths_404(live):
+    status, headers, body = get(live, "/")
+    assert status == 200 and headers["Content-Type"].startswith("text/html")
+    assert b'src="app.js"' in body and b"http" not in body.split(b"<footer>")[0]  # no CDN
+    for path, kind in (("/app.js", "text/javascript"), ("/style.css", "text/css")):
+        status, headers, body = get(live, path)
+        assert status == 200 and headers["Content-Type"].startswith(kind) and body
+    status, headers, body = get(live, "/", "HEAD")
+    assert status == 200 and body == b"" and int(headers["Content-Length"]) > 0
+    assert get(live, "/events", "HEAD")[0] == 200 and live.served == 0  # HEAD joins nobody
+    assert get(live, "/nothing")[0:3:2] == (404, b"no such page: /nothing\n")
+    assert get(live, "/../etc/passwd")[0] == 404
+    conn = http.client.HTTPConnection("127.0.0.1", live.port, timeout=10)
+    conn.request("GET", "/", headers={"Host": f"evil.example:{live.port}"})  # DNS rebinding
+    assert conn.getresponse().status == 403
+    conn.close()
+    for method in ("POST", "PUT", "DELETE", "PATCH"):
+        status, headers, body = get(live, "/", method)
+        assert (status, headers["Allow"]) == (405, "GET, HEAD"), method
+
+
+def test_events_carry_header_samples_labels_and_events_and_a_new_viewer_catches_up(live):
+    info = pen_info()
+    raw = np.arange(8 * 10, dtype=np.int16).reshape(10, 8) * 100  # seq 6..15
+    lab = Label(15, 150_000, "paper", 0.75, {"paper": 0.75, "desk": 0.25}, 0.5)
+    first = Viewer(live)
+    assert first.status_line.startswith("HTTP/1.1 200")
+    live.feed(Header(info))
+    live.feed(Samples(6, 60_000, raw))
+    live.feed(lab)
+    live.feed({"event": "gap", "seq": 16, "missing": 2, "reason": "drop"})
+    header = first.next()
+    assert header["event"] == "header" and header["every"] == 4  # 100 Hz -> 25 Hz
+    assert [c["name"] for c in header["channels"]] == list(info.channel_names)
+    samples = first.next()
+    # the samples whose seq is a multiple of 4 (8 and 12), in units: counts * scale by hand
+    scale = np.array([0.01, 0.01, 1 / 16384, 1 / 16384, 1 / 16384, 1 / 131, 1 / 131, 1 / 131])
+    assert samples["seq"] == 8 and samples["every"] == 4
+    np.testing.assert_allclose(samples["values"], raw[[2, 6]] * scale, rtol=1e-3)
+    assert first.next() == lab.to_dict()  # the object stdout carries, as is
+    assert first.next() == {"event": "gap", "seq": 16, "missing": 2, "reason": "drop"}
+    late = Viewer(live)  # gets the latest header and label (and status) first
+    got = [late.next(), late.next()]
+    assert got[0]["event"] == "header" and got[1] == lab.to_dict()
+    first.close()
+    late.close()
+
+
+def test_at_most_max_clients_the_next_is_refused_politely(live):
+    viewers = [Viewer(live), Viewer(live)]
+    wait_for(lambda: live.viewers == 2, "two viewers joined")
+    status, headers, body = get(live, "/events")
+    assert status == 503 and body == b"busy: at most 2 viewers at a time; try again later\n"
+    assert live.refused == 1
+    for v in viewers:
+        v.close()
+
+
+def test_close_sends_end_after_everything_queued(live):
+    v = Viewer(live)
+    wait_for(lambda: live.viewers == 1, "the viewer joined")
+    for i in range(100):
+        live.feed({"event": "gap", "seq": i, "missing": 1, "reason": "drop"})
+    live.close(drain_s=10)
+    got = [v.next() for _ in range(102)]
+    assert [g["seq"] for g in got[:100]] == list(range(100))
+    assert got[100]["event"] == "status" and got[100]["frames"] == 7
+    assert got[101] == {"event": "end"}
+    assert live.said[-1] == "live page: viewers 1 served, 0 refused; 0 messages dropped for " \
+                            "slow viewers"
+    v.close()
+
+
+def stuck_viewer(port: int) -> socket.socket:
+    """A viewer that asks for /events and never reads (a small receive buffer fills first)."""
+    s = socket.socket(socket.AF_INET, socket.SOCK_STREAM)
+    s.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 4096)
+    s.connect(("127.0.0.1", port))
+    s.sendall(b"GET /events HTTP/1.1\r\nHost: 127.0.0.1\r\n\r\n")
+    return s
+
+
+def test_a_viewer_that_never_reads_costs_drops_not_waits():
+    live = Live("127.0.0.1", 0, status=dict, say=lambda m: None, write_timeout=600)
+    stuck = stuck_viewer(live.port)
+    wait_for(lambda: live.viewers == 1, "the stuck viewer joined")
+    n, payload = 5000, "x" * 1000  # 5 MB: far more than the socket buffers and the queue
+
+    def publish_all() -> None:
+        for i in range(n):
+            live.publish({"event": "note", "i": i, "pad": payload})
+
+    loop = threading.Thread(target=publish_all, daemon=True)
+    loop.start()
+    loop.join(60)  # if publish waited for the viewer, the loop would never end
+    assert not loop.is_alive() and live.published == n
+    # what is not dropped sits in the queue or the socket buffers (<= 64 KiB * 2 + 4 KiB * 2)
+    assert n - QUEUE - (2 * 65536 + 2 * 4096) // 1000 <= live.dropped < n
+    stuck.close()
+    live.close(drain_s=0.5)
+
+
+def test_tactile_run_labels_go_on_while_a_viewer_never_reads(reap):
+    """The pen (a socket the test feeds) sends 600 s of samples while a viewer that never
+    reads is attached: stdout still gets every window's label, and the server counts drops."""
+    pen = socket.create_server(("127.0.0.1", 0))
+    proc = reap(subprocess.Popen(
+        [sys.executable, "-m", "tactile.runtime.cli", "--model", str(MODEL),
+         "--port", f"socket://127.0.0.1:{pen.getsockname()[1]}", "--serve", "127.0.0.1:0",
+         "--status-every", "1000"],
+        stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True), 180)
+    conn, _ = pen.accept()
+    url = re.search(r"live page at (http://\S+/)", proc.stderr.readline()).group(1)
+    port = int(url.rsplit(":", 1)[1].strip("/"))
+    stuck = stuck_viewer(port)
+
+    def viewers() -> int:
+        c = http.client.HTTPConnection("127.0.0.1", port, timeout=10)
+        c.request("GET", "/status")
+        body = c.getresponse().read()
+        c.close()
+        return json.loads(body).get("viewers", 0)
+
+    wait_for(lambda: viewers() == 1, "the stuck viewer joined", 60)
+    n = 60_000
+    data, _, _ = pen_stream(n, seed=3)
+    conn.sendall(data)
+    from tactile.runtime.model import Model
+
+    c = Model(MODEL).contract
+    want = list(range(c.window - 1, n, c.hop))  # the seq of every window's last sample
+    seqs = []
+    while len(seqs) < len(want):
+        line = proc.stdout.readline()
+        assert line, "stdout ended early"
+        obj = json.loads(line)
+        if "label" in obj:
+            seqs.append(obj["seq"])
+    assert seqs == want
+    proc.send_signal(signal.SIGINT)
+    out, err = proc.communicate(timeout=60)
+    assert proc.returncode == 0
+    dropped = int(re.search(r"live page: viewers 1 served.*; (\d+) messages dropped", err)[1])
+    assert dropped > 0
+    stuck.close()
+    conn.close()
+    pen.close()
