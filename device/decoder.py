@@ -437,11 +437,11 @@ class StreamDecoder:
 
     def _restarted(self, ahead: int, t: int) -> bool:
         """A frame ``ahead`` samples past the next expected one whose device time says
-        otherwise (by the header's rate, else the rate the remembered frames show, else
-        ``csv_rate_hz`` for a jump): the device restarted and its count happens to be where
-        the old one was, or ahead (its header, which says so, may have been lost)."""
-        if self._t_last is None:
-            return False
+        otherwise (by the period the remembered frames show, else the header's rate, else
+        ``csv_rate_hz`` for a jump): the device restarted and its count happens to be ahead,
+        or, after a header, where the old one was (its header may have been lost)."""
+        if self._t_last is None or (not ahead and not self._header_since_samples):
+            return False  # in order: only after a header (a device sends one when it starts)
         period = self._period_us(estimate_only=True)
         if period is None:
             if not ahead:
@@ -469,14 +469,15 @@ class StreamDecoder:
         self._session_first_u = seq
 
     def _period_us(self, estimate_only: bool = False) -> float | None:
-        """Device microseconds per sample: from the header's rate, else from the frames
-        remembered, else (unless ``estimate_only``) from ``csv_rate_hz``."""
-        if self.info is not None:
-            return 1e6 / self.info.sample_rate_hz
+        """Device microseconds per sample: as the device's own clock shows it in the frames
+        remembered (a board's clock may not match the rate its header declares), else from the
+        header's rate, else (unless ``estimate_only``) from ``csv_rate_hz``."""
         if len(self._history) >= 2:
             (s0, t0, _), (s1, t1, _) = self._history[0], self._history[-1]
             if s1 > s0:
                 return ((t1 - t0) % SEQ_MODULO) / (s1 - s0)
+        if self.info is not None:
+            return 1e6 / self.info.sample_rate_hz
         return None if estimate_only else 1e6 / self.csv_rate_hz
 
     def _dt(self, t_us: int) -> int:

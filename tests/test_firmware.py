@@ -26,6 +26,7 @@ from tactile.device.info import pen_info
 from tactile.device.protocol import (
     MAX_BODY,
     MAX_ENCODED,
+    SUPPORTED_VERSIONS,
     cobs_encode,
     crc16,
     encode_header,
@@ -188,7 +189,7 @@ def _random_stream(rng: np.random.Generator) -> list[dict[str, str]]:
         offset = float(rng.uniform(-1e3, 1e3)) if rng.random() < 0.5 else 0.0
         chans.append(f"{name}:{unit}:{_bits(scale)}:{_bits(offset)}")
     header = {
-        "version": str(int(rng.integers(0, 256))),
+        "version": str(1 if rng.random() < 0.5 else int(rng.integers(0, 256))),  # 1: decoded
         "rate_bits": _bits(float(rng.uniform(1, 1e6))),
         "device": "".join(rng.choice(alphabet, int(rng.integers(0, 33)))),
         "channels": ",".join(chans),
@@ -239,6 +240,11 @@ def test_random_c_frames_match_python_and_decode(program: Program):
         events, stats = decode(res.stdout[pos : pos + size], mode="binary")
         pos += size
         assert stats.crc_errors == stats.malformed == stats.bytes_discarded == 0
+        if vectors.header_info(stream[0]).protocol_version not in SUPPORTED_VERSIONS:
+            # a version the decoder does not read: refused, reported, nothing delivered
+            assert [(type(e), e.reason) for e in events] == [(Gap, "unsupported")]
+            assert stats.unsupported == 1 and stats.refused == len(stream) - 1
+            continue
         assert isinstance(events[0], Header)
         assert events[0].info == vectors.header_info(stream[0])
         gaps = [e for e in events if isinstance(e, Gap)]
