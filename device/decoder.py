@@ -438,10 +438,10 @@ class StreamDecoder:
     def _restarted(self, ahead: int, t: int) -> bool:
         """A frame ``ahead`` samples past the next expected one whose device time says
         otherwise (by the period the remembered frames show, else the header's rate, else
-        ``csv_rate_hz`` for a jump): the device restarted and its count happens to be ahead,
-        or, after a header, where the old one was (its header may have been lost)."""
-        if self._t_last is None or (not ahead and not self._header_since_samples):
-            return False  # in order: only after a header (a device sends one when it starts)
+        ``csv_rate_hz`` for a jump): the device restarted and its count happens to be where
+        the old one was, or ahead (its header, which says so, may have been lost)."""
+        if self._t_last is None:
+            return False
         period = self._period_us(estimate_only=True)
         if period is None:
             if not ahead:

@@ -22,7 +22,7 @@ import pytest
 
 from tactile.device import vectors
 from tactile.device.decoder import Gap, Header, Samples, decode
-from tactile.device.info import pen_info
+from tactile.device.info import f32, pen_info
 from tactile.device.protocol import (
     MAX_BODY,
     MAX_ENCODED,
@@ -188,9 +188,10 @@ def _random_stream(rng: np.random.Generator) -> list[dict[str, str]]:
         scale = float(rng.choice([-1, 1]) * 10 ** rng.uniform(-8, 8))
         offset = float(rng.uniform(-1e3, 1e3)) if rng.random() < 0.5 else 0.0
         chans.append(f"{name}:{unit}:{_bits(scale)}:{_bits(offset)}")
+    rate = f32(float(rng.uniform(1, 1e6)))
     header = {
         "version": str(1 if rng.random() < 0.5 else int(rng.integers(0, 256))),  # 1: decoded
-        "rate_bits": _bits(float(rng.uniform(1, 1e6))),
+        "rate_bits": _bits(rate),
         "device": "".join(rng.choice(alphabet, int(rng.integers(0, 33)))),
         "channels": ",".join(chans),
     }
@@ -213,7 +214,7 @@ def _random_stream(rng: np.random.Generator) -> list[dict[str, str]]:
         )
         skip = 5 if k == 6 else 0
         seq = (seq + n + skip) % (1 << 32)
-        t_us = (t_us + 10_000 * (n + skip)) % (1 << 32)
+        t_us = (t_us + round((n + skip) * 1e6 / rate)) % (1 << 32)  # the clock its rate says
     return stream
 
 
