@@ -15,7 +15,10 @@ FLOAT32_MAX = 3.4028234663852886e38
 """The largest float32: a value in units beyond it would become inf in the model's input."""
 
 PROTOCOL_VERSION = 1
-MAX_CHANNELS = 32
+# Channels a device description (a recording, a training input) may have: two BioTacs are 88.
+# 2048 is more than a CSV line of the wire protocol (4096 bytes) can hold, so every device the
+# decoder meets fits. The binary frames keep their own, smaller limit (protocol.WIRE_MAX_CHANNELS).
+MAX_CHANNELS = 2048
 MAX_NAME = 32  # bytes of UTF-8 in a channel name, unit or device string
 
 

@@ -20,7 +20,6 @@ from functools import cache, lru_cache
 import numpy as np
 
 from tactile.device.info import (
-    MAX_CHANNELS,
     MAX_NAME,
     PROTOCOL_VERSION,
     ChannelSpec,
@@ -33,6 +32,9 @@ TYPE_HEADER = 0x01
 TYPE_SAMPLES = 0x02
 SEQ_MODULO = 1 << 32  # sequence numbers and device timestamps are u32 and wrap
 MAX_SAMPLES_PER_FRAME = 32
+# Binary frames carry at most 32 channels (recordings take more: info.MAX_CHANNELS), so that
+# a microcontroller's frame buffer stays MAX_BODY bytes; see PROTOCOL.md.
+WIRE_MAX_CHANNELS = 32
 MAX_BODY = 2560  # largest frame body (type .. last data byte, CRC excluded), in bytes
 # (the largest header, 32 channels with 32-byte names and units, is 2409 bytes; the largest
 # samples frame, 32 x 32 int16, is 2059)
@@ -113,6 +115,9 @@ def _text(s: str) -> bytes:
 
 def header_body(info: DeviceInfo) -> bytes:
     """Body of a header frame (type 0x01)."""
+    if len(info.channels) > WIRE_MAX_CHANNELS:
+        raise FrameError(f"{len(info.channels)} channels: a header frame carries "
+                         f"1..{WIRE_MAX_CHANNELS}")
     parts = [
         _HEADER_HEAD.pack(
             TYPE_HEADER,
@@ -140,9 +145,10 @@ def samples_body(seq: int, t_us: int, raw: np.ndarray) -> bytes:
     if raw.ndim != 2:
         raise FrameError(f"samples must be 2-D (n_samples, n_channels), got shape {raw.shape}")
     n, c = raw.shape
-    if not (1 <= n <= MAX_SAMPLES_PER_FRAME and 1 <= c <= MAX_CHANNELS):
+    if not (1 <= n <= MAX_SAMPLES_PER_FRAME and 1 <= c <= WIRE_MAX_CHANNELS):
         raise FrameError(
-            f"{n} samples x {c} channels: must be 1..{MAX_SAMPLES_PER_FRAME} x 1..{MAX_CHANNELS}"
+            f"{n} samples x {c} channels: "
+            f"must be 1..{MAX_SAMPLES_PER_FRAME} x 1..{WIRE_MAX_CHANNELS}"
         )
     if raw.dtype != np.int16:
         if np.any(raw < -32768) or np.any(raw > 32767):
@@ -196,7 +202,7 @@ def parse_body(body: bytes) -> SamplesFrame | HeaderFrame | None:
         if len(body) < _SAMPLES_HEAD.size:
             return None
         _, seq, t_us, c, n = _SAMPLES_HEAD.unpack_from(body)
-        if not (1 <= c <= MAX_CHANNELS and 1 <= n <= MAX_SAMPLES_PER_FRAME):
+        if not (1 <= c <= WIRE_MAX_CHANNELS and 1 <= n <= MAX_SAMPLES_PER_FRAME):
             return None
         if len(body) != _SAMPLES_HEAD.size + 2 * n * c:
             return None
@@ -212,6 +218,8 @@ def parse_body(body: bytes) -> SamplesFrame | HeaderFrame | None:
 
 def _parse_header(body: bytes) -> DeviceInfo:
     _, version, rate, c, fmt = _HEADER_HEAD.unpack_from(body)
+    if not 1 <= c <= WIRE_MAX_CHANNELS:
+        raise ValueError(f"{c} channels")
     if fmt != SAMPLE_FORMAT_INT16:
         raise ValueError(f"unknown sample format {fmt}")
     pos = _HEADER_HEAD.size
@@ -261,7 +269,7 @@ def find_frame(chunk: bytes, width: int | None = None) -> tuple[
 # is the next code byte (a 0xFF block, the only exception, is longer than these offsets). A
 # frame's type, channel and sample counts, header version and sample format are non-zero, so
 # they must sit in the chunk at fixed places: the regular expression tests that in C.
-_COUNT = rb"[\x01-\x20]"  # 1..32: MAX_CHANNELS and MAX_SAMPLES_PER_FRAME
+_COUNT = rb"[\x01-\x20]"  # 1..32: WIRE_MAX_CHANNELS and MAX_SAMPLES_PER_FRAME
 
 
 @cache
@@ -391,13 +399,13 @@ class _SuffixSearch:
         lo, hi = d - 2 - d // 254, d - 1  # the decoded length lies in [lo, hi]
         code, kind = a[:m], a[1 : m + 1]
         c, k = a[10 : m + 10], a[11 : m + 11]
-        chans = (c >= 1) & (c <= MAX_CHANNELS) if width is None else c == width
+        chans = (c >= 1) & (c <= WIRE_MAX_CHANNELS) if width is None else c == width
         want = _SAMPLES_HEAD.size + 2 * c * k + 2
         samples = (code >= 2) & (kind == TYPE_SAMPLES) & chans & (k >= 1) \
             & (k <= MAX_SAMPLES_PER_FRAME) & (want >= lo) & (want <= hi)
         hc = a[7 : m + 7]
         header = (code >= 2) & (kind == TYPE_HEADER) \
-            & (hc >= 1) & (hc <= MAX_CHANNELS) & (a[8 : m + 8] == SAMPLE_FORMAT_INT16) \
+            & (hc >= 1) & (hc <= WIRE_MAX_CHANNELS) & (a[8 : m + 8] == SAMPLE_FORMAT_INT16) \
             & (_header_min(hc) <= hi) & (_header_max(hc) >= lo)
         return np.flatnonzero(samples | header).tolist()
 

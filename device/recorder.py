@@ -3,9 +3,10 @@
     tactile-record --port sim://?texture=paper --label paper --seconds 60 --out data/
 
 Data (the paths of the takes written) goes to stdout, progress and diagnostics to stderr. Ctrl-C
-or SIGTERM finishes the take cleanly; a killed recorder leaves a readable take missing at most
-the last second. A vanished port is reopened with backoff and the take goes on after a
-``restart`` gap. A header change (another pen, another layout) starts a new take.
+or SIGTERM finishes the take cleanly; a killed recorder leaves a readable take holding every
+sample that had reached it after the pen's header, and every gap among them. A vanished port is
+reopened with backoff and the take goes on after a ``restart`` gap. A header change (another
+pen, another layout) starts a new take.
 """
 
 from __future__ import annotations
@@ -53,6 +54,7 @@ class Recorder:
         self.max_samples = math.inf  # set from the device's rate when its header arrives
         self.writer: TakeWriter | None = None
         self.early: list[Samples | Gap] = []  # before the first header: kept, in order
+        self.unfit = 0  # samples whose width is not the header's (this take)
         self.result = RecordResult()
 
     def handle(self, events: list, decoder: StreamDecoder) -> int:
@@ -84,22 +86,35 @@ class Recorder:
             self.writer.gap(ev)
             return 0
         raw = ev.raw[: int(min(room, len(ev.raw)))]
+        width = len(self.writer.info.channels)
+        if raw.ndim != 2 or raw.shape[1] != width:
+            # not what the header describes (frames from before it, another firmware): no
+            # column can hold them; the take says that many samples are missing there
+            self.unfit += len(raw)
+            if self.unfit == len(raw):
+                _say(f"{len(raw)} sample(s) of {raw.shape[-1]} channels do not fit the "
+                     f"header's {width}: left out, recorded as a 'rejected' gap", progress=True)
+            self.writer.gap(Gap(ev.seq + len(raw), len(raw), "rejected"))
+            return 0
         self.writer.write(ev.seq, ev.t_us, raw)
         self.result.samples += len(raw)
         return len(raw)
 
     def _open(self, info: DeviceInfo) -> None:
         self.writer = TakeWriter(self.out, self.label, info, self.source, extra=self.extra)
+        self.unfit = 0
         self.result.takes.append(self.writer.csv_path)
 
-    def _close(self, decoder: StreamDecoder) -> None:
+    def _close(self, decoder: StreamDecoder, complete: bool = True) -> None:
+        """Close the take: complete unless told otherwise or a write failed."""
         if self.writer is not None:
-            self.writer.set_decoder_stats(decoder.stats)
-            self.writer.close()
-            self.writer = None
+            writer, self.writer = self.writer, None
+            writer.set_decoder_stats(decoder.stats)
+            writer.close(complete)
 
-    def close(self, decoder: StreamDecoder) -> None:
-        self._close(decoder)
+    def close(self, decoder: StreamDecoder, complete: bool = True) -> None:
+        """Close the take (``complete``: False when the recording ended on an error)."""
+        self._close(decoder, complete)
         self.result.stats = decoder.stats.as_dict()
 
 
@@ -165,7 +180,7 @@ def record(
             if rec.result.samples >= rec.max_samples:
                 break
     finally:
-        rec.close(decoder)
+        rec.close(decoder, complete=sys.exc_info()[0] is None)  # an error: not complete
         if link is not None:  # None: stopped before opening it, or while waiting to reconnect
             link.close()
         for s, h in old.items():
@@ -197,7 +212,9 @@ def build_parser() -> argparse.ArgumentParser:
         description="Record labelled takes from a pen (device path or pyserial URL).",
         epilog="Ctrl-C or SIGTERM finishes the take (written and closed) and exits 0; stopped "
                "before the port gave any data, it exits 0 and says so. Exit 2: the port cannot "
-               "be opened, or it gave no usable data before the end.",
+               "be opened, or it gave no usable data before the end. Exit 1: a take cannot be "
+               "written (a full disk: the line names the file; the take keeps what was written "
+               "and is not marked complete).",
     )
     p.add_argument("--port", help="/dev/ttyACM0, sim://?texture=paper, socket://...; default: "
                    "the one likely pen attached (as tactile-run; tactile-ports lists them)")

@@ -105,7 +105,7 @@ def float_in(low: float, high: float = math.inf, low_open: bool = True,
 
 # What each optional extra brings: a command that needs one says so in one line.
 _EXTRA_OF = {"torch": "train", "onnx": "train", "onnxscript": "train", "tqdm": "train",
-             "matplotlib": "train"}
+             "matplotlib": "train", "sklearn": "train", "h5py": "biotac"}
 
 
 def _with_extra(module: str, prog: str) -> Callable[[], int]:
@@ -175,10 +175,29 @@ def _guarded_start(module: str) -> Callable[[], int]:
 run_main = _guarded_start("tactile.runtime.cli")
 record_main = _guarded_start("tactile.device.recorder")
 monitor_main = _guarded_start("tactile.runtime.monitor")
-train_main = _with_extra("tactile.training.train", "tactile-train")
-eval_main = _with_extra("tactile.training.evaluate", "tactile-eval")
+
+
+def _interruptible(entry: Callable[[], int], prog: str) -> Callable[[], int]:
+    """A Ctrl-C that the command does not handle itself (while torch imports, say) ends it
+    with one line and exit 130, the shell's code for SIGINT, not a traceback."""
+
+    def main() -> int:
+        try:
+            return entry()
+        except KeyboardInterrupt:
+            print(f"{prog}: interrupted", file=sys.stderr)
+            return 130
+
+    return main
+
+
+train_main = _interruptible(_with_extra("tactile.training.train", "tactile-train"),
+                            "tactile-train")
+eval_main = _interruptible(_with_extra("tactile.training.evaluate", "tactile-eval"),
+                           "tactile-eval")
 export_main = _with_extra("tactile.export.cli", "tactile-export")
 plot_main = _with_extra("tactile.training.plot", "tactile-plot")
+import_biotac_main = _with_extra("tactile.device.biotac", "tactile-import-biotac")
 
 
 def add_debug(parser: argparse.ArgumentParser) -> None:

@@ -310,15 +310,17 @@ def test_bad_decoder_settings():
 
 def test_csv_lines_too_wide_or_names_too_long_never_raise():
     d = StreamDecoder()
-    row = b",".join([b"1"] * 33) + b"\n"
+    row = b",".join([b"1"] * 33) + b"\n"  # 33 channels: a CSV device may have them
     assert d.feed(row) == [] and d.feed(row) == []
+    wide = b",".join([b"1"] * 2049) + b"\n"  # more fields than a line may hold
+    assert d.feed(wide) == [] and d.feed(wide) == []
     long_name = b"x" * 33 + b",b,c\n"
-    events = d.feed(b"\n" + long_name + b"1,2,3\n4,5,6\n" + row + b"7,8,9\n10,11,12\n")
+    events = d.feed(b"\n" + long_name + b"1,2,3\n4,5,6\n7,8,9\n" + row + b"10,11,12\n")
     seqs, rows = delivered(events)
-    assert seqs.tolist() == [0, 1, 3, 4]  # the 33-field row is one rejected sample
+    assert seqs.tolist() == [0, 1, 2, 4]  # the 33-field row is one rejected sample
     np.testing.assert_array_equal(rows, [[1, 2, 3], [4, 5, 6], [7, 8, 9], [10, 11, 12]])
     assert d.stats.csv_rejected >= 3 and [e for e in events if isinstance(e, Gap)] == [
-        Gap(3, 1, "rejected")]
+        Gap(4, 1, "rejected")]
 
 
 class _Counted:

@@ -16,12 +16,13 @@ import serial
 from conftest import read_link, start_and_signal
 
 import tactile.device  # noqa: F401  (registers sim://)
-from tactile.device.decoder import StreamDecoder
+from tactile.device.decoder import Gap, StreamDecoder
 from tactile.device.hapmat import import_hapmat
+from tactile.device.info import pen_info
 from tactile.device.ports import PortAbsent, open_port
 from tactile.device.protocol_sim import forget_unplugs
+from tactile.device.recorder import Recorder, record
 from tactile.device.recorder import main as record_main
-from tactile.device.recorder import record
 from tactile.device.recording import TakeWriter, load_dataset, read_take
 from tactile.device.sim_cli import make_dataset
 from tactile.device.simlink import LinkConfig, PenLink
@@ -184,16 +185,27 @@ def test_killed_recorder_leaves_a_readable_take(tmp_path):
          "--quiet"],
         stdout=subprocess.PIPE, stderr=subprocess.PIPE,
     )
-    time.sleep(3.5)
-    proc.send_signal(signal.SIGKILL)
-    proc.wait(10)
+    try:  # killed once its CSV holds 250 rows (what it has written, not how long it ran)
+        _wait_for(lambda: _rows_in(tmp_path) >= 250, "250 rows in the CSV")
+        proc.send_signal(signal.SIGKILL)
+    finally:
+        proc.kill()
+        proc.wait(10)
     (csv,) = tmp_path.glob("*.csv")
     take = read_take(csv)
     assert not take.meta["complete"]
-    # ~3 s of wall time at 2x is ~600 samples; at most the last second (200) may be missing,
-    # plus interpreter start-up
-    assert len(take.seq) >= 250, len(take.seq)
+    assert len(take.seq) >= 250, len(take.seq)  # nothing it had written is lost
     assert_samples_are_the_pen(take, "paper", 1)
+
+
+def _rows_in(folder: Path) -> int:
+    """Complete data rows in the one CSV being written in ``folder`` (0 before it exists)."""
+    csvs = list(folder.glob("*.csv"))
+    if not csvs:
+        return 0
+    text = csvs[0].read_bytes()
+    return sum(1 for ln in text[: text.rfind(b"\n") + 1].splitlines()[1:]
+               if not ln.startswith(b"#"))
 
 
 def test_ctrl_c_finishes_the_take(tmp_path):
@@ -202,9 +214,12 @@ def test_ctrl_c_finishes_the_take(tmp_path):
          "sim://?texture=desk&seed=1&speed=5", "--label", "desk", "--out", str(tmp_path)],
         stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
     )
-    time.sleep(2.5)
-    proc.send_signal(signal.SIGINT)
-    out, err = proc.communicate(timeout=10)
+    try:  # interrupted once its CSV holds 101 rows
+        _wait_for(lambda: _rows_in(tmp_path) > 100, "101 rows in the CSV")
+        proc.send_signal(signal.SIGINT)
+        out, err = proc.communicate(timeout=30)
+    finally:
+        proc.kill()
     assert proc.returncode == 0, err
     take = read_take(out.strip())
     assert take.meta["complete"] and len(take.seq) > 100
@@ -427,3 +442,288 @@ def test_bad_recordings_are_refused(tmp_path):
         load_dataset(tmp_path)
     with pytest.raises(RecordingError, match="label"):
         TakeWriter(tmp_path, "a/b", info)
+
+
+# -- crash consistency, the flush clock, hostile headers, full disks, untrusted takes ------------
+
+
+def test_a_gap_is_in_the_take_as_soon_as_the_rows_after_it(tmp_path):
+    """A restart (no seq jump) between two runs of rows: a reader that opens the take while the
+    writer is still going (as after a SIGKILL) sees the rows and the gap between them."""
+    info = pen_info()
+    raw = np.arange(40 * 8, dtype=np.int16).reshape(40, 8)
+    w = TakeWriter(tmp_path, "paper", info, name="live", flush_every_s=1e6)  # no clock tick
+    try:
+        w.write(0, 0, raw[:25])
+        w.gap(Gap(25, 0, "restart"))
+        w.write(25, 10_000, raw[25:])
+        take = read_take(tmp_path / "live.csv")
+    finally:
+        w.close()
+    assert not take.meta["complete"]
+    assert take.seq.tolist() == list(range(40))
+    np.testing.assert_array_equal(take.raw, raw)
+    assert take.segments() == [(0, 25), (25, 40)]
+    assert [(g["seq"], g["reason"], g["row"]) for g in take.meta["gaps"]] == [(25, "restart", 25)]
+    assert "# gap seq=25 missing=0 reason=restart\n" in (tmp_path / "live.csv").read_text()
+
+
+def _wait_for(predicate, what: str, seconds: float = 60.0):
+    """Poll until ``predicate()`` is true; fail after ``seconds`` (a deadline, not a measure)."""
+    deadline = time.monotonic() + seconds
+    while not predicate():
+        if time.monotonic() > deadline:
+            raise AssertionError(f"{what} did not happen within {seconds} s")
+        time.sleep(0.01)
+
+
+def test_the_clock_flushes_during_a_silence(tmp_path):
+    """Rows written, then nothing more: the JSON catches up on the clock, not on a next write."""
+    w = TakeWriter(tmp_path, "paper", pen_info(), name="quiet", flush_every_s=0.05)
+    try:
+        w.write(0, 0, np.ones((7, 8), np.int16))
+        w.gap(Gap(7, 3, "drop"))
+        meta = lambda: json.loads((tmp_path / "quiet.json").read_text())  # noqa: E731
+        _wait_for(lambda: meta()["samples"] == 7 and meta()["gaps"], "a flush by the clock")
+    finally:
+        w.close()
+    assert meta()["complete"] and meta()["gaps"] == [{"seq": 7, "missing": 3, "reason": "drop"}]
+
+
+HOSTILE_NAMES = ("a,b", "x\ny", "q\"uote", "#hash", "100%", "tab\there", "ünïcødé", "雨", "ok")
+
+
+def test_hostile_channel_names_round_trip(tmp_path):
+    """Names with a comma, a newline, a quote, '#', '%', a tab or non-ASCII letters (a device
+    header can say anything): the recorder writes a take its reader accepts, names intact."""
+    from tactile.device.info import ChannelSpec, DeviceInfo
+    from tactile.device.protocol import encode_header, encode_samples
+
+    info = DeviceInfo(100.0, tuple(ChannelSpec(n, "ü") for n in HOSTILE_NAMES), device="ペン")
+    raw = np.arange(30 * len(HOSTILE_NAMES), dtype=np.int16).reshape(30, -1)
+    stream = encode_header(info) + b"".join(
+        encode_samples(k, k * 10_000, raw[k : k + 1]) for k in range(30))
+    rec, dec = Recorder(tmp_path, "paper", "test"), StreamDecoder()
+    rec.handle(dec.feed(stream), dec)
+    rec.close(dec)
+    take = read_take(rec.result.takes[0])
+    assert take.channels == HOSTILE_NAMES and take.meta["complete"]
+    np.testing.assert_array_equal(take.raw, raw)
+    head = rec.result.takes[0].read_text(encoding="utf-8").splitlines()[0]
+    assert head == "seq,t_us,a%2Cb,x%0Ay,q%22uote,%23hash,100%25,tab%09here,ünïcødé,雨,ok"
+
+
+def test_samples_that_do_not_fit_the_header_are_a_gap_not_a_crash(tmp_path):
+    """3-channel samples before the 8-channel header (and one after it): left out as a
+    'rejected' gap of their size; the 8-channel samples are all kept; the take is complete."""
+    from tactile.device.decoder import Header, Samples
+
+    info = pen_info()
+    raw = np.arange(20 * 8, dtype=np.int16).reshape(20, 8)
+    rec, dec = Recorder(tmp_path, "paper", "test"), StreamDecoder()
+    rec.handle([Samples(0, 0, np.ones((3, 3), np.int16)), Header(info),
+                Samples(3, 30_000, raw[:10]), Samples(13, 130_000, np.ones((2, 3), np.int16)),
+                Samples(15, 150_000, raw[10:])], dec)
+    rec.close(dec)
+    take = read_take(rec.result.takes[0])
+    assert take.meta["complete"] and rec.result.samples == 20
+    np.testing.assert_array_equal(take.raw, raw)
+    assert take.seq.tolist() == [*range(3, 13), *range(15, 25)]
+    assert [(g["seq"], g["missing"], g["reason"]) for g in take.meta["gaps"]] == [
+        (3, 3, "rejected"), (15, 2, "rejected")]
+    assert take.segments() == [(0, 10), (10, 20)]
+
+
+def test_a_full_disk_names_the_file_and_keeps_what_was_written(tmp_path, monkeypatch, capsys):
+    """The disk fills mid-take (writes fail with ENOSPC after 30 kB): exit 1, one line naming
+    the CSV, no traceback; the take on disk reads back, is not complete, and every row in it is
+    the pen's."""
+    import errno
+
+    from tactile.device import recording
+
+    real, room = recording._write_all, {"bytes": 30_000}
+
+    def full_disk(fd, data):
+        if len(data) > room["bytes"]:
+            real(fd, bytes(data[: room["bytes"]]))
+            room["bytes"] = 0
+            raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
+        room["bytes"] -= len(data)
+        real(fd, data)
+
+    monkeypatch.setattr(recording, "_write_all", full_disk)
+    code = record_main(["--port", "sim://?texture=paper&seed=3&speed=max", "--label", "paper",
+                        "--out", str(tmp_path), "--seconds", "30", "--quiet"])
+    err = capsys.readouterr().err
+    (csv,) = tmp_path.glob("*.csv")
+    assert code == 1 and "Traceback" not in err
+    assert f"tactile-record: error: {csv}: cannot write (No space left on device)" in err
+    monkeypatch.undo()
+    take = read_take(csv)
+    assert not take.meta["complete"] and len(take.seq) > 100
+    assert csv.stat().st_size <= 30_000
+    assert_samples_are_the_pen(take, "paper", 3)
+    assert not list(tmp_path.glob("*.tmp"))
+
+
+def _meta_of(tmp_path) -> dict:
+    with TakeWriter(tmp_path, "paper", pen_info(), name="t") as w:
+        w.write(0, 0, np.zeros((5, 8), np.int16))
+    return json.loads((tmp_path / "t.json").read_text())
+
+
+@pytest.mark.parametrize("edit, message", [
+    (lambda m: "[" * 100_000 + "]" * 100_000, "not valid JSON (nested too deeply)"),
+    (lambda m: "[1, 2]", "the top level must be an object, got a list of 2"),
+    (lambda m: "3", "the top level must be an object, got 3"),
+    (lambda m: "null", "the top level must be an object, got None"),
+    (lambda m: '"\\ud800 x"', "the top level must be an object"),
+    (lambda m: {**m, "version": True}, "key 'version' must be 1 or 2, got True"),
+    (lambda m: {**m, "version": 3}, "not a tactile-recording file of version 1 or 2"),
+    (lambda m: {k: v for k, v in m.items() if k != "device"}, "key 'device' missing"),
+    (lambda m: {**m, "label": 7}, "key 'label' must be a non-empty string, got 7"),
+    (lambda m: {**m, "gaps": "many"}, "key 'gaps' must be a list, got 'many'"),
+    (lambda m: {**m, "gaps": [3]}, "gaps[0] must be an object, got 3"),
+    (lambda m: {**m, "gaps": [{"seq": "x", "missing": 0, "reason": "drop"}]},
+     "key 'gaps[0].seq' must be an integer >= 0, got 'x'"),
+    (lambda m: {**m, "gaps": [{"seq": 2, "reason": "drop"}]}, "key 'gaps[0].missing' missing"),
+    (lambda m: {**m, "complete": "yes"}, "key 'complete' must be true or false"),
+    (lambda m: {**m, "device": [1]}, "key 'device' must be an object"),
+    (lambda m: {**m, "device": {**m["device"], "sample_rate_hz": -1}},
+     "key 'device': sample rate -1.0 Hz"),
+    (lambda m: {**m, "device": {**m["device"], "sample_rate_hz": "100"}},
+     "key 'device.sample_rate_hz' must be a number, got '100'"),
+    (lambda m: {**m, "device": {**m["device"], "channels": {}}},
+     "key 'device.channels' must be a non-empty list"),
+    (lambda m: {**m, "device": {**m["device"], "channels": [7]}},
+     "device.channels[0] must be an object"),
+    (lambda m: {**m, "device": {**m["device"], "channels": [{"name": "a", "unit": "N",
+                                                             "gain": 2}]}},
+     "key 'device.channels[0].gain' unknown"),
+    (lambda m: {**m, "device": {**m["device"], "channels": [{"name": "a", "unit": "N",
+                                                             "scale": 0}] * 8}},
+     "key 'device': channel a: scale must be finite, non-zero"),
+    (lambda m: {**m, "device": {**m["device"], "channels": [{"name": "\ud800", "unit": "N"}]}},
+     "key 'device'"),
+])
+def test_untrusted_take_json_is_one_line_naming_file_and_key(tmp_path, edit, message):
+    meta = _meta_of(tmp_path)
+    new = edit(meta)
+    (tmp_path / "t.json").write_text(new if isinstance(new, str) else json.dumps(new))
+    with pytest.raises(RecordingError) as err:
+        read_take(tmp_path / "t.csv")
+    text = str(err.value)
+    assert text.startswith(f"{tmp_path / 't.json'}: ") and message in text, text
+    assert "\n" not in text
+
+
+def test_bad_gap_lines_are_named(tmp_path):
+    _meta_of(tmp_path)
+    csv = tmp_path / "t.csv"
+    text = csv.read_text()
+    csv.write_text(text + "# gap seq=x missing=0 reason=drop\n")
+    with pytest.raises(RecordingError, match=r"t.csv: line 7 is not a gap line"):
+        read_take(csv)
+    csv.write_text(text + "# gap seq=9 missing=4 reason=drop\n9,90000,1,1,1,1,1,1,1,1\n")
+    take = read_take(csv)
+    assert take.seq.tolist() == [0, 1, 2, 3, 4, 9] and take.segments() == [(0, 5), (5, 6)]
+    assert take.raw.dtype == np.int64  # the gap line's letters do not make it a float take
+
+
+def test_version_1_takes_still_read(tmp_path):
+    """A take written before gap lines existed: its gaps come from the JSON, by seq."""
+    _meta_of(tmp_path)
+    meta = json.loads((tmp_path / "t.json").read_text())
+    meta.update(version=1, gaps=[{"seq": 3, "missing": 0, "reason": "restart"}])
+    (tmp_path / "t.json").write_text(json.dumps(meta))
+    take = read_take(tmp_path / "t.csv")
+    assert take.segments() == [(0, 3), (3, 5)]
+
+
+def test_a_failed_clock_flush_is_raised_at_close(tmp_path, monkeypatch):
+    """The JSON cannot be rewritten during a silence (only the clock runs then): close()
+    raises it, naming the JSON, and the take is not marked complete; a block that raised does
+    not mark its take complete either."""
+    import errno
+
+    from tactile.device import recording
+
+    def no_space(path, text):
+        raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
+
+    w = TakeWriter(tmp_path, "paper", pen_info(), name="q", flush_every_s=0.02)
+    w.write(0, 0, np.ones((3, 8), np.int16))
+    monkeypatch.setattr(recording, "_replace_file", no_space)
+    _wait_for(lambda: w.error is not None, "a failed flush by the clock")
+    with pytest.raises(RecordingError, match=r"q\.json: cannot write \(No space left"):
+        w.close()
+    monkeypatch.undo()
+    take = read_take(tmp_path / "q.csv")
+    assert not take.meta["complete"] and take.seq.tolist() == [0, 1, 2]
+    with pytest.raises(ZeroDivisionError), TakeWriter(tmp_path, "paper", pen_info(), name="r") as w:
+        w.write(0, 0, np.ones((3, 8), np.int16))
+        1 / 0  # noqa: B018
+    assert not read_take(tmp_path / "r.csv").meta["complete"]
+
+
+@pytest.mark.parametrize("json_text", ['{"format": "tactile-recording", "version": 1, "label": '
+                                       '"paper", "device": {"sample_rate_hz": -1, "channels": '
+                                       '[{"name": "a", "unit": "N"}]}}', "[" * 100_000, "null"])
+def test_a_command_reading_a_bad_take_says_one_line_and_exits_1(tmp_path, json_text):
+    """A dataset command over a take whose JSON is hostile: exit 1 (bad input, not the device's
+    2), one line naming the JSON, no traceback."""
+    _meta_of(tmp_path)
+    (tmp_path / "t.json").write_text(json_text)
+    proc = subprocess.run([sys.executable, "-c", "import sys; from tactile.training.summary "
+                           "import main; sys.exit(main())", str(tmp_path)],
+                          capture_output=True, text=True, timeout=120)
+    assert proc.returncode == 1, proc.stderr
+    assert proc.stderr.count("\n") == 1 and str(tmp_path / "t.json") in proc.stderr
+
+
+def test_frames_of_another_width_before_the_header_through_the_decoder(tmp_path):
+    """The issue's case on the wire: 3-channel frames, then the 8-channel header and frames.
+    Whatever the decoder makes of the first ones, the take is complete, holds all 8-channel
+    samples, and says how many samples it left out."""
+    from tactile.device.decoder import Samples
+    from tactile.device.protocol import encode_header, encode_samples
+
+    info = pen_info()
+    raw = np.arange(40 * 8, dtype=np.int16).reshape(40, 8)
+    stream = b"".join(encode_samples(k, k * 10_000, np.ones((1, 3), np.int16))
+                      for k in range(5))
+    stream += encode_header(info) + b"".join(
+        encode_samples(k, k * 10_000, raw[k - 5 : k - 4]) for k in range(5, 45))
+    rec, dec = Recorder(tmp_path, "paper", "test"), StreamDecoder()
+    events = dec.feed(stream)
+    narrow = sum(len(e.raw) for e in events if isinstance(e, Samples) and e.raw.shape[1] == 3)
+    rec.handle(events, dec)
+    rec.close(dec)
+    take = read_take(rec.result.takes[0])
+    assert take.meta["complete"]
+    np.testing.assert_array_equal(take.raw, raw)
+    assert sum(g["missing"] for g in take.meta["gaps"] if g["reason"] == "rejected") == narrow
+
+
+def test_a_file_size_limit_stops_the_real_recorder_cleanly(tmp_path):
+    """The operating system refuses the CSV's growth (RLIMIT_FSIZE at 20 kB, a real EFBIG from
+    write(2), as a full disk gives ENOSPC): tactile-record exits 1 with one line naming the CSV;
+    the take keeps the rows that fit, every one the pen's, and is not complete."""
+    import resource
+
+    def limit():
+        signal.signal(signal.SIGXFSZ, signal.SIG_IGN)  # the write fails instead of killing
+        resource.setrlimit(resource.RLIMIT_FSIZE, (20_000, 20_000))
+
+    proc = subprocess.run(
+        [sys.executable, "-c", "import sys; from tactile.cli import record_main; "
+         "sys.exit(record_main())", "--port", "sim://?texture=desk&seed=4&speed=max",
+         "--label", "desk", "--out", str(tmp_path), "--seconds", "60", "--quiet"],
+        capture_output=True, text=True, timeout=120, preexec_fn=limit)
+    (csv,) = tmp_path.glob("*.csv")
+    assert proc.returncode == 1 and "Traceback" not in proc.stderr, proc.stderr
+    assert f"tactile-record: error: {csv}: cannot write (File too large)" in proc.stderr
+    take = read_take(csv)
+    assert not take.meta["complete"] and len(take.seq) > 100
+    assert_samples_are_the_pen(take, "desk", 4)

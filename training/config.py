@@ -7,6 +7,8 @@ resolved config travels in the checkpoint, so a run can always be rebuilt and ex
 from __future__ import annotations
 
 import dataclasses
+import os
+import re
 import tomllib
 import typing
 from dataclasses import dataclass
@@ -19,6 +21,10 @@ STATE_MODES = ("window", "carry")
 SPLITS = ("user", "take", "time")
 SCHEDULES = ("constant", "plateau", "cosine")
 REFITS = ("auto", "on", "off")
+DEVICES = ("auto", "cpu", "cuda")
+MAX_AUTO_THREADS = 4
+# ``test`` / ``val`` selectors: FIELD:VALUE[,VALUE...] (see TrainConfig)
+SELECTOR = re.compile(r"^(?P<field>[A-Za-z_][A-Za-z0-9_]*):(?P<values>.+)$")
 
 
 @dataclass(frozen=True)
@@ -51,6 +57,17 @@ class TrainConfig:
     ``state``: ``window`` classifies each window from a fresh state (the pen paper); ``carry``
     carries the LSTM state from window to window (needs ``hop == window``) and trains on runs of
     ``carry_steps`` consecutive windows.
+
+    Named splits: ``test`` and ``val`` pick takes by a field of their JSON instead of the random
+    draw: ``FIELD:VALUE[,VALUE...]``, where FIELD is ``name`` (the take's file name without
+    extension) or any key of the take's JSON (``user``, ``trial``, ...) and each VALUE is a
+    shell-style pattern (``name:*-rep5``, ``user:alice,bob``) or, for whole numbers, an
+    inclusive range (``trial:41-50``). Empty (default): drawn at random from ``seed``.
+
+    Machine: ``threads`` torch threads per process (0, the default: one per usable CPU minus
+    one, at least 1 and at most :data:`MAX_AUTO_THREADS`, divided among the processes of a
+    node under ``torchrun``); ``device``: ``auto`` (a GPU when there is one), ``cpu`` or
+    ``cuda``.
     """
 
     window: int = 50
@@ -80,35 +97,55 @@ class TrainConfig:
     test_fraction: float = 0.3
     val_fraction: float = 0.2
     seed: int = 0
-    threads: int = 2
+    test: str = ""
+    val: str = ""
+    threads: int = 0
+    device: str = "auto"
 
     def __post_init__(self) -> None:
         _check_types(self)
-        checks = [
-            (self.window >= 4, "window must be >= 4 samples"),
-            (self.hop >= 1, "hop must be >= 1 sample"),
-            (self.model in MODELS, f"model must be one of {', '.join(MODELS)}"),
-            (self.state in STATE_MODES, f"state must be one of {', '.join(STATE_MODES)}"),
-            (self.split in SPLITS, f"split must be one of {', '.join(SPLITS)}"),
-            (self.schedule in SCHEDULES, f"schedule must be one of {', '.join(SCHEDULES)}"),
-            (0 <= self.label_smoothing < 1, "label_smoothing must be in [0, 1)"),
-            (0 <= self.ema < 1, "ema must be in [0, 1) (0: off)"),
-            (self.refit in REFITS, f"refit must be one of {', '.join(REFITS)}"),
-            (self.layers >= 1 and self.hidden >= 1, "layers and hidden must be >= 1"),
-            (0 <= self.dropout < 1, "dropout must be in [0, 1)"),
-            (self.epochs >= 1 and self.batch_size >= 1, "epochs and batch_size must be >= 1"),
-            (self.lr > 0 and self.weight_decay >= 0, "lr must be > 0, weight_decay >= 0"),
-            (0 < self.test_fraction < 1, "test_fraction must be in (0, 1)"),
-            (0 < self.val_fraction < 1, "val_fraction must be in (0, 1)"),
+        checks = [  # (holds, message, the fields it is about: the error shows their values)
+            (self.window >= 4, "window must be >= 4 samples", ("window",)),
+            (self.hop >= 1, "hop must be >= 1 sample", ("hop",)),
+            (self.model in MODELS, f"model must be one of {', '.join(MODELS)}", ("model",)),
+            (self.state in STATE_MODES, f"state must be one of {', '.join(STATE_MODES)}",
+             ("state",)),
+            (self.split in SPLITS, f"split must be one of {', '.join(SPLITS)}", ("split",)),
+            (self.schedule in SCHEDULES, f"schedule must be one of {', '.join(SCHEDULES)}",
+             ("schedule",)),
+            (0 <= self.label_smoothing < 1, "label_smoothing must be in [0, 1)",
+             ("label_smoothing",)),
+            (0 <= self.ema < 1, "ema must be in [0, 1) (0: off)", ("ema",)),
+            (self.refit in REFITS, f"refit must be one of {', '.join(REFITS)}", ("refit",)),
+            (self.layers >= 1 and self.hidden >= 1, "layers and hidden must be >= 1",
+             ("layers", "hidden")),
+            (0 <= self.dropout < 1, "dropout must be in [0, 1)", ("dropout",)),
+            (self.epochs >= 1 and self.batch_size >= 1, "epochs and batch_size must be >= 1",
+             ("epochs", "batch_size")),
+            (self.lr > 0 and self.weight_decay >= 0, "lr must be > 0, weight_decay >= 0",
+             ("lr", "weight_decay")),
+            (0 < self.test_fraction < 1, "test_fraction must be in (0, 1)", ("test_fraction",)),
+            (0 < self.val_fraction < 1, "val_fraction must be in (0, 1)", ("val_fraction",)),
             (1 <= self.emd_imfs <= 8 and 1 <= self.emd_sifts <= 50,
-             "emd_imfs must be 1..8 and emd_sifts 1..50"),
-            (self.carry_steps >= 2, "carry_steps must be >= 2"),
-            (self.threads >= 1, "threads must be >= 1"),
-            (0 <= self.augment_gain < 1, "augment_gain must be in [0, 1)"),
+             "emd_imfs must be 1..8 and emd_sifts 1..50", ("emd_imfs", "emd_sifts")),
+            (self.carry_steps >= 2, "carry_steps must be >= 2", ("carry_steps",)),
+            (self.threads >= 0, "threads must be >= 0 (0: automatic)", ("threads",)),
+            (self.device in DEVICES, f"device must be one of {', '.join(DEVICES)}", ("device",)),
+            (0 <= self.augment_gain < 1, "augment_gain must be in [0, 1)", ("augment_gain",)),
         ]
-        for ok, msg in checks:
+        for ok, msg, fields in checks:
             if not ok:
-                raise ConfigError(f"{msg} (got {self._short()})")
+                got = ", ".join(f"{k}={getattr(self, k)!r}" for k in fields)
+                raise ConfigError(f"{msg} (got {got})")
+        for key in ("test", "val"):
+            spec = getattr(self, key)
+            if spec and not SELECTOR.match(spec):
+                raise ConfigError(
+                    f"{key}={spec!r}: expected FIELD:VALUE[,VALUE...], e.g. 'user:alice,bob', "
+                    "'trial:41-50' or 'name:*-rep5'")
+        if (self.test or self.val) and self.split == "time":
+            raise ConfigError("test/val name takes; split='time' splits every take in time: "
+                              "use split='user' or 'take' with them")
         if self.state == "carry" and self.hop != self.window:
             raise ConfigError(
                 f"state='carry' needs hop == window (got hop={self.hop}, window={self.window}): "
@@ -123,10 +160,6 @@ class TrainConfig:
     def refits(self) -> bool:
         """Whether training ends with a refit on training + validation windows."""
         return self.refit == "on" or (self.refit == "auto" and self.split == "time")
-
-    def _short(self) -> str:
-        return ", ".join(f"{k}={v!r}" for k, v in self.to_dict().items()
-                         if v != getattr(TrainConfig, k, None))
 
     def to_dict(self) -> dict:
         return {f.name: (list(v) if isinstance(v, tuple) else v)
@@ -169,4 +202,52 @@ def _check_types(cfg: TrainConfig) -> None:
             raise ConfigError(f"config {f.name}={value!r}: must be {want}")
 
 
-__all__ = ["TrainConfig", "MODELS", "STATE_MODES", "SPLITS", "SCHEDULES", "REFITS"]
+def usable_cpus() -> int:
+    """CPUs this process may run on (its affinity mask, which containers and ``taskset`` set)."""
+    try:
+        return len(os.sched_getaffinity(0))
+    except AttributeError:  # not on Linux
+        return os.cpu_count() or 1
+
+
+def resolve_threads(threads: int, procs_per_node: int = 1, cpus: int | None = None) -> int:
+    """The torch threads of one process: ``threads`` when > 0; 0 (automatic) gives each of the
+    node's ``procs_per_node`` processes an equal share of the usable CPUs minus one (left to
+    the rest of the machine), at least 1 and at most :data:`MAX_AUTO_THREADS` (an LSTM of this
+    size gains little past that). On a 2-CPU machine: 1."""
+    if threads > 0:
+        return threads
+    cpus = usable_cpus() if cpus is None else cpus
+    return max(1, min(MAX_AUTO_THREADS, (cpus - 1) // max(1, procs_per_node)))
+
+
+def apply_threads(n: int) -> int:
+    """Make torch use ``n`` intra-op threads and ``n`` inter-op threads in this process; returns
+    ``n``. Every command that runs torch calls it before its first tensor operation (the
+    inter-op count can be set only then; later calls keep the first one)."""
+    import torch
+
+    torch.set_num_threads(n)
+    try:
+        torch.set_num_interop_threads(n)
+    except RuntimeError:  # already set, or parallel work already started: keep it
+        pass
+    return n
+
+
+def resolve_device(device: str, cuda_available: bool | None = None) -> str:
+    """``auto`` -> ``cuda`` when a GPU is there, else ``cpu``; ``cuda`` without one is an
+    error (a run that asked for a GPU must not quietly train for hours on a CPU)."""
+    if cuda_available is None:
+        import torch
+
+        cuda_available = torch.cuda.is_available()
+    if device == "auto":
+        return "cuda" if cuda_available else "cpu"
+    if device == "cuda" and not cuda_available:
+        raise ConfigError("device='cuda' but torch sees no GPU (use device='auto' or 'cpu')")
+    return device
+
+
+__all__ = ["TrainConfig", "MODELS", "STATE_MODES", "SPLITS", "SCHEDULES", "REFITS", "DEVICES",
+           "apply_threads", "resolve_threads", "resolve_device", "usable_cpus"]

@@ -6,13 +6,15 @@ user) gives windows to two splits, and normalisation statistics come from traini
 
 from __future__ import annotations
 
+import fnmatch
+import re
 from dataclasses import dataclass
 
 import numpy as np
 
 from tactile.device.recording import Take
 from tactile.errors import ConfigError
-from tactile.training.config import TrainConfig
+from tactile.training.config import SELECTOR, TrainConfig
 
 
 @dataclass
@@ -100,12 +102,60 @@ def cut(
     )
 
 
-def groups_of(takes: list[Take], split: str) -> np.ndarray:
-    """(n_takes,) group id: the user (when takes say so) or the take itself."""
+def groups_of(takes: list[Take], split: str) -> tuple[np.ndarray, list[str]]:
+    """(n_takes,) group id and the groups' names: the user (when every take says so, for
+    ``split='user'``) or the take itself (its file name without extension)."""
     if split == "user" and all("user" in t.meta for t in takes):
         users = sorted({str(t.meta["user"]) for t in takes})
-        return np.array([users.index(str(t.meta["user"])) for t in takes])
-    return np.arange(len(takes))
+        return np.array([users.index(str(t.meta["user"])) for t in takes]), users
+    return np.arange(len(takes)), [t.path.stem for t in takes]
+
+
+def _field(take: Take, field: str):
+    return take.path.stem if field == "name" else take.meta.get(field)
+
+
+def select(takes: list[Take], spec: str, key: str = "test") -> set[int]:
+    """Indices of the takes that ``spec`` (``FIELD:VALUE[,VALUE...]``, see
+    :class:`TrainConfig`) names. A field no take has, or a spec that matches no take, is a
+    :class:`ConfigError` naming ``key`` and what the takes hold."""
+    m = SELECTOR.match(spec)
+    if m is None:
+        raise ConfigError(f"{key}={spec!r}: expected FIELD:VALUE[,VALUE...]")
+    field, values = m["field"], [v.strip() for v in m["values"].split(",") if v.strip()]
+    have = [_field(t, field) for t in takes]
+    if all(v is None for v in have):
+        fields = sorted({k for t in takes for k, v in t.meta.items()
+                         if isinstance(v, (str, int)) and not isinstance(v, bool)} | {"name"})
+        raise ConfigError(f"{key}={spec!r}: no take has a {field!r} field "
+                          f"(fields: {', '.join(fields)})")
+    chosen = {i for i, v in enumerate(have) if v is not None and any(
+        _matches(v, pattern) for pattern in values)}
+    if not chosen:
+        seen = sorted({str(v) for v in have if v is not None})
+        raise ConfigError(f"{key}={spec!r}: matches no take ({field} values: "
+                          f"{_names(seen, 8)})")
+    return chosen
+
+
+def _matches(value, pattern: str) -> bool:
+    """A shell-style pattern on the value's text, or an inclusive range ``a-b`` of integers."""
+    r = re.fullmatch(r"(-?\d+)-(-?\d+)", pattern)
+    if r and not isinstance(value, bool):
+        try:
+            number = int(value)
+        except (TypeError, ValueError):
+            number = None
+        if number is not None and int(r[1]) <= number <= int(r[2]):
+            return True
+    return fnmatch.fnmatchcase(str(value), pattern)
+
+
+def _names(names: list[str], most: int = 12) -> str:
+    """``a, b, c`` or, past ``most`` names, the first ones and how many there are in all."""
+    if len(names) <= most:
+        return ", ".join(names)
+    return ", ".join(names[: most - 2]) + f", ... ({len(names)} in all)"
 
 
 @dataclass
@@ -117,7 +167,10 @@ class Split:
 
 
 def split_takes(takes: list[Take], cfg: TrainConfig) -> Split:
-    """Assign takes (or row ranges of takes) to train / validation / test, deterministically."""
+    """Assign takes (or row ranges of takes) to train / validation / test, deterministically.
+
+    ``cfg.test`` / ``cfg.val`` name their takes (:func:`select`); what they leave to chance is
+    drawn from ``cfg.seed`` in whole groups (users or takes, :func:`groups_of`)."""
     rng = np.random.default_rng(cfg.seed)
     if cfg.split == "time":
         train, val, test = {}, {}, {}
@@ -128,29 +181,40 @@ def split_takes(takes: list[Take], cfg: TrainConfig) -> Split:
             train[i], val[i], test[i] = (0, cut_val), (cut_val, cut_test), (cut_test, n)
         return Split(train, val, test, f"time: first {1 - cfg.test_fraction:.0%} of each take "
                      f"trains (last {cfg.val_fraction:.0%} of it validates), the rest tests")
-    groups = groups_of(takes, cfg.split)
-    ids = rng.permutation(np.unique(groups))
-    n_test = max(1, int(round(len(ids) * cfg.test_fraction)))
-    n_val = max(1, int(round((len(ids) - n_test) * cfg.val_fraction)))
+    groups, group_names = groups_of(takes, cfg.split)
+    every = set(range(len(takes)))
+    named_test = select(takes, cfg.test, "test") if cfg.test else None
+    named_val = select(takes, cfg.val, "val") if cfg.val else None
+    if named_test is not None and named_val is not None and named_test & named_val:
+        both = sorted(takes[i].path.stem for i in named_test & named_val)
+        raise ConfigError(f"test={cfg.test!r} and val={cfg.val!r} both take {_names(both, 4)}")
+    # the random draw, in whole groups, among the takes no selector named
+    free = every - (named_test or set()) - (named_val or set())
+    ids = rng.permutation(np.unique(groups[sorted(free)])) if free else np.array([], int)
+    n_test = 0 if named_test is not None else max(1, int(round(len(ids) * cfg.test_fraction)))
+    n_val = 0 if named_val is not None else max(
+        1, int(round((len(ids) - n_test) * cfg.val_fraction)))
     if len(ids) - n_test - n_val < 1:
         raise ConfigError(
-            f"{len(ids)} {cfg.split}s cannot be split into train, validation and test: record "
-            "more takes or use split='time'"
-        )
-    test_ids, val_ids = set(ids[:n_test]), set(ids[n_test : n_test + n_val])
+            f"{len(np.unique(groups))} {cfg.split}s cannot be split into train, validation and "
+            "test: record more takes, name fewer test/validation takes or use split='time'")
+    drawn_test = set(ids[:n_test].tolist())
+    drawn_val = set(ids[n_test : n_test + n_val].tolist())
+    test = named_test if named_test is not None else {i for i in free if groups[i] in drawn_test}
+    val = named_val if named_val is not None else {i for i in free if groups[i] in drawn_val}
+    train = every - test - val
     whole = {i: (0, len(t.seq)) for i, t in enumerate(takes)}
-    pick = {
-        name: {i: r for i, r in whole.items() if sel(groups[i])}
-        for name, sel in (
-            ("test", lambda g: g in test_ids),
-            ("val", lambda g: g in val_ids),
-            ("train", lambda g: g not in test_ids and g not in val_ids),
-        )
-    }
-    return Split(pick["train"], pick["val"], pick["test"],
-                 f"{cfg.split}: test {sorted(int(g) for g in test_ids)}, "
-                 f"validation {sorted(int(g) for g in val_ids)}, train the other "
-                 f"{len(ids) - n_test - n_val}")
+
+    def names(part: set[int]) -> list[str]:
+        return sorted({group_names[groups[i]] for i in part})
+
+    unit = "user" if cfg.split == "user" and all("user" in t.meta for t in takes) else "take"
+    description = (
+        f"{cfg.split}: test {cfg.test + ' = ' if cfg.test else ''}{_names(names(test))}; "
+        f"validation {cfg.val + ' = ' if cfg.val else ''}{_names(names(val))}; "
+        f"train the other {len(names(train))} {unit}s")
+    return Split({i: whole[i] for i in sorted(train)}, {i: whole[i] for i in sorted(val)},
+                 {i: whole[i] for i in sorted(test)}, description)
 
 
 def channel_stats(w: Windows) -> tuple[np.ndarray, np.ndarray]:
@@ -159,3 +223,38 @@ def channel_stats(w: Windows) -> tuple[np.ndarray, np.ndarray]:
     mean, std = flat.mean(0), flat.std(0)
     std[std < 1e-8] = 1.0
     return mean.astype(np.float32), std.astype(np.float32)
+
+
+def find_test_split(takes: list[Take], test_rows: object, fingerprints: object,
+               folder: str) -> tuple[dict[int, tuple[int, int]] | None, str, bool]:
+    """Which rows of ``takes`` are a run's test split, recognised by content.
+
+    Args:
+        takes: the dataset's takes; test_rows: the run's ``{take file name: [start, end)}``;
+        fingerprints: its ``{take file name: Take.fingerprint()}`` (absent in runs trained before
+        they were recorded); both read defensively (anything malformed counts as absent).
+        folder: the dataset's name, for the description.
+
+    Returns:
+        rows: {take index: (start, end)}, or None for every row of every take.
+        scope: what the rows are, for people.
+        verified: True when every test take was found with the recorded fingerprint.
+    """
+    names = [t.path.name for t in takes]
+    rows_ok = isinstance(test_rows, dict) and test_rows and all(
+        isinstance(v, (list, tuple)) and len(v) == 2 and all(isinstance(i, int) for i in v)
+        for v in test_rows.values())
+    if not rows_ok or not all(n in names for n in test_rows):
+        return None, f"every take of {folder} ({len(takes)} takes)", False
+    rows = {names.index(n): (int(r[0]), int(r[1])) for n, r in test_rows.items()}
+    fps_ok = isinstance(fingerprints, dict) and all(
+        isinstance(fingerprints.get(n), str) for n in test_rows)
+    if not fps_ok:
+        return rows, (f"the takes of {folder} named like the run's test split ({len(rows)} takes; "
+                      "the run recorded no fingerprints, so their content is not verified)"), False
+    differ = [n for n in test_rows
+              if takes[names.index(n)].fingerprint() != fingerprints[n]]
+    if differ:
+        return None, (f"every take of {folder} ({len(takes)} takes; {len(differ)} named like "
+                      f"the run's test takes hold other recordings, e.g. {differ[0]})"), False
+    return rows, f"the run's test split in {folder} ({len(rows)} takes, matched by content)", True

@@ -1,11 +1,13 @@
-"""Evaluation: predictions over windows, the pen paper's confusion tables, and ``tactile-eval``.
+"""Evaluate a trained run on a dataset: window and per-take accuracy, confusion, robustness.
 
-    tactile-eval RUN/ DATA [--json]
+    tactile-eval RUN/ DATA [--json] [--threads N]
 
-prints accuracy, per-class recall and the row-normalised confusion table laid out as the pen
-paper's Tables 1 and 2 ("label of input data" rows, "estimated class" columns), then the
-granular-media paper's robustness check: the same windows shifted in time by up to +/-0.2 s.
-If DATA holds the run's test takes, only their test rows are evaluated; otherwise all of DATA.
+prints accuracy over windows, the majority vote per take (the label most of a take's windows
+got, against the take's label: what trial-based datasets report), per-class recall and the
+row-normalised confusion table laid out as the pen paper's Tables 1 and 2 ("label of input
+data" rows, "estimated class" columns), then the granular-media paper's robustness check: the
+same windows shifted in time by up to +/-0.2 s. If DATA holds the run's test takes, only their
+test rows are evaluated; otherwise all of DATA. Torch uses the run's ``threads`` setting.
 """
 
 from __future__ import annotations
@@ -18,10 +20,11 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from tactile.cli import Parser, add_debug, run
+from tactile.cli import Parser, add_debug, int_in, run
 from tactile.device.recording import load_dataset
 from tactile.errors import ConfigError, RecordingError
-from tactile.training.data import Windows, cut
+from tactile.training.config import apply_threads, resolve_threads
+from tactile.training.data import Windows, cut, find_test_split
 from tactile.training.model import TextureModel
 
 SHIFTS_S = (-0.2, -0.1, 0.1, 0.2)  # the "novel" set: windows moved by up to +/-0.2 s
@@ -41,18 +44,23 @@ def predict(
     model.eval()
     if feats is None:
         feats = _features(model, torch.from_numpy(w.x), batch)
+    dev = next(model.head.parameters()).device  # the head may sit on a GPU while training
+
+    def zero(n: int) -> tuple[torch.Tensor, torch.Tensor]:
+        return tuple(t.to(dev) for t in model.zero_state(n))
+
     out = np.zeros((len(w), model.head.out.out_features), np.float32)
     if model.cfg.state == "window":
         for i in range(0, len(w), batch):
-            h, c = model.zero_state(len(feats[i : i + batch]))
-            logits = model.head(feats[i : i + batch], h, c)[0]
-            out[i : i + batch] = torch.softmax(logits, dim=1).numpy()
+            f = feats[i : i + batch].to(dev)
+            logits = model.head(f, *zero(len(f)))[0]
+            out[i : i + batch] = torch.softmax(logits, dim=1).cpu().numpy()
         return out
     for rows in _runs(w):  # carry: one run at a time, window after window
-        h, c = model.zero_state(1)
+        h, c = zero(1)
         for r in rows:
-            logits, h, c = model.head(feats[r : r + 1], h, c)
-            out[r] = torch.softmax(logits, 1)[0].numpy()
+            logits, h, c = model.head(feats[r : r + 1].to(dev), h, c)
+            out[r] = torch.softmax(logits, 1)[0].cpu().numpy()
     return out
 
 
@@ -88,6 +96,33 @@ def summary(y: np.ndarray, probs: np.ndarray, classes: tuple[str, ...]) -> dict:
     }
 
 
+def per_take(w: Windows, probs: np.ndarray, names: list[str]) -> dict:
+    """The majority vote of each take's windows (ties: the larger summed probability) against
+    the take's label. ``names``: every take's name, indexed by ``w.take``. Returns ``takes``
+    (count), ``take_accuracy`` (share of takes whose vote is their label) and ``per_take``
+    ({name: {label, vote, windows, share}}, share: of its windows that voted for ``vote``)."""
+    pred = probs.argmax(1)
+    n_classes = probs.shape[1]
+    out = {}
+    for t in np.unique(w.take):
+        sel = w.take == t
+        votes = np.bincount(pred[sel], minlength=n_classes).astype(np.float64)
+        votes += probs[sel].sum(0) / (sel.sum() + 1.0)  # < 1: breaks ties only
+        vote = int(votes.argmax())
+        out[names[int(t)]] = {"label": int(w.y[sel][0]), "vote": vote, "windows": int(sel.sum()),
+                              "share": float((pred[sel] == vote).mean())}
+    right = [v["vote"] == v["label"] for v in out.values()]
+    return {"takes": len(out), "take_accuracy": float(np.mean(right)) if right else float("nan"),
+            "per_take": out}
+
+
+def shifted_line(s: dict | None) -> str:
+    """The robustness check as one line: ``shifted windows (robustness): -0.2s 0.812, ...``."""
+    if not s:
+        return "shifted windows (robustness): not measured"
+    return "shifted windows (robustness): " + ", ".join(f"{k} {v:.3f}" for k, v in s.items())
+
+
 def table(s: dict, classes: tuple[str, ...], title: str = "") -> str:
     """The confusion table as the pen paper prints it (row-normalised, 3 decimals)."""
     norm = np.array(s["confusion_normalised"])
@@ -112,45 +147,45 @@ def shifted(model: TextureModel, takes, classes, channels, rows, window: int, ho
     return out
 
 
-def evaluate_run(run_dir: Path, data: Path) -> dict:
-    from tactile.training.train import load_checkpoint
+def evaluate_run(run_dir: Path, data: Path, threads: int | None = None) -> dict:
+    """The figures of ``run_dir``'s model on ``data`` (see the module's text). ``threads``:
+    torch threads (default: the run's ``threads`` setting, resolved on this machine)."""
+    from tactile.training.checkpoint import load_checkpoint
 
     model, ck = load_checkpoint(run_dir)
     cfg = model.cfg
+    s_threads = apply_threads(threads or resolve_threads(cfg.threads))
     takes = load_dataset(data)
     classes = tuple(ck["classes"])
     unknown = sorted({t.label for t in takes} - set(classes))
     if unknown:
         raise RecordingError(f"{data}: labels {unknown} are not among the model's {list(classes)}")
-    names = [t.path.name for t in takes]
-    test = {n: tuple(r) for n, r in ck["test_rows"].items()}
-    if test and all(n in names for n in test):
-        rows = {names.index(n): r for n, r in test.items()}
-        scope = "the run's test split"
-    else:
-        rows = None
-        scope = "every take in DATA"
+    rows, scope, _ = find_test_split(takes, ck.get("test_rows"), ck.get("test_fingerprints"),
+                                     str(data))
     channels = tuple(ck["channels"])
     rate = float(ck["sample_rate_hz"])
     w = cut(takes, classes, channels, cfg.window, cfg.hop, rows)
-    s = summary(w.y, predict(model, w), classes)
+    probs = predict(model, w)
+    s = summary(w.y, probs, classes)
+    s.update(per_take(w, probs, [t.path.stem for t in takes]))
     s["scope"] = scope
+    s["threads"] = s_threads
     s["shifted"] = shifted(model, takes, classes, channels, rows, cfg.window, cfg.hop, rate)
     s["classes"] = list(classes)
     return s
 
 
 def _main(args: argparse.Namespace) -> int:
-    s = evaluate_run(args.run, args.data)
+    s = evaluate_run(args.run, args.data, args.threads)
     if args.json:
         print(json.dumps(s))
         return 0
     classes = tuple(s["classes"])
     print(f"evaluated on {s['scope']}")
     print(table(s, classes))
+    print(f"per take (majority vote): {s['take_accuracy']:.3f} over {s['takes']} takes")
     print("recall: " + ", ".join(f"{c} {v:.3f}" for c, v in s["recall"].items()))
-    print("shifted windows (robustness): " + ", ".join(
-        f"{k} {v:.3f}" for k, v in s["shifted"].items()))
+    print(shifted_line(s["shifted"]))
     return 0
 
 
@@ -159,6 +194,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("run", type=Path, help="run folder written by tactile-train")
     p.add_argument("data", type=Path, help="dataset folder")
     p.add_argument("--json", action="store_true", help="the figures as one JSON object")
+    p.add_argument("--threads", type=int_in(1), metavar="N",
+                   help="torch threads (default: the run's threads setting)")
     add_debug(p)
     return run("tactile-eval", _main, p.parse_args(argv))
 
@@ -167,4 +204,5 @@ if __name__ == "__main__":
     sys.exit(main())
 
 
-__all__ = ["predict", "summary", "table", "evaluate_run", "main", "ConfigError"]
+__all__ = ["predict", "summary", "per_take", "shifted_line", "table", "evaluate_run", "main",
+           "ConfigError"]

@@ -1,4 +1,4 @@
-"""``tactile-train DATA --out RUN/``: recordings in, an evaluated checkpoint out.
+"""Train a classifier on a dataset folder and write an evaluated run: tactile-train DATA --out RUN.
 
 Reads top to bottom: load takes -> split by user/take/time -> cut windows -> normalisation from
 the training windows -> features (EMD once, up front) -> train with Adam and early stopping on
@@ -8,16 +8,24 @@ the validation split -> evaluate on the test split -> write RUN/:
                       test rows and metrics (torch.load(weights_only=True) reads it)
     metrics.json      the figures; confusion.txt the paper-style table;
     curves.png, confusion.png
+    resume.pt         only after Ctrl-C: the state to continue from (tactile-train --resume RUN)
+
+Under ``torchrun`` the same command trains data-parallel (:mod:`tactile.training.dist`): every
+process takes its share of each epoch's windows, rank 0 alone prints and writes RUN/.
 """
 
 from __future__ import annotations
 
 import argparse
+import copy
 import fnmatch
 import json
 import math
+import random
+import signal
 import sys
 import time
+from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
@@ -30,7 +38,22 @@ import tactile
 from tactile.cli import Parser, add_debug, run
 from tactile.device.recording import load_dataset
 from tactile.errors import ConfigError, RecordingError
-from tactile.training.config import TrainConfig
+from tactile.training.checkpoint import (
+    CHECKPOINT,
+    CHECKPOINT_FORMAT,
+    CHECKPOINT_VERSION,
+    RESUME,
+    load_checkpoint,
+    load_resume,
+    save_resume,
+)
+from tactile.training.config import (
+    TrainConfig,
+    apply_threads,
+    resolve_device,
+    resolve_threads,
+    usable_cpus,
+)
 from tactile.training.data import (
     Windows,
     channel_index,
@@ -40,20 +63,123 @@ from tactile.training.data import (
     cut,
     split_takes,
 )
-from tactile.training.evaluate import _runs, predict, shifted, summary, table
+from tactile.training.dist import Dist
+from tactile.training.evaluate import (
+    _runs,
+    per_take,
+    predict,
+    shifted,
+    shifted_line,
+    summary,
+    table,
+)
 from tactile.training.model import TextureModel
 
-CHECKPOINT = "checkpoint.pt"
-CHECKPOINT_FORMAT = "tactile-checkpoint"
-CHECKPOINT_VERSION = 1
+EXIT_INTERRUPTED = 130  # the shell's code for a command ended by SIGINT
+RUN_FILES = (CHECKPOINT, RESUME, "metrics.json")  # a folder holding one of these is a run
 
 
-def train(data: Path, out: Path, cfg: TrainConfig, progress: bool = True) -> dict:
-    """Train, evaluate and save a run; returns the metrics."""
+class Log:
+    """Diagnostics on stderr. ``info`` only with progress on (and on rank 0); ``warn`` always
+    (rank 0). ``bars``: tqdm bars on a terminal; elsewhere (a log file, CI) a plain line per
+    epoch instead, never escape codes."""
+
+    def __init__(self, progress: bool, main: bool = True) -> None:
+        self.progress, self.main = progress and main, main
+        self.bars = self.progress and sys.stderr.isatty()
+
+    def info(self, msg: str) -> None:
+        if self.progress:
+            print(msg, file=sys.stderr, flush=True)
+
+    def warn(self, msg: str) -> None:
+        if self.main:
+            print(f"warning: {msg}", file=sys.stderr, flush=True)
+
+
+class Stop:
+    """SIGINT while training: noted, and the loop stops at the next batch (``requested``),
+    rolls back to the last finished epoch and saves. Used as a context manager around the
+    epochs; outside it SIGINT is Python's KeyboardInterrupt."""
+
+    def __init__(self, dist: Dist) -> None:
+        self.dist, self.flag, self._old = dist, False, None
+
+    def __enter__(self) -> Stop:
+        self._old = signal.signal(signal.SIGINT, self._note)
+        return self
+
+    def __exit__(self, *exc) -> None:
+        signal.signal(signal.SIGINT, self._old)
+
+    def _note(self, signum, frame) -> None:
+        self.flag = True
+
+    def requested(self) -> bool:
+        """Whether to stop now; under DDP every process agrees (any one's SIGINT stops all)."""
+        return self.dist.any(self.flag)
+
+
+class Context:
+    """What the training loop needs besides the model and the data."""
+
+    def __init__(self, cfg: TrainConfig, log: Log, dist: Dist, device: torch.device,
+                 stop: Stop | None, on_epoch: Callable[[str, int], None] | None) -> None:
+        self.cfg, self.log, self.dist, self.device = cfg, log, dist, device
+        self.stop, self.on_epoch = stop, on_epoch
+        self.snapshot: dict | None = None  # the state after the last finished epoch
+        self.fit_history: dict | None = None  # the first phase's, once a refit runs
+        self.fit_best: dict | None = None  # the first phase's best weights, during a refit
+        self._unroll: Unroll | None = None
+
+    def unroll(self, head: nn.Module) -> Unroll:
+        """One :class:`Unroll` of ``head`` for the whole run (DDP wraps it once)."""
+        if self._unroll is None:
+            self._unroll = Unroll(head)
+        return self._unroll
+
+
+class Unroll(nn.Module):
+    """The head over S consecutive windows, its state carried from each to the next:
+    (B, S, T, F) features + state (L, B, H) x 2 -> logits (B, S, classes). One forward pass
+    per batch, so that DistributedDataParallel sees one forward per backward."""
+
+    def __init__(self, head: nn.Module) -> None:
+        super().__init__()
+        self.head = head
+
+    def forward(self, f: torch.Tensor, h: torch.Tensor, c: torch.Tensor) -> torch.Tensor:
+        out = []
+        for k in range(f.shape[1]):
+            logits, h, c = self.head(f[:, k], h, c)
+            out.append(logits)
+        return torch.stack(out, 1)
+
+
+class Interrupted(Exception):
+    """Raised inside the loop when a stop was requested; :func:`train` saves and returns."""
+
+
+def train(data: Path, out: Path, cfg: TrainConfig, progress: bool = True, *,
+          resume: dict | None = None,
+          on_epoch: Callable[[str, int], None] | None = None) -> dict:
+    """Train, evaluate and save a run; returns the metrics (``interrupted`` True when SIGINT
+    stopped it: RUN/ then holds the best checkpoint so far and ``resume.pt``).
+
+    ``resume``: the state :func:`load_resume` read, to continue an interrupted run (``cfg``
+    must be its config). ``on_epoch(phase, epoch)``: called after each finished epoch (1-based;
+    phase ``fit`` or ``refit``), after its state is saved in memory."""
     t_start = time.perf_counter()
-    torch.manual_seed(cfg.seed)
-    np.random.seed(cfg.seed)
-    torch.set_num_threads(cfg.threads)
+    dist = Dist.from_env()
+    log = Log(progress, dist.is_main)
+    threads = apply_threads(resolve_threads(cfg.threads, dist.local_world))
+    device = dist.device(resolve_device(cfg.device))
+    dist.start(device)
+    job = f"; {dist.world} processes in all (rank 0 writes)" if dist.world > 1 else ""
+    log.info(f"threads {threads} per process ({'set' if cfg.threads else 'automatic'}; "
+             f"{usable_cpus()} usable CPUs, {dist.local_world} process(es) here); device "
+             f"{device}{job}")
+    _seed(cfg.seed)
     takes = load_dataset(data)
     classes = classes_of(takes)
     if len(classes) < 2:
@@ -68,54 +194,61 @@ def train(data: Path, out: Path, cfg: TrainConfig, progress: bool = True) -> dic
         name: cut(takes, classes, channels, cfg.window, cfg.hop, rows)
         for name, rows in (("train", split.train), ("val", split.val), ("test", split.test))
     }
-    _log(progress, f"classes {list(classes)}; windows train {len(parts['train'])}, "
-         f"val {len(parts['val'])}, test {len(parts['test'])}; split {split.description}")
-    mean, std = channel_stats(parts["train"])
+    log.info(f"classes {list(classes)}; windows train {len(parts['train'])}, "
+             f"val {len(parts['val'])}, test {len(parts['test'])}; split {split.description}")
+    # statistics fitted once (rank 0) and shared: every process normalises alike
+    mean, std = dist.broadcast(*channel_stats(parts["train"]))
     emd_index = [channels.index(c) for c in cfg.emd_channels]
     center_index = centered(channels, cfg.center)
+    _log_center(log, channels, cfg.center, center_index)
     model = TextureModel(cfg, len(classes), torch.from_numpy(mean), torch.from_numpy(std),
                          emd_index, center_index)
     t0 = time.perf_counter()
-    feats = {k: _features(model, w, progress, k) for k, w in parts.items()}
+    feats = {k: _features(model, w, log, k, dist) for k, w in parts.items()}
     feature_s = time.perf_counter() - t0
-    history = _fit(model, parts, feats, progress)
-    test_probs = predict(model, parts["test"])
-    metrics = summary(parts["test"].y, test_probs, classes)
-    rate = takes[0].info.sample_rate_hz
-    metrics["shifted"] = shifted(model, takes, classes, channels, split.test, cfg.window,
-                                 cfg.hop, rate)
-    metrics.update(
-        classes=list(classes), channels=list(channels), split=split.description,
-        split_windows={k: len(w) for k, w in parts.items()}, best_epoch=history["best_epoch"],
-        val_accuracy=history["val_acc"][history["best_epoch"]],
-        refit_epochs=history.get("refit_epochs", 0),
-        feature_seconds=round(feature_s, 1),
-        train_seconds=round(time.perf_counter() - t_start, 1),
-        threads=cfg.threads, seed=cfg.seed,
-    )
-    out.mkdir(parents=True, exist_ok=True)
-    names = [t.path.name for t in takes]
-    ck = {
-        "format": CHECKPOINT_FORMAT,
-        "version": CHECKPOINT_VERSION,
-        "package_version": tactile.__version__,
-        "config": cfg.to_dict(),
-        "classes": list(classes),
-        "channels": list(channels),
-        "units": [takes[0].info.channels[takes[0].channels.index(c)].unit for c in channels],
-        "sample_rate_hz": rate,
-        "mean": mean.tolist(),
-        "std": std.tolist(),
-        "emd_index": emd_index,
-        "center_index": center_index,
-        "test_rows": {names[i]: list(r) for i, r in split.test.items()},
-        "metrics": _plain(metrics),
-        "state_dict": model.state_dict(),
-    }
-    torch.save(ck, out / CHECKPOINT)
-    (out / "metrics.json").write_text(json.dumps(_plain(metrics), indent=1) + "\n")
-    (out / "confusion.txt").write_text(table(metrics, classes, "test split") + "\n")
-    _plots(out, history, metrics, classes)
+    model.to(device)
+    ctx = Context(cfg, log, dist, device, None, on_epoch)
+    norm = dict(mean=mean, std=std, emd_index=emd_index, center_index=center_index)
+    # Ctrl-C stops at the next batch; after the last epoch it is only noted (the run is saved)
+    with Stop(dist) as ctx.stop:
+        try:
+            history = _fit(model, parts, feats, ctx, resume)
+        except Interrupted:
+            model.to("cpu")
+            saved = _save_interrupted(out, data, cfg, model, ctx, parts, feats, classes, takes,
+                                      split, norm) if dist.is_main else {"interrupted": True}
+            dist.barrier()  # the others wait for rank 0's files: torchrun ends a failed job
+            dist.finish()
+            return saved
+        model.to("cpu")
+        dist.finish()
+        if not dist.is_main:
+            return {"interrupted": False}
+        metrics = _test_metrics(model, parts, feats, takes, classes)
+        metrics["shifted"] = shifted(model, takes, classes, channels, split.test, cfg.window,
+                                     cfg.hop, takes[0].info.sample_rate_hz)
+        metrics.update(
+            classes=list(classes), channels=list(channels), split=split.description,
+            split_windows={k: len(w) for k, w in parts.items()},
+            best_epoch=history["best_epoch"],
+            val_accuracy=history["val_acc"][history["best_epoch"]],
+            refit_epochs=history.get("refit_epochs", 0),
+            epochs_run=len(history["train_loss"]), centered=[channels[i] for i in center_index],
+            feature_seconds=round(feature_s, 1),
+            train_seconds=round(time.perf_counter() - t_start, 1),
+            threads=threads, device=str(device), processes=dist.world, seed=cfg.seed,
+            interrupted=False,
+        )
+        _write_run(out, cfg, model, metrics, history, classes, takes, split, norm)
+        (out / RESUME).unlink(missing_ok=True)  # finished: nothing left to resume
+    return metrics
+
+
+def _test_metrics(model: TextureModel, parts: dict, feats: dict, takes, classes) -> dict:
+    """Window and per-take figures on the test split."""
+    probs = predict(model, parts["test"], feats=feats["test"])
+    metrics = summary(parts["test"].y, probs, classes)
+    metrics.update(per_take(parts["test"], probs, [t.path.stem for t in takes]))
     return metrics
 
 
@@ -124,15 +257,37 @@ def centered(channels: tuple[str, ...], patterns: tuple[str, ...]) -> list[int]:
     return [i for i, c in enumerate(channels) if any(fnmatch.fnmatchcase(c, p) for p in patterns)]
 
 
-def _features(model: TextureModel, w: Windows, progress: bool, name: str) -> torch.Tensor:
-    """(N, T, F) features of every window, computed once (they have no trainable part)."""
+def _log_center(log: Log, channels: tuple[str, ...], patterns: tuple[str, ...],
+                index: list[int]) -> None:
+    """Say which channels the ``center`` patterns matched; warn when a set of patterns matches
+    none (the defaults name the pen's IMU: on another sensor nothing would be centred)."""
+    if not patterns:
+        log.info("center: none (no patterns)")
+    elif not index:
+        log.warn(f"center patterns {', '.join(patterns)} match none of the channels "
+                 f"{', '.join(channels)}: no channel is centred (set center=... to choose some, "
+                 "or center= for none)")
+    else:
+        log.info(f"center ({', '.join(patterns)}): {', '.join(channels[i] for i in index)}")
+
+
+def _seed(seed: int) -> None:
+    random.seed(seed)
+    np.random.seed(seed)
+    torch.manual_seed(seed)
+
+
+def _features(model: TextureModel, w: Windows, log: Log, name: str, dist: Dist) -> torch.Tensor:
+    """(N, T, F) features of every window, computed once (they have no trainable part); under
+    DDP each process computes a slice and all of them receive the whole."""
     x = torch.from_numpy(w.x)
-    chunks = []
+    lo, hi = dist.slice(len(x))
+    chunks = [torch.zeros(0, x.shape[1], model.pre.n_features)]
     with torch.no_grad():
-        for i in tqdm(range(0, len(x), 512), desc=f"features {name}", disable=not progress,
+        for i in tqdm(range(lo, hi, 512), desc=f"features {name}", disable=not log.bars,
                       leave=False, file=sys.stderr):
-            chunks.append(model.pre(x[i : i + 512]))
-    return torch.cat(chunks)
+            chunks.append(model.pre(x[i : min(i + 512, hi)]))
+    return dist.gather(torch.cat(chunks), len(x))
 
 
 def _sequences(w: Windows, steps: int) -> np.ndarray:
@@ -146,69 +301,91 @@ def _sequences(w: Windows, steps: int) -> np.ndarray:
     return np.stack(seqs)
 
 
-def _fit(model: TextureModel, parts: dict, feats: dict, progress: bool) -> dict:
+def _fit(model: TextureModel, parts: dict, feats: dict, ctx: Context,
+         resume: dict | None = None) -> dict:
     """Train with early stopping on the validation split; with ``refit``, then train the head
     again from a fresh start on the training and validation windows together, for as many
-    epochs as the best validation epoch took (the final model has seen the validation data)."""
+    epochs as the best validation epoch took (the final model has seen the validation data).
+    ``resume``: the state saved at an interruption, in either phase."""
     cfg = model.cfg
-    history = _train(model, parts["train"], feats["train"], cfg.epochs, progress,
-                     val=(parts["val"], feats["val"]))
+    if resume is None or resume["phase"] == "fit":
+        history = _train(model, parts["train"], feats["train"], cfg.epochs, ctx,
+                         val=(parts["val"], feats["val"]), resume=resume)
+    else:
+        history = resume["fit_history"]
     if cfg.refits:
         epochs = history["best_epoch"] + 1
-        _log(progress, f"refit on training + validation windows for {epochs} epochs")
-        torch.manual_seed(cfg.seed)
-        for m in model.head.modules():
-            if m is not model.head and hasattr(m, "reset_parameters"):
-                m.reset_parameters()
+        ctx.fit_history, ctx.fit_best = history, copy.deepcopy(model.head.state_dict())
+        if resume is None or resume["phase"] == "fit":
+            ctx.log.info(f"refit on training + validation windows for {epochs} epochs")
+            torch.manual_seed(cfg.seed)
+            for m in model.head.modules():
+                if m is not model.head and hasattr(m, "reset_parameters"):
+                    m.reset_parameters()
+            resume = None
+        else:
+            ctx.fit_best = resume["fit_best"]
         _train(model, concat(parts["train"], parts["val"]),
-               torch.cat([feats["train"], feats["val"]]), epochs, progress)
+               torch.cat([feats["train"], feats["val"]]), epochs, ctx, resume=resume)
         history["refit_epochs"] = epochs
     return history
 
 
-def _train(model: TextureModel, w: Windows, f_all: torch.Tensor, n_epochs: int, progress: bool,
-           val: tuple[Windows, torch.Tensor] | None = None) -> dict:
+def _epoch_order(units: np.ndarray, gen: torch.Generator) -> np.ndarray:
+    """The training units (window rows, or (S, steps) runs of rows) of one epoch, in the order
+    they are visited: every one once, shuffled with ``gen`` (the same on every process)."""
+    return units[torch.randperm(len(units), generator=gen).numpy()]
+
+
+def _train(model: TextureModel, w: Windows, f_all: torch.Tensor, n_epochs: int, ctx: Context,
+           val: tuple[Windows, torch.Tensor] | None = None, resume: dict | None = None) -> dict:
     """Adam on the windows ``w`` (features ``f_all``) for at most ``n_epochs``. With ``val``:
-    early stopping on its loss, and the best epoch's weights are kept; without: the last's."""
-    cfg = model.cfg
+    early stopping on its loss, and the best epoch's weights are kept; without: the last's.
+    ``resume``: continue from the state saved after an epoch (weights, optimiser, schedule,
+    random generators, early-stopping counters, history)."""
+    cfg, dist, dev = ctx.cfg, ctx.dist, ctx.device
     head = model.head
+    # the head unrolled over a unit's windows; under torchrun in DDP (gradients averaged)
+    step = dist.wrap(ctx.unroll(head), dev)
     opt = torch.optim.Adam(head.parameters(), lr=cfg.lr, weight_decay=cfg.weight_decay)
     sched = _scheduler(opt, cfg, n_epochs)
     loss_fn = nn.CrossEntropyLoss(label_smoothing=cfg.label_smoothing)
     val_loss_fn = nn.CrossEntropyLoss()  # unsmoothed: early stopping compares true fits
     y_train = torch.from_numpy(w.y).long()
-    carry = cfg.state == "carry"
-    units = _sequences(w, cfg.carry_steps) if carry else np.arange(len(w))
-    gen = torch.Generator().manual_seed(cfg.seed)
-    history = {"train_loss": [], "val_loss": [], "val_acc": [], "best_epoch": 0}
-    best, best_state, stale = math.inf, None, 0
-    # exponential moving average of the weights, updated every step (None: off)
-    ema = {k: v.detach().clone() for k, v in head.state_dict().items()} if cfg.ema else None
-    epochs = tqdm(range(n_epochs), desc="epochs", disable=not progress, file=sys.stderr)
+    # units of training, (U, S) window rows: S consecutive windows whose state is carried
+    # (state='carry'), else one window each (S = 1)
+    units = _sequences(w, cfg.carry_steps) if cfg.state == "carry" else np.arange(len(w))[:, None]
+    gen = torch.Generator().manual_seed(cfg.seed)  # the epoch's order: alike on every process
+    aug = torch.Generator().manual_seed(cfg.seed + 7919 * dist.rank)  # gains: one per process
+    batch = math.ceil(cfg.batch_size / dist.world)  # per process: the global batch stays
+    phase = "fit" if val is not None else "refit"
+    s = {"epoch": 0, "best": math.inf, "best_state": None, "stale": 0,
+         "history": {"train_loss": [], "val_loss": [], "val_acc": [], "best_epoch": 0},
+         # exponential moving average of the weights, updated every step (None: off)
+         "ema": {k: v.detach().clone() for k, v in head.state_dict().items()}
+         if cfg.ema else None}
+    if resume is not None:
+        s = _restore(resume, head, opt, sched, gen, aug)
+    history, ema = s["history"], s["ema"]
+    epochs = tqdm(range(s["epoch"], n_epochs), desc=phase, disable=not ctx.log.bars,
+                  file=sys.stderr, initial=s["epoch"], total=n_epochs)
     for epoch in epochs:
+        t_epoch = time.perf_counter()
         model.train()
-        order = units[torch.randperm(len(units), generator=gen).numpy()]
+        order = dist.shard(_epoch_order(units, gen))
         total, count = 0.0, 0
-        for i in tqdm(range(0, len(order), cfg.batch_size), desc=f"epoch {epoch + 1}",
-                      disable=not progress, leave=False, file=sys.stderr):
-            rows = order[i : i + cfg.batch_size]
-            h, c = model.zero_state(len(rows))
-            if cfg.augment_gain:  # a random gain per window and feature (B, 1, F)
+        for i in tqdm(range(0, len(order), batch), desc=f"epoch {epoch + 1}",
+                      disable=not ctx.log.bars, leave=False, file=sys.stderr):
+            if ctx.stop is not None and ctx.stop.requested():
+                raise Interrupted
+            rows = order[i : i + batch]  # (B, S)
+            f = f_all[rows].to(dev)  # (B, S, T, F)
+            if cfg.augment_gain:  # a random gain per window and feature (B, S, 1, F)
                 shape = (*rows.shape, 1, f_all.shape[-1])
-                gain = 1 + cfg.augment_gain * (2 * torch.rand(shape, generator=gen) - 1)
-            if carry:  # (B, steps): state flows through the steps, loss at every window
-                loss = 0.0
-                for s in range(rows.shape[1]):
-                    f = f_all[rows[:, s]]
-                    if cfg.augment_gain:
-                        f = f * gain[:, s]
-                    logits, h, c = head(f, h, c)
-                    loss = loss + loss_fn(logits, y_train[rows[:, s]])
-                loss = loss / rows.shape[1]
-            else:
-                f = f_all[rows] * gain if cfg.augment_gain else f_all[rows]
-                logits, _, _ = head(f, h, c)
-                loss = loss_fn(logits, y_train[rows])
+                f = f * (1 + cfg.augment_gain * (2 * torch.rand(shape, generator=aug) - 1)).to(dev)
+            h, c = (t.to(dev) for t in model.zero_state(len(rows)))
+            logits = step(f, h, c)  # (B, S, classes): the loss of every window, state carried
+            loss = loss_fn(logits.flatten(0, 1), y_train[rows].flatten().to(dev))
             opt.zero_grad()
             loss.backward()
             nn.utils.clip_grad_norm_(head.parameters(), 5.0)
@@ -219,42 +396,61 @@ def _train(model: TextureModel, w: Windows, f_all: torch.Tensor, n_epochs: int, 
                         ema[k].mul_(cfg.ema).add_(v, alpha=1 - cfg.ema)
             total += float(loss.detach()) * len(rows)
             count += len(rows)
+        total, count = dist.sum(total, count)
         history["train_loss"].append(total / count)
+        line = f"{phase} epoch {epoch + 1}/{n_epochs}: train loss {total / count:.3f}"
+        stop = False
         if val is None:  # (a plateau schedule needs a validation loss: the rate stays)
             if sched is not None and not isinstance(sched, ReduceLROnPlateau):
                 sched.step()
-            continue
-        if ema is not None:  # validate (and keep) the averaged weights
-            live = {k: v.clone() for k, v in head.state_dict().items()}
-            head.load_state_dict(ema)
-        probs = predict(model, val[0], feats=val[1])
-        val_loss = float(val_loss_fn(torch.log(torch.from_numpy(probs) + 1e-9),
-                                     torch.from_numpy(val[0].y).long()))
-        val_acc = float((probs.argmax(1) == val[0].y).mean())
-        history["val_loss"].append(val_loss)
-        history["val_acc"].append(val_acc)
-        epochs.set_postfix(loss=f"{total / count:.3f}", val_loss=f"{val_loss:.3f}",
-                           val_acc=f"{val_acc:.3f}")
-        if isinstance(sched, ReduceLROnPlateau):
-            sched.step(val_loss)
-        elif sched is not None:
-            sched.step()
-        if val_loss < best - 1e-4:
-            best, stale, history["best_epoch"] = val_loss, 0, epoch
-            best_state = {k: v.clone() for k, v in head.state_dict().items()}
         else:
-            stale += 1
-        if ema is not None:
-            head.load_state_dict(live)
-        if stale >= cfg.patience:
-            _log(progress, f"early stop after epoch {epoch + 1}: best epoch "
-                 f"{history['best_epoch'] + 1}")
+            stop, line = _validate(model, val, val_loss_fn, sched, ema, s, epoch, epochs, line)
+        s["epoch"] = epoch + 1
+        if not ctx.log.bars:  # a log file or CI: one plain line per epoch
+            ctx.log.info(f"{line} ({time.perf_counter() - t_epoch:.1f} s)")
+        ctx.snapshot = _snapshot(phase, s, head, opt, sched, gen, aug, ctx)
+        if ctx.on_epoch is not None:
+            ctx.on_epoch(phase, epoch + 1)
+        if stop:
+            ctx.log.info(f"early stop after epoch {epoch + 1}: best epoch "
+                         f"{history['best_epoch'] + 1}")
             break
     if val is not None:
-        head.load_state_dict(best_state)
+        head.load_state_dict(s["best_state"])
     elif ema is not None:
         head.load_state_dict(ema)
     return history
+
+
+def _validate(model, val, val_loss_fn, sched, ema, s: dict, epoch: int, bar,
+              line: str) -> tuple[bool, str]:
+    """One epoch's validation: the loss and accuracy (of the averaged weights with ``ema``),
+    the schedule's step, the best weights so far; returns (stop early?, the epoch's line)."""
+    head, cfg, history = model.head, model.cfg, s["history"]
+    if ema is not None:  # validate (and keep) the averaged weights
+        live = {k: v.clone() for k, v in head.state_dict().items()}
+        head.load_state_dict(ema)
+    probs = predict(model, val[0], feats=val[1])
+    val_loss = float(val_loss_fn(torch.log(torch.from_numpy(probs) + 1e-9),
+                                 torch.from_numpy(val[0].y).long()))
+    val_acc = float((probs.argmax(1) == val[0].y).mean())
+    history["val_loss"].append(val_loss)
+    history["val_acc"].append(val_acc)
+    bar.set_postfix(loss=f"{history['train_loss'][-1]:.3f}", val_loss=f"{val_loss:.3f}",
+                    val_acc=f"{val_acc:.3f}")
+    if isinstance(sched, ReduceLROnPlateau):
+        sched.step(val_loss)
+    elif sched is not None:
+        sched.step()
+    if val_loss < s["best"] - 1e-4:
+        s["best"], s["stale"], history["best_epoch"] = val_loss, 0, epoch
+        s["best_state"] = {k: v.clone() for k, v in head.state_dict().items()}
+    else:
+        s["stale"] += 1
+    if ema is not None:
+        head.load_state_dict(live)
+    return s["stale"] >= cfg.patience, (f"{line}, val loss {val_loss:.3f}, val acc {val_acc:.3f}"
+                                        f"{' (best)' if s['stale'] == 0 else ''}")
 
 
 def _scheduler(opt: torch.optim.Optimizer, cfg: TrainConfig, n_epochs: int):
@@ -267,27 +463,116 @@ def _scheduler(opt: torch.optim.Optimizer, cfg: TrainConfig, n_epochs: int):
     return None
 
 
-def load_checkpoint(run_dir: Path) -> tuple[TextureModel, dict]:
-    """Rebuild the model of a run from its checkpoint (data only: weights_only=True)."""
-    path = Path(run_dir)
-    path = path / CHECKPOINT if path.is_dir() else path
-    if not path.is_file():
-        raise RecordingError(f"{path}: no checkpoint (train a run with tactile-train first)")
+# --- resuming: the state after an epoch, as plain tensors and lists (weights_only-safe) -------
+
+def _rng_state(gen: torch.Generator, aug: torch.Generator) -> dict:
+    name, keys, pos, has_gauss, gauss = np.random.get_state()
+    version, internal, py_gauss = random.getstate()
+    state = {"torch": torch.get_rng_state(), "order": gen.get_state(), "gain": aug.get_state(),
+             "numpy": [name, torch.from_numpy(keys.astype(np.int64)), int(pos), int(has_gauss),
+                       float(gauss)],
+             "python": [version, list(internal), py_gauss]}
+    if torch.cuda.is_available():
+        state["cuda"] = torch.cuda.get_rng_state_all()
+    return state
+
+
+def _set_rng_state(state: dict, gen: torch.Generator, aug: torch.Generator) -> None:
+    torch.set_rng_state(state["torch"])
+    gen.set_state(state["order"])
+    aug.set_state(state["gain"])
+    name, keys, pos, has_gauss, gauss = state["numpy"]
+    np.random.set_state((name, keys.numpy().astype(np.uint32), pos, has_gauss, gauss))
+    version, internal, py_gauss = state["python"]
+    random.setstate((version, tuple(internal), py_gauss))
+    if "cuda" in state and torch.cuda.is_available():
+        torch.cuda.set_rng_state_all(state["cuda"])
+
+
+def _snapshot(phase: str, s: dict, head: nn.Module, opt, sched, gen, aug, ctx: Context) -> dict:
+    """Everything an epoch boundary knows, copied (training goes on changing the live ones)."""
+    return copy.deepcopy({
+        "phase": phase, **s, "head": head.state_dict(), "opt": opt.state_dict(),
+        "sched": sched.state_dict() if sched is not None else None,
+        "rng": _rng_state(gen, aug), "fit_history": ctx.fit_history, "fit_best": ctx.fit_best,
+    })
+
+
+def _restore(r: dict, head: nn.Module, opt, sched, gen, aug) -> dict:
+    """Put the saved state back; a state that does not fit (edited, or from another version)
+    is a RecordingError, not a traceback."""
     try:
-        ck = torch.load(path, weights_only=True, map_location="cpu")
-    except Exception as e:  # noqa: BLE001  (any unpickling failure means "not a checkpoint")
-        raise RecordingError(f"{path}: not a readable checkpoint ({e})") from None
-    if not isinstance(ck, dict) or ck.get("format") != CHECKPOINT_FORMAT:
-        raise RecordingError(f"{path}: not a tactile checkpoint")
-    if ck.get("version") != CHECKPOINT_VERSION:
-        raise RecordingError(f"{path}: checkpoint version {ck.get('version')}, "
-                             f"this package reads {CHECKPOINT_VERSION}")
-    cfg = TrainConfig.from_dict(ck["config"])
-    model = TextureModel(cfg, len(ck["classes"]), torch.tensor(ck["mean"]),
-                         torch.tensor(ck["std"]), list(ck["emd_index"]), list(ck["center_index"]))
-    model.load_state_dict(ck["state_dict"])
-    model.eval()
-    return model, ck
+        head.load_state_dict(r["head"])
+        opt.load_state_dict(r["opt"])
+        if sched is not None:
+            sched.load_state_dict(r["sched"])
+        _set_rng_state(r["rng"], gen, aug)
+        return {k: copy.deepcopy(r[k]) for k in ("epoch", "best", "best_state", "stale",
+                                                 "history", "ema")}
+    except (KeyError, TypeError, ValueError, RuntimeError, AttributeError) as e:
+        first = " ".join(str(e).split())[:120]
+        raise RecordingError(f"{RESUME}: the saved state does not fit this run "
+                             f"({type(e).__name__}: {first})") from None
+
+
+def _save_interrupted(out: Path, data: Path, cfg: TrainConfig, model: TextureModel,
+                      ctx: Context, parts: dict, feats: dict, classes, takes, split,
+                      norm: dict) -> dict:
+    """After SIGINT: RUN/resume.pt (the state after the last finished epoch), and the best
+    weights so far as an ordinary run (checkpoint, test metrics marked ``interrupted``)."""
+    snap = ctx.snapshot
+    if snap is None:
+        ctx.log.warn("interrupted before the first epoch ended: nothing to save")
+        return {"interrupted": True, "epochs_run": 0}
+    out.mkdir(parents=True, exist_ok=True)
+    save_resume(out, cfg, data, ctx.dist.world, snap)
+    if snap["phase"] == "fit":
+        best, history = snap["best_state"] or snap["head"], snap["history"]
+    else:  # a refit stopped half-way: the first phase's best model is the best there is
+        best, history = snap["fit_best"], snap["fit_history"]
+    model.head.load_state_dict(best)
+    metrics = _test_metrics(model, parts, feats, takes, classes)
+    metrics.update(
+        classes=list(classes), channels=list(cfg.channels), split=split.description,
+        split_windows={k: len(w) for k, w in parts.items()}, best_epoch=history["best_epoch"],
+        val_accuracy=history["val_acc"][history["best_epoch"]] if history["val_acc"] else None,
+        epochs_run=len(history["train_loss"]), phase=snap["phase"], interrupted=True,
+        shifted=None, seed=cfg.seed,
+    )
+    _write_run(out, cfg, model, metrics, history, classes, takes, split, norm)
+    ctx.log.warn(f"interrupted: {snap['phase']} epoch {snap['epoch']} was the last finished; "
+                 f"best checkpoint so far in {out / CHECKPOINT}; continue with "
+                 f"tactile-train --resume {out}")
+    return metrics
+
+
+def _write_run(out: Path, cfg: TrainConfig, model: TextureModel, metrics: dict, history: dict,
+               classes: tuple[str, ...], takes, split, norm: dict) -> None:
+    out.mkdir(parents=True, exist_ok=True)
+    channels = cfg.channels
+    names = [t.path.name for t in takes]
+    ck = {
+        "format": CHECKPOINT_FORMAT,
+        "version": CHECKPOINT_VERSION,
+        "package_version": tactile.__version__,
+        "config": cfg.to_dict(),
+        "classes": list(classes),
+        "channels": list(channels),
+        "units": [takes[0].info.channels[takes[0].channels.index(c)].unit for c in channels],
+        "sample_rate_hz": takes[0].info.sample_rate_hz,
+        "mean": norm["mean"].tolist(),
+        "std": norm["std"].tolist(),
+        "emd_index": norm["emd_index"],
+        "center_index": norm["center_index"],
+        "test_rows": {names[i]: list(r) for i, r in split.test.items()},
+        "test_fingerprints": {names[i]: takes[i].fingerprint() for i in split.test},
+        "metrics": _plain(metrics),
+        "state_dict": model.state_dict(),
+    }
+    torch.save(ck, out / CHECKPOINT)
+    (out / "metrics.json").write_text(json.dumps(_plain(metrics), indent=1) + "\n")
+    (out / "confusion.txt").write_text(table(metrics, classes, "test split") + "\n")
+    _plots(out, history, metrics, classes)
 
 
 def _plots(out: Path, history: dict, metrics: dict, classes: tuple[str, ...]) -> None:
@@ -298,26 +583,30 @@ def _plots(out: Path, history: dict, metrics: dict, classes: tuple[str, ...]) ->
 
     fig, ax = plt.subplots(1, 2, figsize=(9, 3.5))
     ep = np.arange(1, len(history["train_loss"]) + 1)
+    best = history["best_epoch"] + 1
     ax[0].plot(ep, history["train_loss"], label="train")
-    ax[0].plot(ep, history["val_loss"], label="validation")
+    ax[0].plot(ep[: len(history["val_loss"])], history["val_loss"], label="validation")
     ax[0].set(xlabel="epoch", ylabel="cross-entropy", title="loss")
-    ax[0].legend()
-    ax[1].plot(ep, history["val_acc"])
+    ax[1].plot(ep[: len(history["val_acc"])], history["val_acc"])
     ax[1].set(xlabel="epoch", ylabel="accuracy", title="validation accuracy", ylim=(0, 1))
+    for a in ax:  # the epoch whose weights were kept
+        a.axvline(best, color="tab:red", linestyle="--", linewidth=1, label=f"best epoch {best}")
+    ax[0].legend()
     fig.tight_layout()
     fig.savefig(out / "curves.png", dpi=100)
     plt.close(fig)
+    counts = np.array(metrics["confusion"])
     norm = np.array(metrics["confusion_normalised"])
-    fig, ax = plt.subplots(figsize=(1.2 * len(classes) + 2, 1.0 * len(classes) + 1.5))
+    fig, ax = plt.subplots(figsize=(1.4 * len(classes) + 2, 1.0 * len(classes) + 1.5))
     ax.imshow(norm, vmin=0, vmax=1, cmap="Blues")
     for i in range(len(classes)):
-        for j in range(len(classes)):
-            ax.text(j, i, f"{norm[i, j]:.2f}", ha="center", va="center",
-                    color="white" if norm[i, j] > 0.5 else "black")
+        for j in range(len(classes)):  # the share of the row, and the count it is made of
+            ax.text(j, i, f"{norm[i, j]:.2f}\n({counts[i, j]})", ha="center", va="center",
+                    fontsize=8, color="white" if norm[i, j] > 0.5 else "black")
     ax.set_xticks(range(len(classes)), classes, rotation=30, ha="right")
     ax.set_yticks(range(len(classes)), classes)
     ax.set(xlabel="estimated class", ylabel="label of input data",
-           title=f"test accuracy {metrics['accuracy']:.3f}")
+           title=f"test accuracy {metrics['accuracy']:.3f} (share of row, window count)")
     fig.tight_layout()
     fig.savefig(out / "confusion.png", dpi=100)
     plt.close(fig)
@@ -334,19 +623,19 @@ def _plain(obj):
     return obj
 
 
-def _log(progress: bool, msg: str) -> None:
-    if progress:
-        print(msg, file=sys.stderr, flush=True)
-
-
 def build_parser() -> argparse.ArgumentParser:
     p = Parser(prog="tactile-train", description=__doc__.split("\n\n")[0])
-    p.add_argument("data", type=Path, help="dataset folder (takes: .csv + .json)")
-    p.add_argument("--out", type=Path, required=True, help="run folder to write")
+    p.add_argument("data", type=Path, nargs="?",
+                   help="dataset folder (takes: .csv + .json); with --resume, default: the "
+                        "run's own")
+    p.add_argument("--out", type=Path, help="run folder to write (must not hold a run)")
     p.add_argument("--config", type=Path, help="TOML file of settings (see TrainConfig)")
     p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
                    help="override one setting, e.g. --set hidden=32 --set emd_channels=accel_z")
-    p.add_argument("--quiet", action="store_true", help="no progress bars")
+    p.add_argument("--resume", type=Path, metavar="RUN",
+                   help="continue the run that Ctrl-C stopped, with its own settings")
+    p.add_argument("--force", action="store_true", help="overwrite the run in --out")
+    p.add_argument("--quiet", action="store_true", help="no progress output")
     add_debug(p)
     return p
 
@@ -377,11 +666,43 @@ def parse_sets(pairs: list[str], base: TrainConfig) -> TrainConfig:
 
 
 def _main(args: argparse.Namespace) -> int:
-    cfg = TrainConfig.from_toml(args.config) if args.config else TrainConfig()
-    cfg = parse_sets(args.set, cfg)
-    m = train(args.data, args.out, cfg, progress=not args.quiet)
+    resume = None
+    if args.resume is not None:
+        if args.set or args.config or args.force:
+            raise ConfigError("--resume continues a run with its own settings: drop "
+                              "--set/--config/--force")
+        if args.out is not None and args.out.resolve() != args.resume.resolve():
+            raise ConfigError(f"--resume writes into its run folder {args.resume}: drop --out")
+        resume = load_resume(args.resume)
+        cfg, out = TrainConfig.from_dict(resume["config"]), args.resume
+        data = args.data if args.data is not None else Path(resume["data"])
+    else:
+        if args.data is None or args.out is None:
+            raise ConfigError("give DATA and --out RUN (or --resume RUN)")
+        cfg = TrainConfig.from_toml(args.config) if args.config else TrainConfig()
+        cfg = parse_sets(args.set, cfg)
+        data, out = args.data, args.out
+        held = [f for f in RUN_FILES if (out / f).exists()]
+        if held and not args.force:
+            raise ConfigError(f"{out}: holds a run already ({held[0]}): choose another --out, "
+                              f"add --force to overwrite it, or --resume {out} to continue it")
+        if args.force:
+            (out / RESUME).unlink(missing_ok=True)
+    try:
+        m = train(data, out, cfg, progress=not args.quiet,
+                  resume=resume["state"] if resume else None)
+    except KeyboardInterrupt:  # before the first epoch (loading, EMD features): nothing to keep
+        print("tactile-train: interrupted before training started: nothing saved",
+              file=sys.stderr)
+        return EXIT_INTERRUPTED
+    if m.get("interrupted"):
+        return EXIT_INTERRUPTED
+    if "accuracy" not in m:  # not rank 0 of a torchrun job: rank 0 prints
+        return 0
     print(table(m, tuple(m["classes"]), f"test split ({m['split']})"))
-    print(f"shifted windows: {m['shifted']}; trained in {m['train_seconds']} s; run in {args.out}")
+    print(f"per take (majority vote): {m['take_accuracy']:.3f} over {m['takes']} takes")
+    print(shifted_line(m["shifted"]))
+    print(f"trained in {m['train_seconds']} s; run in {out}")
     return 0
 
 
@@ -391,3 +712,6 @@ def main(argv: list[str] | None = None) -> int:
 
 if __name__ == "__main__":
     sys.exit(main())
+
+
+__all__ = ["train", "load_checkpoint", "centered", "parse_sets", "main", "EXIT_INTERRUPTED"]

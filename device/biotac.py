@@ -1,0 +1,215 @@
+"""Import the BioTac BOLT recordings (two BioTac fingertips on a robot hand, 5 objects) as takes.
+
+    tactile-import-biotac PATH/cork.h5 PATH/metal_bar.h5 ... --out data/biotac
+
+The recordings come from the Penn-haptics-bolt repository (``training_tests/<object>.h5``, no
+licence stated: development and evaluation only). Each HDF5 file holds one group per trial,
+``<object>_pdc<setting>_<depth>_<repetition>`` (e.g. ``cork_pdc150_1cm_03``), with
+``finger_0/`` and ``finger_1/`` each holding ``pac`` (T, 22), ``pdc`` (T,), ``electrodes``
+(T, 19), ``tac`` (T,) and ``tdc`` (T,), plus ``timestamps`` (T,) in whole Unix seconds.
+
+Each trial becomes one take named after its group, labelled with its object, at 100 Hz (one row
+per 10 ms frame). The take's metadata says ``trial`` (the group name), ``pdc_setting`` (the
+contact-pressure setting, e.g. 150), ``repetition`` (1..5) and ``user``: the repetition, so that
+``split = "user"`` keeps every trial of one repetition (all objects, all pressures) in one
+split. Channels, 44 per finger (:func:`channels`): ``f0_pac_00`` .. ``f0_pac_21`` (the 22
+vibration sub-samples of a frame, in time order: one 2.2 kHz signal), ``f0_pdc``,
+``f0_ele_00`` .. ``f0_ele_18``, ``f0_tac``, ``f0_tdc``, then the same for ``f1``. Values are the
+raw 12-bit ADC counts as recorded: unit ``count``, scale 1.
+
+Every input is checked before anything is written: a file that is not HDF5, a trial group whose
+name or datasets are not as above, lengths that disagree, values that are not 12-bit counts, or
+a trial given twice, is one line naming the file and the dataset, exit code 1. A take of the
+same name already in the output folder is refused too (importing twice would duplicate data),
+or replaced with ``--force``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import re
+import sys
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import h5py
+import numpy as np
+
+from tactile.cli import Parser, add_debug, run
+from tactile.device.info import ChannelSpec, DeviceInfo
+from tactile.device.recording import TakeWriter, dataset_folder, replace_takes
+from tactile.errors import RecordingError
+
+RATE_HZ = 100.0
+FINGERS = (0, 1)
+PAC_SAMPLES = 22  # vibration sub-samples per 10 ms frame (2.2 kHz)
+ELECTRODES = 19
+ADC_MAX = 4095  # 12-bit counts
+# (dataset in finger_<k>/, columns or None for a 1-D dataset, channel prefix); the order of the
+# channels in a take
+MODALITIES = (
+    ("pac", PAC_SAMPLES, "pac"),
+    ("pdc", None, "pdc"),
+    ("electrodes", ELECTRODES, "ele"),
+    ("tac", None, "tac"),
+    ("tdc", None, "tdc"),
+)
+TRIAL = re.compile(r"^(?P<object>[a-z0-9_]+?)_pdc(?P<pdc>\d+)_(?P<depth>[a-z0-9]+)_(?P<rep>\d+)$")
+ORIGIN = "Penn-haptics-bolt repository, commit 441c64d, training_tests/"
+LICENCE = "none stated upstream: development and evaluation only, never redistributed"
+
+
+def channels(fingers: tuple[int, ...] = FINGERS) -> tuple[ChannelSpec, ...]:
+    """The take's channels, in column order: 44 per finger, raw counts (scale 1)."""
+    out = []
+    for k in fingers:
+        for _, width, prefix in MODALITIES:
+            names = [f"f{k}_{prefix}"] if width is None else [
+                f"f{k}_{prefix}_{i:02d}" for i in range(width)]
+            out += [ChannelSpec(n, "count") for n in names]
+    return tuple(out)
+
+
+@dataclass(frozen=True)
+class Trial:
+    """One trial group of one file."""
+
+    file: Path
+    group: str
+    label: str
+    pdc_setting: int
+    depth: str
+    repetition: int
+
+
+def _open(path: Path) -> h5py.File:
+    if not path.is_file():
+        raise RecordingError(f"{path}: no such file")
+    try:
+        return h5py.File(path, "r")
+    except OSError as e:
+        raise RecordingError(f"{path}: not an HDF5 file ({str(e).splitlines()[0]})") from None
+
+
+def _trials(path: Path, f: h5py.File) -> list[Trial]:
+    """The trial groups of an open file, named as the layout says."""
+    out = []
+    for name in sorted(f.keys()):
+        if not isinstance(f[name], h5py.Group):
+            raise RecordingError(f"{path}: {name}: a dataset where a trial group was expected")
+        m = TRIAL.match(name)
+        if m is None:
+            raise RecordingError(f"{path}: group {name!r} is not named "
+                                 "<object>_pdc<setting>_<depth>_<repetition>")
+        out.append(Trial(path, name, m["object"], int(m["pdc"]), m["depth"], int(m["rep"])))
+    if not out:
+        raise RecordingError(f"{path}: no trial groups")
+    return out
+
+
+def read_trial(f: h5py.File, trial: Trial) -> tuple[np.ndarray, np.ndarray]:
+    """The trial's raw counts (T, 88) int64 in :func:`channels` order and its timestamps (T,)
+    in Unix seconds. Raises :class:`RecordingError` naming the file and the dataset."""
+    g = f[trial.group]
+    where = f"{trial.file}: {trial.group}"
+
+    def dataset(name: str, width: int | None) -> np.ndarray:
+        if name not in g or not isinstance(g[name], h5py.Dataset):
+            raise RecordingError(f"{where}/{name}: missing")
+        d = g[name]
+        shape = "(T,)" if width is None else f"(T, {width})"
+        if d.ndim != (1 if width is None else 2) or (width is not None and d.shape[1] != width):
+            raise RecordingError(f"{where}/{name}: shape {d.shape}, expected {shape}")
+        if not np.issubdtype(d.dtype, np.integer):
+            raise RecordingError(f"{where}/{name}: dtype {d.dtype}, expected integer counts")
+        return d[()].astype(np.int64).reshape(d.shape[0], -1)
+
+    stamps = dataset("timestamps", None)[:, 0]
+    if len(stamps) == 0:
+        raise RecordingError(f"{where}/timestamps: no frames")
+    columns = []
+    for k in FINGERS:
+        for name, width, _ in MODALITIES:
+            path = f"finger_{k}/{name}"
+            x = dataset(path, width)
+            if len(x) != len(stamps):
+                raise RecordingError(f"{where}/{path}: {len(x)} frames, but timestamps has "
+                                     f"{len(stamps)}")
+            bad = (x < 0) | (x > ADC_MAX)
+            if bad.any():
+                row, col = (int(v[0]) for v in np.nonzero(bad))
+                raise RecordingError(f"{where}/{path}: value {x[row, col]} at frame {row} is "
+                                     f"not a 12-bit count (0..{ADC_MAX})")
+            columns.append(x)
+    return np.concatenate(columns, axis=1), stamps
+
+
+def _metadata(trial: Trial, stamps: np.ndarray) -> dict:
+    return {
+        "object": trial.label,
+        "trial": trial.group,
+        "pdc_setting": trial.pdc_setting,
+        "depth": trial.depth,
+        "repetition": trial.repetition,
+        "user": trial.repetition,
+        "recorded_utc": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime(int(stamps[0]))),
+        "origin": ORIGIN + trial.file.name,
+        "licence": LICENCE,
+        "notes": "f<k>_pac_00..21 are the 22 vibration samples of each 10 ms frame in time "
+                 "order (one 2.2 kHz signal); all values raw 12-bit ADC counts",
+    }
+
+
+def import_biotac(files: list[Path], out: Path, force: bool = False) -> list[Path]:
+    """Write one take per trial of ``files`` into the dataset folder ``out``; returns the CSV
+    paths. Everything is read and checked before the first take is written; takes of the same
+    names already in ``out`` are refused, or replaced with ``force``."""
+    files = [Path(p) for p in files]
+    handles = {p: _open(p) for p in files}
+    try:
+        trials: list[Trial] = []
+        for p, f in handles.items():
+            trials += _trials(p, f)
+        seen: dict[str, Path] = {}
+        for t in trials:
+            if t.group in seen:
+                raise RecordingError(f"{t.file}: trial {t.group} also in {seen[t.group]}")
+            seen[t.group] = t.file
+        for t in trials:  # check every trial (no data kept) before writing any
+            read_trial(handles[t.file], t)
+        out = dataset_folder(out)
+        replace_takes(out, [t.group for t in trials], force)
+        info = DeviceInfo(RATE_HZ, channels(), device="biotac-bolt")
+        paths = []
+        for t in trials:
+            raw, stamps = read_trial(handles[t.file], t)
+            with TakeWriter(out, t.label, info, f"biotac:{t.file.name}", name=t.group,
+                            extra=_metadata(t, stamps)) as w:
+                w.write(0, 0, raw)
+            paths.append(w.csv_path)
+        return paths
+    finally:
+        for f in handles.values():
+            f.close()
+
+
+def _main(args: argparse.Namespace) -> int:
+    for p in import_biotac(args.files, args.out, args.force):
+        print(p)
+    return 0
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = Parser(prog="tactile-import-biotac",
+               description="Import BioTac BOLT recordings (HDF5): one take per trial.")
+    p.add_argument("files", type=Path, nargs="+", metavar="FILE.h5",
+                   help="one HDF5 file per object (e.g. cork.h5), one group per trial")
+    p.add_argument("--out", type=Path, required=True, help="dataset folder to write")
+    p.add_argument("--force", action="store_true", help="replace takes of the same names")
+    add_debug(p)
+    return run("tactile-import-biotac", _main, p.parse_args(argv))
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,129 @@
+"""A take's JSON read back and checked key by key, before anything trusts it.
+
+The file is untrusted (a take from elsewhere, edited by hand, or damaged): :func:`read_meta`
+checks every key the reader uses against a small schema (required or not, type, range), then
+the device header against :class:`~tactile.device.info.DeviceInfo`'s own limits, and raises one
+:class:`RecordingError` line naming the file and the key, never a traceback.
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+from tactile.device.info import DeviceInfo
+from tactile.errors import RecordingError, TactileError
+
+FORMAT = "tactile-recording"
+VERSION = 2  # 2: gap lines in the CSV, channel names escaped in its header
+READABLE_VERSIONS = (1, 2)
+
+
+def _is_int(v) -> bool:
+    return isinstance(v, int) and not isinstance(v, bool)
+
+
+def _is_number(v) -> bool:
+    return isinstance(v, int | float) and not isinstance(v, bool)
+
+
+def _count(v) -> bool:
+    return _is_int(v) and v >= 0
+
+
+def _text(v) -> bool:
+    return isinstance(v, str)
+
+
+# What a take's JSON may hold: key -> (required, test, what it must be). Other keys are the
+# recorder's extras (user, simulator...) and are kept as they are.
+_META = {
+    "format": (True, lambda v: v == FORMAT, f'"{FORMAT}"'),
+    "version": (True, lambda v: _is_int(v) and v in READABLE_VERSIONS,
+                " or ".join(map(str, READABLE_VERSIONS))),
+    "label": (True, lambda v: _text(v) and v != "", "a non-empty string"),
+    "device": (True, lambda v: isinstance(v, dict), "an object (the device header)"),
+    "started_utc": (False, _text, "a string"),
+    "source": (False, _text, "a string"),
+    "columns": (False, lambda v: isinstance(v, list) and all(map(_text, v)),
+                "a list of strings"),
+    "samples": (False, _count, "an integer >= 0"),
+    "first_seq": (False, lambda v: v is None or _count(v), "an integer >= 0 or null"),
+    "last_seq": (False, lambda v: v is None or _count(v), "an integer >= 0 or null"),
+    "gaps": (False, lambda v: isinstance(v, list), "a list"),
+    "decoder": (False, lambda v: isinstance(v, dict), "an object"),
+    "complete": (False, lambda v: isinstance(v, bool), "true or false"),
+}
+_DEVICE = {
+    "sample_rate_hz": (True, _is_number, "a number"),
+    "channels": (True, lambda v: isinstance(v, list) and len(v) > 0, "a non-empty list"),
+    "device": (False, _text, "a string"),
+    "protocol_version": (False, _is_int, "an integer"),
+}
+_CHANNEL = {
+    "name": (True, _text, "a string"),
+    "unit": (True, _text, "a string"),
+    "scale": (False, _is_number, "a number"),
+    "offset": (False, _is_number, "a number"),
+}
+_GAP = {
+    "seq": (True, _count, "an integer >= 0"),
+    "missing": (True, _count, "an integer >= 0"),
+    "reason": (True, _text, "a string"),
+}
+
+
+def _shown(v) -> str:
+    if isinstance(v, dict | list):
+        return f"{'an object' if isinstance(v, dict) else 'a list'} of {len(v)}"
+    text = repr(v)
+    return text if len(text) <= 60 else text[:57] + "..."
+
+
+def _check(obj, schema: dict, where: str, path: Path, closed: bool = False) -> None:
+    """Raise a :class:`RecordingError` naming ``path`` and the key if ``obj`` breaks ``schema``
+    (``closed``: no other keys allowed)."""
+    if not isinstance(obj, dict):
+        raise RecordingError(f"{path}: {where or 'the top level'} must be an object, "
+                             f"got {_shown(obj)}")
+    dot = f"{where}." if where else ""
+    for key, (required, ok, what) in schema.items():
+        if key not in obj:
+            if required:
+                raise RecordingError(f"{path}: key '{dot}{key}' missing")
+        elif not ok(obj[key]):
+            raise RecordingError(f"{path}: key '{dot}{key}' must be {what}, got "
+                                 f"{_shown(obj[key])}")
+    if closed and (extra := sorted(set(obj) - set(schema))):
+        raise RecordingError(f"{path}: key '{dot}{extra[0]}' unknown; allowed: "
+                             f"{', '.join(schema)}")
+
+
+def read_meta(json_path: Path) -> tuple[dict, DeviceInfo]:
+    """A take's JSON, checked key by key: (metadata, device header). Raises
+    :class:`RecordingError` naming the file and the key."""
+    try:
+        text = json_path.read_bytes().decode("utf-8")
+        meta = json.loads(text)
+    except OSError as e:
+        raise RecordingError(f"{json_path}: cannot read ({e.strerror or e})") from None
+    except (ValueError, RecursionError) as e:  # JSONDecodeError, bad UTF-8, too deep
+        why = "nested too deeply" if isinstance(e, RecursionError) else str(e).splitlines()[0]
+        raise RecordingError(f"{json_path}: not valid JSON ({why})") from None
+    if isinstance(meta, dict) and (meta.get("format") != FORMAT
+                                   or meta.get("version") not in READABLE_VERSIONS):
+        raise RecordingError(
+            f"{json_path}: not a {FORMAT} file of version "
+            f"{' or '.join(map(str, READABLE_VERSIONS))} "
+            f"(format={_shown(meta.get('format'))}, version={_shown(meta.get('version'))})")
+    _check(meta, _META, "", json_path)
+    _check(meta["device"], _DEVICE, "device", json_path)
+    for i, ch in enumerate(meta["device"]["channels"]):
+        _check(ch, _CHANNEL, f"device.channels[{i}]", json_path, closed=True)
+    for i, g in enumerate(meta.get("gaps", [])):
+        _check(g, _GAP, f"gaps[{i}]", json_path)
+    try:
+        info = DeviceInfo.from_dict(meta["device"])
+    except (TactileError, ValueError, TypeError, OverflowError) as e:  # FrameError: its limits
+        raise RecordingError(f"{json_path}: key 'device': {e}") from None
+    return meta, info

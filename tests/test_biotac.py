@@ -1,0 +1,266 @@
+"""The BioTac importer and takes of more than 32 channels (recordings, decoder, training).
+
+The importer is tested on small HDF5 files each test writes itself (so CI needs no shared data)
+and on a slice of the real recordings (two trials copied into a temporary file), which is
+skipped, saying so, when ``../shared/datasets/biotac-bolt/`` is absent.
+"""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import h5py
+import numpy as np
+import pytest
+from conftest import SHARED
+
+from tactile.device.biotac import channels, import_biotac
+from tactile.device.biotac import main as biotac_main
+from tactile.device.decoder import Header, Samples, decode
+from tactile.device.info import MAX_CHANNELS, ChannelSpec, DeviceInfo
+from tactile.device.protocol import encode_header
+from tactile.device.recording import TakeWriter, load_dataset, read_take
+from tactile.errors import FrameError, RecordingError
+
+BOLT = SHARED / "datasets" / "biotac-bolt"
+WIDTHS = {"pac": 22, "pdc": None, "electrodes": 19, "tac": None, "tdc": None}
+
+
+def write_h5(path: Path, trials: dict[str, int], seed: int = 0) -> dict:
+    """A file in the BOLT layout: ``trials`` maps a group name to its frame count. Returns
+    what was written, ``{group: {dataset path: array}}``."""
+    rng = np.random.default_rng(seed)
+    written = {}
+    with h5py.File(path, "w") as f:
+        for name, n in trials.items():
+            g = f.create_group(name)
+            data = {"timestamps": 1342573557 + np.arange(n) // 100}
+            for k in (0, 1):
+                for ds, w in WIDTHS.items():
+                    shape = (n,) if w is None else (n, w)
+                    data[f"finger_{k}/{ds}"] = rng.integers(0, 4096, shape)
+            for ds, a in data.items():
+                g.create_dataset(ds, data=a.astype(np.int64))
+            written[name] = data
+    return written
+
+
+def test_channel_names_name_the_finger_and_modality():
+    names = [c.name for c in channels()]
+    assert len(names) == 88 == len(set(names))
+    assert names[:3] == ["f0_pac_00", "f0_pac_01", "f0_pac_02"]
+    assert names[21:25] == ["f0_pac_21", "f0_pdc", "f0_ele_00", "f0_ele_01"]
+    assert names[41:46] == ["f0_ele_18", "f0_tac", "f0_tdc", "f1_pac_00", "f1_pac_01"]
+    assert all(c.unit == "count" and c.scale == 1.0 and c.offset == 0.0 for c in channels())
+
+
+def test_a_take_of_88_channels_round_trips(tmp_path):
+    info = DeviceInfo(100.0, channels(), device="biotac-bolt")
+    raw = np.random.default_rng(1).integers(0, 4096, (250, 88))
+    with TakeWriter(tmp_path, "cork", info, name="t") as w:
+        w.write(0, 0, raw[:100])
+        w.write(100, 1_000_000, raw[100:])
+    take = read_take(tmp_path / "t.csv")
+    assert take.info == info and take.channels == info.channel_names
+    assert take.raw.dtype == np.int64 and np.array_equal(take.raw, raw)
+    assert take.seq.tolist() == list(range(250)) and take.segments() == [(0, 250)]
+
+
+def test_the_wire_keeps_its_32_channel_frames_but_csv_lines_carry_more():
+    info = DeviceInfo(100.0, channels(), device="biotac-bolt")
+    with pytest.raises(FrameError, match="88 channels: a header frame carries 1..32"):
+        encode_header(info)
+    too_many = tuple(ChannelSpec(f"c{i}", "") for i in range(MAX_CHANNELS + 1))
+    with pytest.raises(FrameError, match=f"{MAX_CHANNELS + 1} channels: must be 1..2048"):
+        DeviceInfo(100.0, too_many)
+    # a board printing 44 columns (one BioTac) as CSV lines: 32 was a hard stop before
+    rows = np.arange(3 * 44).reshape(3, 44)
+    events, stats = decode("".join(",".join(map(str, r)) + "\n" for r in rows).encode(), "csv")
+    assert isinstance(events[0], Header) and len(events[0].info.channels) == 44
+    got = np.concatenate([e.raw for e in events if isinstance(e, Samples)])
+    assert np.array_equal(got, rows) and stats.samples == 3
+
+
+def test_import_writes_one_take_per_trial(tmp_path, capsys):
+    a = write_h5(tmp_path / "cork.h5", {"cork_pdc100_1cm_01": 120, "cork_pdc150_1cm_02": 90})
+    b = write_h5(tmp_path / "metal_bar.h5", {"metal_bar_pdc200_1cm_05": 70}, seed=1)
+    out = tmp_path / "data"
+    assert biotac_main([str(tmp_path / "cork.h5"), str(tmp_path / "metal_bar.h5"),
+                        "--out", str(out)]) == 0
+    printed = capsys.readouterr().out.split()
+    assert [Path(p).name for p in printed] == [
+        "cork_pdc100_1cm_01.csv", "cork_pdc150_1cm_02.csv", "metal_bar_pdc200_1cm_05.csv"]
+    takes = {t.path.stem: t for t in load_dataset(out)}
+    names = list(takes["cork_pdc100_1cm_01"].channels)
+    for group, data in {**a, **b}.items():
+        take = takes[group]
+        assert take.label == group.rsplit("_pdc", 1)[0]
+        assert take.info.sample_rate_hz == 100.0 and take.info.device == "biotac-bolt"
+        assert take.meta["complete"] and take.meta["samples"] == len(data["timestamps"])
+        for k in (0, 1):  # every column is the dataset it names, frame for frame
+            for ds, prefix in (("pac", "pac"), ("electrodes", "ele")):
+                for i in range(WIDTHS[ds]):
+                    col = take.raw[:, names.index(f"f{k}_{prefix}_{i:02d}")]
+                    assert np.array_equal(col, data[f"finger_{k}/{ds}"][:, i])
+            for ds in ("pdc", "tac", "tdc"):
+                assert np.array_equal(take.raw[:, names.index(f"f{k}_{ds}")],
+                                      data[f"finger_{k}/{ds}"])
+    m = takes["cork_pdc150_1cm_02"].meta
+    assert (m["trial"], m["object"], m["pdc_setting"], m["repetition"], m["user"], m["depth"]) \
+        == ("cork_pdc150_1cm_02", "cork", 150, 2, 2, "1cm")
+    assert m["recorded_utc"] == "2012-07-18T01:05:57Z"  # from timestamps[0] = 1342573557
+    assert takes["metal_bar_pdc200_1cm_05"].label == "metal_bar"
+
+
+def _run(*args: str) -> tuple[int, list[str]]:
+    out = subprocess.run([sys.executable, "-m", "tactile.device.biotac", *args],
+                         capture_output=True, text=True)
+    return out.returncode, out.stderr.strip().splitlines()
+
+
+def _broken(tmp_path: Path, how: str) -> Path:
+    path = tmp_path / f"{how}.h5"
+    write_h5(path, {"cork_pdc100_1cm_01": 50, "cork_pdc100_1cm_02": 40})
+    with h5py.File(path, "a") as f:
+        g = f["cork_pdc100_1cm_02"]
+        if how == "missing":
+            del g["finger_1/pdc"]
+        elif how == "short":
+            del g["finger_1/pdc"]
+            g.create_dataset("finger_1/pdc", data=np.zeros(39, np.int64))
+        elif how == "shape":
+            del g["finger_0/pac"]
+            g.create_dataset("finger_0/pac", data=np.zeros((40, 21), np.int64))
+        elif how == "float":
+            del g["finger_0/tdc"]
+            g.create_dataset("finger_0/tdc", data=np.zeros(40))
+        elif how == "range":
+            g["finger_0/electrodes"][7, 3] = 4096
+        elif how == "name":
+            f.move("cork_pdc100_1cm_02", "cork_trial_2")
+    return path
+
+
+@pytest.mark.parametrize("how, message", [
+    ("missing", "cork_pdc100_1cm_02/finger_1/pdc: missing"),
+    ("short", "cork_pdc100_1cm_02/finger_1/pdc: 39 frames, but timestamps has 40"),
+    ("shape", "cork_pdc100_1cm_02/finger_0/pac: shape (40, 21), expected (T, 22)"),
+    ("float", "cork_pdc100_1cm_02/finger_0/tdc: dtype float64, expected integer counts"),
+    ("range", "cork_pdc100_1cm_02/finger_0/electrodes: value 4096 at frame 7 is not a "
+              "12-bit count (0..4095)"),
+    ("name", "group 'cork_trial_2' is not named <object>_pdc<setting>_<depth>_<repetition>"),
+])
+def test_a_bad_file_is_one_line_naming_file_and_dataset_and_nothing_is_written(
+        tmp_path, how, message):
+    path = _broken(tmp_path, how)
+    code, err = _run(str(path), "--out", str(tmp_path / "out"))
+    assert code == 1 and len(err) == 1, err
+    assert err[0] == f"tactile-import-biotac: error: {path}: {message}"
+    # the good first trial was not written either: everything is checked first
+    assert not (tmp_path / "out").exists() or not any((tmp_path / "out").iterdir())
+
+
+def test_other_bad_inputs(tmp_path):
+    text = tmp_path / "notes.h5"
+    text.write_text("not hdf5\n")
+    code, err = _run(str(text), "--out", str(tmp_path / "out"))
+    assert code == 1 and len(err) == 1 and f"{text}: not an HDF5 file" in err[0], err
+    code, err = _run(str(tmp_path / "absent.h5"), "--out", str(tmp_path / "out"))
+    assert code == 1 and err == [f"tactile-import-biotac: error: {tmp_path / 'absent.h5'}: "
+                                 "no such file"]
+    with h5py.File(tmp_path / "empty.h5", "w"):
+        pass
+    with pytest.raises(RecordingError, match="empty.h5: no trial groups"):
+        import_biotac([tmp_path / "empty.h5"], tmp_path / "out")
+    write_h5(tmp_path / "a.h5", {"cork_pdc100_1cm_01": 30})
+    write_h5(tmp_path / "b.h5", {"cork_pdc100_1cm_01": 30}, seed=1)
+    with pytest.raises(RecordingError, match=r"b.h5: trial cork_pdc100_1cm_01 also in .*a.h5"):
+        import_biotac([tmp_path / "a.h5", tmp_path / "b.h5"], tmp_path / "out")
+    assert not (tmp_path / "out").exists()
+    import_biotac([tmp_path / "a.h5"], tmp_path / "out")
+    with pytest.raises(RecordingError, match=r"cork_pdc100_1cm_01.csv and 1 more files already "
+                       "exist: choose another folder, or --force to replace them"):
+        import_biotac([tmp_path / "a.h5"], tmp_path / "out")  # twice would duplicate the trial
+    import_biotac([tmp_path / "b.h5"], tmp_path / "out", force=True)  # b's data replace a's
+    assert len(list((tmp_path / "out").glob("*.csv"))) == 1
+    take = read_take(tmp_path / "out" / "cork_pdc100_1cm_01.csv")
+    with h5py.File(tmp_path / "b.h5", "r") as f:
+        assert np.array_equal(take.raw[:, 0], f["cork_pdc100_1cm_01/finger_0/pac"][:, 0])
+    (tmp_path / "file").write_text("")
+    with pytest.raises(RecordingError, match="file: not a folder"):
+        import_biotac([tmp_path / "a.h5"], tmp_path / "file")
+
+
+def test_without_h5py_the_command_names_its_extra():
+    block = ("import sys\nclass Block:\n    def find_spec(self, name, path=None, target=None):\n"
+             "        if name.split('.')[0] == 'h5py':\n"
+             "            raise ModuleNotFoundError(f'No module named {name!r}', name=name)\n"
+             "sys.meta_path.insert(0, Block())\nfrom tactile.cli import import_biotac_main\n"
+             "sys.argv = ['tactile-import-biotac', 'x.h5', '--out', 'y']\n"
+             "sys.exit(import_biotac_main())\n")
+    out = subprocess.run([sys.executable, "-c", block], capture_output=True, text=True)
+    lines = out.stderr.strip().splitlines()
+    assert out.returncode == 1 and lines == [
+        "tactile-import-biotac: error: needs the [biotac] extra (no module named 'h5py'): "
+        "pip install 'tactile-pen[biotac]'"], out.stderr
+
+
+def test_tactile_train_cuts_windows_from_88_channel_takes(tmp_path, capsys):
+    """Two objects x three repetitions; split by user (= repetition): one each for train,
+    validation and test. One epoch of a tiny LSTM: the point is that 88 channels go through."""
+    from tactile.training.train import load_checkpoint
+    from tactile.training.train import main as train_main
+
+    for obj in ("cork", "glass_bottle"):
+        write_h5(tmp_path / f"{obj}.h5",
+                 {f"{obj}_pdc100_1cm_{r:02d}": 60 for r in (1, 2, 3)}, seed=len(obj))
+    data = tmp_path / "data"
+    import_biotac(sorted(tmp_path.glob("*.h5")), data)
+    run = tmp_path / "run"
+    code = train_main([str(data), "--out", str(run), "--quiet", "--set", "epochs=1",
+                       "--set", "window=20", "--set", "hop=10", "--set", "hidden=8",
+                       "--set", "layers=1", "--set", "threads=1", "--set", "batch_size=16"])
+    assert code == 0, capsys.readouterr().err
+    model, ck = load_checkpoint(run)
+    assert ck["channels"] == [c.name for c in channels()]
+    assert len(ck["mean"]) == 88
+    metrics = json.loads((run / "metrics.json").read_text())
+    # 60 frames, window 20, hop 10: 5 windows a take; one test repetition of 2 objects
+    assert sum(sum(row) for row in metrics["confusion"]) == 2 * 5
+
+
+@pytest.mark.skipif(not BOLT.is_dir(), reason=f"BioTac BOLT recordings absent ({BOLT})")
+def test_import_a_slice_of_the_real_recordings(tmp_path):
+    """Two real trials (copied into a temporary file: the data never enters the repository)
+    come out frame for frame, with the real file's names parsed."""
+    picks = {"cork.h5": "cork_pdc150_1cm_04", "glass_bottle.h5": "glass_bottle_pdc200_1cm_01"}
+    for file, group in picks.items():
+        with h5py.File(BOLT / file, "r") as src, h5py.File(tmp_path / file, "w") as dst:
+            src.copy(src[group], dst, name=group)
+    import_biotac([tmp_path / f for f in picks], tmp_path / "out")
+    names = list(channels())
+    for file, group in picks.items():
+        take = read_take(tmp_path / "out" / f"{group}.csv")
+        with h5py.File(BOLT / file, "r") as src:
+            g = src[group]
+            n = len(g["timestamps"])
+            assert len(take.raw) == n and take.label == file.removesuffix(".h5")
+            want = np.concatenate([
+                g[f"finger_{k}/{ds}"][()].reshape(n, -1)
+                for k in (0, 1) for ds in ("pac", "pdc", "electrodes", "tac", "tdc")], axis=1)
+        assert np.array_equal(take.raw, want)
+        assert [c.name for c in take.info.channels] == [c.name for c in names]
+    take = read_take(tmp_path / "out" / "cork_pdc150_1cm_04.csv")
+    assert (take.meta["pdc_setting"], take.meta["repetition"], take.meta["user"]) == (150, 4, 4)
+    assert take.meta["recorded_utc"].startswith("2012-07")
+    # every trial name of the real files parses (names only: cheap)
+    from tactile.device.biotac import TRIAL
+    groups = []
+    for f in sorted(BOLT.glob("*.h5")):
+        with h5py.File(f, "r") as src:
+            groups += [(f.stem, g) for g in src]
+    assert len(groups) == 74
+    assert all(TRIAL.match(g)["object"] == stem for stem, g in groups)

@@ -1,0 +1,290 @@
+"""SparseCoder against scikit-learn's default transform (OMP), in torch and in onnxruntime.
+
+The reference is scikit-learn itself: ``MiniBatchDictionaryLearning.transform`` for dictionaries
+it learned, ``sklearn.decomposition.SparseCoder(..., transform_algorithm='omp')`` for random
+unit-norm ones, both on held-out float32 windows. Over the grid atoms x features x non-zeros:
+
+* the same non-zero atoms on >= 99 % of windows (:data:`MIN_AGREEMENT`);
+* where they agree, max |code - reference| <= 1e-4 x ||reference code|| (:data:`REL_TOL`);
+* every disagreement is a near-tie: at the first atom of scikit-learn's selection order that
+  the other code lacks, the float64 residual correlations (after the atoms chosen before it)
+  of that atom and of the best atom the other code chose instead differ by less than
+  :data:`TIE` x the largest correlation. Float32 rounding decides such ties either way.
+"""
+
+from __future__ import annotations
+
+import collections
+import warnings
+
+import numpy as np
+import onnxruntime as ort
+import pytest
+import torch
+from sklearn.decomposition import MiniBatchDictionaryLearning
+from sklearn.decomposition import SparseCoder as SkSparseCoder
+from sklearn.linear_model import orthogonal_mp_gram
+
+from tactile.errors import ConfigError
+from tactile.training.sparse import SparseCoder, default_n_nonzero
+
+ATOMS = (20, 100, 200)
+FEATURES = (25, 110, 176)
+NONZEROS = (1, 3, 5, 10)
+WINDOWS = 300  # held-out windows per dictionary
+MIN_AGREEMENT = 0.99
+REL_TOL = 1e-4
+TIE = 1e-4  # relative gap of the top two float64 correlations that float32 may decide wrongly
+OPSET = 18
+# Nodes of the exported coder (opset 18, constant-folded), per non-zero count; the graph is
+# the same for every dictionary size: ~52 nodes per OMP step (argmax, one-hot, 3 gathers, the
+# Cholesky row as a MatMul, the projections, the masks, the residual update).
+NODE_BUDGET = {1: 34, 3: 134, 10: 498, 17: 862}
+ALLOWED_OPS = {
+    "MatMul", "ArgMax", "Abs", "Gather", "GatherElements", "Equal", "Cast", "Mul", "Sub", "Add",
+    "Div", "Sqrt", "Where", "Greater", "GreaterOrEqual", "And", "Concat", "Unsqueeze",
+    "Squeeze", "Transpose", "Shape", "ConstantOfShape", "Slice", "ReduceSum", "Constant",
+}
+
+
+def structured(n: int, features: int, seed: int) -> np.ndarray:
+    """(n, features) float32 windows: a few of a pool of damped tones each, plus noise (so a
+    dictionary has structure to learn and the windows are not all alike)."""
+    rng = np.random.default_rng(seed)
+    t = np.linspace(0, 1, features)
+    m = 3 * features // 10 + 8
+    freq, phase, decay = rng.uniform(0.5, features / 4, m), rng.uniform(0, 6.3, m), \
+        rng.uniform(0, 5, m)
+    pool = np.sin(2 * np.pi * freq[:, None] * t + phase[:, None]) * np.exp(-decay[:, None] * t)
+    weights = rng.standard_normal((n, m)) * (rng.random((n, m)) < 4 / m)
+    return (weights @ pool + 0.05 * rng.standard_normal((n, features))).astype(np.float32)
+
+
+@pytest.fixture(scope="module")
+def cases() -> dict:
+    """{(kind, atoms, features): (dictionary, held-out windows, reference(n) -> codes)}."""
+    out = {}
+    for k in ATOMS:
+        for f in FEATURES:
+            x_test = structured(WINDOWS, f, seed=1000 + f)
+            with warnings.catch_warnings():
+                warnings.simplefilter("ignore")  # convergence notes of a one-epoch fit
+                learned = MiniBatchDictionaryLearning(
+                    n_components=k, batch_size=64, max_iter=1, random_state=0,
+                ).fit(structured(600, f, seed=f))
+            assert learned.transform_algorithm == "omp"  # the default this coder reproduces
+
+            def ref_learned(n, m=learned, x=x_test):
+                return m.set_params(transform_n_nonzero_coefs=n).transform(x)
+
+            rnd = np.random.default_rng(k * 1000 + f).standard_normal((k, f))
+            rnd /= np.linalg.norm(rnd, axis=1, keepdims=True)
+
+            def ref_random(n, d=rnd, x=x_test):
+                return SkSparseCoder(d, transform_algorithm="omp",
+                                     transform_n_nonzero_coefs=n).transform(x)
+
+            out[("learned", k, f)] = (learned.components_, x_test, ref_learned)
+            out[("random", k, f)] = (rnd, x_test, ref_random)
+    return out
+
+
+def sklearn_order(d: np.ndarray, x: np.ndarray, n: int) -> list[int]:
+    """The atoms scikit-learn's OMP picks for window ``x``, in order (from its coefficient
+    path), computed as its transform computes them (Gram in x's dtype)."""
+    gram = (d @ d.T).astype(x.dtype)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # "ended prematurely": an early exit is fine here
+        path = orthogonal_mp_gram(gram, d @ x, n_nonzero_coefs=n, return_path=True)
+    path = path.reshape(len(d), -1)
+    order: list[int] = []
+    for s in range(path.shape[1]):
+        order += [int(a) for a in np.flatnonzero(path[:, s]) if a not in order]
+    return order
+
+
+def tie_gap(d: np.ndarray, x: np.ndarray, order: list[int], other: set[int]) -> float:
+    """Relative gap, in float64, between scikit-learn's pick and the other code's best pick at
+    the first step where scikit-learn picks an atom the other code lacks (inf if none)."""
+    d64, x64 = d.astype(np.float64), x.astype(np.float64)
+    for s, atom in enumerate(order):
+        if atom in other:
+            continue
+        chosen = order[:s]
+        resid = x64
+        if chosen:
+            sub = d64[chosen]  # (s, F)
+            resid = x64 - sub.T @ np.linalg.lstsq(sub.T, x64, rcond=None)[0]
+        corr = np.abs(d64 @ resid)
+        rivals = [c for c in other if c not in chosen]
+        if not rivals:
+            return float("inf")
+        return float((corr[atom] - max(corr[c] for c in rivals)) / corr.max())
+    # every atom scikit-learn chose is in the other code, which has more: scikit-learn stopped
+    # early where the other did not (never seen on these windows)
+    return float("inf")
+
+
+def compare(ref: np.ndarray, got: np.ndarray, d: np.ndarray, x: np.ndarray, n: int) -> dict:
+    """Agreement of the supports, the largest relative difference where they agree, and the
+    tie gap of every disagreement."""
+    same = ((ref != 0) == (got != 0)).all(1)
+    norm = np.linalg.norm(ref, axis=1)
+    rel = np.abs(ref - got).max(1) / np.maximum(norm, 1e-30)
+    gaps = [tie_gap(d, x[i], sklearn_order(d, x[i], n), set(np.flatnonzero(got[i])))
+            for i in np.flatnonzero(~same)]
+    return {"agree": float(same.mean()), "max_rel": float(rel[same].max()) if same.any() else 0,
+            "gaps": gaps}
+
+
+def session(model) -> ort.InferenceSession:
+    so = ort.SessionOptions()
+    so.intra_op_num_threads = 1
+    return ort.InferenceSession(model.SerializeToString(), so,
+                                providers=["CPUExecutionProvider"])
+
+
+def check(stats: dict, where: str) -> None:
+    assert stats["agree"] >= MIN_AGREEMENT, (where, stats)
+    assert stats["max_rel"] <= REL_TOL, (where, stats)
+    assert all(0 <= g < TIE for g in stats["gaps"]), (where, stats["gaps"])
+
+
+@pytest.mark.parametrize("kind", ["learned", "random"])
+def test_torch_matches_sklearn_over_the_grid(cases, kind):
+    worst = collections.defaultdict(float)
+    disagreements = 0
+    for k in ATOMS:
+        for f in FEATURES:
+            d, x, ref_of = cases[(kind, k, f)]
+            for n in NONZEROS:
+                ref = ref_of(n)
+                with torch.no_grad():
+                    got = SparseCoder(d, n)(torch.from_numpy(x)).numpy()
+                assert got.shape == ref.shape == (WINDOWS, k) and got.dtype == np.float32
+                assert ((got != 0).sum(1) <= n).all()
+                stats = compare(ref, got, d, x, n)
+                check(stats, (kind, k, f, n))
+                worst["max_rel"] = max(worst["max_rel"], stats["max_rel"])
+                disagreements += len(stats["gaps"])
+    # float32 rounding of both sides, growing with the conditioning of the chosen atoms (the
+    # worst cell, 20 learned atoms of 25 features with 10 non-zeros, has cond ~2e3 and ~7e-5);
+    # near-ties decided the other way are rare over the grid's 7,200 windows
+    assert worst["max_rel"] <= REL_TOL, worst
+    assert disagreements <= 5, disagreements
+
+
+@pytest.mark.parametrize("kind", ["learned", "random"])
+def test_onnxruntime_matches_sklearn_over_the_grid(cases, kind):
+    """The exported graph, run by onnxruntime (one thread): the whole grid for learned
+    dictionaries, the largest non-zero count for random ones (export takes ~1 s a graph)."""
+    nonzeros = NONZEROS if kind == "learned" else (10,)
+    for k in ATOMS:
+        for f in FEATURES:
+            d, x, ref_of = cases[(kind, k, f)]
+            for n in nonzeros:
+                got = session(SparseCoder(d, n).to_onnx()).run(None, {"x": x})[0]
+                assert got.shape == (WINDOWS, k) and got.dtype == np.float32
+                check(compare(ref_of(n), got, d, x, n), (kind, k, f, n))
+
+
+def test_the_tie_explanation_accepts_a_tie_and_rejects_a_wrong_atom():
+    """The grid has no disagreement; this checks that the explanation it would apply tells a
+    tie (two atoms equally correlated with the window) from a code that took a wrong atom."""
+    rng = np.random.default_rng(7)
+    d = rng.standard_normal((30, 12))
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    x = (d[2] + d[5]).astype(np.float32)  # <d2, x> = <d5, x> = 1 + <d2, d5>: an exact tie
+    first = sklearn_order(d, x, 1)
+    assert first in ([2], [5])
+    other = 7 - first[0]  # the tied atom scikit-learn did not take
+    assert 0 <= tie_gap(d, x, first, {other}) < 1e-6
+    wrong = int(np.argmin(np.abs(d @ x)))  # the atom least correlated with x
+    assert tie_gap(d, x, first, {wrong}) > 0.1
+
+
+def test_default_non_zeros_are_sklearns():
+    """``transform_n_nonzero_coefs=None``: int(features / 10), at least 1, at most atoms; the
+    paper's sizes give 17 (vibration, 176 features), 2 (pressure, 25), 9 (electrodes, 95)."""
+    assert [default_n_nonzero(f, k) for f, k in ((176, 200), (25, 100), (95, 100))] == [17, 2, 9]
+    assert default_n_nonzero(5, 100) == 1 and default_n_nonzero(300, 20) == 20
+    rng = np.random.default_rng(3)
+    d = rng.standard_normal((100, 95))
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    x = structured(200, 95, seed=4)
+    ref = SkSparseCoder(d).transform(x)  # every default: omp, n_nonzero None
+    assert (ref != 0).sum(1).max() == 9
+    with torch.no_grad():
+        got = SparseCoder(d, default_n_nonzero(95, 100))(torch.from_numpy(x)).numpy()
+    check(compare(ref, got, d, x, 9), "default")
+
+
+def test_early_exits_are_masked_like_sklearns():
+    """scikit-learn stops a row early when the residual's best correlation is (nearly) zero or
+    is an atom already chosen (and when a new atom depends linearly on the chosen ones, which
+    rounding alone reaches: not provoked here); the graph masks the remaining steps instead,
+    with the same codes."""
+    rng = np.random.default_rng(5)
+    d = rng.standard_normal((30, 12))
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    x = np.stack([
+        2 * d[3] - d[7],  # exactly two atoms: the residual vanishes after two steps
+        np.zeros(12),  # nothing to code
+        rng.standard_normal(12),  # generic: all 6 steps
+    ]).astype(np.float32)
+    with torch.no_grad():
+        got, order = SparseCoder(d, 6).encode(torch.from_numpy(x))
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # scikit-learn warns "ended prematurely"
+        ref = SkSparseCoder(d, transform_algorithm="omp", transform_n_nonzero_coefs=6) \
+            .transform(x)
+    got, order = got.numpy(), order.numpy()
+    assert ((ref != 0) == (got != 0)).all()
+    np.testing.assert_allclose(got, ref, rtol=0, atol=1e-5)
+    assert sorted(order[0][:2]) == [3, 7] and (order[0][2:] == -1).all()
+    assert (order[1] == -1).all() and (got[1] == 0).all()
+    assert (order[2] >= 0).all() and (got[2] != 0).sum() == 6
+    # more non-zeros than features: the residual vanishes after 12 atoms, so the row stops
+    with torch.no_grad():
+        got20 = SparseCoder(d, 20)(torch.from_numpy(x[2:])).numpy()
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        ref20 = SkSparseCoder(d, transform_algorithm="omp", transform_n_nonzero_coefs=20) \
+            .transform(x[2:])
+    assert (got20 != 0).sum() == (ref20 != 0).sum() == 12
+    assert ((got20 != 0) == (ref20 != 0)).all()
+    np.testing.assert_allclose(got20, ref20, rtol=0, atol=REL_TOL * np.linalg.norm(ref20))
+
+
+def test_exported_graph_contract_and_node_budget():
+    """Opset 18, standard ops only (no NonZero, Loop or If: every row runs the same nodes),
+    the dictionary as constants (the only input is x), a dynamic batch axis, and a node
+    count that grows with the non-zero count only."""
+    rng = np.random.default_rng(6)
+    counts = {}
+    for n, (k, f) in ((1, (100, 25)), (3, (20, 110)), (10, (200, 176)), (17, (200, 176))):
+        d = rng.standard_normal((k, f))
+        model = SparseCoder(d, n).to_onnx()
+        assert [o.version for o in model.opset_import if o.domain in ("", "ai.onnx")] == [OPSET]
+        ops = {node.op_type for node in model.graph.node}
+        assert ops <= ALLOWED_OPS, ops - ALLOWED_OPS
+        assert [i.name for i in model.graph.input] == ["x"]
+        assert [o.name for o in model.graph.output] == ["codes"]
+        counts[n] = len(model.graph.node)
+        sess = session(model)
+        for batch in (1, 7):
+            x = rng.standard_normal((batch, f)).astype(np.float32)
+            assert sess.run(None, {"x": x})[0].shape == (batch, k)
+    over = {n: (counts[n], NODE_BUDGET[n]) for n in counts if counts[n] > NODE_BUDGET[n]}
+    assert not over, f"node count over budget (got, budget): {over}"
+
+
+def test_bad_settings_are_config_errors():
+    d = np.eye(4)
+    for bad, match in (((np.zeros(4), 1), "must be \\(atoms, features\\)"),
+                       ((np.full((3, 2), np.nan), 1), "NaN or inf"),
+                       ((d, 0), "n_nonzero 0: must be an integer in 1..4"),
+                       ((d, 5), "n_nonzero 5"), ((d, True), "n_nonzero True"),
+                       ((d, 2.0), "n_nonzero 2.0")):
+        with pytest.raises(ConfigError, match=match):
+            SparseCoder(*bad)

@@ -1,0 +1,93 @@
+"""Untrusted checkpoints: a safe dict with a missing or wrong key is one line naming the file
+and the key (exit 1), never a traceback."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+
+from tactile.device.sim_cli import make_dataset
+from tactile.errors import RecordingError
+from tactile.training.checkpoint import load_checkpoint
+from tactile.training.config import TrainConfig
+from tactile.training.evaluate import main as eval_main
+from tactile.training.train import train
+
+
+@pytest.fixture(scope="module")
+def good(tmp_path_factory):
+    data = tmp_path_factory.mktemp("sim")
+    make_dataset(data, takes=4, textures=("non_contact", "paper"), seconds=6, seed=1)
+    run = tmp_path_factory.mktemp("run")
+    train(data, run, TrainConfig(epochs=1, hidden=4, layers=1, threads=1), progress=False)
+    return torch.load(run / "checkpoint.pt", weights_only=True), data
+
+
+def _drop(key):
+    return lambda ck: ck.pop(key)
+
+
+def _set(key, value):
+    return lambda ck: ck.__setitem__(key, value)
+
+
+def _set_config(key, value):
+    return lambda ck: ck["config"].__setitem__(key, value)
+
+
+def _shrink_weight(ck):
+    name = next(k for k in ck["state_dict"] if k.endswith("weight"))
+    ck["state_dict"][name] = ck["state_dict"][name][:1]
+
+
+CASES = [  # (change, the key the message must name)
+    (_drop("config"), "'config'"),
+    (_set("config", [1, 2]), "'config'"),
+    (_set_config("hidden", "64"), "'config'"),
+    (_set_config("bogus", 1), "'config'"),
+    (_set("classes", 5), "'classes'"),
+    (_set("classes", ["only"]), "'classes'"),
+    (_drop("channels"), "'channels'"),
+    (_set("units", ["g"]), "'units'"),
+    (_set("sample_rate_hz", "100"), "'sample_rate_hz'"),
+    (_set("mean", [0.0]), "'mean'"),
+    (_set("std", None), "'std'"),
+    (_set("emd_index", [99]), "'emd_index'"),
+    (_set("center_index", "all"), "'center_index'"),
+    (_set("test_rows", {"a.csv": "all"}), "'test_rows'"),
+    (_set("state_dict", {"x": 1}), "'state_dict'"),
+    (_drop("state_dict"), "'state_dict'"),
+    (_shrink_weight, "'state_dict'"),
+]
+
+
+@pytest.mark.parametrize("change,key", CASES, ids=[k + str(i) for i, (_, k) in enumerate(CASES)])
+def test_a_bad_key_is_one_line_naming_file_and_key(good, tmp_path, capsys, change, key):
+    ck, data = good
+    bad = {**ck, "config": dict(ck["config"]), "state_dict": dict(ck["state_dict"])}
+    change(bad)
+    path = tmp_path / "checkpoint.pt"
+    torch.save(bad, path)
+    with pytest.raises(RecordingError, match=key) as e:
+        load_checkpoint(path)
+    assert str(path) in str(e.value) and "\n" not in str(e.value)
+    assert eval_main([str(tmp_path), str(data)]) == 1
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and key in err and "Traceback" not in err
+
+
+def test_not_a_dict_and_not_a_checkpoint(tmp_path):
+    path = tmp_path / "checkpoint.pt"
+    torch.save([1, 2, 3], path)
+    with pytest.raises(RecordingError, match="not a tactile checkpoint"):
+        load_checkpoint(path)
+    path.write_bytes(b"not a zip")
+    with pytest.raises(RecordingError, match="not a readable checkpoint"):
+        load_checkpoint(path)
+
+
+def test_the_good_checkpoint_loads(good, tmp_path):
+    ck, _ = good
+    torch.save(ck, tmp_path / "checkpoint.pt")
+    model, loaded = load_checkpoint(tmp_path)
+    assert loaded["classes"] == ck["classes"] and not model.training

@@ -1,0 +1,67 @@
+"""Data-parallel training: ``torchrun`` with 2 processes on loopback (gloo), then export.
+
+Checks that the two processes learn (well above chance on users never seen in training), that
+rank 0 alone prints and writes, that the normalisation is the training split's (fitted once),
+and that the checkpoint is an ordinary one: ``load_checkpoint`` and ``tactile-export`` take it.
+"""
+
+from __future__ import annotations
+
+import os
+import socket
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+import torch
+
+from tactile.device.recording import load_dataset
+from tactile.device.sim_cli import make_dataset
+from tactile.training.checkpoint import load_checkpoint
+from tactile.training.config import TrainConfig
+from tactile.training.data import channel_stats, classes_of, cut, split_takes
+
+EASY = ("non_contact", "paper", "nonwoven_cloth")
+SETS = dict(epochs=6, hidden=24, layers=1, batch_size=64, lr=1e-2, patience=6, seed=3)
+
+
+def free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def test_two_processes_learn_and_their_checkpoint_exports(tmp_path):
+    data, run = tmp_path / "sim", tmp_path / "run"
+    make_dataset(data, takes=6, textures=EASY, seconds=12, seed=1)
+    env = {**os.environ, "GLOO_SOCKET_IFNAME": "lo", "OMP_NUM_THREADS": "1"}
+    cmd = [sys.executable, "-m", "torch.distributed.run", "--nproc-per-node", "2",
+           "--master-addr", "127.0.0.1", "--master-port", str(free_port()),
+           "-m", "tactile.training.train", str(data), "--out", str(run),
+           *(f"--set={k}={v}" for k, v in SETS.items())]
+    proc = subprocess.run(cmd, capture_output=True, text=True, env=env, timeout=900)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    assert proc.stdout.count("per take (majority vote)") == 1  # rank 0 alone prints
+    assert proc.stderr.count("2 processes in all") == 1
+    model, ck = load_checkpoint(run)
+    m = ck["metrics"]
+    assert m["processes"] == 2
+    assert m["accuracy"] >= 0.6, m["accuracy"]  # 3 classes: chance is 1/3
+    assert sorted(p.name for p in run.iterdir()) == [
+        "checkpoint.pt", "confusion.png", "confusion.txt", "curves.png", "metrics.json"]
+    # the same keys as a one-process run's model: no DDP "module." prefixes
+    assert set(ck["state_dict"]) == set(model.state_dict())
+    # normalisation: the statistics of the whole training split (not of one process's share)
+    takes = load_dataset(data)
+    cfg = TrainConfig(**SETS)
+    train_w = cut(takes, classes_of(takes), (), cfg.window, cfg.hop, split_takes(takes, cfg).train)
+    mean, std = channel_stats(train_w)
+    np.testing.assert_allclose(ck["mean"], mean, rtol=1e-6)
+    np.testing.assert_allclose(ck["std"], std, rtol=1e-6)
+    pytest.importorskip("onnxruntime")
+    from tactile.export.cli import main as export_main
+
+    assert export_main([str(run), "-o", str(tmp_path / "m.onnx"), "--data", str(data)]) == 0
+    assert (tmp_path / "m.onnx").stat().st_size > 1000
+    assert torch.load(run / "checkpoint.pt", weights_only=True)["format"] == "tactile-checkpoint"

@@ -1,0 +1,198 @@
+"""Ctrl-C during training and ``--resume``: stop cleanly, save, continue to the same end.
+
+The interruption is deterministic: a hook after epoch k raises SIGINT in the process itself
+(the handler notes it; the loop stops at the next batch), or the stop check answers yes at a
+chosen batch. No timer anywhere.
+"""
+
+from __future__ import annotations
+
+import json
+import signal
+import subprocess
+import sys
+
+import pytest
+import torch
+
+from tactile.device.sim_cli import make_dataset
+from tactile.training.checkpoint import RESUME, load_checkpoint, load_resume
+from tactile.training.config import TrainConfig
+from tactile.training.train import EXIT_INTERRUPTED, Stop, train
+from tactile.training.train import main as train_main
+
+SMALL = dict(epochs=5, hidden=12, layers=2, batch_size=64, lr=1e-2, patience=5, seed=4,
+             threads=1)
+
+
+@pytest.fixture(scope="module")
+def dataset(tmp_path_factory):
+    out = tmp_path_factory.mktemp("sim")
+    make_dataset(out, takes=5, textures=("non_contact", "paper", "nonwoven_cloth"), seconds=8,
+                 seed=2)
+    return out
+
+
+def sigint_after(phase: str, epoch: int):
+    def hook(p: str, e: int) -> None:
+        if (p, e) == (phase, epoch):
+            signal.raise_signal(signal.SIGINT)
+    return hook
+
+
+def weights(run) -> dict:
+    return torch.load(run / "checkpoint.pt", weights_only=True)["state_dict"]
+
+
+def assert_same_run(a_run, b_run, a: dict, b: dict) -> None:
+    """Same final weights (tolerance 1e-6: on one CPU thread they are in fact bit-identical)
+    and the same figures."""
+    wa, wb = weights(a_run), weights(b_run)
+    assert wa.keys() == wb.keys()
+    for k in wa:
+        torch.testing.assert_close(wa[k], wb[k], rtol=0, atol=1e-6)
+    for k in ("accuracy", "take_accuracy", "best_epoch", "val_accuracy", "epochs_run",
+              "refit_epochs"):
+        assert a[k] == pytest.approx(b[k], abs=1e-9), k
+
+
+def resume_run(run):
+    r = load_resume(run)
+    return train(r["data"], run, TrainConfig.from_dict(r["config"]), progress=False,
+                 resume=r["state"])
+
+
+def test_sigint_after_an_epoch_then_resume_ends_where_an_uninterrupted_run_does(dataset,
+                                                                                tmp_path):
+    cfg = TrainConfig(**SMALL)
+    full = train(dataset, tmp_path / "full", cfg, progress=False)
+    cut = train(dataset, tmp_path / "cut", cfg, progress=False, on_epoch=sigint_after("fit", 2))
+    assert cut["interrupted"] and cut["epochs_run"] == 2 and cut["shifted"] is None
+    saved = json.loads((tmp_path / "cut" / "metrics.json").read_text())
+    assert saved["interrupted"] is True and saved["epochs_run"] == 2
+    # the best checkpoint so far is an ordinary, loadable checkpoint (data only)
+    ck = torch.load(tmp_path / "cut" / "checkpoint.pt", weights_only=True)
+    assert ck["metrics"]["interrupted"] is True
+    load_checkpoint(tmp_path / "cut")
+    state = torch.load(tmp_path / "cut" / RESUME, weights_only=True)["state"]
+    assert state["phase"] == "fit" and state["epoch"] == 2
+    assert set(state["rng"]) >= {"torch", "numpy", "python", "order", "gain"}
+    resumed = resume_run(tmp_path / "cut")
+    assert not resumed["interrupted"] and not (tmp_path / "cut" / RESUME).exists()
+    assert_same_run(tmp_path / "full", tmp_path / "cut", full, resumed)
+
+
+def test_a_stop_in_mid_epoch_rolls_back_to_the_last_finished_epoch(dataset, tmp_path,
+                                                                   monkeypatch):
+    """Stopped at the 3rd batch of a refit epoch (split=time refits), with the options that
+    carry state of their own (plateau schedule, EMA, label smoothing): same end."""
+    cfg = TrainConfig(**SMALL, split="time", schedule="plateau", ema=0.9, label_smoothing=0.1)
+    full = train(dataset, tmp_path / "full", cfg, progress=False)
+    assert full["refit_epochs"] >= 2
+    calls, at = [0], []
+
+    def requested(self) -> bool:  # yes at the 3rd batch after the first refit epoch
+        calls[0] += 1
+        return bool(at) and calls[0] == at[0] + 3
+
+    def hook(phase: str, epoch: int) -> None:
+        if (phase, epoch) == ("refit", 1):
+            at.append(calls[0])
+
+    monkeypatch.setattr(Stop, "requested", requested)
+    cut = train(dataset, tmp_path / "cut", cfg, progress=False, on_epoch=hook)
+    monkeypatch.undo()
+    assert cut["interrupted"] and cut["phase"] == "refit"
+    assert load_resume(tmp_path / "cut")["state"]["epoch"] == 1  # the refit's first epoch
+    resumed = resume_run(tmp_path / "cut")
+    assert_same_run(tmp_path / "full", tmp_path / "cut", full, resumed)
+
+
+def test_ctrl_c_in_the_command_exits_130_without_a_traceback_and_resume_finishes(
+        dataset, tmp_path, capsys):
+    run = tmp_path / "run"
+    sets = [f"--set={k}={v}" for k, v in {**SMALL, "epochs": 3}.items()]
+    code = ("import functools, signal, sys\n"
+            "import tactile.training.train as t\n"
+            "def hook(phase, epoch):\n"
+            "    if epoch == 1: signal.raise_signal(signal.SIGINT)\n"
+            "t.train = functools.partial(t.train, on_epoch=hook)\n"
+            "sys.exit(t.main(sys.argv[1:]))\n")
+    proc = subprocess.run([sys.executable, "-c", code, str(dataset), "--out", str(run), *sets],
+                          capture_output=True, text=True, timeout=600)
+    assert proc.returncode == EXIT_INTERRUPTED, proc.stderr
+    assert "Traceback" not in proc.stderr and "KeyboardInterrupt" not in proc.stderr
+    assert "interrupted" in proc.stderr and f"--resume {run}" in proc.stderr
+    assert json.loads((run / "metrics.json").read_text())["interrupted"] is True
+    # the folder holds a run: a new training refuses it, --resume continues it
+    assert train_main([str(dataset), "--out", str(run), "--quiet"]) == 1
+    assert "holds a run already" in capsys.readouterr().err
+    assert train_main(["--resume", str(run), "--set", "hidden=3"]) == 1
+    assert "own settings" in capsys.readouterr().err
+    assert train_main(["--resume", str(run), "--quiet"]) == 0
+    out = capsys.readouterr().out
+    assert "per take (majority vote)" in out and "shifted windows (robustness): -0.2s" in out
+    m = json.loads((run / "metrics.json").read_text())
+    assert m["interrupted"] is False and m["epochs_run"] == 3
+    assert train_main(["--resume", str(run)]) == 1
+    assert "nothing to resume" in capsys.readouterr().err
+
+
+def test_sigint_before_the_first_epoch_saves_nothing(dataset, tmp_path, monkeypatch, capsys):
+    import tactile.training.train as t
+
+    def interrupted(*a, **k):
+        raise KeyboardInterrupt  # as SIGINT does while the takes load or EMD runs
+
+    monkeypatch.setattr(t, "load_dataset", interrupted)
+    assert t.main([str(dataset), "--out", str(tmp_path / "r")]) == EXIT_INTERRUPTED
+    assert "nothing saved" in capsys.readouterr().err
+    assert not (tmp_path / "r").exists()
+
+
+def test_force_overwrites_a_run(dataset, tmp_path, capsys):
+    run = tmp_path / "run"
+    sets = [f"--set={k}={v}" for k, v in {**SMALL, "epochs": 1}.items()]
+    assert train_main([str(dataset), "--out", str(run), "--quiet", *sets]) == 0
+    first = (run / "checkpoint.pt").read_bytes()
+    again = [str(dataset), "--out", str(run), "--quiet", *sets, "--set", "seed=5"]
+    assert train_main(again) == 1
+    assert "holds a run already (checkpoint.pt)" in capsys.readouterr().err
+    assert (run / "checkpoint.pt").read_bytes() == first  # untouched
+    assert train_main([*again, "--force"]) == 0
+    assert torch.load(run / "checkpoint.pt", weights_only=True)["config"]["seed"] == 5
+
+
+def test_an_unhandled_ctrl_c_in_a_torch_command_is_one_line_and_130(capsys):
+    from tactile.cli import _interruptible
+
+    def starting() -> int:
+        raise KeyboardInterrupt  # as SIGINT does while torch imports
+
+    assert _interruptible(starting, "tactile-train")() == EXIT_INTERRUPTED
+    assert capsys.readouterr().err == "tactile-train: interrupted\n"
+
+
+def test_sigint_after_the_last_epoch_still_saves_the_finished_run(dataset, tmp_path):
+    cfg = TrainConfig(**{**SMALL, "epochs": 2, "patience": 2})
+    m = train(dataset, tmp_path / "r", cfg, progress=False, on_epoch=sigint_after("fit", 2))
+    assert m["interrupted"] is False and m["epochs_run"] == 2 and m["shifted"]["mean"] >= 0
+    assert (tmp_path / "r" / "checkpoint.pt").is_file()
+    assert not (tmp_path / "r" / RESUME).exists()
+
+
+def test_a_resume_state_that_does_not_fit_is_one_line(dataset, tmp_path, capsys):
+    run = tmp_path / "r"
+    cfg = TrainConfig(**{**SMALL, "epochs": 2, "patience": 2})
+    assert train(dataset, run, cfg, progress=False, on_epoch=sigint_after("fit", 1))[
+        "interrupted"]
+    capsys.readouterr()
+    saved = torch.load(run / RESUME, weights_only=True)
+    saved["state"]["head"] = {"lstm.weight_ih_l0": torch.zeros(2, 2)}
+    torch.save(saved, run / RESUME)
+    assert train_main(["--resume", str(run), "--quiet"]) == 1
+    err = capsys.readouterr().err
+    assert "resume.pt: the saved state does not fit this run" in err and err.count("\n") == 1
+    (run / RESUME).write_bytes(b"garbage")
+    assert train_main(["--resume", str(run)]) == 1
+    assert "not a readable resume state" in capsys.readouterr().err

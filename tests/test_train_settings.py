@@ -1,0 +1,172 @@
+"""Threads, device, config errors, log lines, per-take votes and plots of a training run."""
+
+from __future__ import annotations
+
+import json
+import re
+
+import numpy as np
+import pytest
+import torch
+
+from tactile.device.sim_cli import make_dataset
+from tactile.errors import ConfigError
+from tactile.training.config import (
+    MAX_AUTO_THREADS,
+    TrainConfig,
+    apply_threads,
+    resolve_device,
+    resolve_threads,
+)
+from tactile.training.data import Windows
+from tactile.training.evaluate import main as eval_main
+from tactile.training.evaluate import per_take, shifted_line
+from tactile.training.train import Log, _log_center, _plots, centered, parse_sets, train
+from tactile.training.train import main as train_main
+
+TINY = dict(epochs=2, hidden=6, layers=1, batch_size=64, patience=2, seed=2)
+
+
+@pytest.fixture(scope="module")
+def dataset(tmp_path_factory):
+    out = tmp_path_factory.mktemp("sim")
+    make_dataset(out, takes=4, textures=("non_contact", "paper"), seconds=6, seed=1)
+    return out
+
+
+def test_automatic_threads_never_oversubscribe():
+    assert resolve_threads(0, 1, cpus=2) == 1  # the 2-core machine: one thread
+    assert resolve_threads(0, 1, cpus=1) == 1
+    assert resolve_threads(0, 1, cpus=8) == MAX_AUTO_THREADS
+    assert resolve_threads(0, 2, cpus=8) == 3  # two processes share 7 CPUs
+    assert resolve_threads(0, 4, cpus=4) == 1
+    assert resolve_threads(3, 1, cpus=2) == 3  # a number given is a number kept
+    for procs in (1, 2, 3):
+        for cpus in range(1, 17):
+            assert 1 <= resolve_threads(0, procs, cpus) * procs <= max(procs, cpus - 1)
+    assert TrainConfig().threads == 0
+    with pytest.raises(ConfigError, match=r"threads must be >= 0 \(0: automatic\)"):
+        TrainConfig(threads=-1)
+
+
+def test_apply_threads_sets_torch():
+    old = torch.get_num_threads()
+    try:
+        assert apply_threads(1) == 1 and torch.get_num_threads() == 1
+    finally:
+        torch.set_num_threads(old)
+
+
+def test_eval_uses_the_runs_threads(dataset, tmp_path, capsys):
+    run = tmp_path / "run"
+    train(dataset, run, TrainConfig(**TINY, threads=1), progress=False)
+    old = torch.get_num_threads()
+    try:
+        torch.set_num_threads(2)
+        assert eval_main([str(run), str(dataset), "--json"]) == 0
+        assert torch.get_num_threads() == 1
+        assert json.loads(capsys.readouterr().out)["threads"] == 1
+        assert eval_main([str(run), str(dataset), "--json", "--threads", "2"]) == 0
+        assert torch.get_num_threads() == 2
+    finally:
+        torch.set_num_threads(old)
+
+
+def test_device_resolution():
+    assert resolve_device("auto", cuda_available=True) == "cuda"
+    assert resolve_device("auto", cuda_available=False) == "cpu"
+    assert resolve_device("cpu", cuda_available=True) == "cpu"
+    assert resolve_device("cuda", cuda_available=True) == "cuda"
+    with pytest.raises(ConfigError, match="device='cuda' but torch sees no GPU"):
+        resolve_device("cuda", cuda_available=False)
+    with pytest.raises(ConfigError, match="device must be one of auto, cpu, cuda"):
+        TrainConfig(device="tpu")
+
+
+def test_same_seed_on_cpu_gives_the_same_run(dataset, tmp_path):
+    cfg = TrainConfig(**TINY, threads=1, device="cpu")
+    a = train(dataset, tmp_path / "a", cfg, progress=False)
+    b = train(dataset, tmp_path / "b", cfg, progress=False)
+    wa = torch.load(tmp_path / "a" / "checkpoint.pt", weights_only=True)["state_dict"]
+    wb = torch.load(tmp_path / "b" / "checkpoint.pt", weights_only=True)["state_dict"]
+    for k in wa:
+        assert torch.equal(wa[k], wb[k]), k
+    assert a["accuracy"] == b["accuracy"] and a["device"] == "cpu"
+
+
+def test_config_errors_name_only_the_settings_involved():
+    with pytest.raises(ConfigError) as e:
+        parse_sets(["hop=-5"], TrainConfig())
+    assert str(e.value) == "hop must be >= 1 sample (got hop=-5)"
+    with pytest.raises(ConfigError) as e:
+        parse_sets(["hop=3", "dropout=2"], TrainConfig())
+    assert str(e.value) == "dropout must be in [0, 1) (got dropout=2.0)"
+
+
+def test_a_log_file_gets_a_plain_line_per_epoch(dataset, tmp_path, capsys):
+    sets = [f"--set={k}={v}" for k, v in TINY.items()]
+    assert train_main([str(dataset), "--out", str(tmp_path / "r"), *sets]) == 0
+    err = capsys.readouterr().err  # not a terminal
+    assert "\r" not in err and "\x1b" not in err
+    lines = [ln for ln in err.splitlines() if ln.startswith("fit epoch ")]
+    assert [ln.split(":")[0] for ln in lines] == ["fit epoch 1/2", "fit epoch 2/2"]
+    assert all("train loss" in ln and "val acc" in ln for ln in lines)
+    assert re.search(r"^threads \d+ per process \(automatic; \d+ usable CPUs", err, re.M)
+
+
+def test_center_patterns_say_what_they_matched(capsys):
+    channels = ("pdc", "pac_0", "electrode_0")
+    log = Log(progress=True)
+    _log_center(log, channels, ("accel_*", "gyro_*"), centered(channels, ("accel_*", "gyro_*")))
+    err = capsys.readouterr().err
+    assert err.startswith("warning: center patterns accel_*, gyro_* match none of the channels "
+                          "pdc, pac_0, electrode_0: no channel is centred")
+    _log_center(Log(progress=False), channels, ("accel_*",), [])  # warnings even when quiet
+    assert "warning" in capsys.readouterr().err
+    _log_center(log, channels, ("pac_*", "e*"), centered(channels, ("pac_*", "e*")))
+    assert capsys.readouterr().err == "center (pac_*, e*): pac_0, electrode_0\n"
+
+
+def test_majority_vote_per_take():
+    # take 0: labels 0, windows voted 0, 0, 1 -> 0 (right); take 1: label 1, voted 0, 0, 1 -> 0
+    # (wrong); take 2: label 1, voted 0, 1 (a tie) -> the larger summed probability, 1 (right)
+    probs = np.array([[.9, .1], [.8, .2], [.3, .7], [.6, .4], [.7, .3], [.2, .8], [.55, .45],
+                      [.1, .9]], np.float32)
+    y = np.array([0, 0, 0, 1, 1, 1, 1, 1])
+    take = np.array([0, 0, 0, 1, 1, 1, 2, 2])
+    w = Windows(np.zeros((8, 4, 1), np.float32), y, take, np.arange(8), take)
+    r = per_take(w, probs, ["a", "b", "c"])
+    assert r["takes"] == 3 and r["take_accuracy"] == pytest.approx(2 / 3)
+    assert r["per_take"]["a"] == {"label": 0, "vote": 0, "windows": 3,
+                                  "share": pytest.approx(2 / 3)}
+    assert r["per_take"]["b"]["vote"] == 0 and r["per_take"]["c"]["vote"] == 1
+    line = shifted_line({"-0.2s": 0.5, "+0.2s": 0.75, "mean": 0.625})
+    assert line == "shifted windows (robustness): -0.2s 0.500, +0.2s 0.750, mean 0.625"
+
+
+def test_plots_mark_the_best_epoch_and_show_counts(tmp_path, monkeypatch):
+    from matplotlib.axes import Axes
+
+    lines, texts = [], []
+    real_line, real_text = Axes.axvline, Axes.text
+    monkeypatch.setattr(Axes, "axvline", lambda self, x, *a, **k: (
+        lines.append(x), real_line(self, x, *a, **k))[1])
+    monkeypatch.setattr(Axes, "text", lambda self, x, y, s, *a, **k: (
+        texts.append(s), real_text(self, x, y, s, *a, **k))[1])
+    history = {"train_loss": [1.0, 0.8, 0.7], "val_loss": [1.1, 0.9, 1.0],
+               "val_acc": [0.5, 0.7, 0.6], "best_epoch": 1}
+    metrics = {"accuracy": 0.75, "confusion": [[3, 1], [0, 4]],
+               "confusion_normalised": [[0.75, 0.25], [0.0, 1.0]]}
+    _plots(tmp_path, history, metrics, ("a", "b"))
+    assert lines == [2, 2]  # epoch 2 (1-based) on both panels
+    assert texts == ["0.75\n(3)", "0.25\n(1)", "0.00\n(0)", "1.00\n(4)"]
+    assert (tmp_path / "curves.png").stat().st_size > 1000
+
+
+def test_eval_help_reads_as_a_sentence(capsys):
+    with pytest.raises(SystemExit) as e:
+        eval_main(["--help"])
+    assert e.value.code == 0
+    description = capsys.readouterr().out.split("\n\n")[1].replace("\n", " ")
+    assert description.startswith("Evaluate a trained run on a dataset") and \
+        description.endswith(".")

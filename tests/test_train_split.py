@@ -1,0 +1,91 @@
+"""Named test and validation takes (``test = "trial:41-50"``, ``user:alice,bob``,
+``name:*-rep5``) and split lines that name users, not indices."""
+
+from __future__ import annotations
+
+import json
+
+import pytest
+
+from tactile.device.recording import load_dataset
+from tactile.device.sim_cli import make_dataset
+from tactile.errors import ConfigError
+from tactile.training.config import TrainConfig
+from tactile.training.data import split_takes
+from tactile.training.train import parse_sets
+
+USERS = ["alice", "bob", "carol", "dave", "erin", "trial12"]
+
+
+@pytest.fixture(scope="module")
+def takes(tmp_path_factory):
+    """6 users x 2 labels; user u's takes are trials 41 + 2u (non_contact) and 42 + 2u."""
+    out = tmp_path_factory.mktemp("named")
+    make_dataset(out, takes=6, textures=("non_contact", "paper"), seconds=2, seed=1)
+    for p in sorted(out.glob("*.json")):
+        meta = json.loads(p.read_text())
+        u = int(meta["user"])
+        meta["user"] = USERS[u]
+        meta["trial"] = 41 + 2 * u + (meta["label"] == "paper")
+        p.write_text(json.dumps(meta))
+    return load_dataset(out)
+
+
+def parts(takes, split):
+    return [{takes[i].path.stem for i in part} for part in (split.train, split.val, split.test)]
+
+
+def test_named_test_users_and_trials(takes):
+    s = split_takes(takes, TrainConfig(test="user:alice,bob", seed=1))
+    train, val, test = parts(takes, s)
+    assert {takes[i].meta["user"] for i in s.test} == {"alice", "bob"}
+    assert len(test) == 4 and not (test & train or test & val or train & val)
+    assert val and train and len(train | val | test) == len(takes)
+    assert "test user:alice,bob = alice, bob;" in s.description
+    s = split_takes(takes, TrainConfig(test="trial:41-44", val="trial:45,46", seed=1))
+    assert sorted(takes[i].meta["trial"] for i in s.test) == [41, 42, 43, 44]
+    assert sorted(takes[i].meta["trial"] for i in s.val) == [45, 46]
+    assert sorted(takes[i].meta["trial"] for i in s.train) == list(range(47, 53))
+
+
+def test_named_by_file_name_glob(takes):
+    s = split_takes(takes, TrainConfig(split="take", test="name:paper-*", seed=2))
+    _, val, test = parts(takes, s)
+    assert test == {t.path.stem for t in takes if t.label == "paper"}
+    assert val and not val & test
+
+
+def test_only_the_validation_named_the_test_drawn(takes):
+    s = split_takes(takes, TrainConfig(val="user:carol", seed=3))
+    assert {takes[i].meta["user"] for i in s.val} == {"carol"}
+    assert s.test and "carol" not in {takes[i].meta["user"] for i in s.test}
+
+
+def test_the_split_line_names_users_not_indices(takes):
+    s = split_takes(takes, TrainConfig(seed=0))
+    tested = sorted({takes[i].meta["user"] for i in s.test})
+    assert f"test {', '.join(tested)};" in s.description
+    s = split_takes(takes, TrainConfig(test="user:trial12"))
+    assert "test user:trial12 = trial12;" in s.description and "[" not in s.description
+
+
+@pytest.mark.parametrize("spec,message", [
+    ("session:1", "no take has a 'session' field (fields: "),
+    ("user:zed", "matches no take (user values: alice, bob, carol"),
+    ("trial:90-99", "matches no take (trial values:"),
+])
+def test_selectors_that_name_nothing(takes, spec, message):
+    with pytest.raises(ConfigError, match=message.replace("(", r"\(")):
+        split_takes(takes, TrainConfig(test=spec))
+
+
+def test_bad_selectors(takes):
+    with pytest.raises(ConfigError, match=r"test='alice': expected FIELD:VALUE"):
+        TrainConfig(test="alice")
+    with pytest.raises(ConfigError, match="split='time'"):
+        TrainConfig(split="time", val="user:bob")
+    with pytest.raises(ConfigError, match="both take"):
+        split_takes(takes, TrainConfig(test="user:alice", val="trial:41"))
+    with pytest.raises(ConfigError, match="cannot be split"):
+        split_takes(takes, TrainConfig(test="user:alice,bob,carol", val="user:dave,erin,trial12"))
+    assert parse_sets(["test=trial:41-50"], TrainConfig()).test == "trial:41-50"

@@ -1,0 +1,170 @@
+"""The run's files as data: the checkpoint (training -> export) and the resume state.
+
+Both are read with ``torch.load(weights_only=True)`` (a checkpoint is data, never code) and
+then checked key by key, because a file can come from anywhere: a wrong key gives one line
+naming the file and the key (:class:`RecordingError`, exit 1), never a traceback.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import torch
+
+from tactile.errors import RecordingError, TactileError
+from tactile.training.config import TrainConfig
+
+CHECKPOINT = "checkpoint.pt"
+CHECKPOINT_FORMAT = "tactile-checkpoint"
+CHECKPOINT_VERSION = 1
+RESUME = "resume.pt"
+RESUME_FORMAT = "tactile-resume"
+RESUME_VERSION = 1
+
+
+def _read(path: Path, what: str, hint: str) -> dict:
+    if not path.is_file():
+        raise RecordingError(f"{path}: no {what} ({hint})")
+    try:
+        ck = torch.load(path, weights_only=True, map_location="cpu")
+    except Exception as e:  # noqa: BLE001  (any unpickling failure means "not a checkpoint")
+        raise RecordingError(f"{path}: not a readable {what} ({str(e).splitlines()[0]})") \
+            from None
+    if not isinstance(ck, dict):
+        raise RecordingError(f"{path}: not a tactile {what} (a {type(ck).__name__})")
+    return ck
+
+
+def _names(v, n: int | None = None, at_least: int = 0) -> bool:
+    return (isinstance(v, list) and all(isinstance(x, str) for x in v)
+            and (n is None or len(v) == n) and len(v) >= at_least)
+
+
+def _numbers(v, n: int) -> bool:
+    return (isinstance(v, list) and len(v) == n and all(
+        isinstance(x, (int, float)) and not isinstance(x, bool) for x in v))
+
+
+def _indices(v, n: int) -> bool:
+    return isinstance(v, list) and all(
+        isinstance(x, int) and not isinstance(x, bool) and 0 <= x < n for x in v)
+
+
+def _rows(v) -> bool:
+    return isinstance(v, dict) and all(
+        isinstance(k, str) and isinstance(r, list) and len(r) == 2
+        and all(isinstance(x, int) for x in r) for k, r in v.items())
+
+
+def check_checkpoint(ck: dict, path: Path) -> TrainConfig:
+    """Validate a loaded checkpoint's keys; returns its config. Raises RecordingError naming
+    ``path`` and the first bad key."""
+    def bad(key: str, want: str) -> RecordingError:
+        got = ck.get(key, None)
+        shown = "missing" if key not in ck else f"got {type(got).__name__} {str(got)[:40]}"
+        return RecordingError(f"{path}: checkpoint key {key!r}: must be {want} ({shown})")
+
+    if ck.get("format") != CHECKPOINT_FORMAT:
+        raise RecordingError(f"{path}: not a tactile checkpoint (format {ck.get('format')!r})")
+    if ck.get("version") != CHECKPOINT_VERSION:
+        raise RecordingError(f"{path}: checkpoint version {ck.get('version')!r}, this package "
+                             f"reads {CHECKPOINT_VERSION}")
+    if not isinstance(ck.get("config"), dict):
+        raise bad("config", "a table of settings")
+    try:
+        cfg = TrainConfig.from_dict(ck["config"])
+    except TactileError as e:
+        raise RecordingError(f"{path}: checkpoint key 'config': {e}") from None
+    if not _names(ck.get("classes"), at_least=2):
+        raise bad("classes", "a list of at least 2 class names")
+    if not _names(ck.get("channels"), at_least=1):
+        raise bad("channels", "a list of channel names")
+    n = len(ck["channels"])
+    if cfg.channels and list(cfg.channels) != ck["channels"]:
+        raise bad("channels", f"the config's channels {list(cfg.channels)}")
+    checks = [
+        ("units", _names(ck.get("units"), n), f"a list of {n} unit names"),
+        ("sample_rate_hz", isinstance(ck.get("sample_rate_hz"), (int, float))
+         and not isinstance(ck.get("sample_rate_hz"), bool) and ck["sample_rate_hz"] > 0,
+         "a rate > 0"),
+        ("mean", _numbers(ck.get("mean"), n), f"a list of {n} numbers"),
+        ("std", _numbers(ck.get("std"), n) and all(x > 0 for x in ck["std"]),
+         f"a list of {n} numbers > 0"),
+        ("emd_index", _indices(ck.get("emd_index"), n), f"a list of channel indices < {n}"),
+        ("center_index", _indices(ck.get("center_index"), n),
+         f"a list of channel indices < {n}"),
+        ("test_rows", _rows(ck.get("test_rows", {})), "a table of take name -> [first, end]"),
+        ("test_fingerprints", isinstance(ck.get("test_fingerprints", {}), dict) and all(
+            isinstance(k, str) and isinstance(v, str)
+            for k, v in ck.get("test_fingerprints", {}).items()),
+         "a table of take name -> fingerprint"),
+        ("metrics", isinstance(ck.get("metrics", {}), dict), "a table"),
+        ("state_dict", isinstance(ck.get("state_dict"), dict) and all(
+            isinstance(k, str) and isinstance(v, torch.Tensor)
+            for k, v in ck["state_dict"].items()), "a table of tensors"),
+    ]
+    for key, ok, want in checks:
+        if not ok:
+            raise bad(key, want)
+    if cfg.emd_channels and len(ck["emd_index"]) != len(cfg.emd_channels):
+        raise bad("emd_index", f"{len(cfg.emd_channels)} indices (the config's emd_channels)")
+    return cfg
+
+
+def load_checkpoint(run_dir: Path):
+    """Rebuild the model of a run from its checkpoint (data only: weights_only=True); returns
+    (model in eval mode, the checkpoint dict). Every key is checked first
+    (:func:`check_checkpoint`)."""
+    from tactile.training.model import TextureModel
+
+    path = Path(run_dir)
+    path = path / CHECKPOINT if path.is_dir() else path
+    ck = _read(path, "checkpoint", "train a run with tactile-train first")
+    cfg = check_checkpoint(ck, path)
+    model = TextureModel(cfg, len(ck["classes"]), torch.tensor(ck["mean"]),
+                         torch.tensor(ck["std"]), list(ck["emd_index"]), list(ck["center_index"]))
+    try:
+        model.load_state_dict(ck["state_dict"])
+    except RuntimeError as e:  # missing, unexpected or wrongly shaped weights
+        first = " ".join(str(e).split())[:160]
+        raise RecordingError(f"{path}: checkpoint key 'state_dict' does not fit its config "
+                             f"({first})") from None
+    model.eval()
+    return model, ck
+
+
+def save_resume(out: Path, cfg: TrainConfig, data: Path, world: int, state: dict) -> Path:
+    """Write RUN/resume.pt: the config, the dataset's path, the process count and the state
+    after the last finished epoch (tensors, numbers, lists: weights_only-safe)."""
+    path = Path(out) / RESUME
+    tmp = path.with_suffix(".tmp")
+    torch.save({"format": RESUME_FORMAT, "version": RESUME_VERSION, "config": cfg.to_dict(),
+                "data": str(Path(data).resolve()), "processes": world, "state": state}, tmp)
+    tmp.replace(path)
+    return path
+
+
+def load_resume(run_dir: Path) -> dict:
+    """Read and check RUN/resume.pt (see :func:`save_resume`)."""
+    run_dir = Path(run_dir)
+    path = run_dir / RESUME
+    if not path.is_file() and (run_dir / CHECKPOINT).is_file():
+        raise RecordingError(f"{run_dir}: the run finished (no {RESUME}): nothing to resume")
+    r = _read(path, "resume state", "only a run stopped with Ctrl-C has one")
+    if r.get("format") != RESUME_FORMAT or r.get("version") != RESUME_VERSION:
+        raise RecordingError(f"{path}: not a tactile resume state of version {RESUME_VERSION}")
+    for key, kind in (("config", dict), ("data", str), ("state", dict)):
+        if not isinstance(r.get(key), kind):
+            raise RecordingError(f"{path}: key {key!r}: must be a {kind.__name__}")
+    try:
+        TrainConfig.from_dict(r["config"])
+    except TactileError as e:
+        raise RecordingError(f"{path}: key 'config': {e}") from None
+    state = r["state"]
+    if state.get("phase") not in ("fit", "refit") or not isinstance(state.get("epoch"), int):
+        raise RecordingError(f"{path}: key 'state': not a saved epoch")
+    return r
+
+
+__all__ = ["CHECKPOINT", "RESUME", "load_checkpoint", "check_checkpoint", "save_resume",
+           "load_resume"]
