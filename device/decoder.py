@@ -444,8 +444,9 @@ class StreamDecoder:
             return False
         period = self._period_us(estimate_only=True)
         if period is None:
-            if not ahead:
-                return False
+            if not ahead:  # no rate known: a clock that moved by more than 1 s per sample
+                steps = len(self._history[-1][2]) if self._history else 1
+                return (t - self._t_last) % SEQ_MODULO > steps * _MAX_PERIOD_US
             period = self._period_us()
         last_n = len(self._history[-1][2]) if self._history else 1
         expect = round((ahead + last_n) * period)
