@@ -113,6 +113,11 @@ def _noise(r: random.Random, n: int, zeros: bool = True) -> bytes:
     return blob if zeros else blob.replace(b"\x00", bytes([r.randint(1, 255)]))
 
 
+def _pick(r: random.Random, n: int) -> int:
+    """A position in ``n`` bytes; 0 when there are none (an item a truncate emptied)."""
+    return r.randrange(n) if n else 0
+
+
 def binary_case(r: random.Random, kind: str):
     """(items, truth rows (n, C) int16, session of each sample, device seq of each)."""
     width = 8 if r.random() < 0.7 else r.randint(1, 32)
@@ -148,9 +153,11 @@ def binary_case(r: random.Random, kind: str):
         [k for k in BINARY_KINDS if k not in ("mix", "noise", "reboot")], r.randint(2, 4))
     flips = 0
     for op in ops:
+        if not items:  # all dropped
+            break
         j = r.randrange(len(items))
         it = items[j]
-        if op in ("flip", "burst") and flips < 3:
+        if op in ("flip", "burst") and flips < 3 and it.data:  # (a truncate may empty it)
             flips += 1
             b = bytearray(it.data)
             pos = r.randrange(len(b))
@@ -169,14 +176,14 @@ def binary_case(r: random.Random, kind: str):
             if r.random() < 0.5:  # between frames
                 items.insert(j, Item(blob, "garbage"))
             else:  # inside a frame
-                pos = r.randrange(len(it.data))
+                pos = _pick(r, len(it.data))
                 it.data, it.damaged = it.data[:pos] + blob + it.data[pos:], True
         elif op == "delete":
-            pos = r.randrange(len(it.data))
+            pos = _pick(r, len(it.data))
             cut = r.randint(1, 20)
             it.data, it.damaged = it.data[:pos] + it.data[pos + cut :], True
         elif op == "truncate":  # a frame cut short, its delimiter lost: glued to the next
-            it.data, it.damaged = it.data[: r.randrange(len(it.data))], True
+            it.data, it.damaged = it.data[: _pick(r, len(it.data))], True
         elif op == "dup":  # re-sent, right away or up to ~300 frames later (not past a reboot:
             # a link does not carry a frame from before a device restart after it)
             later = min(len(items), j + 1 + r.choice((0, 0, r.randint(0, 300))))
@@ -197,7 +204,7 @@ def binary_case(r: random.Random, kind: str):
             else:
                 items.insert(j, Item(encode_header(_device(width, tag="x")), "header"))
         elif op == "midstart":  # the port opened in the middle of a frame
-            cut = r.randrange(len(items[0].data))
+            cut = _pick(r, len(items[0].data))
             items[0].data, items[0].damaged = items[0].data[cut:], True
     if kind == "noise":
         items = [Item(_noise(r, r.randint(1, 3000)), "garbage")]
