@@ -397,8 +397,9 @@ class StreamDecoder:
         A re-sent frame repeats samples we delivered, with their contents and device times; a
         device that restarted counts again with other contents. A frame that went back but
         holds none of the samples remembered is late (its samples were reported lost) when it
-        is recent (within ``replay_window``), either within the span remembered or with no
-        header since the last frame (a device sends its header when it starts), and its device
+        is recent (within ``replay_window``), either within the span remembered, or with no
+        header since the last frame (a device sends its header when it starts), or with a count
+        no device that started within ``replay_window`` samples has, and its device
         time fits (by the rate when one is known, else it is earlier by what a rate between
         1 Hz and 1 MHz explains); else the device restarted."""
         end = min(s_u + len(raw), self._dev_next_u)
@@ -422,7 +423,10 @@ class StreamDecoder:
             return "tail" if s_u + len(raw) > self._dev_next_u else "duplicate"
         oldest = self._history[0][0] if self._history else self._dev_next_u
         recent = s_u >= self._dev_next_u - self.replay_window
-        if recent and (s_u >= oldest or not self._header_since_samples):
+        # a header since the last frame may be a restarted device's, but only a device that
+        # started within the last `replay_window` samples counts that low
+        fresh = s_u % SEQ_MODULO < self.replay_window
+        if recent and (s_u >= oldest or not self._header_since_samples or not fresh):
             if self._history:  # and its device time fits this run of the device
                 hs, ht, _ = self._history[-1]
                 if period is not None:
