@@ -1,6 +1,6 @@
 """Benchmark: EMD as tensor ops (torch eager, onnxruntime) against PyEMD, one thread.
 
-    python bench/emd.py [--repeats 3] [--pieces | --profile | --node-costs | --solvers]
+    python bench/emd.py [--repeats 3] [--pieces | --profile | --node-costs | --layouts | --batches]
 
 Prints, for 8-channel 50-sample windows and 1-channel 1000-sample windows (4 IMFs x 10 sifts,
 the same windows for every implementation, measured in this run): milliseconds per window and
@@ -18,8 +18,15 @@ slow spell of the host falls on all of them alike. Instead of that:
 * ``--node-costs`` measures what each node of the sift body costs where it runs, at batch 1:
   a copy of the graph with four extra copies of that node (graph optimizations off, so they
   are not merged), timed against the unchanged graph in turn (about 10 minutes);
-* ``--solvers`` times the 8 x 50 graph with every batch size solved by PCR and by the Thomas
-  algorithm, interleaved, to place the switch between them (``spline.THOMAS_ROWS``).
+* ``--layouts`` times the 8 x 50 graph at each batch size with the few-row and the many-row
+  tensor layouts of the sift (the same arithmetic), interleaved, to place the switch between
+  them (``spline.LARGE_ROWS``);
+* ``--batches`` measures batch independence instead of speed: 512 windows (3 channels x 50
+  samples) of coarse integer random walks and of the simulated pen, each decomposed by
+  onnxruntime one window at a time (as ``tactile-run`` does) and by onnxruntime and torch in
+  batches of 1, 21, 22, 64, 65 and 512 windows (torch at batch 1: the first 32 windows): the
+  largest difference of any IMF value from the batch-1 onnxruntime one, in units of the
+  window's std.
 """
 
 from __future__ import annotations
@@ -42,10 +49,9 @@ from tactile.training.emd.onnx_export import (
     count_nodes,
     export_emd_onnx,
     sift_path_nodes,
-    subgraph_nodes,
     subgraphs,
 )
-from tactile.training.emd.spline import THOMAS_ROWS
+from tactile.training.emd.spline import LARGE_ROWS
 
 N_IMFS, N_SIFTS = 4, 10
 
@@ -139,8 +145,7 @@ def bench_shape(n_channels: int, n_time: int, n_ref: int, repeats: int, tmp: Pat
         ("onnxruntime, batch 256", best["ort_256"]),
     ]
     fewest, most = sift_path_nodes(onnx_model, n_time)
-    graphs = subgraph_nodes(onnx_model.graph)
-    large = graphs["sift_large"] + graphs["strict_large"]
+    large = "{} to {}".format(*sift_path_nodes(onnx_model, n_time, large=True))
     lines = [
         f"## {n_channels} channel(s) x {n_time} samples, {N_IMFS} IMFs x {N_SIFTS} sifts",
         "",
@@ -151,7 +156,7 @@ def bench_shape(n_channels: int, n_time: int, n_ref: int, repeats: int, tmp: Pat
     lines += [
         "",
         f"ONNX: export {t_export:.1f} s, {count_nodes(onnx_model.graph)} nodes (one sift, in a "
-        f"Loop, runs {fewest} to {most} below {THOMAS_ROWS} rows, {large} from there on), "
+        f"Loop, runs {fewest} to {most} below {LARGE_ROWS} rows, {large} from there on), "
         f"file {path.stat().st_size / 1e6:.3f} MB, session creation {t_session:.3f} s",
         "",
     ]
@@ -293,16 +298,17 @@ def bench_node_costs(tmp: Path, repeats: int, copies: int = 4, top: int = 25) ->
     return [*lines, ""]
 
 
-def bench_solvers(repeats: int, batches=(1, 2, 4, 6, 8, 16, 32, 256)) -> list[str]:
-    """ms per window of the 8 x 50 graph with PCR and with the Thomas algorithm at every size."""
+def bench_layouts(repeats: int, batches=(1, 2, 4, 6, 8, 16, 32, 256)) -> list[str]:
+    """ms per window of the 8 x 50 graph with the few-row and the many-row layouts at every
+    batch size."""
     x = signal_windows(256, 8, 50).astype(np.float32)
     opts = options()
-    graphs = [build_emd_model(N_IMFS, N_SIFTS, 8, 50, thomas_rows=t).SerializeToString()
+    graphs = [build_emd_model(N_IMFS, N_SIFTS, 8, 50, large_rows=t).SerializeToString()
               for t in (2**62, 1)]
     lines = [
-        f"## Spline solver by batch size (8 x 50; the graph switches at {THOMAS_ROWS} rows)",
+        f"## Sift layout by batch size (8 x 50; the graph switches at {LARGE_ROWS} rows)",
         "",
-        "| batch | rows | PCR ms / window | Thomas ms / window | PCR / Thomas |",
+        "| batch | rows | few-row ms / window | many-row ms / window | few / many |",
         "|---:|---:|---:|---:|---:|",
     ]
     for b in batches:
@@ -310,24 +316,93 @@ def bench_solvers(repeats: int, batches=(1, 2, 4, 6, 8, 16, 32, 256)) -> list[st
         # Fresh sessions for every batch size: a session that ran batch 1 first runs the small
         # body at batch 2-6 some 15% slower than a fresh one (onnxruntime 1.32; the TopK node
         # is involved: the same body without it shows no such effect).
-        pcr, thomas = (ort.InferenceSession(g, opts, providers=["CPUExecutionProvider"])
-                       for g in graphs)
+        few, many = (ort.InferenceSession(g, opts, providers=["CPUExecutionProvider"])
+                     for g in graphs)
 
         def run(sess: ort.InferenceSession, b: int = b, n: int = n) -> None:
             for i in range(0, n, b):
                 sess.run(None, {"x_in": x[i : i + b]})
 
-        times = {id(pcr): [], id(thomas): []}
-        run(pcr)
-        run(thomas)
+        times = {id(few): [], id(many): []}
+        run(few)
+        run(many)
         for _ in range(repeats):  # interleaved, so drift of the host hits both alike
-            for sess in (pcr, thomas):
+            for sess in (few, many):
                 start = time.perf_counter()
                 run(sess)
                 times[id(sess)].append((time.perf_counter() - start) / n * 1e3)
-        t_pcr, t_thomas = min(times[id(pcr)]), min(times[id(thomas)])
-        lines.append(f"| {b} | {8 * b} | {t_pcr:.3f} | {t_thomas:.3f} | {t_pcr / t_thomas:.2f} |")
+        t_few, t_many = min(times[id(few)]), min(times[id(many)])
+        lines.append(f"| {b} | {8 * b} | {t_few:.3f} | {t_many:.3f} | {t_few / t_many:.2f} |")
     return lines
+
+
+BATCHES = (1, 21, 22, 64, 65, 512)
+"""Batch sizes of ``--batches``: around the layout switch (3 channels: 63 / 66 rows at 21 / 22
+windows) and evaluation's 512."""
+
+
+def random_walks(n_windows: int, n_channels: int, seed: int = 0) -> np.ndarray:
+    """(W, C, 50) coarse integer random walks (steps -5..5: plateaus, like raw pressure
+    counts), each row z-scored."""
+    rng = np.random.default_rng(seed)
+    x = np.cumsum(rng.integers(-5, 6, (n_windows, n_channels, 50)), -1).astype(np.float64)
+    std = x.std(-1, keepdims=True)
+    return (x - x.mean(-1, keepdims=True)) / np.where(std > 0, std, 1.0)
+
+
+def pen_windows(n_windows: int, channels=("pressure_0", "accel_z", "gyro_x")) -> np.ndarray:
+    """(W, 3, 50) windows of the simulated pen (hop 25, the textures in turn), each channel
+    normalised by its mean and std over all of them, as a model's preprocessing does with the
+    training split's."""
+    from tactile.device.info import PEN_CHANNELS
+    from tactile.device.simulator import TEXTURES, PenSimulator
+
+    names = [c.name for c in PEN_CHANNELS]
+    idx = [names.index(c) for c in channels]
+    per = -(-n_windows // len(TEXTURES))
+    out = []
+    for k, texture in enumerate(TEXTURES):
+        values = PenSimulator(texture, seed=k).read(25 * per + 25)[:, idx].astype(np.float64)
+        starts = np.arange(per) * 25
+        out.append(values[starts[:, None] + np.arange(50)[None, :]])  # (per, 50, 3)
+    x = np.concatenate(out)[:n_windows].transpose(0, 2, 1)  # (W, 3, 50)
+    mean, std = x.mean((0, 2), keepdims=True), x.std((0, 2), keepdims=True)
+    return (x - mean) / np.where(std > 0, std, 1.0)
+
+
+def bench_batches(tmp: Path, n_windows: int = 512, torch_one: int = 32) -> list[str]:
+    """Largest |IMF difference| (x window std) from onnxruntime at batch 1, per batch size."""
+    path = tmp / "emd_3x50.onnx"
+    export_emd_onnx(path, N_IMFS, N_SIFTS, 3, 50)
+    sess = session(path)
+    model = EMD(N_IMFS, N_SIFTS)
+    lines = [f"## Batch independence: 3 channels x 50 samples, {n_windows} windows, "
+             f"{N_IMFS} IMFs x {N_SIFTS} sifts", "",
+             r"max \|IMF - IMF at batch 1 in onnxruntime\| in units of the window's std "
+             f"(torch at batch 1: the first {torch_one} windows); windows that differ by more "
+             "than 1e-4 in brackets", "",
+             "| windows | batch | onnxruntime | torch |", "|---|---:|---:|---:|"]
+    for name, x in (("random walk", random_walks(n_windows, 3)), ("simulated pen",
+                                                                  pen_windows(n_windows))):
+        x32 = x.astype(np.float32)
+        std = np.where(x32.std(-1) > 0, x32.std(-1), 1.0)[:, :, None, None]  # (W, 3, 1, 1)
+        ref = np.concatenate([sess.run(None, {"x_in": x32[i : i + 1]})[0]
+                              for i in range(n_windows)])
+
+        def worst(imfs: np.ndarray, n: int, ref: np.ndarray = ref, std: np.ndarray = std) -> str:
+            d = (np.abs(imfs.astype(np.float64) - ref[:n]) / std[:n]).max((1, 2, 3))
+            return f"{d.max():.2g} ({int((d > 1e-4).sum())})"
+
+        for b in BATCHES:
+            n_torch = torch_one if b == 1 else n_windows
+            got_ort = np.concatenate([sess.run(None, {"x_in": x32[i : i + b]})[0]
+                                      for i in range(0, n_windows, b)])
+            with torch.no_grad():
+                got_torch = torch.cat([model(torch.from_numpy(x32[i : i + b]))[0]
+                                       for i in range(0, n_torch, b)]).numpy()
+            lines.append(f"| {name} | {b} | {worst(got_ort, n_windows)} | "
+                         f"{worst(got_torch, n_torch)} |")
+    return [*lines, ""]
 
 
 def _sifts_run(windows: np.ndarray) -> float:
@@ -362,8 +437,10 @@ def main(argv: list[str] | None = None) -> int:
                         help="only profile the 8 x 50 graph at batch 256 (shares of kernel time)")
     parser.add_argument("--node-costs", action="store_true",
                         help="only measure each sift-body node's cost where it runs (batch 1)")
-    parser.add_argument("--solvers", action="store_true",
-                        help="only time PCR against the Thomas algorithm at each batch size")
+    parser.add_argument("--layouts", action="store_true",
+                        help="only time the few-row against the many-row layout at each batch size")
+    parser.add_argument("--batches", action="store_true",
+                        help="only measure how far a window's IMFs move with the batch size")
     args = parser.parse_args(argv)
     if args.rows is not None and (not args.pieces or args.rows < 1):
         parser.error(f"--rows takes a count of at least 1 and goes with --pieces, got {args.rows}")
@@ -372,8 +449,12 @@ def main(argv: list[str] | None = None) -> int:
     if args.pieces:
         print("\n".join(bench_pieces(args.repeats, rows=args.rows or 8)))
         return 0
-    if args.solvers:
-        print("\n".join(bench_solvers(args.repeats)))
+    if args.layouts:
+        print("\n".join(bench_layouts(args.repeats)))
+        return 0
+    if args.batches:
+        with tempfile.TemporaryDirectory() as tmp:
+            print("\n".join(bench_batches(Path(tmp))))
         return 0
     if args.profile or args.node_costs:
         with tempfile.TemporaryDirectory() as tmp:

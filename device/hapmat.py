@@ -25,7 +25,13 @@ import numpy as np
 
 from tactile.cli import Parser, add_debug, run
 from tactile.device.info import ChannelSpec, DeviceInfo
-from tactile.device.recording import TakeWriter, dataset_folder, load_numbers, replace_takes
+from tactile.device.recording import (
+    TakeWriter,
+    check_label,
+    dataset_folder,
+    load_numbers,
+    replace_takes,
+)
 from tactile.errors import RecordingError
 
 CHANNELS = (
@@ -107,15 +113,17 @@ def import_hapmat(source: Path, out: Path, force: bool = False) -> list[Path]:
     else:
         classes, series, rate, origin = _read_npz(source)
     info = DeviceInfo(rate, CHANNELS, device="hapmat-stick-imu")
-    out = dataset_folder(out)
-    replace_takes(out, [f"hapmat-{str(m).lower()}" for m in classes], force)
     to_deg = np.array([1, 1, 1, 180 / math.pi, 180 / math.pi, 180 / math.pi])
-    paths = []
+    takes = []  # every input checked before any take is replaced or written
     for material, x in zip(classes, series):
         values = x.astype(np.float64) * to_deg  # (n, 6)
         if not np.all(np.isfinite(values)):
             raise RecordingError(f"{source}: {material} holds NaN or inf")
-        label = str(material).lower()
+        takes.append((check_label(str(material).lower()), values))
+    out = dataset_folder(out)
+    replace_takes(out, [f"hapmat-{label}" for label, _ in takes], force)
+    paths = []
+    for label, values in takes:
         extra = {
             "absent_channels": ["pressure_0", "pressure_1"],
             "origin": origin,

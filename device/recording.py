@@ -14,6 +14,7 @@ atomically at least once a second. A take the writer closed cleanly says ``"comp
 
 from __future__ import annotations
 
+import hashlib
 import io
 import json
 import math
@@ -70,6 +71,19 @@ class Take:
         scale = np.array([c.scale for c in self.info.channels])
         offset = np.array([c.offset for c in self.info.channels])
         return self.raw * scale + offset
+
+    def fingerprint(self) -> str:
+        """The take's identity by content: 16 hex digits of the SHA-256 of its label, channel
+        names, sequence numbers, timestamps and raw samples. Two folders holding takes of the
+        same names but other recordings give other fingerprints (training records those of its
+        test takes, so that evaluation and export recognise the test split by content)."""
+        h = hashlib.sha256()
+        h.update(repr((str(self.label), tuple(self.channels))).encode())
+        for a in (self.seq, self.t_us, self.raw):
+            arr = np.ascontiguousarray(a)
+            h.update(f"{arr.dtype.str}{arr.shape}".encode())
+            h.update(arr.tobytes())
+        return h.hexdigest()[:16]
 
     def segments(self) -> list[tuple[int, int]]:
         """Row ranges [start, stop) with no gap inside: split at seq jumps and recorded gaps."""

@@ -5,7 +5,9 @@ and output names, dtypes, ranks, the dynamic batch axis, every required metadata
 what is wrong in one line (exit code 3). With ``--run`` it re-runs the parity comparison against
 the run's PyTorch model (on ``--data``'s test windows if given, else simulated or random ones)
 and prints the table; exit 3 on failure. With ``--data`` alone it runs the file on the data's
-windows and prints its accuracy beside the one recorded at export.
+windows (the run's test split when the data holds its test takes, recognised by content, else
+every take, and it says which) and prints the accuracy beside the one training recorded, saying
+what that was measured on.
 
 On a board (no ``[train]`` extra: no onnx, no torch) it checks what the runtime will: loads the
 file with onnxruntime, validates the contract and the graph's signature as ``tactile-run`` does,
@@ -91,8 +93,8 @@ def describe(path: Path, c: ModelContract, opset: int | None = OPSET) -> str:
         f"state {c.state_mode}, {c.model} ({c.state_layers} x {c.state_hidden})",
         f"  emd       {'none' if emd is None else emd}",
         f"  exported  parity {'passed' if c.parity.get('passed') else 'FAILED'} "
-        f"(max |dp| {c.parity.get('max_abs_prob_diff')}); test accuracy "
-        f"{_fmt(c.training_metrics.get('accuracy'))}",
+        f"(max |dp| {c.parity.get('max_abs_prob_diff')})",
+        f"  training  {_recorded(c)}",
     ]
     return "\n".join(lines)
 
@@ -100,6 +102,15 @@ def describe(path: Path, c: ModelContract, opset: int | None = OPSET) -> str:
 def _fmt(value) -> str:
     """A recorded figure for people: four decimals if it is a number."""
     return f"{value:.4f}" if isinstance(value, float) else str(value)
+
+
+def _recorded(c: ModelContract) -> str:
+    """The accuracy training measured, with what it was measured on."""
+    m = c.training_metrics
+    windows = m.get("windows")
+    on = f"{windows} windows of the run's test split" if isinstance(windows, int) else (
+        "the run's test split")
+    return f"accuracy {_fmt(m.get('accuracy'))} on {on} (measured at training, in PyTorch)"
 
 
 def _reparity(path: Path, c: ModelContract, run_dir: Path, data: Path | None,
@@ -127,6 +138,11 @@ def _accuracy(path: Path, c: ModelContract, data: Path) -> None:
 
     ck = {"classes": list(c.classes), "channels": list(c.channels),
           "config": {"window": c.window, "hop": c.hop}}
+    takes = c.training_metrics.get("test_takes")
+    if isinstance(takes, dict):  # the run's test split, recorded at export (read defensively)
+        ck["test_rows"] = {n: v.get("rows") for n, v in takes.items() if isinstance(v, dict)}
+        ck["test_fingerprints"] = {n: v.get("fingerprint") for n, v in takes.items()
+                                   if isinstance(v, dict)}
     probe = from_dataset(ck, data)
     sess = session(str(path))
     labels = np.empty(len(probe), np.int64)
@@ -139,9 +155,11 @@ def _accuracy(path: Path, c: ModelContract, data: Path) -> None:
             if c.state_mode == "carry":
                 h, cc = h2, c2
     acc = float((labels == probe.y).mean())
-    print(f"windows checked  {len(probe)} ({probe.source})")
-    print(f"accuracy         {acc:.4f} (recorded at training: "
-          f"{_fmt(c.training_metrics.get('accuracy'))})")
+    same = probe.source.startswith("the run's test split")
+    print(f"measured on      {probe.source}: {len(probe)} windows")
+    print(f"accuracy         {acc:.4f} (this file in onnxruntime, one window at a time)")
+    print(f"recorded         {_recorded(c)}"
+          + ("" if same else "; other windows than these, so not comparable"))
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -158,7 +176,8 @@ def board_check(path: Path) -> None:
     """The check with onnxruntime only: what ``tactile-run`` loads, validates and runs."""
     from tactile.runtime.model import Model
 
-    model = Model(path)  # contract and signature, as tactile-run checks them (exit 3)
+    model = Model(path)  # contract, signature and outputs, as tactile-run checks them (exit 3)
+    model.probe(2)  # and the batch axis really dynamic
     c = model.contract
     h, cc = model.zero_state()
     probs, _, _ = model.classify(np.zeros((1, c.window, len(c.channels)), np.float32), h, cc)
@@ -184,6 +203,10 @@ def _main(args: argparse.Namespace) -> int:
         return 0
     torch.set_num_threads(1)  # one core's figures; also avoids contention on a small board
     _, contract = load_contract(args.model)
+    from tactile.runtime.model import Model
+
+    Model(args.model).probe(2)  # outputs of the declared shapes at batch 1 (as tactile-run
+    # checks at load) and 2 (the batch axis really dynamic)
     print(describe(args.model, contract))
     if args.run is not None:
         if not _reparity(args.model, contract, args.run, args.data, args.windows):

@@ -46,7 +46,7 @@ def contract_for(ck: dict, parity: dict, quantization: str = "none",
             "emd": emd,
         },
         package_version=tactile.__version__,
-        training_metrics=_metrics(ck.get("metrics", {})),
+        training_metrics={**_metrics(ck.get("metrics", {})), **_test_takes(ck)},
         parity=parity,
         quantization=quantization,
         extra=extra,
@@ -58,6 +58,20 @@ def _metrics(m: dict) -> dict:
     keep = ("windows", "accuracy", "recall", "shifted", "split", "split_windows", "val_accuracy",
             "best_epoch")
     return {k: _finite(m[k]) for k in keep if k in m}
+
+
+def _test_takes(ck: dict) -> dict:
+    """``{"test_takes": {take file name: {"rows": [start, end], "fingerprint": str or None}}}``:
+    the run's test split, so that ``tactile-check --data`` can measure the same windows and
+    recognise the takes by content (``None``: the run recorded no fingerprint); empty when the
+    checkpoint names no test takes."""
+    rows = ck.get("test_rows")
+    if not isinstance(rows, dict) or not rows:
+        return {}
+    fps = ck.get("test_fingerprints")
+    fps = fps if isinstance(fps, dict) else {}
+    return {"test_takes": {str(n): {"rows": [int(v) for v in r], "fingerprint": (
+        fps.get(n) if isinstance(fps.get(n), str) else None)} for n, r in rows.items()}}
 
 
 def _finite(v):

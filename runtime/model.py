@@ -11,7 +11,7 @@ import os
 import numpy as np
 import onnxruntime as ort
 
-from tactile.contract import ModelContract, model_file
+from tactile.contract import BATCH, ModelContract, model_file
 from tactile.errors import ConfigError, ModelContractError
 
 
@@ -42,7 +42,11 @@ class Model:
             or parallel execution); then ``threads`` is not used and must be left at 1.
 
     Raises :class:`ModelContractError` (a one-line message naming the problem) if the file is
-    missing, not ONNX, not made by the exporter, or its graph does not match its metadata.
+    missing, not ONNX, not made by the exporter, its graph does not match its metadata, or
+    running it on a zero window (batch 1, the runtime's) gives outputs of other shapes or types
+    than the contract declares (:meth:`check_outputs`): onnxruntime does not enforce a graph's
+    declared output shapes, so a file can declare 5 classes and return 7 probabilities.
+    :meth:`classify` checks every result the same way.
     """
 
     def __init__(self, path: str | os.PathLike, threads: int = 1,
@@ -73,6 +77,43 @@ class Model:
         except ModelContractError as e:
             raise ModelContractError(f"{path}: {e}") from None
         self.path = path
+        self.probe(1)  # the runtime's batch size, first: a session keeps its first size fast
+
+    def probe(self, batch: int) -> None:
+        """Run ``batch`` zero windows from a zero state and check the outputs' shapes and types
+        (:meth:`check_outputs`); :class:`ModelContractError` if the run fails or they differ."""
+        c = self.contract
+        x = np.zeros((batch, c.window, len(c.channels)), np.float32)
+        h, cc = self.zero_state(batch)
+        try:
+            outs = self.session.run(None, {"x": x, "h": h, "c": cc})
+        except Exception as e:  # noqa: BLE001  (onnxruntime's untyped errors)
+            first = str(e).strip().splitlines()[0] if str(e).strip() else type(e).__name__
+            raise ModelContractError(f"{self.path}: fails on a zero window at batch {batch} "
+                                     f"({first})") from None
+        self.check_outputs(outs, batch)
+
+    def check_outputs(self, outs: list, batch: int) -> None:
+        """Raise :class:`ModelContractError` naming the first output whose shape or dtype is
+        not what the contract declares for ``batch`` windows: ``probs`` (batch, classes),
+        ``h_out`` and ``c_out`` (layers, batch, hidden), all float32."""
+        want = {o.name: tuple(batch if d == BATCH else d for d in o.dims)
+                for o in self.contract.outputs}
+        if len(outs) != len(want):
+            raise ModelContractError(f"{self.path}: the graph returns {len(outs)} outputs, "
+                                     f"expected {len(want)} ({', '.join(want)})")
+        for (name, shape), out in zip(want.items(), outs):
+            got = tuple(np.shape(out))
+            if got != shape:
+                what = (f"width {got[-1]}, the contract declares {shape[-1]}"
+                        if len(got) == len(shape) and got[:-1] == shape[:-1]
+                        else f"shape {got}, the contract declares {shape}")
+                raise ModelContractError(f"{self.path}: output {name!r} has {what} (batch "
+                                         f"{batch})")
+            if getattr(out, "dtype", None) != np.float32:
+                raise ModelContractError(f"{self.path}: output {name!r} is "
+                                         f"{getattr(out, 'dtype', type(out).__name__)}, "
+                                         "the contract declares float32")
 
     @property
     def state_shape(self) -> tuple[int, int]:
@@ -83,11 +124,14 @@ class Model:
     ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """x (B, window, channels) float32 in units; h, c (layers, B, hidden) float32.
 
-        Returns probabilities (B, classes) and the new h, c.
+        Returns probabilities (B, classes) and the new h, c; :class:`ModelContractError` when
+        the graph returns other shapes (:meth:`check_outputs`).
         """
-        probs, h_out, c_out = self.session.run(
+        outs = self.session.run(
             None, {"x": np.ascontiguousarray(x, np.float32), "h": h, "c": c}
         )
+        self.check_outputs(outs, len(x))
+        probs, h_out, c_out = outs
         return probs, h_out, c_out
 
     def zero_state(self, batch: int = 1) -> tuple[np.ndarray, np.ndarray]:

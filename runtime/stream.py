@@ -16,7 +16,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from tactile.errors import ConfigError
+from tactile.errors import ConfigError, ModelContractError
 
 # (window (1, T, C) float32, h, c) -> (probabilities (1, K), h, c)
 ClassifyFn = Callable[[np.ndarray, np.ndarray, np.ndarray], tuple[np.ndarray, np.ndarray,
@@ -208,6 +208,12 @@ class Stream:
         t0 = time.perf_counter()
         probs, h, c = self._classify(x, self.h, self.c)
         latency = (time.perf_counter() - t0) * 1e3
+        want = (1, len(self.classes))
+        if np.shape(probs) != want or np.shape(h) != self.h.shape or np.shape(c) != self.c.shape:
+            raise ModelContractError(
+                f"the model returned probs {np.shape(probs)}, h {np.shape(h)}, c {np.shape(c)} "
+                f"for one window; its contract declares probs {want} ({len(self.classes)} "
+                f"classes), h and c {self.h.shape}")
         if self.carry:
             self.h, self.c = h, c
         self._next_end += self.hop

@@ -159,3 +159,50 @@ def test_plot_writes_pictures_and_refuses_what_it_cannot_plot(tmp_path):
     code, _, err = cli("tactile-plot", str(tmp_path / "paper-0.csv"), "-o",
                        str(tmp_path / "no" / "x.png"))
     assert code == 1 and "folder that exists" in err
+
+
+def _hapmat_npz(path: Path, nan_in: str | None = None) -> Path:
+    """A small file of the bundled HapMat form: 2 materials x 300 samples x 6 channels."""
+    from tactile.device.hapmat import SOURCE_COLUMNS
+
+    x = np.random.default_rng(0).normal(size=(2, 300, len(SOURCE_COLUMNS)))
+    classes = np.array(["Paper", "Wood"])
+    if nan_in is not None:
+        x[list(classes).index(nan_in), 10, 0] = np.nan
+    np.savez(path, X=x, classes=classes, channels=np.array(SOURCE_COLUMNS), fs_hz=100.0)
+    return path
+
+
+def test_import_force_replaces_nothing_when_an_input_is_bad(tmp_path):
+    out = tmp_path / "out"
+    good = _hapmat_npz(tmp_path / "good.npz")
+    assert cli("tactile-import-hapmat", str(good), "--out", str(out))[0] == 0
+    before = {p.name: p.read_bytes() for p in out.iterdir()}
+    assert sorted(before) == ["hapmat-paper.csv", "hapmat-paper.json", "hapmat-wood.csv",
+                              "hapmat-wood.json"]
+    bad = _hapmat_npz(tmp_path / "bad.npz", nan_in="Wood")  # the second material is bad
+    code, _, err = cli("tactile-import-hapmat", str(bad), "--out", str(out), "--force")
+    assert code == 1 and "Wood holds NaN" in err
+    assert {p.name: p.read_bytes() for p in out.iterdir()} == before  # nothing deleted
+
+
+def test_plot_groups_many_channels_into_panels():
+    from tactile.device.info import ChannelSpec, DeviceInfo
+    from tactile.training.plot import LEGEND_MAX, panels
+
+    names = ([f"f0_pac_{i:02d}" for i in range(22)] + ["f0_pdc", "f0_tac", "f0_tdc"]
+             + [f"f0_ele_{i:02d}" for i in range(19)])
+    info = DeviceInfo(100.0, tuple(ChannelSpec(n, "count", 1.0) for n in names))
+    groups = panels(info.channels)
+    assert {k: len(v) for k, v in groups.items()} == {
+        ("f0_pac", "count"): 22, ("f0", "count"): 3, ("f0_ele", "count"): 19}
+    assert sorted(i for v in groups.values() for i in v) == list(range(len(names)))
+    assert len(groups[("f0", "count")]) <= LEGEND_MAX < len(groups[("f0_pac", "count")])
+    pen = {k: len(v) for k, v in panels(pen_info().channels).items()}
+    assert pen == {("pressure", "N"): 2, ("accel", "g"): 3, ("gyro", "deg/s"): 3}
+
+
+@pytest.mark.parametrize("name", ["noext", "x.txt"])
+def test_plot_refuses_an_output_it_cannot_write_before_reading(tmp_path, name):
+    code, _, err = cli("tactile-plot", str(tmp_path / "none.csv"), "-o", str(tmp_path / name))
+    assert code == 1 and "name an image file ending in .png" in err  # not the missing take

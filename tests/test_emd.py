@@ -29,14 +29,7 @@ from tactile.training.emd.knots import (
     past_dummies,
 )
 from tactile.training.emd.sift import envelopes, sift
-from tactile.training.emd.spline import (
-    SPLINE_EDGES,
-    THOMAS_ROWS,
-    pcr_solve,
-    spacings,
-    spline_system,
-    thomas_solve,
-)
+from tactile.training.emd.spline import LARGE_ROWS, pcr_solve, spacings, spline_system
 
 PARITY_TOL = 1e-9  # x window std
 REF = PyEMD(FIXE=10, spline_kind="cubic", nbsym=2, extrema_detection="simple")
@@ -215,8 +208,7 @@ def test_segment_from_running_count_equals_a_search_over_the_knots():
     assert checked > 5000 and natural > 100, (checked, natural)  # both spline kinds seen
 
 
-@pytest.mark.parametrize("solver", [pcr_solve, thomas_solve])
-def test_solvers_solve_diagonally_dominant_tridiagonal_systems(solver):
+def test_pcr_solves_diagonally_dominant_tridiagonal_systems():
     rng = np.random.default_rng(4)
     k = 37
     a = rng.uniform(-1, 1, (50, k))
@@ -225,15 +217,14 @@ def test_solvers_solve_diagonally_dominant_tridiagonal_systems(solver):
     c[:, -1] = 0
     b = np.abs(a) + np.abs(c) + rng.uniform(0.05, 1, (50, k))
     r = rng.standard_normal((50, k))
-    got = solver(torch.tensor(np.stack([a / b, c / b, r / b])))[0].numpy()  # (50, K)
+    got = pcr_solve(torch.tensor(np.stack([a / b, c / b, r / b])))[0].numpy()  # (50, K)
     for i in range(50):
         mat = np.diag(b[i]) + np.diag(a[i, 1:], -1) + np.diag(c[i, :-1], 1)
         np.testing.assert_allclose(got[i], np.linalg.solve(mat, r[i]), rtol=1e-12, atol=1e-12)
 
 
-@pytest.mark.parametrize("solver", [pcr_solve, thomas_solve])
 @pytest.mark.parametrize("n_knots", [3, 4, 5, 9, 20])
-def test_spline_pieces_match_scipy_not_a_knot_and_natural_3_point(n_knots, solver):
+def test_spline_pieces_match_scipy_not_a_knot_and_natural_3_point(n_knots):
     rng = np.random.default_rng(n_knots)
     n_time = 60
     k = n_slots(n_time)
@@ -249,9 +240,7 @@ def test_spline_pieces_match_scipy_not_a_knot_and_natural_3_point(n_knots, solve
         xy = torch.tensor(np.stack([x, y])).reshape(2, 1, 1, k).repeat(1, 2, 1, 1)  # (2, 2, 1, K)
         j1 = torch.full((2, 1, 1), float(n_knots), dtype=torch.float64)
         system = spline_system(xy, j1)
-        m = solver(system)
-        if solver is thomas_solve:  # skipping the edges' identity rows changes no bit
-            assert torch.equal(thomas_solve(system, *SPLINE_EDGES), m)
+        m = pcr_solve(system)
         t = np.arange(n_time, dtype=np.float64)
         seg = np.clip(np.searchsorted(xs, t, side="right") - 1, 0, n_knots - 2)
         if n_knots >= 4:  # outer segments evaluate their neighbour's cubic (same polynomial)
@@ -292,13 +281,13 @@ PARITY_SETS = [(50, 300), (200, 80), (1000, 25)]  # (length, windows per kind): 
 """Shared with test_emd_onnx.py, which checks onnxruntime on the same windows."""
 
 
-@pytest.mark.parametrize("solver", ["thomas", "pcr"])
+@pytest.mark.parametrize("layout", ["large", "small"])
 @pytest.mark.parametrize(("n_time", "per_kind"), PARITY_SETS)
-def test_float64_parity_with_pyemd(n_time, per_kind, solver):
-    """All windows in one call (Thomas solver), then in calls below THOMAS_ROWS (PCR)."""
+def test_float64_parity_with_pyemd(n_time, per_kind, layout):
+    """All windows in one call (the many-row layout), then in calls below LARGE_ROWS."""
     x, refs = parity_set(n_time, per_kind)
-    assert len(x) >= THOMAS_ROWS
-    imfs, residue, n_valid = run_torch(x, chunk=None if solver == "thomas" else THOMAS_ROWS // 2)
+    assert len(x) >= LARGE_ROWS
+    imfs, residue, n_valid = run_torch(x, chunk=None if layout == "large" else LARGE_ROWS // 2)
     same, rel = compare(x, imfs, residue, n_valid, refs)
     assert same.all(), f"IMF count differs from PyEMD in {np.count_nonzero(~same)} windows"
     assert rel.max() <= PARITY_TOL, rel.max()

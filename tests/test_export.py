@@ -387,3 +387,218 @@ def test_int8_is_smaller_and_mostly_agrees(dataset, root, capsys):
     assert c.parity["float32"]["passed"] is True
     assert check_main([str(q), "--run", str(run)]) == 0
     assert "int8: agreement >= 0.9" in capsys.readouterr().out
+
+
+# -- untrusted model files: outputs that break their declared shapes ----------------------------
+
+
+def _lying_model(path: Path, probs_width: int = 2, hidden_out: int = 8,
+                 fixed_batch: bool = False) -> Path:
+    """A hand-built graph honouring _meta()'s contract on paper (2 classes, 2 channels, state
+    2 x 8, dynamic batch) whose outputs really have ``probs_width`` columns, ``hidden_out`` state
+    columns, or (``fixed_batch``) always batch 1. The widths are Tile counts computed from the
+    input's values (0 * sum(h) + k), which no shape inference can know: onnx.checker and
+    onnxruntime's declared signature both pass the file."""
+    from onnx import TensorProto, helper, numpy_helper
+
+    def const(name, values, dtype=np.int64):
+        return numpy_helper.from_array(np.asarray(values, dtype), name)
+
+    nodes = [
+        # a data-dependent zero (a (1,) int64), so the counts below are unknown until run
+        helper.make_node("ReduceSum", ["h"], ["hs"], keepdims=0),
+        helper.make_node("Mul", ["hs", "fzero"], ["hz"]),
+        helper.make_node("Reshape", ["hz", "one"], ["hz1"]),
+        helper.make_node("Cast", ["hz1"], ["z"], to=TensorProto.INT64),
+        helper.make_node("Add", ["z", "wide"], ["wide_n"]),
+        helper.make_node("Add", ["z", "copies"], ["copies_n"]),
+        # probs: the mean of x over time (batch, 2), first column tiled to probs_width, softmaxed
+        helper.make_node("ReduceMean", ["x", "one"], ["xm"], keepdims=0),
+        helper.make_node("Slice", ["xm", "zero", "one", "one"], ["x1"]),  # (batch, 1)
+        helper.make_node("Concat", ["one", "wide_n"], ["reps"], axis=0),
+        helper.make_node("Tile", ["x1", "reps"], ["xt"]),
+        helper.make_node("Softmax", ["xt"], ["p_all"], axis=1),
+        helper.make_node("Slice", ["p_all", "zero", "one", "zero"], ["probs"])
+        if fixed_batch else helper.make_node("Identity", ["p_all"], ["probs"]),
+        # h and c: the state tiled to hidden_out columns (hidden_out / 8 copies)
+        helper.make_node("Concat", ["one", "one", "copies_n"], ["sreps"], axis=0),
+        helper.make_node("Tile", ["h", "sreps"], ["h_out"]),
+        helper.make_node("Tile", ["c", "sreps"], ["c_out"]),
+    ]
+    f = TensorProto.FLOAT
+    graph = helper.make_graph(
+        nodes, "lying",
+        [helper.make_tensor_value_info("x", f, ["batch", 50, 2]),
+         helper.make_tensor_value_info("h", f, [2, "batch", 8]),
+         helper.make_tensor_value_info("c", f, [2, "batch", 8])],
+        [helper.make_tensor_value_info("probs", f, ["batch", 2]),
+         helper.make_tensor_value_info("h_out", f, [2, "batch", 8]),
+         helper.make_tensor_value_info("c_out", f, [2, "batch", 8])],
+        initializer=[const("zero", [0]), const("one", [1]), const("fzero", 0.0, np.float32),
+                     const("wide", [probs_width]), const("copies", [hidden_out // 8])],
+    )
+    model = helper.make_model(graph, opset_imports=[helper.make_opsetid("", OPSET)])
+    model.ir_version = 8
+    onnx.helper.set_model_props(model, _meta())
+    onnx.checker.check_model(model, full_check=True)  # the lie is invisible statically
+    onnx.save(model, path)
+    return path
+
+
+LIES = {
+    "wide_probs": ({"probs_width": 3}, "output 'probs' has width 3, the contract declares 2"),
+    "wide_state": ({"hidden_out": 16}, "output 'h_out' has width 16, the contract declares 8"),
+    "fixed_batch": ({"fixed_batch": True},
+                    r"output 'probs' has shape \(1, 2\), the contract declares \(2, 2\) "
+                    r"\(batch 2\)"),
+}
+
+
+def test_a_well_formed_hand_built_graph_loads(tmp_path):
+    from tactile.runtime.model import Model
+
+    model = Model(_lying_model(tmp_path / "honest.onnx"))
+    probs, h, c = model.classify(np.zeros((1, 50, 2), np.float32), *model.zero_state())
+    assert probs.shape == (1, 2) and h.shape == c.shape == (2, 1, 8)
+
+
+@pytest.mark.parametrize("lie", sorted(LIES))
+def test_outputs_wider_than_declared_are_refused_at_load(tmp_path, capsys, lie):
+    """tactile-check and tactile-run both refuse the file in one line, exit 3, naming the
+    output and its real width, before any data is read (no port is opened: sim:// would
+    stream forever). A fixed batch of 1 is what the runtime runs: tactile-check and
+    Model.classify at batch 2 refuse it."""
+    from tactile.runtime.cli import main as run_main
+    from tactile.runtime.model import Model
+
+    kwargs, message = LIES[lie]
+    path = _lying_model(tmp_path / f"{lie}.onnx", **kwargs)
+    if lie == "fixed_batch":
+        model = Model(path)
+        with pytest.raises(ModelContractError, match=message):
+            model.classify(np.zeros((2, 50, 2), np.float32), *model.zero_state(2))
+    else:
+        with pytest.raises(ModelContractError, match=message):
+            Model(path)
+    runs = [("tactile-check", check_main, [str(path)])]
+    if lie != "fixed_batch":
+        runs.append(("tactile-run", run_main, ["--model", str(path), "--port",
+                                               "sim://?texture=paper"]))
+    for prog, main, argv in runs:
+        assert main(argv) == 3, prog
+        err = capsys.readouterr().err.strip()
+        assert len(err.splitlines()) == 1 and err.startswith(f"{prog}: error: {path}: "), err
+        assert re.search(message, err), err
+
+
+def test_stream_refuses_a_classify_function_returning_the_wrong_width():
+    """Mid-stream (a classify function not checked at load): one ModelContractError naming
+    the width, not an IndexError."""
+    from tactile.runtime.stream import Stream
+
+    def classify(x, h, c):
+        return np.full((1, 3), 1 / 3, np.float32), h, c
+
+    stream = Stream(classify, ("desk", "paper"), 5, 5, 1, False, (1, 4))
+    stream.accept(np.zeros((5, 1), np.float32), 0, 0, period_us=10_000)
+    with pytest.raises(ModelContractError, match=r"probs \(1, 3\).*\(1, 2\) \(2 classes\)"):
+        stream.classify()
+
+
+# -- which windows parity and tactile-check measure -----------------------------------------------
+
+
+def test_test_takes_are_recognised_by_content(dataset, tmp_path):
+    from tactile.device.recording import load_dataset
+    from tactile.training.data import find_test_split
+
+    takes = load_dataset(dataset)
+    names = [t.path.name for t in takes]
+    test_rows = {names[0]: [0, 300], names[2]: [100, 400]}
+    fps = {n: takes[names.index(n)].fingerprint() for n in test_rows}
+    rows, scope, verified = find_test_split(takes, test_rows, fps, "d")
+    assert verified and rows == {0: (0, 300), 2: (100, 400)}, scope
+    assert scope.startswith("the run's test split in d (2 takes, matched by content)")
+    # another folder with takes of the same names: other recordings, so every take
+    other = tmp_path / "other"
+    make_dataset(other, takes=4, textures=("paper", "desk", "non_contact"), seconds=6, seed=9)
+    others = load_dataset(other)
+    assert [t.path.name for t in others] == names
+    rows, scope, verified = find_test_split(others, test_rows, fps, "other")
+    assert rows is None and not verified and "hold other recordings" in scope
+    # a run that recorded no fingerprints: the named rows, said to be unverified
+    rows, scope, verified = find_test_split(others, test_rows, None, "other")
+    assert rows == {0: (0, 300), 2: (100, 400)} and not verified and "not verified" in scope
+    # malformed records count as absent, never a traceback
+    for bad in ([1], {names[0]: "x"}, {names[0]: [0]}, {names[0]: [0.5, 3]}, {}, None):
+        rows, scope, _ = find_test_split(takes, bad, fps, "d")
+        assert rows is None and scope.startswith("every take of d"), bad
+
+
+def test_check_data_says_what_it_measured(dataset, root, tmp_path, capsys):
+    from tactile.device.recording import load_dataset
+    from tactile.training.train import CHECKPOINT
+
+    src, _, _, _, _ = _build("lstm1", GRID["lstm1"], dataset, root)
+    run = tmp_path / "run"
+    run.mkdir()
+    ck = torch.load(src / CHECKPOINT, weights_only=True)
+    by_name = {t.path.name: t for t in load_dataset(dataset)}
+    ck["test_fingerprints"] = {n: by_name[n].fingerprint() for n in ck["test_rows"]}
+    torch.save(ck, run / CHECKPOINT)  # what the training side records
+    out = tmp_path / "m.onnx"
+    export_run(run, out, log=lambda s: None)
+    assert check_main([str(out)]) == 0
+    text = capsys.readouterr().out
+    assert "test accuracy" not in text
+    assert re.search(r"training  accuracy \d\.\d{4} on \d+ windows of the run's test split "
+                     r"\(measured at training, in PyTorch\)", text), text
+    n_test = ck["metrics"]["windows"]
+    assert check_main([str(out), "--data", str(dataset)]) == 0
+    text = capsys.readouterr().out
+    assert f"measured on      the run's test split in {dataset.name}" in text
+    assert f": {n_test} windows" in text and "not comparable" not in text, text
+    other = tmp_path / "other"
+    make_dataset(other, takes=4, textures=("paper", "desk", "non_contact"), seconds=6, seed=9)
+    assert check_main([str(out), "--data", str(other)]) == 0
+    text = capsys.readouterr().out
+    assert "measured on      every take of other (12 takes;" in text
+    assert "hold other recordings" in text and "not comparable" in text, text
+
+
+def _probe_of(n_classes: int, takes_per_class: int, runs_per_take: int, run_len: int):
+    from tactile.export.windows import Probe
+
+    ys, tk, runs, n = [], [], [], 0
+    for c in range(n_classes):
+        for t in range(takes_per_class):
+            for _ in range(runs_per_take):
+                runs.append(np.arange(n, n + run_len))
+                n += run_len
+                ys += [c] * run_len
+                tk += [c * takes_per_class + t] * run_len
+    x = np.arange(n, dtype=np.float32)[:, None, None]  # each window holds its own index
+    return Probe(x, np.array(ys), runs, "file order", np.array(tk))
+
+
+@pytest.mark.parametrize("block", [1, 24])
+def test_parity_windows_are_a_stratified_seeded_sample(block):
+    """20 classes x 3 takes x 2 runs of 30 windows in file order: the first 256 were 5 classes.
+    The sample covers every class (equal shares to one window), at least one take per class
+    and, with 1-window blocks, every take; runs are consecutive windows of one original run;
+    the same input gives the same sample."""
+    from tactile.export.windows import stratified
+
+    p = _probe_of(20, 3, 2, 30)
+    q = stratified(p, 256, block)
+    counts = np.bincount(q.y, minlength=20)
+    assert len(q) == 256 and counts.min() >= 12 and counts.max() - counts.min() <= (
+        1 if block == 1 else 12), counts
+    assert len(np.unique(q.take)) == (60 if block == 1 else 22)
+    assert "stratified sample over 20 classes" in q.source
+    idx = q.x[:, 0, 0].astype(int)
+    assert len(set(idx)) == len(idx)
+    for r in q.runs:  # consecutive original windows of one original run
+        assert (np.diff(idx[r]) == 1).all() and len({i // 30 for i in idx[r]}) == 1
+    assert np.array_equal(stratified(p, 256, block).x, q.x)
+    assert np.array_equal(p.y[idx], q.y) and np.array_equal(p.take[idx], q.take)

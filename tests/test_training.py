@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import shutil
 
 import numpy as np
 import pytest
@@ -159,7 +160,7 @@ def test_eval_cli_json(trained, dataset, capsys):
     run, metrics = trained
     assert eval_main([str(run), str(dataset), "--json"]) == 0
     out = json.loads(capsys.readouterr().out)
-    assert out["scope"] == "the run's test split"
+    assert out["scope"].startswith("the run's test split") and "matched by content" in out["scope"]
     assert out["accuracy"] == pytest.approx(metrics["accuracy"])
     assert set(out["shifted"]) == {"-0.2s", "-0.1s", "+0.1s", "+0.2s", "mean"}
     # the majority vote per take, beside the window accuracy: one entry per test take
@@ -264,3 +265,21 @@ def test_refit_trains_on_train_and_validation_for_the_best_epoch_count(dataset, 
     m = train(dataset, tmp_path / "plateau", cfg.replace(refit="on", split="user",
                                                          schedule="plateau"), progress=False)
     assert len(seen) == 2 and m["refit_epochs"] == m["best_epoch"] + 1
+
+
+def test_eval_recognises_the_test_split_by_content_not_by_name(trained, dataset, tmp_path,
+                                                                capsys):
+    run, _ = trained
+    ck = torch.load(run / "checkpoint.pt", weights_only=True)
+    assert set(ck["test_fingerprints"]) == set(ck["test_rows"])
+    copy = tmp_path / "copy"
+    shutil.copytree(dataset, copy)
+    victim = copy / sorted(ck["test_rows"])[0]
+    lines = victim.read_text().splitlines(keepends=True)
+    row = lines[1].rstrip("\n").split(",")
+    row[2] = str(int(row[2]) + 1)  # one count of one sample: another recording, same name
+    lines[1] = ",".join(row) + "\n"
+    victim.write_text("".join(lines))
+    assert eval_main([str(run), str(copy), "--json"]) == 0
+    out = json.loads(capsys.readouterr().out)
+    assert out["scope"].startswith("every take") and victim.name in out["scope"]

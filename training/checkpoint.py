@@ -94,6 +94,10 @@ def check_checkpoint(ck: dict, path: Path) -> TrainConfig:
         ("center_index", _indices(ck.get("center_index"), n),
          f"a list of channel indices < {n}"),
         ("test_rows", _rows(ck.get("test_rows", {})), "a table of take name -> [first, end]"),
+        ("test_fingerprints", isinstance(ck.get("test_fingerprints", {}), dict) and all(
+            isinstance(k, str) and isinstance(v, str)
+            for k, v in ck.get("test_fingerprints", {}).items()),
+         "a table of take name -> fingerprint"),
         ("metrics", isinstance(ck.get("metrics", {}), dict), "a table"),
         ("state_dict", isinstance(ck.get("state_dict"), dict) and all(
             isinstance(k, str) and isinstance(v, torch.Tensor)

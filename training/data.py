@@ -223,3 +223,38 @@ def channel_stats(w: Windows) -> tuple[np.ndarray, np.ndarray]:
     mean, std = flat.mean(0), flat.std(0)
     std[std < 1e-8] = 1.0
     return mean.astype(np.float32), std.astype(np.float32)
+
+
+def find_test_split(takes: list[Take], test_rows: object, fingerprints: object,
+               folder: str) -> tuple[dict[int, tuple[int, int]] | None, str, bool]:
+    """Which rows of ``takes`` are a run's test split, recognised by content.
+
+    Args:
+        takes: the dataset's takes; test_rows: the run's ``{take file name: [start, end)}``;
+        fingerprints: its ``{take file name: Take.fingerprint()}`` (absent in runs trained before
+        they were recorded); both read defensively (anything malformed counts as absent).
+        folder: the dataset's name, for the description.
+
+    Returns:
+        rows: {take index: (start, end)}, or None for every row of every take.
+        scope: what the rows are, for people.
+        verified: True when every test take was found with the recorded fingerprint.
+    """
+    names = [t.path.name for t in takes]
+    rows_ok = isinstance(test_rows, dict) and test_rows and all(
+        isinstance(v, (list, tuple)) and len(v) == 2 and all(isinstance(i, int) for i in v)
+        for v in test_rows.values())
+    if not rows_ok or not all(n in names for n in test_rows):
+        return None, f"every take of {folder} ({len(takes)} takes)", False
+    rows = {names.index(n): (int(r[0]), int(r[1])) for n, r in test_rows.items()}
+    fps_ok = isinstance(fingerprints, dict) and all(
+        isinstance(fingerprints.get(n), str) for n in test_rows)
+    if not fps_ok:
+        return rows, (f"the takes of {folder} named like the run's test split ({len(rows)} takes; "
+                      "the run recorded no fingerprints, so their content is not verified)"), False
+    differ = [n for n in test_rows
+              if takes[names.index(n)].fingerprint() != fingerprints[n]]
+    if differ:
+        return None, (f"every take of {folder} ({len(takes)} takes; {len(differ)} named like "
+                      f"the run's test takes hold other recordings, e.g. {differ[0]})"), False
+    return rows, f"the run's test split in {folder} ({len(rows)} takes, matched by content)", True

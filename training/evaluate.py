@@ -24,7 +24,7 @@ from tactile.cli import Parser, add_debug, int_in, run
 from tactile.device.recording import load_dataset
 from tactile.errors import ConfigError, RecordingError
 from tactile.training.config import apply_threads, resolve_threads
-from tactile.training.data import Windows, cut
+from tactile.training.data import Windows, cut, find_test_split
 from tactile.training.model import TextureModel
 
 SHIFTS_S = (-0.2, -0.1, 0.1, 0.2)  # the "novel" set: windows moved by up to +/-0.2 s
@@ -160,14 +160,8 @@ def evaluate_run(run_dir: Path, data: Path, threads: int | None = None) -> dict:
     unknown = sorted({t.label for t in takes} - set(classes))
     if unknown:
         raise RecordingError(f"{data}: labels {unknown} are not among the model's {list(classes)}")
-    names = [t.path.name for t in takes]
-    test = {n: tuple(r) for n, r in ck["test_rows"].items()}
-    if test and all(n in names for n in test):
-        rows = {names.index(n): r for n, r in test.items()}
-        scope = "the run's test split"
-    else:
-        rows = None
-        scope = "every take in DATA"
+    rows, scope, _ = find_test_split(takes, ck.get("test_rows"), ck.get("test_fingerprints"),
+                                     str(data))
     channels = tuple(ck["channels"])
     rate = float(ck["sample_rate_hz"])
     w = cut(takes, classes, channels, cfg.window, cfg.hop, rows)

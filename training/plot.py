@@ -23,20 +23,31 @@ from tactile.device.recording import Take, load_dataset, read_take  # noqa: E402
 from tactile.errors import ConfigError  # noqa: E402
 from tactile.training.summary import summarise  # noqa: E402
 
+LEGEND_MAX = 8
+"""A panel with more channels than this names them in its label instead of a legend."""
+
+
+def panels(channels) -> dict[tuple[str, str], list[int]]:
+    """Channel indices grouped into panels by (name without its last ``_part``, unit): the pen's
+    pressure / accel / gyro, a BioTac finger's ``f0_pac_*`` / ``f0_ele_*`` / the rest."""
+    groups: dict[tuple[str, str], list[int]] = {}
+    for i, c in enumerate(channels):
+        groups.setdefault((c.name.rsplit("_", 1)[0], c.unit or "-"), []).append(i)
+    return groups
+
 
 def plot_take(take: Take, out: Path) -> None:
-    """One panel per unit (channels of one unit share it), time in seconds from the first
-    sample, every gap a red band over all panels; the title names the label and source."""
+    """One panel per group of channels (:func:`panels`), values in their units, time in seconds
+    from the first sample, every gap a red band over all panels; the title names the label and
+    source."""
     rate = take.info.sample_rate_hz
     t = (take.seq - take.seq[0]) / rate if len(take.seq) else np.zeros(0)
     values = take.values()
-    units: dict[str, list[int]] = {}
-    for i, c in enumerate(take.info.channels):
-        units.setdefault(c.unit or "-", []).append(i)
-    fig, axes = plt.subplots(len(units), 1, figsize=(10, 1.8 + 1.6 * len(units)), sharex=True,
-                             squeeze=False)
+    groups = panels(take.info.channels)
+    fig, axes = plt.subplots(len(groups), 1, figsize=(10, 1.8 + 1.6 * len(groups)),
+                             sharex=True, squeeze=False)
     segments = take.segments()
-    for ax, (unit, idx) in zip(axes[:, 0], units.items()):
+    for ax, ((_, unit), idx) in zip(axes[:, 0], groups.items()):
         for i in idx:
             y = values[:, i].astype(float).copy()
             ys = np.full(len(y) + len(segments), np.nan)  # NaN between segments: no line
@@ -48,8 +59,12 @@ def plot_take(take: Take, out: Path) -> None:
             ax.plot(ts, ys, lw=0.7, label=take.info.channels[i].name)
         for (_, b), (a, _) in zip(segments[:-1], segments[1:]):
             ax.axvspan(t[b - 1], t[a], color="red", alpha=0.25, lw=0)
-        ax.set_ylabel(unit)
-        ax.legend(loc="upper right", fontsize=7, ncol=min(len(idx), 4))
+        names = [take.info.channels[i].name for i in idx]
+        if len(idx) <= LEGEND_MAX:
+            ax.set_ylabel(unit)
+            ax.legend(loc="upper right", fontsize=7, ncol=min(len(idx), 4))
+        else:
+            ax.set_ylabel(f"{unit}\n{names[0]}..{names[-1]}", fontsize=7)
     axes[-1, 0].set_xlabel("time (s)")
     gaps = max(len(segments) - 1, 0)
     fig.suptitle(f"{take.path.name}: label {take.label!r}, source {take.meta.get('source', '')!r}"
@@ -96,6 +111,11 @@ def build_parser() -> argparse.ArgumentParser:
 def _main(args: argparse.Namespace) -> int:
     if args.out.is_dir() or not args.out.parent.is_dir():
         raise ConfigError(f"-o {args.out}: give an image file in a folder that exists")
+    kinds = plt.figure().canvas.get_supported_filetypes()
+    plt.close("all")
+    if args.out.suffix.lower().lstrip(".") not in kinds:
+        raise ConfigError(f"-o {args.out}: name an image file ending in .png, .svg or .pdf "
+                          f"(or any of {', '.join(sorted(kinds))})")
     if args.summary:
         plot_summary(args.source, args.out)
     else:

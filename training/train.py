@@ -565,6 +565,7 @@ def _write_run(out: Path, cfg: TrainConfig, model: TextureModel, metrics: dict, 
         "emd_index": norm["emd_index"],
         "center_index": norm["center_index"],
         "test_rows": {names[i]: list(r) for i, r in split.test.items()},
+        "test_fingerprints": {names[i]: takes[i].fingerprint() for i in split.test},
         "metrics": _plain(metrics),
         "state_dict": model.state_dict(),
     }

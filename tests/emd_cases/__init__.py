@@ -119,9 +119,9 @@ def compare(x, imfs, residue, n_valid, refs=None):
 def run_torch(x: np.ndarray, dtype=torch.float64, chunk: int | None = None):
     """Our EMD on (W, N) windows, one channel each; numpy outputs.
 
-    ``chunk``: windows per call (default: all at once). The spline solver follows the row
-    count (``spline.THOMAS_ROWS``), so chunks below it exercise PCR and large calls the Thomas
-    algorithm.
+    ``chunk``: windows per call (default: all at once). The sift's tensor layout follows the
+    row count (``spline.LARGE_ROWS``), so chunks below it exercise the few-row layout and large
+    calls the many-row one.
 
     Runs with one torch thread: on a busy 2-core machine, torch's default thread pool can be
     fifty times slower on these small kernels.

@@ -9,9 +9,10 @@ while a system is still coupled). onnxruntime runs the ~200-node sift body up to
 instead of holding 40 unrolled copies: the file stays small and session creation fast. The
 sift loop stops as soon as no row is active (a stopped row is left unchanged, so the skipped
 sifts would change nothing). An ``If`` on the row count picks one of two such loop nests:
-below :data:`spline.THOMAS_ROWS` rows the sift solves its spline systems by PCR, from there on
-by the Thomas algorithm (and lays out the boundary rule and the envelope sum for large
-tensors), as :func:`spline.solve` chooses in torch. The same torch functions run in eager
+from :data:`spline.LARGE_ROWS` rows on, the sift lays out the end extrema, the boundary rule and
+the envelope sum for large tensors, as :func:`sift.prepare` and :func:`sift.finish` choose in
+torch; both solve the spline systems by the same PCR steps, so a row's result does not depend
+on the batch. The same torch functions run in eager
 mode, so the graph computes exactly what :func:`decompose.decompose` computes.
 
 Graph contract: input ``x_in`` (batch, channels, time) float32/float64 with a dynamic batch axis;
@@ -43,14 +44,12 @@ from .knots import end_base, n_slots, slot_base
 from .module import EMDConfig
 from .sift import finish, prepare
 from .spline import (
-    SPLINE_EDGES,
-    THOMAS_ROWS,
+    LARGE_ROWS,
     decoupled_after,
     pcr_last,
     pcr_rows,
     pcr_step,
     pcr_steps,
-    thomas_solve,
 )
 
 OPSET = 18
@@ -358,21 +357,21 @@ def _sift_graph(
     Differences; an ``If`` choosing the extremum rule; knots and spline system with the first
     :data:`PCR_ALWAYS` solver steps; nested ``If`` nodes for the remaining steps, each taking
     the solution as it stands once every system is decoupled; envelopes and the update.
-    With ``large``, the body for :data:`spline.THOMAS_ROWS` rows or more: the Thomas algorithm
-    instead of PCR, no ``If`` around it, and its subgraphs' names end in ``_large``.
+    With ``large``, the body for :data:`spline.LARGE_ROWS` rows or more: the many-row layouts
+    of :func:`sift.prepare` and :func:`sift.finish` (the same arithmetic), and its subgraphs'
+    names end in ``_large``.
     Loop-carried names: ``s_h``, ``s_a`` in, ``s_h_out``, ``s_a_out`` out.
     """
     suffix = "_large" if large else ""
     k = n_slots(n_time)
     steps = pcr_steps(k)
-    always = 0 if large else min(PCR_ALWAYS, steps - 1)
+    always = min(PCR_ALWAYS, steps - 1)
     sg = signs(h)
     marks = strict_marks(sg)
     base = slot_base(h)
     sys, xy, j1, ks, n_ext, hk, sl = prepare(h, marks, base)
     m = sys[2:3]
-    if not large:
-        sys = pcr_rows(sys)  # the example the PCR steps are traced on
+    sys = pcr_rows(sys)  # the example the PCR steps are traced on
     r1 = {1: "rows"}
     r2 = {2: "rows"}
 
@@ -380,14 +379,13 @@ def _sift_graph(
         # made: slot_base's four tensors, then (small body) the end samples for TopK.
         ends = None if large else made[4]
         sys, *rest = prepare(h, marks, made[:4], ends=ends, large=large)
-        if not large:
-            sys = pcr_rows(sys)
+        sys = pcr_rows(sys)
         for step in range(always):
             sys = pcr_step(sys, 1 << step)
-        done = [] if large else [decoupled_after(rest[1], step) for step in range(always, steps)]
+        done = [decoupled_after(rest[1], step) for step in range(always, steps)]
         return (sys, *rest, *done)
 
-    done_names = [] if large else [f"done{s}" for s in range(always, steps)]
+    done_names = [f"done{s}" for s in range(always, steps)]
     head = trace_graph(_head, [h], ["h"], ["sg", "tie"], {"h": rows, "sg": rows})
     strict = trace_graph(strict_marks, [sg], ["sg"], ["marks"], {"sg": rows, "marks": r1})
     plateau = trace_graph(plateau_marks, [sg], ["sg"], ["marks"], {"sg": rows, "marks": r1})
@@ -402,19 +400,18 @@ def _sift_graph(
         {"h": rows, "marks": r1, "low": r2, "dummies": r2, "slots": r1, "cands": r1, "ends": r1,
          "sys": r2, "xy": r2, "j1": r1, "ks": r1, "n_ext": {0: "rows"}, "hk": r2, "sl": r2},
     )
-    if not large:
-        solved = trace_graph(lambda sys: sys[2:3], [sys], ["sys"], ["m"], {"sys": r2, "m": r2})
-        step_models = {
-            s: trace_graph(
-                lambda sys, st=1 << s: pcr_step(sys, st),
-                [sys], ["sys"], ["out"], {"sys": r2, "out": r2},
-            )
-            for s in range(always, steps - 1)
-        }
-        last = trace_graph(
-            lambda sys: pcr_last(sys, 1 << (steps - 1)), [sys], ["sys"], ["m"],
-            {"sys": r2, "m": r2},
+    solved = trace_graph(lambda sys: sys[2:3], [sys], ["sys"], ["m"], {"sys": r2, "m": r2})
+    step_models = {
+        s: trace_graph(
+            lambda sys, st=1 << s: pcr_step(sys, st),
+            [sys], ["sys"], ["out"], {"sys": r2, "out": r2},
         )
+        for s in range(always, steps - 1)
+    }
+    last = trace_graph(
+        lambda sys: pcr_last(sys, 1 << (steps - 1)), [sys], ["sys"], ["m"],
+        {"sys": r2, "m": r2},
+    )
     tail = trace_graph(
         lambda *args: _finish_sift(*args, large=large),
         [h, act, xy, m, j1, ks, n_ext, hk, sl],
@@ -457,7 +454,7 @@ def _sift_graph(
         sys_name = f"s_sys{step}"
         done = helper.make_graph(
             add(solved, f"solved{step}/", {"sys": sys_name, "m": f"solved{step}/m"}),
-            f"solved{step}", [], [_t(f"solved{step}/m", elem, m_info)],
+            f"solved{step}{suffix}", [], [_t(f"solved{step}/m", elem, m_info)],
         )
         if step == steps - 1:
             more = add(last, "last/", {"sys": sys_name, "m": "last/m"})
@@ -467,21 +464,15 @@ def _sift_graph(
             more = add(step_models[step], f"step{step}/", rename)
             more_out = f"m{step + 1}"
             more += solve_from(step + 1, more_out)
-        go_on = helper.make_graph(more, f"step{step}", [], [_t(more_out, elem, m_info)])
+        go_on = helper.make_graph(more, f"step{step}{suffix}", [],
+                                  [_t(more_out, elem, m_info)])
         return [
             helper.make_node(
                 "If", [f"s_done{step}"], [out], then_branch=done, else_branch=go_on
             )
         ]
 
-    if large:
-        thomas = trace_graph(
-            lambda sys: thomas_solve(sys, *SPLINE_EDGES), [sys], ["sys"], ["m"],
-            {"sys": r2, "m": r2},
-        )
-        nodes += add(thomas, "thomas/", {"sys": "s_sys0", "m": "s_m"})
-    else:
-        nodes += solve_from(always, "s_m")
+    nodes += solve_from(always, "s_m")
     nodes += add(
         tail,
         "sift/",
@@ -527,13 +518,13 @@ def build_emd_model(
     n_channels: int,
     n_time: int,
     dtype: torch.dtype = torch.float32,
-    thomas_rows: int = THOMAS_ROWS,
+    large_rows: int = LARGE_ROWS,
 ) -> onnx.ModelProto:
     """The EMD graph for windows of ``n_channels`` x ``n_time`` (dynamic batch).
 
-    From ``thomas_rows`` rows (batch x channels) on, the graph solves the spline systems by the
-    Thomas algorithm, below by PCR, as :func:`spline.solve` does at its default; another value
-    only serves to benchmark the two (``bench/emd.py --solvers``).
+    From ``large_rows`` rows (batch x channels) on, the sift body lays its tensors out for many
+    rows, as :func:`sift.prepare` does at its default; another value only serves to benchmark
+    the two layouts (``bench/emd.py --layouts``). The results are the same bits either way.
     """
     EMDConfig(n_imfs=n_imfs, n_sifts=n_sifts)  # validates
     if n_time < 3:
@@ -625,12 +616,12 @@ def build_emd_model(
              ("i_nv", TensorProto.INT64, ["rows", 1])],
             scans=[("i_imf", elem, ["rows", n_time])],
         )
-        # Outer loop: one IMF per iteration, inside one branch of the solver choice.
+        # Outer loop: one IMF per iteration, inside one branch of the layout choice.
         outs = [f"{v}{suffix or '_small'}" for v in loop_outs]
         branches[large] = helper.make_graph(
             [helper.make_node("Loop", ["n_imfs", "", "acc0", "alive0", "nv0"], outs,
                               body=imf_graph)],
-            "solver" + (suffix or "_small"),
+            "layout" + (suffix or "_small"),
             [],
             [_t(o, e, sh) for o, e, sh in zip(outs, loop_types, loop_shapes)],
         )
@@ -657,16 +648,16 @@ def build_emd_model(
     inits += i_inits + f_inits
     inits.append(helper.make_tensor("n_imfs", TensorProto.INT64, [], [n_imfs]))
     inits.append(helper.make_tensor("n_sifts", TensorProto.INT64, [], [n_sifts]))
-    inits.append(helper.make_tensor("thomas_rows", TensorProto.INT64, [], [thomas_rows]))
+    inits.append(helper.make_tensor("large_rows", TensorProto.INT64, [], [large_rows]))
     inits.append(helper.make_tensor("row_axis", TensorProto.INT64, [], [0]))
     main_nodes = [
         *i_nodes,
-        # The solver follows the row count, as spline.solve does in torch.
+        # The layout follows the row count, as sift.prepare and sift.finish choose in torch.
         helper.make_node("Shape", ["x"], ["x_shape"]),
         helper.make_node("Gather", ["x_shape", "row_axis"], ["n_rows"], axis=0),
-        helper.make_node("GreaterOrEqual", ["n_rows", "thomas_rows"], ["use_thomas"]),
+        helper.make_node("GreaterOrEqual", ["n_rows", "large_rows"], ["use_large"]),
         helper.make_node(
-            "If", ["use_thomas"], loop_outs, then_branch=branches[True],
+            "If", ["use_large"], loop_outs, then_branch=branches[True],
             else_branch=branches[False],
         ),
         *f_nodes,
@@ -721,18 +712,20 @@ def subgraph_nodes(graph: onnx.GraphProto) -> dict[str, int]:
     return {name: len(g.node) for name, g in subgraphs(graph).items()}
 
 
-def sift_path_nodes(model: onnx.ModelProto, n_time: int) -> tuple[int, int]:
-    """Nodes one sift runs on input without ties: (fewest, most).
+def sift_path_nodes(model: onnx.ModelProto, n_time: int, large: bool = False) -> tuple[int, int]:
+    """Nodes one sift runs on input without ties: (fewest, most); ``large``: in the body for
+    :data:`spline.LARGE_ROWS` rows or more.
 
     Fewest: the loop body, the strict extremum branch and the solution taken after the
     :data:`PCR_ALWAYS` steps; most: every remaining PCR step as well.
     """
     graphs = subgraph_nodes(model.graph)
+    suffix = "_large" if large else ""
     steps = pcr_steps(n_slots(n_time))
     always = min(PCR_ALWAYS, steps - 1)
-    base = graphs["sift"] + graphs["strict"]
-    later = sum(graphs[f"step{s}"] for s in range(always, steps))
-    return base + graphs[f"solved{always}"], base + later
+    base = graphs["sift" + suffix] + graphs["strict" + suffix]
+    later = sum(graphs[f"step{s}{suffix}"] for s in range(always, steps))
+    return base + graphs[f"solved{always}{suffix}"], base + later
 
 
 def count_nodes(graph: onnx.GraphProto) -> int:

@@ -20,7 +20,7 @@ from .knots import (
     slot_base,
 )
 from .sift import finish
-from .spline import SPLINE_EDGES, pcr_solve, spacings, spline_system, thomas_solve
+from .spline import pcr_solve, spacings, spline_system
 
 
 def piece_examples(
@@ -58,7 +58,6 @@ def piece_examples(
         "spacings": (lambda xy: spacings(xy, past_dummies(n_time)), (xy,)),
         "system": (spline_system, (xy, j1, hk, sl)),
         "solve": (pcr_solve, (system,)),
-        "thomas": (lambda system: thomas_solve(system, *SPLINE_EDGES), (system,)),
         "segment": (segment_index, (ks, j1)),
         "evaluate": (evaluate, (h, xy, m, seg, hk, sl)),
         "finish": (finish, (h, active, xy, m, j1, ks, n_ext, hk, sl)),

@@ -1,8 +1,9 @@
 """One sift: subtract the mean of the upper and lower envelopes (EMD_SPEC §1.3, §4.1-4.8).
 
 A sift is three stages, so that the exported graph can put the spline solve's later steps in
-``If`` nodes: :func:`prepare` (extrema to the spline system), :func:`spline.solve` (PCR, or
-the Thomas algorithm for large batches), and :func:`finish` (envelopes and the update).
+``If`` nodes: :func:`prepare` (extrema to the spline system), :func:`spline.solve` (PCR),
+and :func:`finish` (envelopes and the update). Large batches lay some tensors out differently
+(``large``), with the same arithmetic: a row's result does not depend on the batch.
 """
 
 from __future__ import annotations
@@ -34,7 +35,7 @@ def prepare(
             (:func:`knots.end_extrema`, where onnxruntime's ``TopK`` is the slower) and the
             boundary rule with the row axis last (:func:`boundary.boundary_knots`); otherwise
             :func:`knots.end_extrema_topk` and the row-first layout. The same knots either way.
-            By default from :data:`spline.THOMAS_ROWS` rows on, as the exported graph chooses.
+            By default from :data:`spline.LARGE_ROWS` rows on, as the exported graph chooses.
 
     Returns:
         sys: (3, 2, R, K) the unit-diagonal system (:func:`spline.spline_system`).
@@ -68,7 +69,7 @@ def finish(
     """Evaluate the envelopes and subtract their mean (the arguments as :func:`prepare` gives
     them, ``m`` (1, 2, R, K) from :func:`spline.solve`); returns as :func:`sift`.
 
-    ``large`` (by default from :data:`spline.THOMAS_ROWS` rows on, as in :func:`prepare`) adds
+    ``large`` (by default from :data:`spline.LARGE_ROWS` rows on, as in :func:`prepare`) adds
     the two half envelopes as two tensors instead of reducing over their axis: the same single
     addition, so the same bits. onnxruntime's reduction over a leading axis costs about 1 ns an
     element, seven times the split and the addition; with few rows the one reduction node is

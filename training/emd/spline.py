@@ -183,73 +183,28 @@ def pcr_solve(sys: Tensor, j1: Tensor | None = None) -> Tensor:
     raise AssertionError("unreachable: pcr_steps() >= 1")
 
 
-THOMAS_ROWS = 64
-"""Rows (windows x channels) from which :func:`solve` uses :func:`thomas_solve`.
+LARGE_ROWS = 64
+"""Rows (windows x channels) from which a sift lays its tensors out for many rows.
 
-The two solvers trade differently in onnxruntime: PCR is at most 67 nodes (five steps of 13 or
-14 and the diagonal's row) on full-width tensors (fewer once the systems decouple), the Thomas
-algorithm about ``8 K`` nodes on one column each. With few rows every node costs about the same
-fixed microsecond, so fewer nodes win; with many rows the work per element decides, and the
-Thomas algorithm does ``O(K)`` of it against PCR's ``O(K log K)``. ``bench/emd.py --solvers``
-measures the crossover for 50-sample windows (32-48 rows with fresh sessions, where the two
-exported bodies also differ in how they find the end extrema; 64 costs a few percent in
-between).
+:func:`sift.prepare` then finds the end extrema by running count instead of ``TopK`` and runs
+the boundary rule with the row axis last, and :func:`sift.finish` adds the two half envelopes
+as two tensors; the arithmetic is the same, so the bits are (``tests/test_emd.py`` checks the
+decomposition at 1 to 512 windows). onnxruntime runs these layouts faster with many rows and the
+default one faster with few. The spline solver is the same at every size: a window's result
+must not depend on what else is in its batch, and the Thomas algorithm, although faster from
+about 32 rows on, rounds differently from PCR, which moved extrema on near-tied samples.
 """
 
 
 def large_path(rows: int) -> bool:
-    """True from :data:`THOMAS_ROWS` rows on: the one rule by which :func:`solve`,
-    :func:`sift.prepare` and :func:`sift.finish` pick their many-row path, as the exported
-    graph's ``If`` on the row count does."""
-    return rows >= THOMAS_ROWS
-
-
-SPLINE_EDGES = (2, 2)
-"""Identity rows every spline system has at its two ends (:func:`spline_system` with
-:mod:`knots`' layout): the placeholder's and the first knot's rows; the always-dummy last slot's
-and the one before, which is a dummy's or the last knot's (at most ``K - 2`` knots)."""
-
-
-def thomas_solve(sys: Tensor, lead: int = 0, trail: int = 0) -> Tensor:
-    """Solve unit-diagonal tridiagonal systems by the Thomas algorithm (no pivoting).
-
-    Args:
-        sys: (3, ..., K) sub-diagonal ``a``, super-diagonal ``c`` and right-hand side ``r``, as
-            for :func:`pcr_solve` (``a[..., 0] = c[..., K-1] = 0``, strictly diagonally
-            dominant: ``|a| + |c| < 1``). Then the elimination is stable: by induction every
-            ``|c'| < 1``, so every pivot exceeds ``1 - |a| > |c| >= 0``.
-        lead, trail: the first ``lead`` and the last ``trail`` rows are identity rows
-            (``a = c = r = 0``) in every system, as :data:`SPLINE_EDGES` are for the spline
-            systems: the sweeps skip them (their ``r``, 0, is the solution), with the same
-            result as sweeping them, bit for bit.
-
-    Returns:
-        (1, ..., K) solution. Identity rows (``a = c = r = 0``) get exactly 0, as from PCR; real
-        rows agree with :func:`pcr_solve` to rounding (both are exact elimination orders).
-
-    Forward sweep: ``c'[j] = c[j] / p[j]`` and ``r'[j] = (r[j] - a[j] r'[j-1]) / p[j]`` with
-    pivot ``p[j] = 1 - a[j] c'[j-1]``; back substitution: ``x[j] = r'[j] - c'[j] x[j+1]``. The
-    columns are split once, so each step is a few elementwise nodes on (1, ..., 1) tensors.
-    """
-    a, c, r = sys.split(1)  # (1, ..., K) each
-    cols_a, cols_c, cols_r = (t.split(1, dim=-1) for t in (a, c, r))  # K x (1, ..., 1)
-    end = len(cols_a) - trail
-    # The first swept row has pivot 1: a[0] = 0, or the row before is an identity row.
-    cp, rp = [cols_c[lead]], [cols_r[lead]]
-    for j in range(lead + 1, end):
-        pivot = 1.0 - cols_a[j] * cp[-1]
-        cp.append(cols_c[j] / pivot)
-        rp.append((cols_r[j] - cols_a[j] * rp[-1]) / pivot)
-    x = [rp[-1]]  # the row after the last swept one is an identity row (or there is none)
-    for j in range(len(rp) - 2, -1, -1):
-        x.append(rp[j] - cp[j] * x[-1])
-    return torch.cat([*cols_r[:lead], *x[::-1], *cols_r[end:]], dim=-1)
+    """True from :data:`LARGE_ROWS` rows on: the one rule by which :func:`sift.prepare` and
+    :func:`sift.finish` pick their many-row layout, as the exported graph's ``If`` on the row
+    count does."""
+    return rows >= LARGE_ROWS
 
 
 def solve(sys: Tensor, j1: Tensor | None = None) -> Tensor:
-    """The spline system's solution, (3, 2, R, K) -> (1, 2, R, K): :func:`thomas_solve` from
-    :data:`THOMAS_ROWS` rows on, :func:`pcr_solve` below (the exported graph makes the same
-    choice, so onnxruntime and the torch module run the same arithmetic)."""
-    if large_path(int(sys.shape[2])):
-        return thomas_solve(sys, *SPLINE_EDGES)
+    """The spline system's solution, (3, 2, R, K) -> (1, 2, R, K), by :func:`pcr_solve` at
+    every batch size (the exported graph runs the same steps, so onnxruntime and the torch
+    module run the same arithmetic, and a row's result does not depend on the other rows)."""
     return pcr_solve(sys, j1)
