@@ -33,9 +33,9 @@ import onnxruntime as ort
 import torch
 from sklearn.decomposition import MiniBatchDictionaryLearning
 from sklearn.decomposition import SparseCoder as SkSparseCoder
-from sklearn.linear_model import orthogonal_mp_gram
 
 from tactile.training.sparse import SparseCoder, default_n_nonzero
+from tactile.training.sparse_check import compare
 
 SIZES = (("vibration", 176, 200), ("pressure", 25, 100), ("electrodes", 95, 100))
 
@@ -105,35 +105,6 @@ def bench_size(name: str, features: int, atoms: int, n: int, repeats: int) -> li
     return rows
 
 
-def sklearn_order(d: np.ndarray, x: np.ndarray, n: int) -> list[int]:
-    gram = (d @ d.T).astype(x.dtype)
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore")
-        path = orthogonal_mp_gram(gram, d @ x, n_nonzero_coefs=n, return_path=True)
-    path = path.reshape(len(d), -1)
-    order: list[int] = []
-    for s in range(path.shape[1]):
-        order += [int(a) for a in np.flatnonzero(path[:, s]) if a not in order]
-    return order
-
-
-def tie_gap(d: np.ndarray, x: np.ndarray, order: list[int], other: set[int]) -> float:
-    d64, x64 = d.astype(np.float64), x.astype(np.float64)
-    for s, atom in enumerate(order):
-        if atom in other:
-            continue
-        chosen = order[:s]
-        resid = x64
-        if chosen:
-            sub = d64[chosen]
-            resid = x64 - sub.T @ np.linalg.lstsq(sub.T, x64, rcond=None)[0]
-        corr = np.abs(d64 @ resid)
-        rivals = [c for c in other if c not in chosen]
-        return float((corr[atom] - max(corr[c] for c in rivals)) / corr.max()) if rivals \
-            else float("inf")
-    return float("inf")
-
-
 def parity() -> list[str]:
     rows = []
     totals = {"torch": [0, 0, 0.0, []], "onnxruntime": [0, 0, 0.0, []]}
@@ -159,17 +130,12 @@ def parity() -> list[str]:
                         outs = {"torch": coder(torch.from_numpy(x)).numpy(),
                                 "onnxruntime": session(coder.to_onnx()).run(None, {"x": x})[0]}
                     for impl, got in outs.items():
-                        same = ((ref != 0) == (got != 0)).all(1)
-                        rel = np.abs(ref - got).max(1) / np.linalg.norm(ref, axis=1)
-                        t = totals[impl]
-                        t[0] += int(same.sum())
-                        t[1] += len(same)
-                        t[2] = max(t[2], float(rel[same].max()))
-                        for i in np.flatnonzero(~same):
-                            gap = tie_gap(d, x[i], sklearn_order(d, x[i], n),
-                                          set(np.flatnonzero(got[i])))
-                            t[3].append(f"{kind} {k} atoms x {f} features, {n} non-zeros: "
-                                        f"gap {gap:.1e}")
+                        stats, t = compare(ref, got, d, x, n), totals[impl]
+                        t[0] += stats["same"]
+                        t[1] += stats["windows"]
+                        t[2] = max(t[2], stats["max_rel"])
+                        t[3] += [f"{kind} {k} atoms x {f} features, {n} non-zeros: "
+                                 f"gap {gap:.1e}" for gap in stats["gaps"]]
     for impl, (agree, total, worst, ties) in totals.items():
         rows.append(f"{impl}: same atoms on {agree}/{total} windows ({agree / total:.3%}); "
                     f"max |diff| / ||code|| where they agree {worst:.1e}; "

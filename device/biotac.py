@@ -21,7 +21,8 @@ Every input is checked before anything is written: a file that is not HDF5, a tr
 name or datasets are not as above, lengths that disagree, values that are not 12-bit counts, or
 a trial given twice, is one line naming the file and the dataset, exit code 1. A take of the
 same name already in the output folder is refused too (importing twice would duplicate data),
-or replaced with ``--force``.
+or replaced with ``--force``: the old takes are deleted only once every input has passed its
+checks, so a bad input leaves them as they were.
 """
 
 from __future__ import annotations
@@ -38,7 +39,7 @@ import numpy as np
 
 from tactile.cli import Parser, add_debug, run
 from tactile.device.info import ChannelSpec, DeviceInfo
-from tactile.device.recording import TakeWriter, dataset_folder, replace_takes
+from tactile.device.recording import TakeWriter, check_label, dataset_folder, replace_takes
 from tactile.errors import RecordingError
 
 RATE_HZ = 100.0
@@ -84,6 +85,8 @@ class Trial:
 
 
 def _open(path: Path) -> h5py.File:
+    if path.is_dir():
+        raise RecordingError(f"{path}: a folder; give the .h5 files (e.g. {path / '*.h5'})")
     if not path.is_file():
         raise RecordingError(f"{path}: no such file")
     try:
@@ -102,6 +105,10 @@ def _trials(path: Path, f: h5py.File) -> list[Trial]:
         if m is None:
             raise RecordingError(f"{path}: group {name!r} is not named "
                                  "<object>_pdc<setting>_<depth>_<repetition>")
+        try:
+            check_label(m["object"])
+        except RecordingError as e:
+            raise RecordingError(f"{path}: group {name!r}: {e}") from None
         out.append(Trial(path, name, m["object"], int(m["pdc"]), m["depth"], int(m["rep"])))
     if not out:
         raise RecordingError(f"{path}: no trial groups")
@@ -178,6 +185,7 @@ def import_biotac(files: list[Path], out: Path, force: bool = False) -> list[Pat
             seen[t.group] = t.file
         for t in trials:  # check every trial (no data kept) before writing any
             read_trial(handles[t.file], t)
+        # every input is valid: only now may --force delete the takes these replace
         out = dataset_folder(out)
         replace_takes(out, [t.group for t in trials], force)
         info = DeviceInfo(RATE_HZ, channels(), device="biotac-bolt")

@@ -6,37 +6,49 @@ with whatever bytes arrived and get back a list of events in stream order. It
 * recognises binary frames (``device/PROTOCOL.md``) or CSV lines automatically;
 * never raises on bad bytes: garbage, CRC failures and malformed frames are skipped and counted;
 * resynchronises within one frame: a frame whose leading delimiter was lost, or that has garbage
-  glued in front of it, is still recovered (see :func:`_valid_suffix_starts`);
+  glued in front of it, is still recovered (see :func:`tactile.device.protocol.find_frame`);
+* costs O(n) for n bytes whatever they are, split into reads of any size;
 * never invents or reorders samples: duplicates are dropped, overlaps trimmed, gaps reported with
   their size, and a device restart is reported as a gap;
+* refuses a header of a protocol version it does not read, and the samples that follow it;
 * keeps a bounded buffer (at most one maximal frame plus one read).
+
+The rules are those of ``device/PROTOCOL.md`` ("What a receiver does").
 """
 
 from __future__ import annotations
 
 import math
 import re
+from collections import deque
 from dataclasses import dataclass, field
 from typing import Literal
 
 import numpy as np
 
-from tactile.device.info import FLOAT32_MAX, ChannelSpec, DeviceInfo
+from tactile.device.info import FLOAT32_MAX, MAX_CHANNELS, MAX_NAME, ChannelSpec, DeviceInfo
 from tactile.device.protocol import (
     MAX_ENCODED,
+    MIN_ENCODED,
     SEQ_MODULO,
+    SUPPORTED_VERSIONS,
     HeaderFrame,
     SamplesFrame,
-    cobs_decode,
-    crc16,
-    parse_body,
+    find_frame,
 )
 from tactile.errors import ConfigError
 
 MAX_CSV_LINE = 4096  # bytes; a longer line without a newline is discarded
 AUTO_PENDING = 8192  # bytes held while the decoder is still deciding binary vs CSV
+CSV_AGREE = 3  # readable CSV lines of one width in a row that decide the stream's width
+CSV_HOLD = 64  # lines held at most while the CSV width is undecided
+REPLAY_WINDOW = 4096  # delivered samples remembered to recognise a re-sent frame
 _HALF = SEQ_MODULO // 2
-_NAME = re.compile(r"^[A-Za-z_][A-Za-z0-9_./\-]*$")
+_MIN_PERIOD_US, _MAX_PERIOD_US = 1, 1_000_000  # sample rates from 1 MHz down to 1 Hz
+_NAME = re.compile(r"[A-Za-z_][A-Za-z0-9_./\-]*")
+# Plain decimal numbers as a board prints them: sign, digits, point, exponent. Nothing else
+# (no "1_0", "0x10", "inf", "nan", non-ASCII digits).
+_NUMBER = re.compile(r"[+-]?(?:[0-9]+(?:\.[0-9]*)?|\.[0-9]+)(?:[eE][+-]?[0-9]+)?")
 
 Mode = Literal["auto", "binary", "csv"]
 
@@ -70,13 +82,17 @@ class Gap:
     """Samples that should have come before ``seq`` and did not.
 
     ``reason`` is ``"drop"`` (the device's sequence jumped: ``missing`` samples lost),
-    ``"restart"`` (the device's sequence went back: it rebooted; ``missing`` is unknown, 0) or
-    ``"rejected"`` (``missing`` CSV rows were unreadable). No window may span a gap.
+    ``"restart"`` (the device rebooted, or the link was re-opened; ``missing`` is unknown, 0),
+    ``"rejected"`` (``missing`` CSV rows were unreadable) or ``"unsupported"`` (the device sent a
+    header of a protocol version this decoder does not read: its samples are dropped until a
+    header it reads; ``missing`` is 0, the samples refused show as a ``drop`` gap when samples
+    resume). No window may span a gap. ``detail`` says more, for people (may be empty).
     """
 
     seq: int
     missing: int
     reason: str
+    detail: str = ""
 
 
 Event = Samples | Header | Gap
@@ -91,10 +107,13 @@ class DecoderStats:
     samples: int = 0  # samples delivered
     header_frames: int = 0
     header_changes: int = 0
-    crc_errors: int = 0  # chunks that unstuffed cleanly but failed the CRC
+    crc_errors: int = 0  # chunks with the structure of a frame whose CRC failed
     malformed: int = 0  # chunks that are not valid COBS, or frames with an invalid structure
     bytes_discarded: int = 0  # bytes that belonged to no good frame or row
     duplicates: int = 0  # frames dropped because their samples were already delivered
+    late: int = 0  # frames dropped because their samples had been reported lost (a drop gap)
+    unsupported: int = 0  # header frames of a protocol version this decoder does not read
+    refused: int = 0  # samples frames dropped because their device's header was refused
     gaps: int = 0
     samples_lost: int = 0
     restarts: int = 0
@@ -109,24 +128,7 @@ class DecoderStats:
 
     @property
     def errors(self) -> int:
-        return self.crc_errors + self.malformed + self.csv_rejected
-
-
-def _valid_suffix_starts(chunk: bytes) -> list[int]:
-    """Offsets ``i > 0`` where ``chunk[i:]`` is a well-formed COBS encoding, ascending.
-
-    A COBS encoding is a chain of code bytes, each pointing at the next, that lands exactly on the
-    end. Computed right to left in one pass, so trying every possible frame start after a
-    corruption costs one CRC per candidate, not one decode per byte.
-    """
-    n = len(chunk)
-    ok = bytearray(n + 1)
-    ok[n] = 1
-    for i in range(n - 1, 0, -1):
-        j = i + chunk[i]
-        if chunk[i] and j <= n and ok[j]:
-            ok[i] = 1
-    return [i for i in range(1, n - 2) if ok[i]]
+        return self.crc_errors + self.malformed + self.csv_rejected + self.unsupported
 
 
 class StreamDecoder:
@@ -134,48 +136,71 @@ class StreamDecoder:
 
     Args:
         mode: ``"auto"`` (default: decide from the bytes), ``"binary"`` or ``"csv"``.
-        csv_rate_hz: sample rate assumed for CSV streams (they carry none).
-        replay_window: a sequence number that goes back by at most this many samples is a
-            duplicate (dropped); further back means the device restarted.
+        csv_rate_hz: sample rate assumed for CSV streams (they carry none), in (0, 1e6].
+        replay_window: how many delivered samples are remembered to recognise a re-sent frame
+            by its contents (a frame going back that matches them is a duplicate, one that
+            contradicts them means the device restarted).
+        line_start: the first byte fed begins a line (a file). A port opened on a running
+            device begins anywhere, so by default a first CSV line that is a row is not taken
+            as data: its first number may be cut (a names line is taken).
     """
 
     def __init__(
-        self, mode: Mode = "auto", csv_rate_hz: float = 100.0, replay_window: int = 256
+        self, mode: Mode = "auto", csv_rate_hz: float = 100.0,
+        replay_window: int = REPLAY_WINDOW, line_start: bool = False,
     ) -> None:
         if mode not in ("auto", "binary", "csv"):
             raise ConfigError(f"decoder mode {mode!r}: must be one of auto, binary, csv")
-        if not (math.isfinite(csv_rate_hz) and csv_rate_hz > 0):
-            raise ConfigError(f"csv rate {csv_rate_hz!r} Hz: must be a positive number")
+        if not (math.isfinite(csv_rate_hz) and 0 < csv_rate_hz <= 1e6):
+            raise ConfigError(f"csv rate {csv_rate_hz!r} Hz: must be a number in (0, 1e6]")
         self.mode: Mode = mode
         self.csv_rate_hz = float(csv_rate_hz)
         self.replay_window = int(replay_window)
         self.stats = DecoderStats()
         self.info: DeviceInfo | None = None
         self._buf = bytearray()
-        # sequence state: next expected device seq (u32) and host seq (unbounded int)
+        self._scan = 0  # bytes of _buf already searched for a delimiter
+        self._line_partial = not line_start  # the first line in _buf may be cut: not data
+        # auto mode: how far the held bytes were examined
+        self._det_chunk = 0
+        self._det_line = 0
+        self._det_prev: int | None = None  # width of the previous readable CSV line
+        # binary sequence state: next expected device seq (u32 and unwrapped), host seq
         self._dev_next: int | None = None
+        self._dev_next_u = 0
+        self._session_first_u = 0  # unwrapped device seq of the first frame since a restart
         self._host_next = 0
-        self._t_last: int | None = None  # last device time seen, u32
-        self._t_host = 0  # unwrapped device time of the last frame
+        self._t_last: int | None = None  # device time of the last delivered frame, u32
+        self._t_host = 0  # unwrapped device time of the last delivered frame
         self._restart_pending = False  # set by reconnected()
+        self._header_since_samples = False
+        self._history: deque[tuple[int, int, np.ndarray]] = deque()  # (seq_u, t_us, raw)
+        self._history_n = 0
+        self._frame_width: int | None = None  # before any header: the first frame's width
+        self._refusing = False  # the last header was of a version we do not read
         # csv state
+        self._csv_width: int | None = None
+        self._csv_held: list = []  # (kind, nbytes) while the width is undecided
+        self._csv_run = (0, 0)  # (width, readable lines of that width in a row)
         self._csv_names: tuple[str, ...] | None = None
         self._csv_rejected_run = 0
 
     # -- public ------------------------------------------------------------------------------------
 
     def feed(self, data: bytes) -> list[Event]:
-        """Consume ``data`` (any length, any split) and return the events it completes."""
+        """Consume ``data`` (any length, any split) and return the events it completes.
+
+        Never raises on any bytes: what cannot be used is counted in :attr:`stats`."""
         self.stats.bytes_in += len(data)
         self._buf += data
         if self.mode == "auto":
-            self.mode = self._detect()
-            if self.mode == "auto":
+            mode = self._detect()
+            if mode == "auto":
                 if len(self._buf) > AUTO_PENDING:  # bounded: forget the oldest half
-                    cut = len(self._buf) - AUTO_PENDING // 2
-                    self.stats.bytes_discarded += cut
-                    del self._buf[:cut]
+                    self._forget(len(self._buf) - AUTO_PENDING // 2)
                 return []
+            self.mode = mode
+            self._scan = 0
         if self.mode == "binary":
             return self._feed_binary()
         return self._feed_csv()
@@ -188,6 +213,8 @@ class StreamDecoder:
         """
         self.stats.bytes_discarded += len(self._buf)
         self._buf.clear()
+        self._scan = self._det_chunk = self._det_line = 0
+        self._line_partial = True
         if self._dev_next is not None:
             self._dev_next = None
             self._restart_pending = True
@@ -200,53 +227,53 @@ class StreamDecoder:
     # -- detection ---------------------------------------------------------------------------------
 
     def _detect(self) -> Mode:
-        buf = bytes(self._buf)
-        chunks = buf.split(b"\x00")[:-1]
-        if any(self._parse_chunk(c)[0] is not None for c in chunks if c):
-            return "binary"
-        prev = None  # two readable lines of equal width in a row (names then row, or rows)
-        for line in buf.split(b"\n")[:-1]:
-            kind = _csv_kind(line)
-            if kind == "skip":
-                continue
-            if kind is not None and prev is not None and kind[0] == "row" and prev[1] == kind[1]:
+        """Look at what arrived since the last call (each byte once): a frame that passes the
+        CRC means binary; two readable CSV lines of the same width in a row mean CSV."""
+        buf = self._buf
+        start = self._det_chunk
+        while (end := buf.find(b"\x00", start)) >= 0:
+            chunk = bytes(buf[max(start, end - MAX_ENCODED) : end])
+            start = end + 1
+            if len(chunk) >= MIN_ENCODED and find_frame(chunk)[0] is not None:
+                return "binary"
+        self._det_chunk = start
+        start = self._det_line
+        while (end := buf.find(b"\n", start)) >= 0:
+            line = bytes(buf[start:end])
+            first = start == 0 and self._line_partial
+            start = end + 1
+            kind = _csv_kind(line) if len(line) <= MAX_CSV_LINE else None
+            if kind == "skip" or (first and kind is not None and kind[0] == "row"):
+                continue  # a row that may be cut is no evidence
+            if kind is not None and kind[0] == "row" and self._det_prev == kind[1]:
                 return "csv"
-            prev = kind
+            self._det_prev = None if kind is None else kind[1]
+        self._det_line = start
         return "auto"
+
+    def _forget(self, cut: int) -> None:
+        """Drop the oldest ``cut`` held bytes (auto mode, undecided), counted as discarded."""
+        nl = self._buf.find(b"\n", cut)
+        if 0 <= nl < len(self._buf) - 1:  # keep whole lines where there is a line end
+            cut = nl + 1
+            self._line_partial = False
+        else:
+            self._line_partial = True
+        self.stats.bytes_discarded += cut
+        del self._buf[:cut]
+        self._det_chunk = max(0, self._det_chunk - cut)
+        self._det_line = max(0, self._det_line - cut)
 
     # -- binary ------------------------------------------------------------------------------------
 
-    def _parse_chunk(self, chunk: bytes) -> tuple[SamplesFrame | HeaderFrame | None, int, str]:
-        """Best frame in ``chunk``: (frame or None, bytes skipped before it, failure kind)."""
-        decoded = cobs_decode(chunk)
-        failure = "malformed"
-        if decoded is not None and len(decoded) >= 3:
-            body = decoded[:-2]
-            if crc16(body) == int.from_bytes(decoded[-2:], "little"):
-                parsed = parse_body(body)
-                if parsed is not None:
-                    return parsed, 0, ""
-            else:
-                failure = "crc"
-        for start in _valid_suffix_starts(chunk):
-            decoded = cobs_decode(chunk[start:])
-            if decoded is None or len(decoded) < 3:
-                continue
-            body = decoded[:-2]
-            if crc16(body) == int.from_bytes(decoded[-2:], "little"):
-                parsed = parse_body(body)
-                if parsed is not None:
-                    return parsed, start, failure
-        return None, len(chunk), failure
+    def _width(self) -> int | None:
+        return len(self.info.channels) if self.info is not None else self._frame_width
 
     def _feed_binary(self) -> list[Event]:
         events: list[Event] = []
         buf = self._buf
         start = 0
-        while True:
-            end = buf.find(b"\x00", start)
-            if end < 0:
-                break
+        while (end := buf.find(b"\x00", max(start, self._scan))) >= 0:
             chunk = bytes(buf[start:end])
             start = end + 1
             if not chunk:
@@ -255,7 +282,7 @@ class StreamDecoder:
                 self.stats.bytes_discarded += len(chunk) - MAX_ENCODED
                 self.stats.malformed += 1
                 chunk = chunk[-MAX_ENCODED:]
-            parsed, skipped, failure = self._parse_chunk(chunk)
+            parsed, skipped, failure = find_frame(chunk, self._width())
             if skipped:
                 self.stats.bytes_discarded += skipped
                 if failure == "crc":
@@ -269,73 +296,194 @@ class StreamDecoder:
             cut = len(buf) - MAX_ENCODED
             self.stats.bytes_discarded += cut
             del buf[:cut]
+        self._scan = len(buf)
         return events
 
     def _on_frame(self, parsed: SamplesFrame | HeaderFrame, events: list[Event]) -> None:
-        if isinstance(parsed, HeaderFrame):
-            self.stats.frames += 1
-            self.stats.header_frames += 1
-            self._set_info(parsed.info, events)
-            return
-        raw = parsed.raw
-        if self.info is not None and raw.shape[1] != len(self.info.channels):
-            # CRC-valid but contradicts the header: trust neither, drop it visibly
-            self.stats.malformed += 1
-            return
         self.stats.frames += 1
+        if isinstance(parsed, HeaderFrame):
+            self.stats.header_frames += 1
+            self._on_header(parsed.info, events)
+            return
+        if self._refusing:  # its device's header was refused: not data we can honour
+            self.stats.refused += 1
+            return
+        width = self._width()
+        if width is None:  # before any header, the first frame fixes the width
+            self._frame_width = width = parsed.raw.shape[1]
+        if parsed.raw.shape[1] != width:
+            # CRC-valid but contradicts the header: trust neither, drop it visibly
+            self.stats.frames -= 1
+            self.stats.malformed += 1
+        else:
+            self._accept(parsed, events)
+
+    def _on_header(self, info: DeviceInfo, events: list[Event]) -> None:
+        self._header_since_samples = True
+        if info.protocol_version not in SUPPORTED_VERSIONS:
+            self.stats.unsupported += 1
+            if not self._refusing:
+                self._refusing = True
+                self.stats.gaps += 1
+                versions = ", ".join(str(v) for v in sorted(SUPPORTED_VERSIONS))
+                events.append(Gap(self._host_next, 0, "unsupported",
+                                  f"device header of protocol version {info.protocol_version}; "
+                                  f"this decoder reads {versions}: its samples are dropped"))
+            return
+        self._refusing = False
+        self._set_info(info, events)
+
+    def _accept(self, parsed: SamplesFrame, events: list[Event]) -> None:
+        """Place a samples frame of the right width in the sequence: in order, after a drop,
+        a duplicate or late frame (dropped), a partial re-send (its new tail kept), or the
+        first frame of a restarted device."""
+        raw = parsed.raw
         n = raw.shape[0]
+        t = parsed.t_us
         if self._restart_pending:  # first frame after a reconnection
             self._restart_pending = False
-            host = self._restart(events)
-            self._t_host += self._dt(parsed.t_us)
+            self._restart(parsed.seq, events)
+            host, s_u = self._host_next, parsed.seq
         elif self._dev_next is None:  # first frame: host seq starts at the device's count
-            host = parsed.seq
-            self._t_host = parsed.t_us
+            host = s_u = parsed.seq
+            self._session_first_u = s_u
+            self._t_host = t
+            self._t_last = t
         else:
             diff = (parsed.seq - self._dev_next) % SEQ_MODULO
-            if diff < _HALF:  # forward: in order, or a drop of `diff` samples
+            if diff < _HALF and self._restarted(diff, t):
+                self._restart(parsed.seq, events)
+                host, s_u = self._host_next, parsed.seq
+            elif diff < _HALF:  # forward: in order, or a drop of `diff` samples
                 host = self._host_next + diff
+                s_u = self._dev_next_u + diff
                 if diff:
                     self.stats.gaps += 1
                     self.stats.samples_lost += diff
                     events.append(Gap(host, diff, "drop"))
             else:
-                back = SEQ_MODULO - diff
-                if back <= self.replay_window:
-                    if back >= n:  # all of it was delivered already
-                        self.stats.duplicates += 1
-                        return
-                    # overlap (a re-sent frame split differently): keep only the unseen tail
-                    raw = raw[back:]
+                s_u = self._dev_next_u - (SEQ_MODULO - diff)
+                verdict = self._behind(s_u, t, raw)
+                if verdict == "duplicate":
+                    self.stats.duplicates += 1
+                    return
+                if verdict == "late":
+                    self.stats.late += 1
+                    return
+                if verdict == "tail":  # a re-send split differently: keep only what is new
+                    k = self._dev_next_u - s_u
+                    raw = raw[k:]
                     n = raw.shape[0]
+                    t = (t + round(k * self._period_us())) % SEQ_MODULO
+                    s_u = self._dev_next_u
                     host = self._host_next
-                    period = round(1e6 / self.info.sample_rate_hz) if self.info else 0
-                    parsed = SamplesFrame(
-                        (parsed.seq + back) % SEQ_MODULO,
-                        (parsed.t_us + back * period) % SEQ_MODULO,
-                        raw,
-                    )
-                else:  # the device rebooted
-                    host = self._restart(events)
-            self._t_host += self._dt(parsed.t_us)
-        self._t_last = parsed.t_us
-        self._dev_next = (parsed.seq + n) % SEQ_MODULO
+                else:  # the device restarted
+                    self._restart(parsed.seq, events)
+                    host, s_u = self._host_next, parsed.seq
+        self._t_host += self._dt(t)
+        self._t_last = t
+        self._dev_next_u = s_u + n
+        self._dev_next = self._dev_next_u % SEQ_MODULO
         self._host_next = host + n
+        self._header_since_samples = False
+        self._remember(s_u, t, raw)
         self.stats.samples += n
         events.append(Samples(host, self._t_host, raw))
 
-    def _restart(self, events: list[Event]) -> int:
+    def _behind(self, s_u: int, t: int, raw: np.ndarray) -> str:
+        """A frame whose sequence number went back: ``"duplicate"``, ``"tail"`` (it also holds
+        new samples), ``"late"`` or ``"restart"``.
+
+        A re-sent frame repeats samples we delivered, with their contents and device times; a
+        device that restarted counts again with other contents. A frame that went back but
+        holds none of the samples remembered is late (its samples were reported lost) when it
+        is recent (within ``replay_window``), either within the span remembered or with no
+        header since the last frame (a device sends its header when it starts), and its device
+        time fits (by the rate when one is known, else it is earlier by what a rate between
+        1 Hz and 1 MHz explains); else the device restarted."""
+        end = min(s_u + len(raw), self._dev_next_u)
+        period = self._period_us(estimate_only=True)
+        matched = 0
+        for hs, ht, hraw in self._history:
+            lo, hi = max(hs, s_u), min(hs + len(hraw), end)
+            if lo >= hi:
+                continue
+            if not np.array_equal(hraw[lo - hs : hi - hs], raw[lo - s_u : hi - s_u]):
+                return "restart"
+            if period is None:  # times comparable only for the same first sample
+                if hs == s_u and ht != t:
+                    return "restart"
+            else:
+                skew = (t - ht + round((hs - s_u) * period) + _HALF) % SEQ_MODULO - _HALF
+                if abs(skew) > max(period / 2, 1):
+                    return "restart"
+            matched += hi - lo
+        if matched:
+            return "tail" if s_u + len(raw) > self._dev_next_u else "duplicate"
+        oldest = self._history[0][0] if self._history else self._dev_next_u
+        recent = s_u >= self._dev_next_u - self.replay_window
+        if recent and (s_u >= oldest or not self._header_since_samples):
+            if self._history:  # and its device time fits this run of the device
+                hs, ht, _ = self._history[-1]
+                if period is not None:
+                    skew = (t - ht + round((hs - s_u) * period) + _HALF) % SEQ_MODULO - _HALF
+                    if abs(skew) > max(2 * period, 1000):
+                        return "restart"
+                elif not (hs - s_u) * _MIN_PERIOD_US <= (ht - t) % SEQ_MODULO \
+                        <= (hs - s_u) * _MAX_PERIOD_US:  # earlier by what some rate explains
+                    return "restart"
+            return "late"
+        return "restart"
+
+    def _restarted(self, ahead: int, t: int) -> bool:
+        """A frame ``ahead`` samples past the next expected one whose device time says
+        otherwise (by the period the remembered frames show, else the header's rate, else
+        ``csv_rate_hz`` for a jump): the device restarted and its count happens to be where
+        the old one was, or ahead (its header, which says so, may have been lost)."""
+        if self._t_last is None:
+            return False
+        period = self._period_us(estimate_only=True)
+        if period is None:
+            if not ahead:  # no rate known: a clock that moved by more than 1 s per sample
+                steps = len(self._history[-1][2]) if self._history else 1
+                return (t - self._t_last) % SEQ_MODULO > steps * _MAX_PERIOD_US
+            period = self._period_us()
+        last_n = len(self._history[-1][2]) if self._history else 1
+        expect = round((ahead + last_n) * period)
+        skew = ((t - self._t_last) - expect + _HALF) % SEQ_MODULO - _HALF
+        return abs(skew) > max(2 * period, 1000)
+
+    def _remember(self, s_u: int, t: int, raw: np.ndarray) -> None:
+        self._history.append((s_u, t, raw))
+        self._history_n += len(raw)
+        while self._history and self._history_n - len(self._history[0][2]) >= self.replay_window:
+            self._history_n -= len(self._history.popleft()[2])
+
+    def _restart(self, seq: int, events: list[Event]) -> None:
         """The device restarted: continue the host count, mark the break, forget its clock."""
         self.stats.restarts += 1
         self.stats.gaps += 1
         events.append(Gap(self._host_next, 0, "restart"))
         self._t_last = None
-        return self._host_next
+        self._history.clear()
+        self._history_n = 0
+        self._session_first_u = seq
+
+    def _period_us(self, estimate_only: bool = False) -> float | None:
+        """Device microseconds per sample: as the device's own clock shows it in the frames
+        remembered (a board's clock may not match the rate its header declares), else from the
+        header's rate, else (unless ``estimate_only``) from ``csv_rate_hz``."""
+        if len(self._history) >= 2:
+            (s0, t0, _), (s1, t1, _) = self._history[0], self._history[-1]
+            if s1 > s0:
+                return ((t1 - t0) % SEQ_MODULO) / (s1 - s0)
+        if self.info is not None:
+            return 1e6 / self.info.sample_rate_hz
+        return None if estimate_only else 1e6 / self.csv_rate_hz
 
     def _dt(self, t_us: int) -> int:
         if self._t_last is None:  # restart: no relation to the old clock; advance one period
-            rate = self.info.sample_rate_hz if self.info else self.csv_rate_hz
-            return round(1e6 / rate)
+            return round(self._period_us())
         return (t_us - self._t_last) % SEQ_MODULO
 
     def _set_info(self, info: DeviceInfo, events: list[Event]) -> None:
@@ -353,20 +501,26 @@ class StreamDecoder:
         events: list[Event] = []
         buf = self._buf
         start = 0
-        while True:
-            end = buf.find(b"\n", start)
-            if end < 0:
-                break
+        while (end := buf.find(b"\n", max(start, self._scan))) >= 0:
             line = bytes(buf[start:end])
             start = end + 1
-            if len(line) > MAX_CSV_LINE:
-                self._csv_reject(len(line))
-                continue
-            self._on_line(line, events)
+            if self._line_partial and len(line) <= MAX_CSV_LINE \
+                    and _csv_kind(line) not in (None, "skip") and _csv_kind(line)[0] == "names":
+                self._line_partial = False  # a names line as a board prints it at start-up
+                self._on_line(line, events)
+            elif self._line_partial:  # the line the port was opened in: a row may be cut
+                self._line_partial = False
+                self._csv_reject(len(line) + 1)
+            elif len(line) > MAX_CSV_LINE:
+                self._csv_reject(len(line) + 1)
+            else:
+                self._on_line(line, events)
         del buf[:start]
         if len(buf) > MAX_CSV_LINE:
             self._csv_reject(len(buf))
             buf.clear()
+            self._line_partial = True  # what follows is the rest of that line
+        self._scan = len(buf)
         return events
 
     def _csv_reject(self, nbytes: int) -> None:
@@ -379,26 +533,44 @@ class StreamDecoder:
         kind = _csv_kind(line)
         if kind == "skip":
             return
+        if self._csv_width is not None:
+            self._csv_line(kind, len(line) + 1, events)
+            return
+        # undecided: hold the line; CSV_AGREE readable lines of one width in a row decide it
+        # (a names line may only open the run; unreadable lines do not break it)
+        self._csv_held.append((kind, len(line) + 1))
+        width, count = self._csv_run
+        if kind is not None:
+            what, w, _ = kind
+            count = count + 1 if what == "row" and w == width else 1
+            self._csv_run = width, count = w, count
+        if count >= CSV_AGREE:
+            self._csv_width = width
+            held, self._csv_held = self._csv_held, []
+            for k, nbytes in held:
+                self._csv_line(k, nbytes, events)
+        elif len(self._csv_held) > CSV_HOLD:
+            self._csv_reject(self._csv_held.pop(0)[1])
+
+    def _csv_line(self, kind, nbytes: int, events: list[Event]) -> None:
+        """One line once the width is decided."""
         if kind is None:
-            self._csv_reject(len(line) + 1)
+            self._csv_reject(nbytes)
             return
         what, width, values = kind
         if what == "names":
-            if self.info is None:  # before the first row: the latest names line wins
-                self._csv_names = values
+            if self.info is None and width == self._csv_width:  # the latest one before the
+                self._csv_names = values  # first row names the channels
             else:
-                self._csv_reject(len(line) + 1)
+                self._csv_reject(nbytes)
+            return
+        if width != self._csv_width:
+            self._csv_reject(nbytes)
             return
         if self.info is None:
-            names = self._csv_names
-            if names is not None and len(names) != width:
-                names = None  # a names line that does not fit the data is not a header
-            names = names or tuple(f"ch{i}" for i in range(width))
+            names = self._csv_names or tuple(f"ch{i}" for i in range(width))
             chans = tuple(ChannelSpec(n, "") for n in names)
             self._set_info(DeviceInfo(self.csv_rate_hz, chans, "csv"), events)
-        if width != len(self.info.channels):
-            self._csv_reject(len(line) + 1)
-            return
         host = self._host_next
         if self._csv_rejected_run:
             missing = self._csv_rejected_run
@@ -416,26 +588,35 @@ class StreamDecoder:
 
 def _csv_kind(line: bytes):
     """Classify a CSV line: ``"skip"`` (blank/comment), ``None`` (unreadable),
-    ``("row", width, values)`` or ``("names", width, names)``."""
+    ``("row", width, values)`` or ``("names", width, names)``; width is 1..MAX_CHANNELS."""
     try:
         text = line.decode("ascii").strip()
     except UnicodeDecodeError:
         return None
     if not text or text.startswith("#"):
         return "skip"
-    fields = [f.strip() for f in text.split(",")] if "," in text else text.split()
-    try:
+    if "," in text:
+        if text.count(",") >= MAX_CHANNELS:
+            return None
+        fields = [f.strip() for f in text.split(",")]
+    else:
+        fields = text.split()
+        if len(fields) > MAX_CHANNELS:
+            return None
+    if all(_NUMBER.fullmatch(f) for f in fields):
         values = tuple(float(f) for f in fields)
-    except ValueError:
-        if all(_NAME.match(f) for f in fields) and len(set(fields)) == len(fields):
-            return ("names", len(fields), tuple(fields))
-        return None
-    if not all(abs(v) <= FLOAT32_MAX for v in values):  # NaN, inf and float32 overflow
-        return None  # never enter the pipeline (the model reads float32)
-    return ("row", len(values), values)
+        if not all(abs(v) <= FLOAT32_MAX for v in values):  # float32 overflow (1e39)
+            return None  # never enters the pipeline (the model reads float32)
+        return ("row", len(values), values)
+    if all(len(f) <= MAX_NAME and _NAME.fullmatch(f) for f in fields) \
+            and len(set(fields)) == len(fields):
+        return ("names", len(fields), tuple(fields))
+    return None
 
 
 def decode(data: bytes, mode: Mode = "auto", **kw) -> tuple[list[Event], DecoderStats]:
-    """Decode a whole byte string at once (for files and tests)."""
+    """Decode a whole byte string at once (for files and tests: it begins at a line start
+    unless ``line_start=False``)."""
+    kw.setdefault("line_start", True)
     dec = StreamDecoder(mode, **kw)
     return dec.feed(data), dec.stats

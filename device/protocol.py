@@ -11,12 +11,20 @@ one-byte frame type. All integers are little-endian.
 from __future__ import annotations
 
 import binascii
+import re
 import struct
+from array import array
 from dataclasses import dataclass
+from functools import cache, lru_cache
 
 import numpy as np
 
-from tactile.device.info import ChannelSpec, DeviceInfo
+from tactile.device.info import (
+    MAX_NAME,
+    PROTOCOL_VERSION,
+    ChannelSpec,
+    DeviceInfo,
+)
 from tactile.errors import FrameError
 
 DELIMITER = 0x00
@@ -37,6 +45,10 @@ _SAMPLES_HEAD = struct.Struct("<BIIBB")  # type, seq, t_us, n_channels, n_sample
 _HEADER_HEAD = struct.Struct("<BBfBB")  # type, version, rate, n_channels, sample format
 _CHANNEL_NUMS = struct.Struct("<ff")  # scale, offset
 SAMPLE_FORMAT_INT16 = 1
+SUPPORTED_VERSIONS = frozenset({PROTOCOL_VERSION})  # header versions a receiver honours
+# Smallest encoded frame, delimiter excluded: a samples frame of 1 x 1 (13-byte body, 2 CRC
+# bytes, one COBS code byte).
+MIN_ENCODED = _SAMPLES_HEAD.size + 2 + 2 + 1
 
 
 def crc16(data: bytes) -> int:
@@ -230,3 +242,198 @@ def _read_text(body: bytes, pos: int) -> tuple[str, int]:
     if end > len(body):
         raise ValueError("string runs past the end of the frame")
     return body[pos + 1 : end].decode("utf-8"), end
+
+
+# ---------------------------------------------------------------------------------------------
+# Resynchronisation: the longest valid frame that ends a damaged chunk, in linear time
+
+
+def find_frame(chunk: bytes, width: int | None = None) -> tuple[
+        SamplesFrame | HeaderFrame | None, int, str]:
+    """The frame in ``chunk`` (the bytes between two delimiters): ``(frame, skipped, failure)``.
+
+    If the whole chunk is a frame, ``(frame, 0, "")``. Otherwise the longest suffix of it that is
+    a valid frame is looked for (it recovers a frame that had garbage glued in front of it, or
+    whose leading delimiter was lost): ``skipped`` is the number of bytes before it (all of them,
+    ``len(chunk)``, when there is none) and ``failure`` says why the whole chunk was not a frame
+    (``"crc"``: it has a frame's structure, but the CRC differs; ``"malformed"``: anything else).
+
+    ``width``, when known, is the channel count a samples frame found in the search must have.
+    The search costs O(len(chunk)) whatever the bytes (see :class:`_SuffixSearch`).
+    """
+    return _SuffixSearch(chunk, width).run()
+
+
+# Where a suffix can start a frame. The chunk holds no zero byte, so the decoded byte at
+# offset k of a candidate starting at i is chunk[i + 1 + k] when that byte is data, or 0 when it
+# is the next code byte (a 0xFF block, the only exception, is longer than these offsets). A
+# frame's type, channel and sample counts, header version and sample format are non-zero, so
+# they must sit in the chunk at fixed places: the regular expression tests that in C.
+_COUNT = rb"[\x01-\x20]"  # 1..32: WIRE_MAX_CHANNELS and MAX_SAMPLES_PER_FRAME
+
+
+@cache
+def _candidates(width: int | None) -> re.Pattern:
+    channels = _COUNT if width is None else re.escape(bytes([width]))
+    return re.compile(
+        rb"(?=[\x02-\xff]\x02.{8}" + channels + _COUNT  # samples: code, type, seq, t, c, n
+        + rb"|[\x02-\xff]\x01.{5}" + _COUNT + rb"\x01)",  # header: version, rate, c, format
+        re.DOTALL,
+    )
+
+
+def _header_min(c):
+    """Shortest decoded header (body and CRC) with ``c`` channels: one-byte names, no unit."""
+    return _HEADER_HEAD.size + 1 + c * (2 + 1 + _CHANNEL_NUMS.size) + 2
+
+
+def _header_max(c):
+    """Longest decoded header with ``c`` channels: every string of MAX_NAME bytes."""
+    return _HEADER_HEAD.size + 1 + MAX_NAME + c * (2 + 2 * MAX_NAME + _CHANNEL_NUMS.size) + 2
+
+
+def _plausible(chunk: bytes, i: int, n: int) -> bool:
+    """The length test of :meth:`_SuffixSearch._starts` for one regular-expression match."""
+    d = n - i
+    lo, hi = d - 2 - d // 254, d - 1
+    if chunk[i + 1] == TYPE_SAMPLES:
+        want = _SAMPLES_HEAD.size + 2 * chunk[i + 10] * chunk[i + 11] + 2
+        return lo <= want <= hi
+    c = chunk[i + 7]
+    return _header_min(c) <= hi and _header_max(c) >= lo
+
+
+@lru_cache(maxsize=1)
+def _shift_table() -> array:
+    """``x^(8k) * r mod G`` for every byte count ``k <= MAX_ENCODED`` as two 256-entry tables
+    (low and high byte of ``r``) per ``k``: what ``crc_hqx(bytes(k), r)`` gives, in O(1)."""
+    crc_table = np.array([binascii.crc_hqx(bytes([b]), 0) for b in range(256)], np.uint32)
+    state = np.concatenate([np.arange(256), np.arange(256) << 8]).astype(np.uint32)
+    out = np.empty((MAX_ENCODED + 1, 512), np.uint32)
+    step = 64
+    for k in range(step):  # one zero byte at a time...
+        out[k] = state
+        state = ((state << 8) & 0xFFFF) ^ crc_table[state >> 8]
+    for k in range(step, len(out), step):  # ...then `step` bytes at a time, by the table
+        prev = out[k - step : k]
+        out[k : k + step] = (state[prev & 0xFF] ^ state[256 + (prev >> 8)])[: len(out) - k]
+    return array("H", out.astype(np.uint16).tobytes())
+
+
+class _SuffixSearch:
+    """Every suffix of a chunk that could be a frame, checked in O(1) each after O(n) work.
+
+    A COBS encoding is a chain of code bytes, each pointing at the next, that lands exactly on
+    the chunk's end, so the chains of all candidate starts merge: their decoded lengths, their
+    last two decoded bytes (the CRC) and the zero-initialised CRC-16 of their decoded bytes are
+    computed once per code byte, right to left, and shared. CRC-16 is linear, so the CRC of a
+    suffix follows from its block's CRC shifted past what comes after it (a table lookup), and
+    the CRC check of a candidate needs no decoding. Only a candidate that passes it is decoded
+    and parsed. Cheap tests first (type byte, frame length, channel and sample counts) keep
+    the chains walked few; none of it depends on how many candidates there are.
+    """
+
+    def __init__(self, chunk: bytes, width: int | None) -> None:
+        n = len(chunk)
+        self.chunk, self.n, self.width = chunk, n, width
+        self.dlen = [-2] * (n + 1)  # decoded length of chunk[p:]; -1 not a COBS chain
+        self.crc = [0] * (n + 1)  # crc_hqx(decoded(chunk[p:]), 0)
+        self.tail: list[bytes] = [b""] * (n + 1)  # last two decoded bytes
+        self.dlen[n] = 0
+
+    def run(self) -> tuple[SamplesFrame | HeaderFrame | None, int, str]:
+        chunk, n = self.chunk, self.n
+        failure = "malformed"
+        if n < MIN_ENCODED:
+            return None, n, failure
+        if _candidates(None).match(chunk) and _plausible(chunk, 0, n):  # the whole chunk
+            decoded = cobs_decode(chunk)
+            if decoded is not None and len(decoded) >= 3:
+                body = decoded[:-2]
+                if crc16(body) == int.from_bytes(decoded[-2:], "little"):
+                    parsed = parse_body(body)
+                    if parsed is not None:
+                        return parsed, 0, ""
+                else:
+                    failure = "crc"
+        shift = _shift_table()
+        for i in self._starts():
+            if i == 0:
+                continue
+            length = self._walk(i)
+            if chunk[i + 1] == TYPE_SAMPLES:
+                if length != _SAMPLES_HEAD.size + 2 * chunk[i + 10] * chunk[i + 11] + 2:
+                    continue
+            elif length < 3:
+                continue
+            tail = self.tail[i]
+            residue = shift[length * 512 + 0xFF] ^ shift[length * 512 + 256 + 0xFF] ^ self.crc[i]
+            if residue != binascii.crc_hqx(tail, tail[0] | tail[1] << 8):
+                continue
+            decoded = cobs_decode(chunk[i:])
+            parsed = parse_body(decoded[:-2]) if decoded is not None else None
+            if parsed is None:
+                continue
+            if isinstance(parsed, SamplesFrame) and self.width is not None \
+                    and parsed.raw.shape[1] != self.width:
+                continue
+            return parsed, i, failure
+        return None, n, failure
+
+    def _starts(self) -> list[int]:
+        """Ascending offsets where a frame could start, by the bytes at fixed places and the
+        length they imply (numpy on long chunks, the regular expression on short ones)."""
+        chunk, n, width = self.chunk, self.n, self.width
+        if n < 64:
+            starts = []
+            for m in _candidates(width).finditer(chunk):
+                i = m.start()
+                if n - i < MIN_ENCODED:
+                    break
+                if _plausible(chunk, i, n):
+                    starts.append(i)
+            return starts
+        a = np.frombuffer(chunk, np.uint8).astype(np.int32)
+        m = n - 11
+        d = n - np.arange(m)
+        lo, hi = d - 2 - d // 254, d - 1  # the decoded length lies in [lo, hi]
+        code, kind = a[:m], a[1 : m + 1]
+        c, k = a[10 : m + 10], a[11 : m + 11]
+        chans = (c >= 1) & (c <= WIRE_MAX_CHANNELS) if width is None else c == width
+        want = _SAMPLES_HEAD.size + 2 * c * k + 2
+        samples = (code >= 2) & (kind == TYPE_SAMPLES) & chans & (k >= 1) \
+            & (k <= MAX_SAMPLES_PER_FRAME) & (want >= lo) & (want <= hi)
+        hc = a[7 : m + 7]
+        header = (code >= 2) & (kind == TYPE_HEADER) \
+            & (hc >= 1) & (hc <= WIRE_MAX_CHANNELS) & (a[8 : m + 8] == SAMPLE_FORMAT_INT16) \
+            & (_header_min(hc) <= hi) & (_header_max(hc) >= lo)
+        return np.flatnonzero(samples | header).tolist()
+
+    def _walk(self, i: int) -> int:
+        """Decoded length of ``chunk[i:]`` (-1 if not a COBS encoding), filling the shared
+        tables along its chain; each code byte is visited once per chunk."""
+        chunk, n, dlen, crc, tail = self.chunk, self.n, self.dlen, self.crc, self.tail
+        stack = []
+        p = i
+        while dlen[p] == -2:
+            q = p + chunk[p]
+            if q > n:
+                dlen[p] = -1
+                break
+            stack.append(p)
+            p = q
+        shift = _shift_table()
+        for p in reversed(stack):
+            q = p + chunk[p]
+            dq = dlen[q]
+            if dq < 0:
+                dlen[p] = -1
+                continue
+            block = chunk[p + 1 : q]
+            if chunk[p] != 0xFF and q != n:
+                block += b"\x00"
+            r = binascii.crc_hqx(block, 0)
+            crc[p] = shift[dq * 512 + (r & 0xFF)] ^ shift[dq * 512 + 256 + (r >> 8)] ^ crc[q]
+            dlen[p] = len(block) + dq
+            tail[p] = tail[q] if dq >= 2 else (block + tail[q])[-2:]
+        return dlen[i]

@@ -19,8 +19,9 @@ from tactile.device.simlink import LinkConfig, PenLink
 from tactile.errors import ConfigError
 
 # Unplug state shared by every instance, keyed by URL: a reopened port must stay unopenable
-# until the "cable" is back, and the pen must not be unplugged a second time.
+# until the "cable" is back, and then continues the same pen (its stream, its fault schedule).
 _UNPLUGGED: dict[str, dict] = {}
+_LAST: dict[str, PenLink] = {}  # the link each URL opened last (last_link)
 _LOCK = threading.Lock()
 
 
@@ -33,21 +34,24 @@ class Serial(SerialBase):
         if self.is_open:
             raise SerialException("Port is already open.")
         self.config = self.from_url(self._port)  # a bad option: ConfigError, a ValueError
-        restart_at = 0.0
         with _LOCK:
             state = _UNPLUGGED.get(self._port)
-        if state is not None:
-            if time.monotonic() < state["back_at"]:
-                raise SerialException(
-                    f"could not open port {self._port}: [Errno 2] No such file or directory"
-                )
-            restart_at = state["resume_s"]
-        self.link = PenLink(self.config, restart_at_s=restart_at)
+            if state is not None:
+                if time.monotonic() < state["back_at"]:
+                    raise SerialException(
+                        f"could not open port {self._port}: [Errno 2] No such file or directory"
+                    )
+                del _UNPLUGGED[self._port]
+                self.link = state["link"]  # the same pen, rebooted: its stream goes on
+                self.link.restart(state["resume_s"])
+            else:
+                self.link = PenLink(self.config, trace=TRACE)
+            _LAST[self._port] = self.link
         self._buf = bytearray()
         self._t0 = time.monotonic()
         self._stream0 = self.link.stream_time  # after a replug the motion has moved on
         self._silent_until = 0.0
-        self._stalls_seen = 0
+        self._stalls_seen = self.link.injected.stalls
         self.is_open = True
 
     def from_url(self, url: str) -> LinkConfig:
@@ -70,11 +74,15 @@ class Serial(SerialBase):
         """Move due bytes from the pen into the receive buffer; raise if unplugged."""
         cfg = self.config
         now = time.monotonic()
-        if cfg.unplug and self._port not in _UNPLUGGED and self.link.stream_time >= cfg.unplug[0]:
+        # the unplug comes once the port has handed over what the pen sent before it (at
+        # speed=max the port runs ahead of the reader; a real port holds a few samples at most)
+        out_for = None if self._buf else self.link.unplug_due()
+        if out_for is not None:
             with _LOCK:
                 _UNPLUGGED[self._port] = {
-                    "back_at": now + cfg.unplug[1],  # the cable is out for D wall seconds
-                    "resume_s": self.link.stream_time + cfg.unplug[1],
+                    "back_at": now + out_for,  # the cable is out for D wall seconds
+                    "resume_s": self.link.stream_time + out_for,
+                    "link": self.link,
                 }
             self.is_open = False
             raise SerialException(
@@ -92,8 +100,8 @@ class Serial(SerialBase):
             want = int((due_s - self.link.stream_time) * cfg.rate)
         if want > 0:
             self._buf += self.link.produce(want)
-        if self.link.injected.stalled_samples and not self._stalls_seen:
-            self._stalls_seen = 1
+        if self.link.injected.stalls > self._stalls_seen:  # a stall began: silence for D
+            self._stalls_seen = self.link.injected.stalls
             self._silent_until = now + cfg.stall[1] / (1.0 if math.isinf(cfg.speed) else cfg.speed)
 
     @property
@@ -136,6 +144,18 @@ def forget_unplugs() -> None:
     """Clear the shared unplug state (tests use it to reuse a URL)."""
     with _LOCK:
         _UNPLUGGED.clear()
+        _LAST.clear()
 
 
-__all__ = ["Serial", "forget_unplugs", "serial"]
+TRACE = False
+"""Set True before opening to have each new link trace its ground truth (benchmarks)."""
+
+
+def last_link(url: str) -> PenLink | None:
+    """The :class:`~tactile.device.simlink.PenLink` behind the port ``url`` opened last (the
+    same one across replugs): its ``injected`` counts and, with :data:`TRACE`, its trace."""
+    with _LOCK:
+        return _LAST.get(url)
+
+
+__all__ = ["Serial", "forget_unplugs", "last_link", "serial"]

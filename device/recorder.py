@@ -19,14 +19,12 @@ import time
 from dataclasses import dataclass, field
 from pathlib import Path
 
-import serial
-
 import tactile.device  # noqa: F401  (registers sim://)
 from tactile.cli import Parser, add_debug, float_in, int_in, run, started
 from tactile.device.decoder import Gap, Header, Samples, StreamDecoder
 from tactile.device.info import DeviceInfo
 from tactile.device.portlist import find_port
-from tactile.device.ports import open_port, wait_for_port
+from tactile.device.ports import PenId, open_port, read_some, reconnect, usb_serial
 from tactile.device.recording import TakeWriter, check_label, dataset_folder
 from tactile.errors import DeviceError
 
@@ -146,21 +144,29 @@ def record(
     stalled = False  # one message per silence, and one when the data come back
     try:
         if not stop["flag"]:
-            link = open_port(port, baud, timeout=0.1)
+            link = open_port(port, baud)
+        usb = usb_serial(port)  # to find the pen again under another name
         last_data = last_report = time.monotonic()
         while not stop["flag"]:
-            try:
-                data = link.read(4096)
-            except serial.SerialException as e:
-                _say(f"port lost ({e}); reconnecting", progress=True)
+            data, lost = read_some(link, wait=0.1)  # the bytes read before an unplug are kept
+            if lost is not None:
+                if data:
+                    rec.handle(decoder.feed(data), decoder)
+                _say(f"port lost ({lost}); reconnecting", progress=True)
                 if rec.writer:
                     rec.writer.flush()
-                link = wait_for_port(port, baud, stop, lambda m: _say(m, progress=True),
-                                     timeout=0.1)
-                if link is None:
+                link.close()
+                got = reconnect(port, baud, PenId(decoder.info, usb),
+                                lambda: StreamDecoder(csv_rate_hz=csv_rate_hz), stop,
+                                lambda m: _say(m, progress=True), wait=0.1)
+                if got is None:
+                    link = None
                     break
+                link, _, early = got
                 rec.result.reconnects += 1
                 decoder.reconnected()
+                if early:  # what the probe read to check the header: the pen's data
+                    rec.handle(decoder.feed(early), decoder)
                 last_data, stalled = time.monotonic(), False
                 continue
             now = time.monotonic()

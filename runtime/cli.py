@@ -26,14 +26,22 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 
-import serial
-
 import tactile.device  # noqa: F401  (registers sim://)
 from tactile.cli import Parser, add_debug, add_port_options, float_in, int_in, run, started
 from tactile.device.decoder import Gap, Header, Samples, StreamDecoder
 from tactile.device.info import DeviceInfo
 from tactile.device.portlist import find_port
-from tactile.device.ports import PortAbsent, keep_trying, open_port, wait_for_port
+from tactile.device.ports import (
+    PenId,
+    PortAbsent,
+    PortBusy,
+    keep_trying,
+    open_port,
+    read_some,
+    reconnect,
+    usb_serial,
+    wait_for_port,
+)
 from tactile.errors import ModelContractError, RecordingError
 from tactile.runtime.model import Model
 from tactile.runtime.stream import Label, Smoother, Stream
@@ -194,11 +202,15 @@ def wait_for_pen(stop: dict, deadline: float, status_every: float) -> str | None
 
 def serve(args: argparse.Namespace, runner: Runner, decoder: StreamDecoder,
           stop: dict) -> None:
-    """The serial loop: read, decode, classify; reconnect with backoff when the port vanishes."""
+    """The serial loop: read, decode, classify; when the port vanishes, reconnect with backoff
+    to the same pen only (:func:`~tactile.device.ports.reconnect`)."""
     summary = runner.summary
     deadline = summary.started + args.seconds
     try:
         link = open_port(args.port, args.baud)
+        _say(f"opened {args.port}")
+    except PortBusy:
+        raise
     except PortAbsent as e:
         if not args.wait:
             raise
@@ -207,35 +219,42 @@ def serve(args: argparse.Namespace, runner: Runner, decoder: StreamDecoder,
                              args.status_every)
         if link is None:
             return
+    usb = usb_serial(args.port)  # to find the pen again under another name
+    rate = runner.model.contract.sample_rate_hz
+    find = (lambda: find_port(wait=True)) if getattr(args, "auto", False) else None
     last_data = last_status = time.monotonic()
     stalled = False  # one stall event per silence; the status line says how long it lasts
     try:
         while not stop["flag"] and time.monotonic() < deadline:
-            try:
-                data = link.read(4096)
-            except serial.SerialException as e:
-                _say(f"port lost ({e}); reconnecting")
-                link.close()
-                link = wait_for_port(args.port, args.baud, stop, _say, deadline,
-                                     status_every=args.status_every)
-                if link is None:
-                    break
-                summary.reconnects += 1
-                decoder.reconnected()
-                runner.stream.reset()
-                runner.printer.event("reconnect", port=args.port)
-                last_data = time.monotonic()
-                stalled = False
-                continue
+            data, lost = read_some(link)  # the bytes read before an unplug are kept
             now = time.monotonic()
             if data:
                 last_data, stalled = now, False
                 runner.handle(decoder.feed(data))
-            elif not stalled and now - last_data > args.stall_timeout:
+            elif lost is None and not stalled and now - last_data > args.stall_timeout:
                 stalled = True
                 summary.stalls += 1
                 _say(f"no data for {now - last_data:.1f} s")
                 runner.printer.event("stall", seconds=round(now - last_data, 1))
+            if lost is not None:
+                _say(f"port lost ({lost}); reconnecting")
+                link.close()
+                got = reconnect(args.port, args.baud, PenId(runner.info, usb),
+                                lambda: StreamDecoder(csv_rate_hz=rate), stop, _say, deadline,
+                                args.status_every, find)
+                if got is None:
+                    link = None
+                    break
+                link, name, early = got
+                summary.reconnects += 1
+                decoder.reconnected()
+                runner.stream.reset()
+                runner.printer.event("reconnect", port=name)
+                if early:  # what the probe read to check the header: the pen's data
+                    runner.handle(decoder.feed(early))
+                last_data = time.monotonic()
+                stalled = False
+                continue
             if now - last_status >= args.status_every:
                 last_status = now
                 st = decoder.stats
@@ -359,6 +378,7 @@ def _read(args: argparse.Namespace, runner: Runner, decoder: StreamDecoder, summ
     elif args.replay:
         replay(args.replay, runner, stop, summary.started + args.seconds)
     else:
+        args.auto = args.port is None  # found by auto-detection: after an unplug, look again
         if args.port is None:
             args.port = wait_for_pen(stop, summary.started + args.seconds, args.status_every) \
                 if args.wait else find_port()

@@ -27,14 +27,13 @@ from collections import deque
 from dataclasses import dataclass, field
 
 import numpy as np
-import serial
 
 import tactile.device  # noqa: F401  (registers sim://)
 from tactile.cli import Parser, add_debug, add_port_options, float_in, run, started
 from tactile.device.decoder import Gap, Header, Samples, StreamDecoder
 from tactile.device.info import DeviceInfo
 from tactile.device.portlist import find_port
-from tactile.device.ports import open_port, wait_for_port
+from tactile.device.ports import open_port, read_some, wait_for_port
 from tactile.errors import ConfigError, DeviceError
 from tactile.runtime.units import to_units
 
@@ -179,16 +178,16 @@ class Link:
 
     def read(self) -> bytes | None:
         """Bytes (maybe none); None when the port was lost and not back before the end."""
-        try:
-            return self.serial.read(4096)
-        except serial.SerialException as e:
-            _say(f"port lost ({e}); reconnecting")
-            self.serial.close()
-            self.serial = wait_for_port(self.port, self.baud, self.stop, _say, self.deadline)
-            if self.serial is None:
-                return None
-            self.reconnects += 1
-            return b""
+        data, lost = read_some(self.serial)  # one read of the port: nothing read is dropped
+        if lost is None:
+            return data
+        _say(f"port lost ({lost}); reconnecting")
+        self.serial.close()
+        self.serial = wait_for_port(self.port, self.baud, self.stop, _say, self.deadline)
+        if self.serial is None:
+            return None
+        self.reconnects += 1
+        return b""
 
     def close(self) -> None:
         if self.serial is not None:

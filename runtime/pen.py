@@ -7,11 +7,9 @@ import os
 import time
 from collections.abc import Callable, Iterator
 
-import serial
-
 import tactile.device  # noqa: F401  (registers sim://)
 from tactile.device.decoder import StreamDecoder
-from tactile.device.ports import open_port, wait_for_port
+from tactile.device.ports import open_port, read_some, wait_for_port
 from tactile.errors import DeviceError
 from tactile.runtime.cli import Runner, Summary
 from tactile.runtime.model import Model
@@ -75,9 +73,8 @@ def labels(
     link = open_port(port, baud)
     try:
         while time.monotonic() < deadline:
-            try:
-                data = link.read(4096)
-            except serial.SerialException as e:
+            data, e = read_some(link)  # one read of the port: nothing read is dropped
+            if e is not None:
                 link.close()
                 link = None
                 if not reconnect:

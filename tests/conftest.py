@@ -102,7 +102,8 @@ def start_and_signal(entry: str, args: list[str], sig: int) -> tuple[int, str, s
 
 def read_link(query: str, chunk: int) -> tuple[bytes, Injected, list[int]]:
     """Read a whole link the way the sim:// port does: ask for what is due, ``chunk`` samples
-    more each time. Returns the bytes, the link's counts and the sizes of the frames."""
+    more each time, and replug the pen when it is unplugged (as a reader that reconnects at
+    once). Returns the bytes, the link's counts and the sizes of the frames."""
     from tactile.device.decoder import Samples, StreamDecoder
     from tactile.device.simlink import LinkConfig, PenLink
 
@@ -110,7 +111,11 @@ def read_link(query: str, chunk: int) -> tuple[bytes, Injected, list[int]]:
     data, due, sizes = b"", 0, []
     dec = StreamDecoder()
     while not link.finished:
-        due += chunk
+        out_for = link.unplug_due()
+        if out_for is not None:
+            link.restart(link.stream_time + out_for)
+            continue
+        due = max(due, link.sim.n_read) + chunk
         got = link.produce(max(0, due - link.sim.n_read))
         sizes += [len(ev.raw) for ev in dec.feed(got) if isinstance(ev, Samples)]
         data += got

@@ -171,6 +171,9 @@ def test_other_bad_inputs(tmp_path):
     code, err = _run(str(tmp_path / "absent.h5"), "--out", str(tmp_path / "out"))
     assert code == 1 and err == [f"tactile-import-biotac: error: {tmp_path / 'absent.h5'}: "
                                  "no such file"]
+    code, err = _run(str(tmp_path), "--out", str(tmp_path / "out"))  # the dataset folder
+    assert code == 1 and err == [f"tactile-import-biotac: error: {tmp_path}: a folder; give the "
+                                 f".h5 files (e.g. {tmp_path / '*.h5'})"], err
     with h5py.File(tmp_path / "empty.h5", "w"):
         pass
     with pytest.raises(RecordingError, match="empty.h5: no trial groups"):
@@ -192,6 +195,36 @@ def test_other_bad_inputs(tmp_path):
     (tmp_path / "file").write_text("")
     with pytest.raises(RecordingError, match="file: not a folder"):
         import_biotac([tmp_path / "a.h5"], tmp_path / "file")
+
+
+@pytest.mark.parametrize("later", ["range", "label"])
+def test_force_deletes_nothing_when_a_later_input_is_bad(tmp_path, later):
+    """With --force the old takes go only once every input has passed its checks: here the
+    first file would replace an imported trial, and a later file fails (a value out of range
+    in its second trial, or an object name too long to be a label): the error is one line,
+    exit code 1, and the folder holds the old takes, byte for byte, and nothing else."""
+    write_h5(tmp_path / "old.h5", {"cork_pdc100_1cm_01": 30, "cork_pdc100_1cm_02": 30})
+    out = tmp_path / "out"
+    import_biotac([tmp_path / "old.h5"], out)
+    before = {p.name: p.read_bytes() for p in out.iterdir()}
+    assert len(before) == 4
+    write_h5(tmp_path / "new.h5", {"cork_pdc100_1cm_01": 50}, seed=1)  # replaces a take
+    bad = tmp_path / "bad.h5"
+    if later == "range":
+        write_h5(bad, {"metal_bar_pdc100_1cm_01": 20, "metal_bar_pdc100_1cm_02": 20}, seed=2)
+        with h5py.File(bad, "a") as f:
+            f["metal_bar_pdc100_1cm_02/finger_1/tdc"][7] = 4096
+        message = "metal_bar_pdc100_1cm_02/finger_1/tdc: value 4096 at frame 7"
+    else:
+        write_h5(bad, {"o" * 65 + "_pdc100_1cm_01": 20}, seed=2)
+        message = "label '" + "o" * 65 + "': must be 1-64 characters"
+    code, err = _run(str(tmp_path / "new.h5"), str(bad), "--out", str(out), "--force")
+    assert code == 1 and len(err) == 1 and f"{bad}: " in err[0] and message in err[0], err
+    assert {p.name: p.read_bytes() for p in out.iterdir()} == before
+    # the same inputs without the bad one do replace the take
+    assert biotac_main([str(tmp_path / "new.h5"), "--out", str(out), "--force"]) == 0
+    assert len(read_take(out / "cork_pdc100_1cm_01.csv").raw) == 50
+    assert (out / "cork_pdc100_1cm_02.csv").read_bytes() == before["cork_pdc100_1cm_02.csv"]
 
 
 def test_without_h5py_the_command_names_its_extra():

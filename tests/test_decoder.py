@@ -294,7 +294,7 @@ def test_csv_without_names_and_blank_separated():
 def test_csv_split_anywhere_gives_the_same_result(rng):
     text = b"".join(b"%d,%d,%d\n" % (i, -i, 2 * i) for i in range(200))
     ref, _ = decode(text)
-    events, _ = feed_chunked(text, rng)
+    events, _ = feed_chunked(text, rng, StreamDecoder(line_start=True))
     assert delivered(events)[0].tolist() == delivered(ref)[0].tolist() == list(range(200))
 
 
@@ -303,3 +303,175 @@ def test_bad_decoder_settings():
         StreamDecoder(mode="hex")
     with pytest.raises(ConfigError, match="csv rate"):
         StreamDecoder(csv_rate_hz=0)
+
+
+# -- issue 21: the decoder under hostile input ---------------------------------------------------
+
+
+def test_csv_lines_too_wide_or_names_too_long_never_raise():
+    d = StreamDecoder()
+    row = b",".join([b"1"] * 33) + b"\n"  # 33 channels: a CSV device may have them
+    assert d.feed(row) == [] and d.feed(row) == []
+    wide = b",".join([b"1"] * 2049) + b"\n"  # more fields than a line may hold
+    assert d.feed(wide) == [] and d.feed(wide) == []
+    long_name = b"x" * 33 + b",b,c\n"
+    events = d.feed(b"\n" + long_name + b"1,2,3\n4,5,6\n7,8,9\n" + row + b"10,11,12\n")
+    seqs, rows = delivered(events)
+    assert seqs.tolist() == [0, 1, 2, 4]  # the 33-field row is one rejected sample
+    np.testing.assert_array_equal(rows, [[1, 2, 3], [4, 5, 6], [7, 8, 9], [10, 11, 12]])
+    assert d.stats.csv_rejected >= 3 and [e for e in events if isinstance(e, Gap)] == [
+        Gap(4, 1, "rejected")]
+
+
+class _Counted:
+    """Bytes handed to the COBS decoder and to the CRC, wherever the decoder calls them."""
+
+    def __init__(self, monkeypatch):
+        import binascii
+
+        from tactile.device import decoder, protocol
+
+        self.decoded = self.crc_calls = 0
+        real_decode, real_crc = protocol.cobs_decode, binascii.crc_hqx
+
+        def decode(data):
+            self.decoded += len(data)
+            return real_decode(data)
+
+        def crc(data, value):
+            self.crc_calls += 1
+            return real_crc(data, value)
+
+        monkeypatch.setattr(protocol, "cobs_decode", decode)
+        monkeypatch.setattr(decoder, "cobs_decode", decode, raising=False)
+        monkeypatch.setattr(binascii, "crc_hqx", crc)
+
+
+@pytest.mark.parametrize("mode, data, read", [
+    ("binary", b"\x01" * 2573 + b"\x00", 4096),  # every suffix is valid COBS
+    ("binary", (b"\x02" * 2573 + b"\x00") * 4, 4096),
+    ("auto", b"\x01" * 2573 + b"\x00", 4096),
+    ("auto", bytes(np.random.default_rng(0).integers(1, 256, 6000).astype(np.uint8)), 64),
+    ("auto", (bytes(np.random.default_rng(1).integers(1, 256, 200).astype(np.uint8)) + b"\x00")
+     * 40, 64),
+])
+def test_work_per_byte_is_bounded(monkeypatch, mode, data, read):
+    """Resynchronisation and mode detection are linear: the bytes decoded and the CRCs taken
+    stay within a small multiple of the input (not one decode per byte per candidate, nor one
+    re-parse of everything held per read). Timing is measured by bench/fuzz.py, not here."""
+    count = _Counted(monkeypatch)
+    dec = StreamDecoder(mode)
+    for i in range(0, len(data), read):
+        dec.feed(data[i : i + read])
+    assert count.decoded <= 2 * len(data), count.decoded
+    assert count.crc_calls <= len(data), count.crc_calls
+
+
+def test_csv_opened_mid_line_takes_its_width_from_agreeing_lines():
+    events = StreamDecoder().feed(b"12,13\n1,2,3\n4,5,6\n7,8,9\n")
+    header = next(e for e in events if isinstance(e, Header))
+    assert header.info.channel_names == ("ch0", "ch1", "ch2")
+    seqs, rows = delivered(events)
+    assert seqs.tolist() == [0, 1, 2]
+    np.testing.assert_array_equal(rows, [[1, 2, 3], [4, 5, 6], [7, 8, 9]])
+    # cut within the first number: that line is not taken (its value would be wrong)
+    events = StreamDecoder().feed(b"5.25,3,4\n15.5,1,2\n16,1,2\n17,1,2\n")
+    assert delivered(events)[1][:, 0].tolist() == [15.5, 16, 17]
+
+
+def test_csv_width_from_a_run_of_rows_not_from_a_stray_line():
+    text = b"a,b\n1,2,3\n9,9\n4,5,6\n7,8,9\n10,11,12\n"  # widths 2 (names), 3, 2, 3, 3, 3
+    events, stats = decode(text)
+    header = next(e for e in events if isinstance(e, Header))
+    assert len(header.info.channels) == 3 and header.info.channel_names[0] == "ch0"
+    seqs, rows = delivered(events)
+    assert rows[:, 0].tolist() == [1, 4, 7, 10]
+    assert seqs.tolist() == [0, 2, 3, 4]  # "9,9" after the first row is a lost sample
+
+
+@pytest.mark.parametrize("field, ok", [
+    ("10", True), ("-1.5", True), ("+.5", True), ("7.", True), ("1e3", True), ("-2.5E-3", True),
+    ("1_0", False), ("0x10", False), ("inf", False), ("nan", False), ("1e", False),
+    ("\u0661", False), ("\uff11", False), ("1.2.3", False), ("--1", False), ("0b1", False),
+])
+def test_csv_numbers_are_plain_decimals(field, ok):
+    row = f"1,{field}\n".encode()
+    events, stats = decode(b"1,1\n" + row + b"2,2\n3,3\n")
+    rows = delivered(events)[1]
+    assert len(rows) == (4 if ok else 3)
+    if ok:
+        assert rows[1, 1] == float(field)
+
+
+def _frames(seq0, t0, raw, per=1, period=10_000):
+    return b"".join(encode_samples(seq0 + s, t0 + s * period, raw[s : s + per])
+                    for s in range(0, len(raw), per))
+
+
+def test_unknown_protocol_version_is_refused_and_reported():
+    from tactile.device.info import DeviceInfo
+
+    v99 = DeviceInfo(100.0, pen_info().channels, "future-pen", 99)
+    raw = np.arange(30 * 8, dtype=np.int16).reshape(30, 8)
+    data = (encode_header(pen_info()) + _frames(0, 0, raw[:10])
+            + encode_header(v99) + _frames(10, 100_000, raw[10:20])
+            + encode_header(pen_info()) + _frames(20, 200_000, raw[20:]))
+    for mode in ("auto", "binary"):
+        events, stats = decode(data, mode)
+        gaps = [e for e in events if isinstance(e, Gap)]
+        assert [(g.seq, g.missing, g.reason) for g in gaps] == [
+            (10, 0, "unsupported"), (20, 10, "drop")]
+        assert "99" in gaps[0].detail
+        seqs, rows = delivered(events)
+        assert seqs.tolist() == list(range(10)) + list(range(20, 30))
+        np.testing.assert_array_equal(rows, raw[seqs])
+        assert stats.unsupported == 1 and stats.refused == 10
+        assert [e.info.protocol_version for e in events if isinstance(e, Header)] == [1]
+    # a device that only ever speaks version 99: nothing delivered, the event says why
+    events, stats = decode(encode_header(v99) + _frames(0, 0, raw))
+    assert not [e for e in events if isinstance(e, Samples)]
+    assert [e.reason for e in events if isinstance(e, Gap)] == ["unsupported"]
+
+
+def test_a_reboot_before_256_samples_is_a_restart():
+    rng = np.random.default_rng(3)
+    first = rng.integers(-2000, 2000, (100, 8)).astype(np.int16)
+    second = rng.integers(-2000, 2000, (50, 8)).astype(np.int16)
+    # the link stays open; the pen reboots at sample 100: header, then 0, 1, ... again, its
+    # clock near zero again
+    data = (encode_header(pen_info()) + _frames(0, 1200, first)
+            + encode_header(pen_info()) + _frames(0, 1150, second))
+    events, stats = decode(data)
+    seqs, rows = delivered(events)
+    assert seqs.tolist() == list(range(150))
+    np.testing.assert_array_equal(rows, np.concatenate([first, second]))
+    assert [e for e in events if isinstance(e, Gap)] == [Gap(100, 0, "restart")]
+    assert stats.restarts == 1 and stats.duplicates == 0
+    # and with the reboot's header lost, its contents still tell
+    no_header = encode_header(pen_info()) + _frames(0, 1200, first) + _frames(0, 1150, second)
+    events, _ = decode(no_header)
+    assert [e for e in events if isinstance(e, Gap)] == [Gap(100, 0, "restart")]
+
+
+def test_a_frame_resent_late_is_dropped_without_a_gap():
+    raw = np.random.default_rng(4).integers(-2000, 2000, (400, 8)).astype(np.int16)
+    frames = [encode_samples(s, s * 10_000, raw[s : s + 1]) for s in range(400)]
+    frames.insert(300, frames[1])  # frame 1 re-sent 299 samples late
+    events, stats = decode(encode_header(pen_info()) + b"".join(frames))
+    seqs, rows = delivered(events)
+    assert seqs.tolist() == list(range(400))
+    np.testing.assert_array_equal(rows, raw)
+    assert not [e for e in events if isinstance(e, Gap)]
+    assert stats.duplicates == 1 and stats.restarts == 0
+
+
+def test_before_a_header_a_kept_tail_moves_on_in_time_and_one_width_is_delivered():
+    raw = np.arange(10 * 8, dtype=np.int16).reshape(10, 8)
+    # no header: 0-3 at 10 ms per sample, then 2-6 re-sent: its new tail 4-6 is 40 ms on
+    data = encode_samples(0, 0, raw[0:4]) + encode_samples(2, 20_000, raw[2:7])
+    data += encode_samples(7, 70_000, np.zeros((1, 3), np.int16))  # another width: dropped
+    data += encode_samples(7, 70_000, raw[7:8])
+    events, stats = decode(data)
+    samples = [e for e in events if isinstance(e, Samples)]
+    assert [(s.seq, s.t_us) for s in samples] == [(0, 0), (4, 40_000), (7, 70_000)]
+    assert {s.raw.shape[1] for s in samples} == {8} and stats.malformed == 1

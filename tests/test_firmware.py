@@ -22,10 +22,11 @@ import pytest
 
 from tactile.device import vectors
 from tactile.device.decoder import Gap, Header, Samples, decode
-from tactile.device.info import pen_info
+from tactile.device.info import f32, pen_info
 from tactile.device.protocol import (
     MAX_BODY,
     MAX_ENCODED,
+    SUPPORTED_VERSIONS,
     cobs_encode,
     crc16,
     encode_header,
@@ -187,9 +188,10 @@ def _random_stream(rng: np.random.Generator) -> list[dict[str, str]]:
         scale = float(rng.choice([-1, 1]) * 10 ** rng.uniform(-8, 8))
         offset = float(rng.uniform(-1e3, 1e3)) if rng.random() < 0.5 else 0.0
         chans.append(f"{name}:{unit}:{_bits(scale)}:{_bits(offset)}")
+    rate = f32(float(rng.uniform(1, 1e6)))
     header = {
-        "version": str(int(rng.integers(0, 256))),
-        "rate_bits": _bits(float(rng.uniform(1, 1e6))),
+        "version": str(1 if rng.random() < 0.5 else int(rng.integers(0, 256))),  # 1: decoded
+        "rate_bits": _bits(rate),
         "device": "".join(rng.choice(alphabet, int(rng.integers(0, 33)))),
         "channels": ",".join(chans),
     }
@@ -212,7 +214,7 @@ def _random_stream(rng: np.random.Generator) -> list[dict[str, str]]:
         )
         skip = 5 if k == 6 else 0
         seq = (seq + n + skip) % (1 << 32)
-        t_us = (t_us + 10_000 * (n + skip)) % (1 << 32)
+        t_us = (t_us + round((n + skip) * 1e6 / rate)) % (1 << 32)  # the clock its rate says
     return stream
 
 
@@ -239,6 +241,11 @@ def test_random_c_frames_match_python_and_decode(program: Program):
         events, stats = decode(res.stdout[pos : pos + size], mode="binary")
         pos += size
         assert stats.crc_errors == stats.malformed == stats.bytes_discarded == 0
+        if vectors.header_info(stream[0]).protocol_version not in SUPPORTED_VERSIONS:
+            # a version the decoder does not read: refused, reported, nothing delivered
+            assert [(type(e), e.reason) for e in events] == [(Gap, "unsupported")]
+            assert stats.unsupported == 1 and stats.refused == len(stream) - 1
+            continue
         assert isinstance(events[0], Header)
         assert events[0].info == vectors.header_info(stream[0])
         gaps = [e for e in events if isinstance(e, Gap)]

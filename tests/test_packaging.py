@@ -34,13 +34,20 @@ def test_base_requirements_are_the_runtime_only():
 
 def test_the_built_wheel_requires_no_torch(tmp_path):
     """What `pip install tactile-pen` (no extras) asks for, read from the wheel pip would get."""
+    import shutil
     import zipfile
 
+    # built from a copy: setuptools writes build/ and an .egg-info beside the sources it builds
+    src = tmp_path / "src"
+    shutil.copytree(REPO, src, ignore=shutil.ignore_patterns(
+        ".*", "__pycache__", "build", "dist", "*.egg-info", "data", "runs", "tests", "bench"))
+    before = sorted(p.name for p in REPO.iterdir())
     subprocess.run(
         [sys.executable, "-m", "pip", "wheel", "--no-deps", "--no-build-isolation", "-q",
-         "-w", str(tmp_path), str(REPO)],
+         "-w", str(tmp_path), str(src)],
         check=True, capture_output=True,
     )
+    assert sorted(p.name for p in REPO.iterdir()) == before  # nothing new in the checkout
     (wheel,) = tmp_path.glob("tactile_pen-*.whl")
     with zipfile.ZipFile(wheel) as z:
         meta = next(n for n in z.namelist() if n.endswith(".dist-info/METADATA"))

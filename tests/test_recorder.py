@@ -246,17 +246,19 @@ def test_ctrl_c_while_the_pen_is_unplugged_finishes_the_take(tmp_path, reap):
 
 
 def test_one_stall_message_per_silence(tmp_path, capsys):
-    """A 2 s silence with a 0.3 s stall timeout: one message when it starts and one when the
-    data come back (it was one every 0.3 s), and no sample lost beyond the stall's own."""
-    res = record("sim://?texture=paper&seed=3&speed=max&stall=0.5:2", "paper", tmp_path,
+    """A 4 s silence with a 0.3 s stall timeout: one message when it starts and one when the
+    data come back (it was one every 0.3 s), and no sample lost beyond the stall's own. (The
+    silence is long so that a loaded machine still notices it: the loop runs at least once in
+    the 3.7 s it has.)"""
+    res = record("sim://?texture=paper&seed=3&speed=max&stall=0.5:4", "paper", tmp_path,
                  seconds=3.0, stall_timeout=0.3)
     err = capsys.readouterr().err
     starts = [ln for ln in err.splitlines() if ln.startswith("no data for")]
     ends = [ln for ln in err.splitlines() if ln.startswith("data again after")]
     assert len(starts) == 1 and len(ends) == 1, err
-    assert float(ends[0].split()[4]) >= 1.7, ends  # the silence lasted 2 s (wall time)
+    assert float(ends[0].split()[4]) >= 3.7, ends  # the silence lasted 4 s (wall time)
     take = read_take(res.takes[0])
-    assert res.stats["gaps"] == 1 and res.stats["samples_lost"] == 200
+    assert res.stats["gaps"] == 1 and res.stats["samples_lost"] == 400
     assert len(take.seq) == 300
 
 

@@ -200,3 +200,59 @@ def test_vibration_frequency_scales_with_speed() -> None:
         return float(spec[(f > 2) & (f < 10)].sum() / spec[f > 2].sum())
 
     assert ripple_ratio(0.03) > ripple_ratio(0.15)
+
+
+def test_a_replug_continues_the_stream_and_its_fault_schedule(monkeypatch) -> None:
+    """sim:// with a stall at 1 s and an unplug at 2 s, read through a replug: one stall (it
+    was repeated after every replug), the random faults go on rather than start over, and the
+    pen comes back at 2 s + D with its counter from 0."""
+    import serial
+
+    import tactile.device  # noqa: F401  (registers sim://)
+    from tactile.device import protocol_sim
+    from tactile.device.decoder import Gap, Samples, StreamDecoder
+    from tactile.device.ports import PortAbsent, open_port, read_some
+    from tactile.device.simlink import LinkConfig, PenLink
+
+    protocol_sim.forget_unplugs()
+    monkeypatch.setattr(protocol_sim, "TRACE", True)
+    url = "sim://?texture=paper&seed=3&speed=max&seconds=4&stall=1:0.3&unplug=2:0.05&drop=0.05"
+    dec, events, opened = StreamDecoder(), [], 0
+    link = None
+    try:
+        while True:
+            if link is None:
+                try:
+                    link = open_port(url, 115200)
+                    opened += 1
+                except PortAbsent:  # the cable is out: try again, as tactile-run does
+                    continue
+            data, lost = read_some(link)
+            events += dec.feed(data)
+            if lost is not None:
+                assert isinstance(lost, serial.SerialException)
+                link.close()
+                link = None
+                dec.reconnected()
+            elif not data and protocol_sim.last_link(url).finished:
+                break
+        pen = protocol_sim.last_link(url)
+    finally:
+        if link is not None:
+            link.close()
+        protocol_sim.forget_unplugs()
+    assert opened == 2
+    inj = pen.injected
+    assert inj.stalls == 1 and inj.stalled_samples == 30 and inj.unplugs == 1
+    assert inj.unplugged_samples == 5  # 0.05 s at 100 Hz: the pen is back at sample 205
+    gaps = [(ev.missing, ev.reason) for ev in events if isinstance(ev, Gap)]
+    assert gaps.count((30, "drop")) == 1 and gaps.count((0, "restart")) == 1, gaps
+    got = sum(len(ev.raw) for ev in events if isinstance(ev, Samples))
+    assert got == 400 - 30 - 5 - inj.dropped_samples == sum(pen.delivered)
+    # the drops after the replug are not those of the stream's start over again
+    fresh = PenLink(LinkConfig.from_query("texture=paper&seed=3&seconds=4&drop=0.05"),
+                    trace=True)
+    fresh.produce(400)
+    lost_fresh = [i for i, v in enumerate(fresh.delivered) if not v]
+    lost_after = [i - 205 for i, v in enumerate(pen.delivered) if not v and i >= 205]
+    assert lost_after and lost_after != lost_fresh[: len(lost_after)]

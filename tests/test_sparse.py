@@ -23,10 +23,10 @@ import pytest
 import torch
 from sklearn.decomposition import MiniBatchDictionaryLearning
 from sklearn.decomposition import SparseCoder as SkSparseCoder
-from sklearn.linear_model import orthogonal_mp_gram
 
 from tactile.errors import ConfigError
 from tactile.training.sparse import SparseCoder, default_n_nonzero
+from tactile.training.sparse_check import compare, sklearn_order, tie_gap
 
 ATOMS = (20, 100, 200)
 FEATURES = (25, 110, 176)
@@ -37,9 +37,11 @@ REL_TOL = 1e-4
 TIE = 1e-4  # relative gap of the top two float64 correlations that float32 may decide wrongly
 OPSET = 18
 # Nodes of the exported coder (opset 18, constant-folded), per non-zero count; the graph is
-# the same for every dictionary size: ~52 nodes per OMP step (argmax, one-hot, 3 gathers, the
-# Cholesky row as a MatMul, the projections, the masks, the residual update).
-NODE_BUDGET = {1: 34, 3: 134, 10: 498, 17: 862}
+# the same for every dictionary size: 27 for 1 non-zero, 77 for 2, then 52 per further OMP
+# step (argmax, one-hot, 3 GatherElements and 7 Gather, the Cholesky row as a MatMul, the
+# projections, the masks, the residual update); the first step has no Cholesky row and no
+# already-chosen or pivot test.
+NODE_BUDGET = {1: 27, 3: 129, 10: 493, 17: 857}
 ALLOWED_OPS = {
     "MatMul", "ArgMax", "Abs", "Gather", "GatherElements", "Equal", "Cast", "Mul", "Sub", "Add",
     "Div", "Sqrt", "Where", "Greater", "GreaterOrEqual", "And", "Concat", "Unsqueeze",
@@ -87,54 +89,6 @@ def cases() -> dict:
             out[("learned", k, f)] = (learned.components_, x_test, ref_learned)
             out[("random", k, f)] = (rnd, x_test, ref_random)
     return out
-
-
-def sklearn_order(d: np.ndarray, x: np.ndarray, n: int) -> list[int]:
-    """The atoms scikit-learn's OMP picks for window ``x``, in order (from its coefficient
-    path), computed as its transform computes them (Gram in x's dtype)."""
-    gram = (d @ d.T).astype(x.dtype)
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore")  # "ended prematurely": an early exit is fine here
-        path = orthogonal_mp_gram(gram, d @ x, n_nonzero_coefs=n, return_path=True)
-    path = path.reshape(len(d), -1)
-    order: list[int] = []
-    for s in range(path.shape[1]):
-        order += [int(a) for a in np.flatnonzero(path[:, s]) if a not in order]
-    return order
-
-
-def tie_gap(d: np.ndarray, x: np.ndarray, order: list[int], other: set[int]) -> float:
-    """Relative gap, in float64, between scikit-learn's pick and the other code's best pick at
-    the first step where scikit-learn picks an atom the other code lacks (inf if none)."""
-    d64, x64 = d.astype(np.float64), x.astype(np.float64)
-    for s, atom in enumerate(order):
-        if atom in other:
-            continue
-        chosen = order[:s]
-        resid = x64
-        if chosen:
-            sub = d64[chosen]  # (s, F)
-            resid = x64 - sub.T @ np.linalg.lstsq(sub.T, x64, rcond=None)[0]
-        corr = np.abs(d64 @ resid)
-        rivals = [c for c in other if c not in chosen]
-        if not rivals:
-            return float("inf")
-        return float((corr[atom] - max(corr[c] for c in rivals)) / corr.max())
-    # every atom scikit-learn chose is in the other code, which has more: scikit-learn stopped
-    # early where the other did not (never seen on these windows)
-    return float("inf")
-
-
-def compare(ref: np.ndarray, got: np.ndarray, d: np.ndarray, x: np.ndarray, n: int) -> dict:
-    """Agreement of the supports, the largest relative difference where they agree, and the
-    tie gap of every disagreement."""
-    same = ((ref != 0) == (got != 0)).all(1)
-    norm = np.linalg.norm(ref, axis=1)
-    rel = np.abs(ref - got).max(1) / np.maximum(norm, 1e-30)
-    gaps = [tie_gap(d, x[i], sklearn_order(d, x[i], n), set(np.flatnonzero(got[i])))
-            for i in np.flatnonzero(~same)]
-    return {"agree": float(same.mean()), "max_rel": float(rel[same].max()) if same.any() else 0,
-            "gaps": gaps}
 
 
 def session(model) -> ort.InferenceSession:
@@ -219,7 +173,25 @@ def test_default_non_zeros_are_sklearns():
     check(compare(ref, got, d, x, 9), "default")
 
 
-def test_early_exits_are_masked_like_sklearns():
+def codes_of(impl: str, d: np.ndarray, n: int, x: np.ndarray) -> np.ndarray:
+    """Codes (windows, atoms) of float32 windows ``x`` by ``SparseCoder(d, n)`` in torch or in
+    onnxruntime."""
+    coder = SparseCoder(d, n)
+    if impl == "torch":
+        with torch.no_grad():
+            return coder(torch.from_numpy(x)).numpy()
+    return session(coder.to_onnx()).run(None, {"x": x})[0]
+
+
+def sk_codes(d: np.ndarray, n: int, x: np.ndarray) -> np.ndarray:
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # scikit-learn warns "ended prematurely"
+        return SkSparseCoder(d, transform_algorithm="omp", transform_n_nonzero_coefs=n) \
+            .transform(x)
+
+
+@pytest.mark.parametrize("impl", ["torch", "onnxruntime"])
+def test_early_exits_are_masked_like_sklearns(impl):
     """scikit-learn stops a row early when the residual's best correlation is (nearly) zero or
     is an atom already chosen (and when a new atom depends linearly on the chosen ones, which
     rounding alone reaches: not provoked here); the graph masks the remaining steps instead,
@@ -232,28 +204,38 @@ def test_early_exits_are_masked_like_sklearns():
         np.zeros(12),  # nothing to code
         rng.standard_normal(12),  # generic: all 6 steps
     ]).astype(np.float32)
-    with torch.no_grad():
-        got, order = SparseCoder(d, 6).encode(torch.from_numpy(x))
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore")  # scikit-learn warns "ended prematurely"
-        ref = SkSparseCoder(d, transform_algorithm="omp", transform_n_nonzero_coefs=6) \
-            .transform(x)
-    got, order = got.numpy(), order.numpy()
+    got, ref = codes_of(impl, d, 6, x), sk_codes(d, 6, x)
     assert ((ref != 0) == (got != 0)).all()
     np.testing.assert_allclose(got, ref, rtol=0, atol=1e-5)
-    assert sorted(order[0][:2]) == [3, 7] and (order[0][2:] == -1).all()
-    assert (order[1] == -1).all() and (got[1] == 0).all()
-    assert (order[2] >= 0).all() and (got[2] != 0).sum() == 6
+    assert sorted(np.flatnonzero(got[0])) == [3, 7]
+    assert (got[1] == 0).all() and (got[2] != 0).sum() == 6
+    if impl == "torch":  # the order output: -1 after the row stopped
+        with torch.no_grad():
+            order = SparseCoder(d, 6).encode(torch.from_numpy(x))[1].numpy()
+        assert sorted(order[0][:2]) == [3, 7] and (order[0][2:] == -1).all()
+        assert (order[1] == -1).all() and (order[2] >= 0).all()
     # more non-zeros than features: the residual vanishes after 12 atoms, so the row stops
-    with torch.no_grad():
-        got20 = SparseCoder(d, 20)(torch.from_numpy(x[2:])).numpy()
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore")
-        ref20 = SkSparseCoder(d, transform_algorithm="omp", transform_n_nonzero_coefs=20) \
-            .transform(x[2:])
+    got20, ref20 = codes_of(impl, d, 20, x[2:]), sk_codes(d, 20, x[2:])
     assert (got20 != 0).sum() == (ref20 != 0).sum() == 12
     assert ((got20 != 0) == (ref20 != 0)).all()
     np.testing.assert_allclose(got20, ref20, rtol=0, atol=REL_TOL * np.linalg.norm(ref20))
+
+
+@pytest.mark.parametrize("impl", ["torch", "onnxruntime"])
+def test_an_atom_of_tiny_norm_is_taken_first_and_refused_later_like_sklearns(impl):
+    """scikit-learn tests the Cholesky pivot (the atom's squared norm left after the chosen
+    ones) from the second step on only: an atom of norm 1e-4 (squared norm 1e-8, below float32's
+    epsilon) is taken at the first step, with coefficient <d0, x> / ||d0||^2 = 1e-2 / 1e-8 =
+    1e6, but refused after another atom (the row stops there)."""
+    d = np.eye(4)
+    d[0] *= 1e-4
+    x = np.array([[100, 0, 0, 0],  # atom 0 first: 1e6
+                  [100, 5, 0, 0]],  # atom 1 first (correlation 5 > 1e-2), then atom 0 refused
+                 np.float32)
+    got, ref = codes_of(impl, d, 2, x), sk_codes(d, 2, x)
+    np.testing.assert_allclose(ref, [[1e6, 0, 0, 0], [0, 5, 0, 0]], rtol=1e-6)  # hand-computed
+    assert ((ref != 0) == (got != 0)).all()
+    np.testing.assert_allclose(got, ref, rtol=1e-6, atol=0)
 
 
 def test_exported_graph_contract_and_node_budget():

@@ -72,7 +72,7 @@ def check_checkpoint(ck: dict, path: Path) -> TrainConfig:
     if not isinstance(ck.get("config"), dict):
         raise bad("config", "a table of settings")
     try:
-        cfg = TrainConfig.from_dict(ck["config"])
+        cfg = TrainConfig.from_dict({"front": "none", **ck["config"]})  # before fronts: none
     except TactileError as e:
         raise RecordingError(f"{path}: checkpoint key 'config': {e}") from None
     if not _names(ck.get("classes"), at_least=2):

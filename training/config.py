@@ -17,6 +17,7 @@ from pathlib import Path
 from tactile.errors import ConfigError
 
 MODELS = ("lstm", "linear")
+FRONTS = ("spectral", "none")
 STATE_MODES = ("window", "carry")
 SPLITS = ("user", "take", "time")
 SCHEDULES = ("constant", "plateau", "cosine")
@@ -42,18 +43,23 @@ class TrainConfig:
     of each of ``emd_channels`` (``emd_sifts`` sifts per IMF), as extra inputs at every step.
 
     Training multiplies each window's channels by random gains in ``1 +/- augment_gain`` (0: off),
-    so that the model does not key on one user's signal levels, and stops when the validation
-    loss has not improved for ``patience`` epochs (at most ``epochs``). Options: ``schedule``
-    of the learning rate (``constant``, ``plateau``: halved when the validation loss stalls for
-    ``patience // 4`` epochs, ``cosine``: down to ``lr / 100`` over ``epochs``),
+    so that the model does not key on one user's signal levels; an epoch is ``epoch_windows``
+    training windows drawn at random without replacement (0 or more than there are: all of
+    them; with ``state='carry'`` runs of ``carry_steps`` windows), and training stops when the
+    validation loss has not improved for ``patience`` epochs (at most ``epochs``). Options:
+    ``schedule`` of the learning rate (``constant``, ``plateau``: halved when the validation loss
+    stalls for ``patience // 4`` epochs, ``cosine``: down to ``lr / 100`` over ``epochs``),
     ``label_smoothing`` of the training targets, ``ema`` (the decay per step of an exponential
     moving average of the weights, which is what is validated and kept; 0: off) and ``refit``:
     ``on`` trains again from scratch on training + validation windows for the best epoch count,
     ``auto`` (default) does so with ``split='time'`` only, where the validation block is the
     recording just before the test block; ``off`` never.
 
-    Model: ``lstm`` (``layers`` x ``hidden``, ``dropout``) or ``linear`` (a linear classifier on
-    the log energies of the IMFs, the granular-media paper's baseline; needs ``emd_channels``).
+    Model: ``lstm`` (``layers`` x ``hidden``, ``dropout``; with ``front='spectral'`` it runs over
+    frames of ``frame`` samples every ``frame_hop``: the log power of each DFT bin and the mean
+    of each feature, batch-normalised; ``none``: over the samples, as the pen paper) or
+    ``linear`` (a linear classifier on the log energies of the IMFs, the granular-media paper's
+    baseline; needs ``emd_channels``).
     ``state``: ``window`` classifies each window from a fresh state (the pen paper); ``carry``
     carries the LSTM state from window to window (needs ``hop == window``) and trains on runs of
     ``carry_steps`` consecutive windows.
@@ -78,12 +84,16 @@ class TrainConfig:
     emd_imfs: int = 4
     emd_sifts: int = 10
     model: str = "lstm"
+    front: str = "spectral"
+    frame: int = 20
+    frame_hop: int = 10
     layers: int = 2
     hidden: int = 64
     dropout: float = 0.4
     state: str = "window"
     carry_steps: int = 8
     epochs: int = 150
+    epoch_windows: int = 4096
     batch_size: int = 128
     lr: float = 3e-3
     weight_decay: float = 1e-4
@@ -108,6 +118,12 @@ class TrainConfig:
             (self.window >= 4, "window must be >= 4 samples", ("window",)),
             (self.hop >= 1, "hop must be >= 1 sample", ("hop",)),
             (self.model in MODELS, f"model must be one of {', '.join(MODELS)}", ("model",)),
+            (self.front in FRONTS, f"front must be one of {', '.join(FRONTS)}", ("front",)),
+            (2 <= self.frame <= self.window and self.frame_hop >= 1,
+             "frame must be 2..window samples and frame_hop >= 1",
+             ("frame", "frame_hop", "window")),
+            (self.epoch_windows >= 0, "epoch_windows must be >= 0 (0: every window)",
+             ("epoch_windows",)),
             (self.state in STATE_MODES, f"state must be one of {', '.join(STATE_MODES)}",
              ("state",)),
             (self.split in SPLITS, f"split must be one of {', '.join(SPLITS)}", ("split",)),
@@ -249,5 +265,6 @@ def resolve_device(device: str, cuda_available: bool | None = None) -> str:
     return device
 
 
-__all__ = ["TrainConfig", "MODELS", "STATE_MODES", "SPLITS", "SCHEDULES", "REFITS", "DEVICES",
+__all__ = ["TrainConfig", "MODELS", "FRONTS", "STATE_MODES", "SPLITS", "SCHEDULES", "REFITS",
+           "DEVICES",
            "apply_threads", "resolve_threads", "resolve_device", "usable_cpus"]

@@ -7,6 +7,8 @@ K IMFs per EMD channel, H hidden size, L LSTM layers.
 
 from __future__ import annotations
 
+import math
+
 import torch
 from torch import Tensor, nn
 
@@ -55,19 +57,69 @@ class Preprocess(nn.Module):
         return torch.cat([z, feats.to(z.dtype)], dim=2)
 
 
-class LSTMHead(nn.Module):
-    """(B, T, F) features + state (L, B, H) x 2 -> logits (B, classes) after the last sample."""
+class SpectralFront(nn.Module):
+    """(B, T, F) features -> (B, T', F * (K + 1)) frame features, T' = (T - frame) // hop + 1.
 
-    def __init__(self, n_in: int, n_classes: int, hidden: int, layers: int, dropout: float):
+    In frames of ``frame`` samples every ``hop`` samples, per feature: the log power in each of
+    the K = frame // 2 + 1 DFT bins of the Hann-tapered frame (``log(power + LOG_FLOOR)``; a
+    gain on a channel becomes an offset), and the frame's mean (the level). A fixed grouped
+    convolution (no trainable weights) followed by a trainable batch normalisation of each
+    frame feature, which puts log powers and levels of every channel on one scale.
+    """
+
+    LOG_FLOOR = 1e-4  # power floor of the normalised (unit-variance) channels
+
+    def __init__(self, n_in: int, frame: int, hop: int) -> None:
+        super().__init__()
+        t = torch.arange(frame, dtype=torch.float64)
+        taper = torch.hann_window(frame, periodic=False, dtype=torch.float64)
+        self.n_bins = frame // 2 + 1
+        rows = []
+        for k in range(self.n_bins):
+            rows += [torch.cos(2 * math.pi * k * t / frame) * taper,
+                     torch.sin(2 * math.pi * k * t / frame) * taper]
+        rows.append(torch.full((frame,), 1.0 / frame, dtype=torch.float64))  # the mean
+        basis = torch.stack(rows).float()  # (2K + 1, frame)
+        # one copy per input feature, for a grouped convolution: (F * (2K + 1), 1, frame)
+        self.register_buffer("basis", basis.repeat(n_in, 1).unsqueeze(1))
+        self.n_in, self.hop = n_in, hop
+        self.n_out = n_in * (self.n_bins + 1)
+        self.norm = nn.BatchNorm1d(self.n_out)
+
+    def forward(self, f: Tensor) -> Tensor:
+        y = nn.functional.conv1d(f.transpose(1, 2), self.basis, stride=self.hop,
+                                 groups=self.n_in)  # (B, F * (2K + 1), T')
+        b, _, frames = y.shape
+        y = y.reshape(b, self.n_in, 2 * self.n_bins + 1, frames)
+        re, im = y[:, :, 0 : 2 * self.n_bins : 2], y[:, :, 1 : 2 * self.n_bins : 2]
+        log_power = torch.log(re * re + im * im + self.LOG_FLOOR)  # (B, F, K, T')
+        z = torch.cat([log_power, y[:, :, 2 * self.n_bins :]], dim=2)  # (B, F, K + 1, T')
+        return self.norm(z.reshape(b, self.n_out, frames)).transpose(1, 2)
+
+
+class LSTMHead(nn.Module):
+    """(B, T, F) features + state (L, B, H) x 2 -> logits (B, classes) after the last step.
+
+    With ``front='spectral'`` the LSTM runs over the :class:`SpectralFront`'s frames (dropout on
+    its input too), else over the samples.
+    """
+
+    def __init__(self, n_in: int, n_classes: int, hidden: int, layers: int, dropout: float,
+                 front: str = "none", frame: int = 20, frame_hop: int = 10):
         super().__init__()
         self.layers, self.hidden = layers, hidden
+        self.front = SpectralFront(n_in, frame, frame_hop) if front == "spectral" else None
+        n_lstm = self.front.n_out if self.front is not None else n_in
+        self.in_drop = nn.Dropout(dropout if self.front is not None else 0.0)
         self.lstm = nn.LSTM(
-            n_in, hidden, layers, batch_first=True, dropout=dropout if layers > 1 else 0.0
+            n_lstm, hidden, layers, batch_first=True, dropout=dropout if layers > 1 else 0.0
         )
         self.drop = nn.Dropout(dropout)
         self.out = nn.Linear(hidden, n_classes)
 
     def forward(self, f: Tensor, h: Tensor, c: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+        if self.front is not None:
+            f = self.in_drop(self.front(f))  # (B, T', F')
         y, (h, c) = self.lstm(f, (h, c))  # y: (B, T, H)
         return self.out(self.drop(y[:, -1])), h, c
 
@@ -104,7 +156,7 @@ class TextureModel(nn.Module):
         self.pre = Preprocess(mean, std, emd_index, cfg.emd_imfs, cfg.emd_sifts, center_index)
         if cfg.model == "lstm":
             self.head = LSTMHead(self.pre.n_features, n_classes, cfg.hidden, cfg.layers,
-                                 cfg.dropout)
+                                 cfg.dropout, cfg.front, cfg.frame, cfg.frame_hop)
         else:
             self.head = LinearHead(self.pre.n_channels, self.pre.n_emd, n_classes)
 

@@ -8,7 +8,9 @@ for that dictionary (``MiniBatchDictionaryLearning(...).transform`` and
 1. pick the atom whose correlation with the residual is largest in magnitude;
 2. stop early (the row keeps the atoms it has) if that atom is already chosen, if its
    correlation squared is below the float32 epsilon, or if it depends linearly on the chosen
-   ones (the new Cholesky pivot is below epsilon): scikit-learn's three early exits;
+   ones (the new Cholesky pivot is below epsilon): scikit-learn's three early exits. At the
+   first step only the correlation is tested, as in scikit-learn: an atom of tiny norm (squared
+   norm below epsilon) is taken there, with its large coefficient;
 3. least squares on the chosen atoms; the residual correlations follow; repeat ``n_nonzero``
    times.
 
@@ -103,7 +105,6 @@ class SparseCoder(nn.Module):
             pick = (atom_ids[None, :] == lam).to(x.dtype)  # (B, K) one-hot
             a_lam = torch.gather(alpha, 1, lam)  # (B, 1)
             c_lam = torch.gather(cov, 1, lam)
-            again = torch.gather(active, 1, lam)  # 1 if the atom is already chosen
             g_lam = gram[lam[:, 0]]  # (B, K): Gram row of the picked atom
             pivot = diag[lam]  # (B, 1)
             if s:
@@ -115,7 +116,10 @@ class SparseCoder(nn.Module):
                 z_new = c_lam - (wt @ z)[:, 0]
             else:
                 p_new, r_new, z_new = g_lam, pick, c_lam
-            go = (again == 0) & (a_lam * a_lam >= EPS) & (pivot > EPS)
+            go = a_lam * a_lam >= EPS
+            if s:  # nothing is chosen yet at step 0, and scikit-learn tests no pivot there
+                again = torch.gather(active, 1, lam)  # 1 if the atom is already chosen
+                go = go & (again == 0) & (pivot > EPS)
             live = live * go.to(x.dtype)
             inv = live / torch.sqrt(torch.where(live > 0, pivot, torch.ones_like(pivot)))
             p_s, r_s, z_s = p_new * inv, r_new * inv, z_new * inv  # (B, K), (B, K), (B, 1)

@@ -74,6 +74,7 @@ from tactile.training.evaluate import (
     table,
 )
 from tactile.training.model import TextureModel
+from tactile.training.sampling import epoch_order
 
 EXIT_INTERRUPTED = 130  # the shell's code for a command ended by SIGINT
 RUN_FILES = (CHECKPOINT, RESUME, "metrics.json")  # a folder holding one of these is a run
@@ -331,10 +332,11 @@ def _fit(model: TextureModel, parts: dict, feats: dict, ctx: Context,
     return history
 
 
-def _epoch_order(units: np.ndarray, gen: torch.Generator) -> np.ndarray:
+def _epoch_order(units: np.ndarray, per_epoch: int, gen: torch.Generator) -> np.ndarray:
     """The training units (window rows, or (S, steps) runs of rows) of one epoch, in the order
-    they are visited: every one once, shuffled with ``gen`` (the same on every process)."""
-    return units[torch.randperm(len(units), generator=gen).numpy()]
+    they are visited: ``per_epoch`` of them (0: every one once) drawn with ``gen`` (the same on
+    every process); :func:`tactile.training.sampling.epoch_order`."""
+    return epoch_order(units, per_epoch, gen)
 
 
 def _train(model: TextureModel, w: Windows, f_all: torch.Tensor, n_epochs: int, ctx: Context,
@@ -372,7 +374,7 @@ def _train(model: TextureModel, w: Windows, f_all: torch.Tensor, n_epochs: int, 
     for epoch in epochs:
         t_epoch = time.perf_counter()
         model.train()
-        order = dist.shard(_epoch_order(units, gen))
+        order = dist.shard(_epoch_order(units, cfg.epoch_windows, gen))
         total, count = 0.0, 0
         for i in tqdm(range(0, len(order), batch), desc=f"epoch {epoch + 1}",
                       disable=not ctx.log.bars, leave=False, file=sys.stderr):
@@ -393,7 +395,8 @@ def _train(model: TextureModel, w: Windows, f_all: torch.Tensor, n_epochs: int, 
             if ema is not None:
                 with torch.no_grad():
                     for k, v in head.state_dict().items():
-                        ema[k].mul_(cfg.ema).add_(v, alpha=1 - cfg.ema)
+                        if v.is_floating_point():  # not a step counter (batch norm's)
+                            ema[k].mul_(cfg.ema).add_(v, alpha=1 - cfg.ema)
             total += float(loss.detach()) * len(rows)
             count += len(rows)
         total, count = dist.sum(total, count)

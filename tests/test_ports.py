@@ -1,0 +1,278 @@
+"""Ports: bytes read before an unplug are kept, a port is used by one program, and a reconnection
+goes only to the same pen. Sockets on 127.0.0.1 and ptys; every wait is for an event."""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import socket
+import subprocess
+import sys
+import threading
+import time
+
+import pytest
+import serial
+from conftest import REPO
+
+import tactile.device  # noqa: F401  (registers sim://)
+from tactile.device.decoder import Header, StreamDecoder
+from tactile.device.info import ChannelSpec, DeviceInfo, pen_info
+from tactile.device.ports import PenId, PortBusy, open_port, read_some, reconnect
+from tactile.device.protocol import encode_header
+from tactile.device.simlink import LinkConfig, PenLink
+
+SHIPPED = REPO / "models" / "pen-exp2.onnx"
+TCP_CLOSE_WAIT = 8  # tcp_info.tcpi_state once the peer's FIN has arrived
+
+
+def listening() -> tuple[socket.socket, str]:
+    srv = socket.socket()
+    srv.settimeout(30)  # accept() fails rather than hangs
+    srv.bind(("127.0.0.1", 0))
+    srv.listen()
+    return srv, f"socket://127.0.0.1:{srv.getsockname()[1]}"
+
+
+def until(condition, what: str, seconds: float = 30) -> None:
+    """Poll ``condition()`` until true; fail after ``seconds`` (a deadline, not a delay)."""
+    deadline = time.monotonic() + seconds
+    while not condition():
+        if time.monotonic() > deadline:
+            raise AssertionError(f"never happened: {what}")
+        time.sleep(0.001)
+
+
+def peer_closed(link) -> bool:
+    """The server's data and its FIN have both reached ``link``'s socket (TCP delivers in
+    order, so everything sent before the FIN is in the receive queue)."""
+    s = socket.socket(fileno=os.dup(link.fileno()))
+    try:
+        return s.getsockopt(socket.IPPROTO_TCP, socket.TCP_INFO, 1)[0] == TCP_CLOSE_WAIT
+    finally:
+        s.close()
+
+
+def test_bytes_read_before_a_disconnect_are_kept():
+    """Data then a disconnect, both waiting before the read: pyserial's read(4096) raises and
+    drops the data it had read; read_some hands the data over, then reports the loss."""
+    srv, url = listening()
+    data = bytes(range(1, 256)) * 8  # 2040 B, less than one read
+    try:
+        for way in ("pyserial", "read_some"):
+            link = open_port(url, 115200)
+            conn, _ = srv.accept()
+            conn.sendall(data)
+            conn.close()
+            until(lambda link=link: peer_closed(link), "the FIN arrived")
+            if way == "pyserial":  # the fault, reproduced: what the loops did before
+                link.timeout = 0.05
+                with pytest.raises(serial.SerialException, match="disconnected"):
+                    link.read(4096)
+            else:
+                got, lost = bytearray(), None
+                while lost is None:
+                    chunk, lost = read_some(link)
+                    got += chunk
+                assert bytes(got) == data and isinstance(lost, serial.SerialException)
+            link.close()
+    finally:
+        srv.close()
+
+
+def test_a_port_is_opened_by_one_program_and_the_holder_is_named(tmp_path):
+    """The same pty twice: the second open is refused, naming the holder (here this process),
+    and a second tactile-run on it exits 2 in one line naming the first one's pid."""
+    master, slave = os.openpty()
+    name = os.ttyname(slave)
+    first = open_port(name, 115200)
+    try:
+        with pytest.raises(PortBusy, match=rf"cannot open {name}: in use by .*pid {os.getpid()}"):
+            open_port(name, 115200)
+    finally:
+        first.close()
+    runner = subprocess.Popen(
+        [sys.executable, "-m", "tactile.runtime.cli", "--model", str(SHIPPED), "--port", name],
+        stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    try:
+        line = runner.stderr.readline()
+        assert line.startswith(f"tactile-run: opened {name}"), line
+        proc = subprocess.run([sys.executable, "-m", "tactile.runtime.cli", "--model",
+                               str(SHIPPED), "--port", name, "--wait"],
+                              capture_output=True, text=True, timeout=60)
+    finally:
+        runner.send_signal(signal.SIGINT)
+        runner.communicate(timeout=30)
+        os.close(master)
+        os.close(slave)
+    assert proc.returncode == 2 and proc.stdout == ""
+    lines = proc.stderr.strip().splitlines()
+    assert len(lines) == 1 and f"cannot open {name}: in use by pid {runner.pid} (" in lines[0], \
+        proc.stderr
+
+
+def stream(conn: socket.socket, chunks, done: threading.Event) -> None:
+    """Send ``chunks`` (an iterator of bytes) until the peer goes or ``done`` is set: a device
+    that keeps talking, so what a socket:// open discards at its start does not matter."""
+    with conn:
+        for chunk in chunks:
+            try:
+                conn.sendall(chunk)
+            except OSError:  # the client closed it
+                return
+            if done.wait(0.01):
+                return
+
+
+def other_device():
+    other = encode_header(pen_info(device="other-pen"))
+    while True:
+        yield other
+
+
+def pen(seed: int):
+    link = PenLink(LinkConfig(texture="paper", seed=seed))
+    while True:
+        yield link.produce(10)
+
+
+def test_after_an_unplug_only_the_same_pen_is_taken_back(reap):
+    """The pen sends 300 samples and vanishes; another device answers on its name (here the
+    same TCP port) and is refused; then the pen comes back and labels resume. The 300 samples
+    that arrived with the disconnect are all labelled (11 windows)."""
+    srv, url = listening()
+    proc = reap(subprocess.Popen(
+        [sys.executable, "-m", "tactile.runtime.cli", "--model", str(SHIPPED), "--port", url,
+         "--stall-timeout", "600", "--status-every", "600"],
+        stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True), 120)
+    role = {"now": "other"}
+    done = threading.Event()
+
+    def serve() -> None:  # every later connection: the other device, then the pen
+        while not done.is_set():
+            try:
+                conn, _ = srv.accept()
+            except OSError:
+                return
+            stream(conn, other_device() if role["now"] == "other" else pen(5), done)
+
+    server = threading.Thread(target=serve, daemon=True)
+    try:
+        conn, _ = srv.accept()
+        err = [proc.stderr.readline()]
+        assert err[0].startswith(f"tactile-run: opened {url}"), err
+        conn.sendall(PenLink(LinkConfig(texture="paper", seed=2)).produce(300))
+        conn.close()  # the unplug: the data and the disconnect arrive together
+        server.start()
+        while "is not the pen" not in err[-1]:
+            err.append(proc.stderr.readline())
+            assert err[-1], err
+        role["now"] = "pen"
+        labels, events = [], []
+        while not (labels and labels[-1][0] > 0):  # until a label after the reconnection
+            line = proc.stdout.readline()
+            assert line, (labels, events, err)
+            x = json.loads(line)
+            if "event" in x:
+                events.append(x["event"])
+            else:
+                labels.append((len(events), x["seq"]))
+        proc.send_signal(signal.SIGINT)
+        proc.stdout.read()  # to its end, through the pipes readline() buffered
+        rest = proc.stderr.read()
+        proc.wait(timeout=30)
+    finally:
+        done.set()
+        srv.close()
+        server.join(30) if server.is_alive() else None
+    err = "".join(err) + rest
+    assert proc.returncode == 0, err
+    assert f"{url} is not the pen: device 'other-pen', not 'tactile-pen'" in err
+    assert f"reconnected to {url}" in err
+    assert events[0] == "reconnect" and set(events[1:]) <= {"gap"}, events  # restart gap
+    before = [seq for n, seq in labels if n == 0]
+    assert before == list(range(49, 300, 25))  # every window of the 300 samples
+    summary = json.loads(rest.split("tactile-run: summary ", 1)[1].splitlines()[0])
+    assert summary["reconnects"] == 1
+
+
+class _FakePort:
+    def __init__(self, device: str, serial_number: str | None):
+        self.device, self.serial_number = device, serial_number
+        self.vid, self.description = 0x2341, "pen"
+
+
+def test_the_pen_is_found_again_by_its_usb_serial_number(monkeypatch):
+    """Its old name is gone; of the devices listed, the one with its serial number but another
+    header is refused, one with another serial number is not even opened (it could not be),
+    and the one with its serial number and its header is taken."""
+    from serial.tools import list_ports
+
+    pen_url = "sim://?texture=paper&seed=1&speed=max&seconds=5"
+    listed = [_FakePort("sim://?texture=velvet", "OTHER"),  # opening it would raise
+              _FakePort("sim://?texture=paper&speed=max&rate=50", "PEN1"),
+              _FakePort(pen_url, "PEN1")]
+    monkeypatch.setattr(list_ports, "comports", lambda: listed)
+    said: list[str] = []
+    got = reconnect("/dev/no-such-pen", 115200, PenId(pen_info(), "PEN1"), StreamDecoder,
+                    {"flag": False}, said.append, time.monotonic() + 60)
+    assert got is not None, said
+    link, name, early = got
+    link.close()
+    assert name == pen_url
+    assert [ev.info for ev in StreamDecoder().feed(early) if isinstance(ev, Header)] == \
+        [pen_info()]  # the probe's bytes come back to be decoded: nothing read is lost
+    assert any("rate=50 is not the pen: rate 50 Hz" in m for m in said), said
+    assert said[-1] == f"reconnected to {pen_url}"
+
+
+def test_an_auto_detected_pen_is_looked_for_again(monkeypatch):
+    pen_url = "sim://?texture=desk&seed=2&speed=max&seconds=5"
+    got = reconnect("/dev/no-such-pen", 115200, PenId(pen_info()), StreamDecoder,
+                    {"flag": False}, lambda m: None, time.monotonic() + 60,
+                    find=lambda: pen_url)
+    assert got is not None and got[1] == pen_url
+    got[0].close()
+
+
+def test_what_makes_the_same_pen():
+    base = pen_info()
+    assert PenId(base).differs(pen_info()) is None
+    assert PenId(None).differs(pen_info(device="x")) is None  # no header yet: nothing to check
+    assert "device 'x'" in PenId(base).differs(pen_info(device="x"))
+    assert "rate 50 Hz" in PenId(base).differs(pen_info(50.0))
+    scaled = DeviceInfo(100.0, (ChannelSpec("pressure_0", "N", 0.02), *base.channels[1:]),
+                        "tactile-pen")
+    assert "other units or scales" in PenId(base).differs(scaled)
+
+    def csv(*names):
+        return DeviceInfo(100.0, tuple(ChannelSpec(n, "") for n in names), "csv")
+
+    # a CSV device sends no header: the same number of channels at the same rate is the pen
+    assert PenId(csv("a", "b", "c")).differs(csv("ch0", "ch1", "ch2")) is None
+    assert "2 CSV channels, not 3" in PenId(csv("a", "b", "c")).differs(csv("a", "b"))
+    assert "not the 'csv' one" in PenId(csv("a", "b", "c")).differs(base)
+
+
+def test_the_recorder_keeps_the_bytes_that_came_with_a_disconnect(tmp_path, reap):
+    """tactile-record on a socket pen that sends 3 s of samples and hangs up at once: the take
+    holds all 300 (they arrived together with the disconnect)."""
+    from tactile.device.recording import read_take
+
+    srv, url = listening()
+    proc = reap(subprocess.Popen(
+        [sys.executable, "-m", "tactile.device.recorder", "--port", url, "--label", "paper",
+         "--out", str(tmp_path), "--seconds", "3"],
+        stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True), 120)
+    try:
+        conn, _ = srv.accept()
+        with conn:  # sent once it reports progress: its socket:// open is over
+            assert proc.stderr.readline().startswith("[paper]")
+            conn.sendall(PenLink(LinkConfig(texture="paper", seed=2)).produce(300))
+        out, err = proc.communicate(timeout=60)
+    finally:
+        srv.close()
+    assert proc.returncode == 0, err
+    take = read_take(out.strip())
+    assert list(take.seq) == list(range(300))

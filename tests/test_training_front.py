@@ -1,0 +1,78 @@
+"""The spectral front end (against numpy's FFT) and the epoch's window sampling."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+from tactile.errors import ConfigError
+from tactile.training.config import TrainConfig
+from tactile.training.model import SpectralFront
+from tactile.training.sampling import epoch_order
+
+
+def reference_frames(x: np.ndarray, frame: int, hop: int) -> np.ndarray:
+    """(B, T, F) float64 -> (B, T', F * (K + 1)) with numpy: per frame and feature the log power
+    of each rfft bin of the Hann-tapered frame, then the frame's mean (the order of the front)."""
+    b, t, f = x.shape
+    taper = np.hanning(frame)  # symmetric, as torch.hann_window(periodic=False)
+    starts = range(0, t - frame + 1, hop)
+    out = []
+    for s in starts:
+        seg = x[:, s : s + frame]  # (B, frame, F)
+        power = np.abs(np.fft.rfft(seg * taper[None, :, None], axis=1)) ** 2  # (B, K, F)
+        feats = np.concatenate([np.log(power + SpectralFront.LOG_FLOOR),
+                                seg.mean(axis=1, keepdims=True)], axis=1)  # (B, K + 1, F)
+        out.append(feats.transpose(0, 2, 1).reshape(b, -1))  # feature-major, as the front
+    return np.stack(out, axis=1)
+
+
+@pytest.mark.parametrize("frame, hop", [(20, 10), (7, 3), (50, 1)])
+def test_spectral_front_matches_numpy_fft(frame, hop):
+    rng = np.random.default_rng(0)
+    x = rng.normal(size=(3, 50, 4)) * np.array([1.0, 0.1, 3.0, 0.01])
+    front = SpectralFront(4, frame, hop).eval()  # batch norm untrained: y = x / sqrt(1 + eps)
+    with torch.no_grad():
+        got = front(torch.tensor(x, dtype=torch.float32)).double().numpy()
+    want = reference_frames(x, frame, hop) / np.sqrt(1 + front.norm.eps)
+    assert got.shape == want.shape == (3, (50 - frame) // hop + 1, 4 * (frame // 2 + 2))
+    np.testing.assert_allclose(got, want, rtol=1e-4, atol=2e-4)
+
+
+def test_a_gain_on_a_channel_only_shifts_its_log_powers():
+    """log(g^2 P) = log P + 2 log g: a user's signal level is an offset, not a new shape."""
+    rng = np.random.default_rng(1)
+    x = torch.tensor(rng.normal(size=(2, 50, 1)), dtype=torch.float32)
+    front = SpectralFront(1, 20, 10).eval()
+    front.LOG_FLOOR = 0.0
+    with torch.no_grad():
+        a, b = front(x), front(3 * x)
+    k = front.n_bins
+    shift = (b - a).reshape(2, -1, k + 1)
+    np.testing.assert_allclose(shift[..., :k].numpy(), 2 * np.log(3) / np.sqrt(1 + 1e-5),
+                               atol=1e-3)
+
+
+def test_epoch_order_draws_without_replacement_and_is_deterministic():
+    units = np.arange(100) * 7
+    full = epoch_order(units, 0, torch.Generator().manual_seed(1))
+    assert sorted(full) == sorted(units)  # every unit once
+    assert sorted(epoch_order(units, 500, torch.Generator().manual_seed(1))) == sorted(units)
+    part = epoch_order(units, 30, torch.Generator().manual_seed(1))
+    assert len(part) == 30 and len(set(part)) == 30 and set(part) <= set(units)
+    again = epoch_order(units, 30, torch.Generator().manual_seed(1))
+    np.testing.assert_array_equal(part, again)
+    np.testing.assert_array_equal(part, full[:30])  # the same draw as a full epoch's start
+    runs = np.arange(40).reshape(10, 4)  # carried state: (S, steps) runs stay whole
+    got = epoch_order(runs, 3, torch.Generator().manual_seed(2))
+    assert got.shape == (3, 4) and all((r[1:] - r[:-1] == 1).all() for r in got)
+
+
+def test_front_settings_are_checked():
+    with pytest.raises(ConfigError, match="front must be one of"):
+        TrainConfig(front="fft")
+    with pytest.raises(ConfigError, match="frame must be 2..window"):
+        TrainConfig(frame=60)
+    with pytest.raises(ConfigError, match="epoch_windows"):
+        TrainConfig(epoch_windows=-1)

@@ -1,0 +1,74 @@
+"""Checking sparse codes against scikit-learn's OMP: agreement, and near-ties where they part.
+
+Two codes of one window may choose different atoms when float32 rounding decides a near-tie.
+:func:`compare` measures a batch of codes against scikit-learn's; for every window whose
+non-zero atoms differ it gives :func:`tie_gap`: at the first atom of scikit-learn's selection
+order (:func:`sklearn_order`) that the other code lacks, the float64 gap between that atom's
+residual correlation and the best rival's, relative to the largest. A gap near zero is a tie;
+a large one is a wrong atom. Used by ``tests/test_sparse.py`` and ``bench/sparse.py``.
+"""
+
+from __future__ import annotations
+
+import warnings
+
+import numpy as np
+from sklearn.linear_model import orthogonal_mp_gram
+
+
+def sklearn_order(d: np.ndarray, x: np.ndarray, n: int) -> list[int]:
+    """The atoms scikit-learn's OMP picks for window ``x`` (features,) with dictionary ``d``
+    (atoms, features) and ``n`` non-zeros, in order (from its coefficient path), computed as
+    its transform computes them (Gram in x's dtype)."""
+    gram = (d @ d.T).astype(x.dtype)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # "ended prematurely": an early exit is fine here
+        path = orthogonal_mp_gram(gram, d @ x, n_nonzero_coefs=n, return_path=True)
+    path = path.reshape(len(d), -1)
+    order: list[int] = []
+    for s in range(path.shape[1]):
+        order += [int(a) for a in np.flatnonzero(path[:, s]) if a not in order]
+    return order
+
+
+def tie_gap(d: np.ndarray, x: np.ndarray, order: list[int], other: set[int]) -> float:
+    """Relative gap, in float64, between scikit-learn's pick and the other code's best pick at
+    the first step where scikit-learn picks an atom the other code lacks (inf if none).
+
+    ``order`` is scikit-learn's selection order (:func:`sklearn_order`), ``other`` the other
+    code's non-zero atoms; 0 <= gap < tolerance means a tie decided the other way."""
+    d64, x64 = d.astype(np.float64), x.astype(np.float64)
+    for s, atom in enumerate(order):
+        if atom in other:
+            continue
+        chosen = order[:s]
+        resid = x64
+        if chosen:
+            sub = d64[chosen]  # (s, F)
+            resid = x64 - sub.T @ np.linalg.lstsq(sub.T, x64, rcond=None)[0]
+        corr = np.abs(d64 @ resid)
+        rivals = [c for c in other if c not in chosen]
+        if not rivals:
+            return float("inf")
+        return float((corr[atom] - max(corr[c] for c in rivals)) / corr.max())
+    # every atom scikit-learn chose is in the other code, which has more: scikit-learn stopped
+    # early where the other did not
+    return float("inf")
+
+
+def compare(ref: np.ndarray, got: np.ndarray, d: np.ndarray, x: np.ndarray, n: int) -> dict:
+    """Codes ``got`` against scikit-learn's ``ref`` (windows, atoms) for windows ``x``
+    (windows, features), dictionary ``d`` and ``n`` non-zeros: ``same`` (windows with the same
+    non-zero atoms, of ``windows``), ``agree`` (their share), ``max_rel`` (the largest
+    max |ref - got| / ||ref|| over those windows) and ``gaps`` (:func:`tie_gap` of every
+    other window, in window order)."""
+    same = ((ref != 0) == (got != 0)).all(1)
+    norm = np.linalg.norm(ref, axis=1)
+    rel = np.abs(ref - got).max(1) / np.maximum(norm, 1e-30)
+    gaps = [tie_gap(d, x[i], sklearn_order(d, x[i], n), set(np.flatnonzero(got[i])))
+            for i in np.flatnonzero(~same)]
+    return {"same": int(same.sum()), "windows": len(same), "agree": float(same.mean()),
+            "max_rel": float(rel[same].max()) if same.any() else 0.0, "gaps": gaps}
+
+
+__all__ = ["compare", "sklearn_order", "tie_gap"]
