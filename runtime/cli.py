@@ -27,7 +27,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 import tactile.device  # noqa: F401  (registers sim://)
-from tactile.cli import Parser, add_debug, float_in, int_in, run, started
+from tactile.cli import Parser, add_debug, add_port_options, float_in, int_in, run, started
 from tactile.device.decoder import Gap, Header, Samples, StreamDecoder
 from tactile.device.info import DeviceInfo
 from tactile.device.portlist import find_port
@@ -322,8 +322,6 @@ def build_parser() -> argparse.ArgumentParser:
                    help="if the port is absent at start, wait for it (as after an unplug) "
                    "instead of exiting with code 2; without --port, wait until one likely pen "
                    "is attached; for a service started before the pen is plugged in")
-    p.add_argument("--baud", type=int_in(1), default=115200,
-                   help="UART baud rate (default 115200)")
     p.add_argument("--hop", type=int_in(1),
                    help="samples between windows (default: the model's)")
     p.add_argument("--format", choices=FORMATS, default="jsonl",
@@ -336,16 +334,9 @@ def build_parser() -> argparse.ArgumentParser:
                    help="the smoothed label changes only when beaten by MARGIN")
     p.add_argument("--threads", type=int_in(1, CPUS), default=1,
                    help=f"onnxruntime threads, at most the {CPUS} cores (default 1)")
-    p.add_argument("--seconds", type=float_in(0.0), default=math.inf,
-                   help="stop after this long (wall time; with --replay too)")
-    p.add_argument("--stall-timeout", type=float_in(0.0), default=2.0,
-                   help="report a stall after this many seconds without data")
     p.add_argument("--status-every", type=float_in(0.0), default=5.0,
                    help="status line period, s")
-    p.add_argument("--serve", metavar="HOST:PORT",
-                   help="also serve a live, read-only web page of the channels, labels and link "
-                   "at http://HOST:PORT/ (PORT alone: on 127.0.0.1; port 0: a free one, said "
-                   "on stderr)")
+    add_port_options(p, "the channels, labels and link")
     add_debug(p)
     return p
 
@@ -365,6 +356,19 @@ def _main(args: argparse.Namespace) -> int:
         from tactile.runtime.serve import serve_runner
 
         live = serve_runner(args.serve, runner, decoder, _say)
+    try:
+        _read(args, runner, decoder, summary)
+    finally:  # the page gets its end, stderr its last line, whatever stopped the run
+        if live is not None:
+            live.close()
+    print("tactile-run: summary " + json.dumps(summary.to_dict(decoder.stats.as_dict())),
+          file=sys.stderr, flush=True)
+    return 0
+
+
+def _read(args: argparse.Namespace, runner: Runner, decoder: StreamDecoder, summary: Summary
+          ) -> None:
+    """Until stopped: the replay, or the pen (found, or waited for, first)."""
     stop = {"flag": False}
     for s in (signal.SIGINT, signal.SIGTERM):
         signal.signal(s, lambda *_: stop.__setitem__("flag", True))
@@ -380,11 +384,6 @@ def _main(args: argparse.Namespace) -> int:
                 if args.wait else find_port()
         if args.port is not None:  # None: stopped while waiting for a pen
             serve(args, runner, decoder, stop)
-    if live is not None:
-        live.close()
-    print("tactile-run: summary " + json.dumps(summary.to_dict(decoder.stats.as_dict())),
-          file=sys.stderr, flush=True)
-    return 0
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -10,9 +10,10 @@ last value in units, min/max/RMS over the last second of samples) and a line of 
 (frames, CRC errors, malformed frames, gaps, samples lost, restarts, reconnects, the rate
 actually received). In a terminal the block is redrawn in place; otherwise (a pipe, a log file)
 it is printed again every ``--every`` seconds, with no escape codes. At the end a line on stderr
-says whether the pen was alive (data at about its declared rate) and sane (no channel flat or
-pinned at its limit, no errors). Exit codes: 0 data came, 1 bad arguments, 2 the port cannot be
-opened, or no data (no decodable samples) came.
+says whether the pen was alive (data at its declared rate within :data:`RATE_TOLERANCE`, from the
+first bytes to the end; otherwise ``too slow`` or ``too fast``) and sane (no channel flat or
+pinned at its limit, no errors). Exit codes: 0 data came (whatever the verdict), 1 bad arguments,
+2 the port cannot be opened, or no data (no decodable samples) came.
 """
 
 from __future__ import annotations
@@ -28,7 +29,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 import tactile.device  # noqa: F401  (registers sim://)
-from tactile.cli import Parser, add_debug, float_in, int_in, run, started
+from tactile.cli import Parser, add_debug, add_port_options, float_in, run, started
 from tactile.device.decoder import Gap, Header, Samples, StreamDecoder
 from tactile.device.info import DeviceInfo
 from tactile.device.portlist import find_port
@@ -37,6 +38,7 @@ from tactile.errors import ConfigError, DeviceError
 from tactile.runtime.units import to_units
 
 INT16 = (-32768, 32767)
+RATE_TOLERANCE = 0.10  # alive: the rate received within 10% of the declared one
 
 
 @dataclass
@@ -258,20 +260,29 @@ def _link_status(decoder: StreamDecoder) -> dict:
 
 
 def verdict(watch: Watch, decoder: StreamDecoder, end: float) -> str:
-    """One line: alive (the rate received from the first bytes to ``end``, monotonic, against
-    the declared one) and sane (errors, gaps, flat or saturated channels)."""
+    """One line: alive (the rate received from the first bytes to ``end``, monotonic s, within
+    :data:`RATE_TOLERANCE` of the declared one; else ``too slow`` or ``too fast``) and sane
+    (no errors, gaps, flat or saturated channels; else each is named)."""
     st = decoder.stats
     declared = watch.info.sample_rate_hz if watch.info else math.nan
     seconds = end - watch.first_data if watch.first_data is not None else 0.0
-    got = st.samples / seconds if seconds > 0 else math.nan
+    got = st.samples / seconds if seconds > 0 else math.inf
     notes = watch.problems()
     if st.errors:
         notes.append(f"{st.crc_errors} CRC errors, {st.malformed} malformed frames")
     if st.gaps:
         notes.append(f"{st.gaps} gaps ({st.samples_lost} samples lost)")
-    ok = "alive" + ("" if notes else " and sane")
-    return (f"{ok}: {st.samples} samples in {seconds:.1f} s ({got:.1f} Hz received, "
-            f"{declared:g} Hz declared)" + ("; " + "; ".join(notes) if notes else ""))
+    off = abs(got / declared - 1) if declared > 0 else math.inf
+    if off <= RATE_TOLERANCE:
+        head = "alive" + ("" if notes else " and sane")
+        rate = f"{got:.1f} Hz received, {declared:g} Hz declared"
+    else:
+        head = ("too slow" if got < declared else "too fast") + ("" if notes else
+                                                                 ", otherwise sane")
+        rate = (f"{got:.1f} Hz received, {declared:g} Hz declared: more than "
+                f"{RATE_TOLERANCE:.0%} off")
+    return (f"{head}: {st.samples} samples in {seconds:.1f} s ({rate})"
+            + ("; " + "; ".join(notes) if notes else ""))
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -284,21 +295,13 @@ def build_parser() -> argparse.ArgumentParser:
     )
     p.add_argument("--port", help="device path or pyserial URL (sim://, socket://, ...); "
                    "default: the one likely pen attached (tactile-ports lists them)")
-    p.add_argument("--baud", type=int_in(1), default=115200,
-                   help="UART baud rate (default 115200)")
-    p.add_argument("--seconds", type=float_in(0.0), default=math.inf,
-                   help="stop after this long (wall time; default: until Ctrl-C)")
     p.add_argument("--raw", action="store_true",
                    help="show the bytes as they arrive, in hex (as hexdump -C), not decoded")
     p.add_argument("--every", type=float_in(0.0), default=None,
                    help="refresh period, s (default 0.5 in a terminal, 1 otherwise)")
-    p.add_argument("--stall-timeout", type=float_in(0.0), default=2.0,
-                   help="say 'no data' after this many seconds without bytes")
     p.add_argument("--csv-rate", type=float_in(0.0), default=100.0,
                    help="rate of a CSV-line device, Hz (it declares none)")
-    p.add_argument("--serve", metavar="HOST:PORT",
-                   help="also serve a live, read-only web page of the channels and link at "
-                   "http://HOST:PORT/ (PORT alone: on 127.0.0.1; port 0: a free one)")
+    add_port_options(p, "the channels and link")
     add_debug(p)
     return p
 
@@ -330,16 +333,17 @@ def _main(args: argparse.Namespace) -> int:
                 raise DeviceError(f"no data from {port} in {time.monotonic() - begin:.1f} s")
             return 0
         watch, decoder = watch_loop(args, link, stop, deadline, live)
+        end = time.monotonic()  # before closing the page, which may wait for its viewers
     finally:
         link.close()
         if live is not None:
             live.close()
-    took = time.monotonic() - begin
+    took = end - begin
     if decoder.stats.samples == 0:
         st = decoder.stats
         raise DeviceError(f"no samples from {port} in {took:.1f} s ({st.bytes_in} bytes read; "
                           f"{st.bytes_discarded} not decodable)")
-    _say(verdict(watch, decoder, time.monotonic()))
+    _say(verdict(watch, decoder, end))
     return 0
 
 

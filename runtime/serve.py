@@ -14,7 +14,9 @@ viewer cannot take is dropped for it and counted. Endpoints, GET and HEAD only:
 * ``/status``: the latest ``status`` object as JSON.
 
 Anything else is 404; other methods are 405. At most ``max_clients`` viewers at a time: the next
-one gets 503 and a line saying so.
+one gets 503 and a line saying so. At most ``max_connections`` connections at a time (each has a
+thread): the next is answered 503 and closed without one; a connection that sends no request for
+``idle_timeout`` s is closed.
 """
 
 from __future__ import annotations
@@ -40,6 +42,8 @@ from tactile.runtime.units import to_units
 
 SAMPLE_HZ = 25.0  # samples per second per channel sent to viewers (the plots need no more)
 MAX_CLIENTS = 4
+MAX_CONNECTIONS = 32  # connections (threads) at a time, viewers included
+IDLE_TIMEOUT_S = 10.0  # a connection that sends no request for this long is closed
 QUEUE = 512  # messages held per viewer before its new messages are dropped
 WRITE_TIMEOUT_S = 10.0  # a viewer that has taken nothing for this long is disconnected
 SNDBUF = 64 * 1024  # kernel send buffer per viewer, bytes
@@ -49,6 +53,10 @@ _FILES = {"/": ("index.html", "text/html; charset=utf-8"),
           "/app.js": ("app.js", "text/javascript; charset=utf-8"),
           "/style.css": ("style.css", "text/css; charset=utf-8")}
 _STICKY = ("header", "label", "status")  # a new viewer gets the latest of each first
+_END = b'data: {"event":"end"}\n\n'
+_BUSY = (b"HTTP/1.1 503 Service Unavailable\r\nContent-Type: text/plain; charset=utf-8\r\n"
+         b"Content-Length: 38\r\nRetry-After: 10\r\nConnection: close\r\n\r\n"
+         b"busy: too many connections; try later\n")
 
 
 def parse_address(text: str) -> tuple[str, int]:
@@ -82,8 +90,36 @@ class _Viewer:
 
 
 class _Server(ThreadingHTTPServer):
+    """One thread per connection, at most ``live.max_connections`` of them: past that, a
+    connection gets a fixed 503 and is closed at once, from the listening thread."""
+
     daemon_threads = True
     live: Live
+    connections = 0
+
+    def process_request(self, request, client_address) -> None:
+        with self.live._lock:
+            busy = self.connections >= self.live.max_connections
+            if busy:
+                self.live.turned_away += 1
+            else:
+                self.connections += 1
+        if not busy:
+            super().process_request(request, client_address)
+            return
+        try:
+            request.setblocking(False)  # a short answer into a fresh socket's empty buffer
+            request.send(_BUSY)
+        except OSError:
+            pass
+        self.shutdown_request(request)
+
+    def process_request_thread(self, request, client_address) -> None:
+        try:
+            super().process_request_thread(request, client_address)
+        finally:
+            with self.live._lock:
+                self.connections -= 1
 
 
 class _Server6(_Server):
@@ -99,6 +135,9 @@ class Live:
             published as a ``status`` object; keep it to reading numbers.
         say: gets the diagnostics lines (the address, refused viewers).
         max_clients: viewers at a time.
+        max_connections: connections at a time (viewers, page loads, idle keep-alives).
+        idle_timeout: a connection that sends no request for this long (s) is closed.
+        status_every: the ``status`` period, s.
         write_timeout: a viewer that takes nothing for this long (s) is disconnected (its
             browser reconnects by itself when it can).
         labels: whether labels will come (False: ``tactile-monitor``, the page shows no label).
@@ -107,16 +146,21 @@ class Live:
     def __init__(self, host: str, port: int, status: Callable[[], dict],
                  say: Callable[[str], None] = lambda m: print(m, file=sys.stderr, flush=True),
                  max_clients: int = MAX_CLIENTS, write_timeout: float = WRITE_TIMEOUT_S,
-                 labels: bool = True) -> None:
+                 labels: bool = True, max_connections: int = MAX_CONNECTIONS,
+                 idle_timeout: float = IDLE_TIMEOUT_S, status_every: float = STATUS_EVERY_S
+                 ) -> None:
         self.status, self.say, self.labels = status, say, labels
         self.max_clients, self.write_timeout = max_clients, write_timeout
+        self.max_connections, self.idle_timeout = max_connections, idle_timeout
+        self.status_every = status_every
         self._lock = threading.Lock()
         self._viewers: list[_Viewer] = []
         self._latest: dict[str, bytes] = {}
         self._info: DeviceInfo | None = None
         self._every = 1
-        self.served = self.refused = self.dropped = self.published = 0
-        self.closing = threading.Event()
+        self.served = self.refused = self.dropped = self.published = self.turned_away = 0
+        self.closing = threading.Event()  # nothing more is published but the last messages
+        self.ended = threading.Event()  # `end` is in every viewer's queue (or dropped there)
         try:
             self._server = (_Server6 if ":" in host else _Server)((host, port), _Handler)
         except OSError as e:
@@ -186,7 +230,7 @@ class Live:
 
     def _status_loop(self) -> None:
         last = (time.monotonic(), None)
-        while not self.closing.wait(STATUS_EVERY_S):
+        while not self.closing.wait(self.status_every):
             last = self._publish_status(last)
 
     def _publish_status(self, last: tuple[float, int | None],
@@ -248,6 +292,7 @@ class Live:
         self.closing.set()
         self._publish_status((time.monotonic(), None), _last=True)
         self.publish({"event": "end"}, _last=True)
+        self.ended.set()
         deadline = time.monotonic() + drain_s
         with self._lock:
             viewers = list(self._viewers)
@@ -256,7 +301,9 @@ class Live:
         self._server.shutdown()
         self._server.server_close()
         self.say(f"live page: viewers {self.served} served, {self.refused} refused; "
-                 f"{self.dropped} messages dropped for slow viewers")
+                 f"{self.dropped} messages dropped for slow viewers"
+                 + (f"; {self.turned_away} connections turned away (busy)"
+                    if self.turned_away else ""))
 
 
 class _Handler(BaseHTTPRequestHandler):
@@ -264,6 +311,10 @@ class _Handler(BaseHTTPRequestHandler):
     protocol_version = "HTTP/1.1"
     server_version = "tactile"
     sys_version = ""
+
+    def setup(self) -> None:
+        self.timeout = self.server.live.idle_timeout  # applied to the socket by super()
+        super().setup()
 
     def log_message(self, format, *args) -> None:  # noqa: A002  (quiet: no line per request)
         pass
@@ -336,7 +387,7 @@ class _Handler(BaseHTTPRequestHandler):
                 try:
                     data = viewer.queue.get(timeout=0.25)
                 except queue.Empty:
-                    if live.closing.is_set():
+                    if live.ended.is_set():  # and nothing left: `end` was written or dropped
                         return
                     idle += 0.25
                     if idle >= KEEPALIVE_S:  # a comment line: finds a vanished viewer
@@ -346,6 +397,8 @@ class _Handler(BaseHTTPRequestHandler):
                 idle = 0.0
                 self.wfile.write(data)
                 self.wfile.flush()
+                if data == _END:
+                    return
         except OSError:  # the viewer went away, or took nothing for write_timeout s
             pass
         finally:

@@ -204,5 +204,22 @@ def add_debug(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--debug", action="store_true", help="show the full traceback on errors")
 
 
-__all__ = ["ConfigError", "Parser", "run", "add_debug", "exit_code", "float_in", "int_in",
-           "EXIT_DEVICE", "EXIT_USAGE"]
+def add_port_options(parser: argparse.ArgumentParser, page: str) -> None:
+    """The options of every command that reads a pen live (``tactile-run``,
+    ``tactile-monitor``): ``--baud``, ``--seconds``, ``--stall-timeout`` and ``--serve`` (the
+    page's contents, ``page``, are said in its help)."""
+    parser.add_argument("--baud", type=int_in(1), default=115200,
+                        help="UART baud rate (default 115200)")
+    parser.add_argument("--seconds", type=float_in(0.0), default=math.inf,
+                        help="stop after this long, s of wall time (default: until Ctrl-C or "
+                        "the end of the input)")
+    parser.add_argument("--stall-timeout", type=float_in(0.0), default=2.0,
+                        help="report a stall after this many seconds without data (default 2)")
+    parser.add_argument("--serve", metavar="HOST:PORT",
+                        help=f"also serve a live, read-only web page of {page} at "
+                        "http://HOST:PORT/ (PORT alone: on 127.0.0.1; port 0: a free one, said "
+                        "on stderr)")
+
+
+__all__ = ["ConfigError", "Parser", "run", "add_debug", "add_port_options", "exit_code",
+           "float_in", "int_in", "EXIT_DEVICE", "EXIT_USAGE"]

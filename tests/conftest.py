@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import re
 import subprocess
 import sys
 import threading
@@ -119,3 +120,13 @@ def read_link(query: str, chunk: int) -> tuple[bytes, Injected, list[int]]:
         sizes += [len(ev.raw) for ev in dec.feed(got) if isinstance(ev, Samples)]
         data += got
     return data, link.injected, sizes
+
+
+def page_url(stderr) -> str:
+    """The live page's address, from the first 'live page at URL' line of a subprocess's stderr
+    (a text pipe), whatever lines come before it; fails if stderr ends without one."""
+    for line in stderr:
+        m = re.search(r"live page at (http://\S+/)", line)
+        if m:
+            return m[1]
+    pytest.fail("stderr ended without saying where the live page is")

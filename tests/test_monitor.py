@@ -5,17 +5,20 @@ from __future__ import annotations
 
 import io
 import json
+import os
 import re
+import signal
 import subprocess
 import sys
 import urllib.request
 
 import numpy as np
 import pytest
-from conftest import read_link
+from conftest import page_url, read_link
 
 from tactile.device.decoder import Header, Samples, StreamDecoder
 from tactile.device.info import ChannelSpec, DeviceInfo, pen_info
+from tactile.device.protocol import encode_header, encode_samples
 from tactile.device.simulator import PenSimulator
 from tactile.runtime import monitor
 
@@ -37,8 +40,25 @@ def last_block(out: str) -> dict[str, list[float]]:
     return rows
 
 
-def test_figures_are_over_the_last_second_in_units(capsys):
-    assert monitor.main(["--port", PEN, "--seconds", "1.5"]) == 0
+def read_all(monkeypatch, url: str) -> int:
+    """``tactile-monitor --port url``, stopped as by Ctrl-C once it has read every byte of the
+    simulated link (as many as :func:`read_link` gets): no wall-clock deadline."""
+    whole = len(read_link(url.split("?", 1)[1], 7)[0])
+    read, got = monitor.Link.read, [0]
+
+    def counted(self):
+        data = read(self)
+        before, got[0] = got[0], got[0] + len(data or b"")
+        if before < whole <= got[0]:
+            os.kill(os.getpid(), signal.SIGINT)  # the monitor's handler: stop after this read
+        return data
+
+    monkeypatch.setattr(monitor.Link, "read", counted)
+    return monitor.main(["--port", url, "--seconds", "600"])
+
+
+def test_figures_are_over_the_last_second_in_units(capsys, monkeypatch):
+    assert read_all(monkeypatch, PEN) == 0
     out, err = capsys.readouterr()
     assert out.startswith("tactile-pen on sim://?texture=paper&seed=1&speed=max&seconds=2: "
                           "protocol 1, 100 Hz, 8 channels: pressure_0 [N], pressure_1 [N], "
@@ -53,12 +73,14 @@ def test_figures_are_over_the_last_second_in_units(capsys):
         np.testing.assert_allclose(rows[name], want, rtol=6e-4, atol=1e-9)  # 4 digits shown
     link = out.rstrip().splitlines()[-1]
     assert link.startswith("link: frames 202  samples 200  crc 0  malformed 0  gaps 0 (lost 0)")
-    assert re.search(r"tactile-monitor: alive and sane: 200 samples in \d+\.\d s", err)
+    # read as fast as it comes (speed=max): the rate is not checked here, the sanity is
+    assert re.search(r"tactile-monitor: (alive and sane|too fast, otherwise sane): 200 samples "
+                     r"in \d+\.\d s \([\d.]+ Hz received, 100 Hz declared", err)
 
 
-def test_link_faults_are_counted_and_named(capsys):
+def test_link_faults_are_counted_and_named(capsys, monkeypatch):
     url = "sim://?texture=paper&seed=4&speed=max&seconds=5&drop=0.05&flip=0.002"
-    assert monitor.main(["--port", url, "--seconds", "1.5"]) == 0
+    assert read_all(monkeypatch, url) == 0
     out, err = capsys.readouterr()
     dec = StreamDecoder()
     dec.feed(read_link(url.split("?", 1)[1], 7)[0])  # the same bytes, decoded by themselves
@@ -67,12 +89,34 @@ def test_link_faults_are_counted_and_named(capsys):
     assert (f"crc {st.crc_errors}  malformed {st.malformed}  gaps {st.gaps} (lost "
             f"{st.samples_lost})") in out.rstrip().splitlines()[-1]
     assert f"{st.crc_errors} CRC errors" in err and f"{st.gaps} gaps" in err
-    assert "alive:" in err and "sane" not in err
+    assert re.search(r"tactile-monitor: (alive|too fast): ", err) and "sane" not in err
+
+
+def verdict_of(samples: int, seconds: float) -> str:
+    """The verdict on ``samples`` clean samples of the simulated pen (100 Hz declared) whose
+    first bytes came ``seconds`` before the end."""
+    watch, dec = monitor.Watch(), StreamDecoder()
+    raw = PenSimulator("paper", 1).read(samples)
+    data = encode_header(pen_info()) + b"".join(
+        encode_samples(i, i * 10_000, raw[i:i + 10]) for i in range(0, samples, 10))
+    watch.handle(dec.feed(data))
+    watch.first_data = 1000.0
+    return monitor.verdict(watch, dec, 1000.0 + seconds)
+
+
+def test_the_verdict_says_alive_only_at_about_the_declared_rate():
+    assert verdict_of(202, 2.0) == ("alive and sane: 202 samples in 2.0 s (101.0 Hz received, "
+                                    "100 Hz declared)")
+    assert verdict_of(181, 2.0).startswith("alive and sane: ")  # 90.5 Hz: within 10%
+    assert verdict_of(101, 2.0) == ("too slow, otherwise sane: 101 samples in 2.0 s (50.5 Hz "
+                                    "received, 100 Hz declared: more than 10% off)")
+    assert verdict_of(230, 2.0).startswith("too fast, otherwise sane: 230 samples in 2.0 s "
+                                           "(115.0 Hz received")
 
 
 def test_no_data_is_exit_2_and_bad_options_exit_1(capsys):
     assert monitor.main(["--port", "loop://", "--seconds", "0.3"]) == 2
-    assert re.search(r"error: no samples from loop:// in 0\.\d s \(0 bytes read; 0 not "
+    assert re.search(r"error: no samples from loop:// in \d+\.\d s \(0 bytes read; 0 not "
                      r"decodable\)", capsys.readouterr().err)
     assert monitor.main(["--port", "sim://?nonsense=1", "--seconds", "0.3"]) == 2
     assert "nonsense" in capsys.readouterr().err
@@ -133,7 +177,7 @@ def test_the_monitor_serves_the_live_page(reap):
         [sys.executable, "-m", "tactile.runtime.monitor", "--port",
          "sim://?texture=paper&seed=1&seconds=3", "--serve", "127.0.0.1:0", "--seconds", "4"],
         stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True), 120)
-    url = re.search(r"live page at (http://\S+/)", proc.stderr.readline())[1]
+    url = page_url(proc.stderr)
     kinds = []
     with urllib.request.urlopen(url + "events", timeout=30) as r:
         for line in r:
@@ -144,6 +188,8 @@ def test_the_monitor_serves_the_live_page(reap):
                     assert obj["labels"] is False and obj["sample_rate_hz"] == 100.0
                 if obj.get("event") == "end":
                     break
-    assert kinds[0] == "header" and "samples" in kinds and "status" in kinds
+    # a status may come first (it is published every second from the start), then the header
+    assert [k for k in kinds if k != "status"][0] == "header"
+    assert "samples" in kinds and "status" in kinds
     assert kinds[-1] == "end" and None not in kinds  # no labels from the monitor
     assert proc.wait(60) == 0

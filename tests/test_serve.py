@@ -15,7 +15,7 @@ import time
 
 import numpy as np
 import pytest
-from conftest import REPO, pen_stream
+from conftest import REPO, page_url, pen_stream
 
 from tactile.device.decoder import Header, Samples
 from tactile.device.info import pen_info
@@ -30,7 +30,7 @@ MODEL = REPO / "models" / "pen-exp2.onnx"
 def live():
     said: list[str] = []
     server = Live("127.0.0.1", 0, status=lambda: {"frames": 7}, say=said.append,
-                  max_clients=2)
+                  max_clients=2, status_every=3600)  # a status only when closing
     server.said = said
     yield server
     if not server.closing.is_set():
@@ -136,7 +136,7 @@ def test_events_carry_header_samples_labels_and_events_and_a_new_viewer_catches_
     np.testing.assert_allclose(samples["values"], raw[[2, 6]] * scale, rtol=1e-3)
     assert first.next() == lab.to_dict()  # the object stdout carries, as is
     assert first.next() == {"event": "gap", "seq": 16, "missing": 2, "reason": "drop"}
-    late = Viewer(live)  # gets the latest header and label (and status) first
+    late = Viewer(live)  # gets the latest header and label first
     got = [late.next(), late.next()]
     assert got[0]["event"] == "header" and got[1] == lab.to_dict()
     first.close()
@@ -168,6 +168,56 @@ def test_close_sends_end_after_everything_queued(live):
     v.close()
 
 
+def test_status_comes_every_period_with_the_servers_counters():
+    n = iter(range(10**6))
+    live = Live("127.0.0.1", 0, status=lambda: {"frames": 7, "samples": next(n)},
+                say=lambda m: None, status_every=0.05)
+    v = Viewer(live)
+    wait_for(lambda: live.viewers == 1, "the viewer joined")
+    got = [v.next() for _ in range(3)]
+    assert [g["event"] for g in got] == ["status"] * 3
+    assert all(g["frames"] == 7 and g["dropped"] == 0 and g["refused"] == 0 for g in got)
+    assert got[-1]["viewers"] == 1 and got[-1]["rate_hz"] > 0  # samples went up each call
+    status = json.loads(get(live, "/status")[2])
+    assert status["event"] == "status" and status["frames"] == 7
+    live.close(drain_s=5)
+    while (m := v.next())["event"] != "end":
+        assert m["event"] == "status"
+    v.close()
+
+
+def test_a_viewer_idle_while_close_begins_still_gets_the_end(live):
+    """close() marks the server closing before it queues the last status and end: a viewer
+    whose wait for a message ends in between must not leave without its end."""
+    v = Viewer(live)
+    wait_for(lambda: live.viewers == 1, "the viewer joined")
+    live.closing.set()  # what close() does first; its viewer's 0.25 s waits time out meanwhile
+    time.sleep(1.0)  # gives the viewer's thread time to (wrongly) leave; passing needs none
+    live.close(drain_s=10)
+    assert v.next()["event"] == "status" and v.next() == {"event": "end"}
+    v.close()
+
+
+def test_idle_connections_time_out_and_connections_are_capped():
+    said: list[str] = []
+    live = Live("127.0.0.1", 0, status=dict, say=said.append, max_connections=3,
+                idle_timeout=0.5, status_every=3600)
+    idle = [socket.create_connection(("127.0.0.1", live.port), timeout=60) for _ in range(3)]
+    wait_for(lambda: live._server.connections == 3, "three connections held")
+    extra = socket.create_connection(("127.0.0.1", live.port), timeout=60)
+    answer = extra.makefile("rb").read()  # answered at once and closed, no thread
+    assert answer.startswith(b"HTTP/1.1 503 ") and answer.endswith(b"busy: too many "
+                                                                   b"connections; try later\n")
+    assert live.turned_away == 1
+    for s in idle:  # none sends a request: each is closed by the server after idle_timeout
+        assert s.recv(1) == b""  # (blocks at most the socket's 60 s, then fails the test)
+        s.close()
+    wait_for(lambda: live._server.connections == 0, "the idle connections' threads ended")
+    assert get(live, "/status")[0] == 200  # room again
+    live.close(drain_s=0.5)
+    assert said[-1].endswith("; 1 connections turned away (busy)")
+
+
 def stuck_viewer(port: int) -> socket.socket:
     """A viewer that asks for /events and never reads (a small receive buffer fills first)."""
     s = socket.socket(socket.AF_INET, socket.SOCK_STREAM)
@@ -178,7 +228,8 @@ def stuck_viewer(port: int) -> socket.socket:
 
 
 def test_a_viewer_that_never_reads_costs_drops_not_waits():
-    live = Live("127.0.0.1", 0, status=dict, say=lambda m: None, write_timeout=600)
+    live = Live("127.0.0.1", 0, status=dict, say=lambda m: None, write_timeout=600,
+                status_every=3600)
     stuck = stuck_viewer(live.port)
     wait_for(lambda: live.viewers == 1, "the stuck viewer joined")
     n, payload = 5000, "x" * 1000  # 5 MB: far more than the socket buffers and the queue
@@ -207,7 +258,7 @@ def test_tactile_run_labels_go_on_while_a_viewer_never_reads(reap):
          "--status-every", "1000"],
         stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True), 180)
     conn, _ = pen.accept()
-    url = re.search(r"live page at (http://\S+/)", proc.stderr.readline()).group(1)
+    url = page_url(proc.stderr)
     port = int(url.rsplit(":", 1)[1].strip("/"))
     stuck = stuck_viewer(port)
 
@@ -242,3 +293,18 @@ def test_tactile_run_labels_go_on_while_a_viewer_never_reads(reap):
     stuck.close()
     conn.close()
     pen.close()
+
+
+def test_tactile_run_closes_the_page_when_the_port_fails(capsys):
+    """A port error ends tactile-run with exit 2: the page still gets its end, and stderr its
+    last 'live page:' line."""
+    from tactile.runtime import cli
+
+    code = cli.main(["--model", str(MODEL), "--port", "/dev/tactile-no-such-port",
+                     "--serve", "127.0.0.1:0"])
+    err = capsys.readouterr().err
+    assert code == 2 and "/dev/tactile-no-such-port" in err
+    lines = err.splitlines()
+    assert any(ln.startswith("tactile-run: live page at http://127.0.0.1:") for ln in lines)
+    assert "tactile-run: live page: viewers 0 served, 0 refused; 0 messages dropped for slow " \
+           "viewers" in lines

@@ -1,12 +1,16 @@
 // The live page: reads /events (Server-Sent Events, one JSON object per message) and draws.
 // No library: plots are canvas polylines. The DOM carries what a test checks: the label shown
-// and its seq (#label[data-seq]), the samples received (#samples), the link's counters.
+// and its seq (#label[data-seq]), the samples received (#samples), the breaks drawn for samples
+// that never came (#samples[data-breaks]), the link's counters.
 "use strict";
 
 const SPAN_S = 10;           // seconds of each channel shown
 const $ = (id) => document.getElementById(id);
 const view = { channels: [], every: 1, rate: 100, points: 0, samples: 0, total: 0,
-               marks: [], dirty: false, ended: false };
+               marks: [], next: null, breaks: 0, dirty: false, ended: false };
+// marks: {at, cut} for the plotted sample index `at` (of view.total): a vertical line there (a
+// gap, a reconnect, a discontinuity); cut: the line is not drawn into it (samples are missing).
+// Only the marks inside the plotted span are kept.
 
 function setState(s) { document.body.dataset.state = s; $("state").textContent = s; }
 
@@ -26,16 +30,30 @@ function onHeader(h) {
     return { name: c.name, unit: c.unit, data: new Float32Array(view.points), canvas: div.querySelector("canvas"),
              value: div.querySelector(".value") };
   });
-  view.total = 0; view.marks = [];
+  view.total = 0; view.marks = []; view.next = null;
+}
+
+function mark(cut) {
+  const last = view.marks[view.marks.length - 1];
+  if (last && last.at === view.total) { last.cut = last.cut || cut; return; }
+  view.marks.push({ at: view.total, cut });
 }
 
 function onSamples(m) {
   if (!view.channels.length) return;
+  // a seq other than the one expected: samples were lost (dropped messages, a gap, a restart)
+  if (view.next !== null && m.seq !== view.next) {
+    mark(true);
+    view.breaks += 1;
+    $("samples").dataset.breaks = view.breaks;
+  }
+  view.next = m.seq + m.values.length * (m.every || view.every);
   for (const row of m.values) {
     const i = view.total % view.points;
     view.channels.forEach((c, k) => { c.data[i] = row[k]; });
     view.total += 1;
   }
+  while (view.marks.length && view.marks[0].at < view.total - view.points) view.marks.shift();
   view.samples += m.values.length;
   $("samples").textContent = view.samples;
   const last = m.values[m.values.length - 1];
@@ -81,7 +99,7 @@ function onEvent(e) {
   const list = $("events");
   list.insertBefore(li, list.firstChild);
   while (list.children.length > 50) list.removeChild(list.lastChild);
-  if (e.event === "gap" || e.event === "reconnect") view.marks.push(view.total);
+  if (e.event === "gap" || e.event === "reconnect") mark(false);
   if (e.event === "stall") setState("stalled");
   redraw();
 }
@@ -108,15 +126,17 @@ function draw() {
     const x = (j) => (j + view.points - n) / (view.points - 1) * (w - 1);
     const y = (v) => h - 2 - (v - lo) / (hi - lo) * (h - 4);
     g.strokeStyle = "rgba(201, 72, 11, 0.45)"; g.lineWidth = dpr;
+    const cuts = new Set();
     for (const m of view.marks) {
-      const j = m - (view.total - n);
+      const j = m.at - (view.total - n);
+      if (m.cut) cuts.add(j);
       if (j >= 0 && j < n) { g.beginPath(); g.moveTo(x(j), 0); g.lineTo(x(j), h); g.stroke(); }
     }
     g.strokeStyle = "#2f6fdf"; g.lineWidth = 1.5 * dpr;
     g.beginPath();
     for (let j = 0; j < n; j++) {
       const v = c.data[(view.total - n + j) % view.points];
-      if (j === 0) g.moveTo(x(j), y(v)); else g.lineTo(x(j), y(v));
+      if (j === 0 || cuts.has(j)) g.moveTo(x(j), y(v)); else g.lineTo(x(j), y(v));
     }
     g.stroke();
   }
