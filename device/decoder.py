@@ -192,7 +192,15 @@ class StreamDecoder:
 
         Never raises on any bytes: what cannot be used is counted in :attr:`stats`."""
         self.stats.bytes_in += len(data)
-        self._buf += data
+        buf = self._buf
+        if (self.mode == "binary" and b"\x00" not in data
+                and len(buf) + len(data) <= MAX_ENCODED):
+            # no delimiter, nothing to cut: what _feed_binary would do is only to remember where
+            # the search for one stopped (the common case of small reads, kept cheap)
+            buf += data
+            self._scan = len(buf)
+            return []
+        buf += data
         if self.mode == "auto":
             mode = self._detect()
             if mode == "auto":
