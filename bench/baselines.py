@@ -44,7 +44,7 @@ from tactile.device.sim_cli import make_dataset
 from tactile.device.simulator import TEXTURES
 from tactile.training import train as train_module
 from tactile.training.config import TrainConfig
-from tactile.training.data import channel_index, classes_of, cut, split_takes
+from tactile.training.data import channel_index, classes_of, split_windows
 
 SHARED = Path(__file__).resolve().parents[2] / "shared" / "datasets"
 HAPMAT = SHARED / "hapmat" / "hapmat_stick_imu.npz"
@@ -82,9 +82,7 @@ def band_logistic(takes: list[Take], cfg: TrainConfig) -> dict:
     classes = classes_of(takes)
     channels = tuple(takes[0].channels[i] for i in channel_index(takes[0], cfg.channels))
     rate = takes[0].info.sample_rate_hz
-    split = split_takes(takes, cfg)
-    parts = {name: cut(takes, classes, channels, cfg.window, cfg.hop, rows)
-             for name, rows in (("train", split.train), ("val", split.val), ("test", split.test))}
+    _, parts = split_windows(takes, classes, channels, cfg)
     feats = {k: window_features(w.x, rate) for k, w in parts.items()}
     mu, sd = feats["train"].mean(axis=0), feats["train"].std(axis=0) + 1e-9
     x = {k: (f - mu) / sd for k, f in feats.items()}

@@ -25,7 +25,7 @@ from tactile.device.hapmat import import_hapmat
 from tactile.device.recording import load_dataset
 from tactile.device.sim_cli import make_dataset
 from tactile.training.config import TrainConfig
-from tactile.training.data import channel_index, classes_of, cut, split_takes
+from tactile.training.data import channel_index, classes_of, split_windows
 from tactile.training.train import parse_sets, train
 
 HAPMAT = (Path(__file__).resolve().parents[2] / "shared" / "datasets" / "hapmat"
@@ -116,9 +116,7 @@ def band_logistic(data: Path, cfg: TrainConfig, l2: float = 1e-3) -> dict:
     classes = classes_of(takes)
     channels = tuple(takes[0].channels[i] for i in channel_index(takes[0], cfg.channels))
     rate = takes[0].info.sample_rate_hz
-    split = split_takes(takes, cfg)
-    parts = {name: cut(takes, classes, channels, cfg.window, cfg.hop, rows)
-             for name, rows in (("train", split.train), ("val", split.val), ("test", split.test))}
+    _, parts = split_windows(takes, classes, channels, cfg)
     feats = {k: band_energies(w.x, rate) for k, w in parts.items()}
     mu, sd = feats["train"].mean(axis=0), feats["train"].std(axis=0) + 1e-9
     x = {k: torch.tensor((f - mu) / sd, dtype=torch.float32) for k, f in feats.items()}

@@ -217,6 +217,16 @@ def split_takes(takes: list[Take], cfg: TrainConfig) -> Split:
                  {i: whole[i] for i in sorted(test)}, description)
 
 
+
+def split_windows(takes: list[Take], classes: tuple[str, ...], channels: tuple[str, ...],
+                  cfg: TrainConfig) -> tuple[Split, dict[str, Windows]]:
+    """The split ``cfg`` gives (:func:`split_takes`) and its windows, ``{"train", "val",
+    "test"}``: what training fits, stops early on and reports (baselines use the same)."""
+    split = split_takes(takes, cfg)
+    parts = {name: cut(takes, classes, channels, cfg.window, cfg.hop, rows)
+             for name, rows in (("train", split.train), ("val", split.val), ("test", split.test))}
+    return split, parts
+
 def channel_stats(w: Windows) -> tuple[np.ndarray, np.ndarray]:
     """Per-channel mean and std (C,) over training windows; a constant channel gets std 1."""
     flat = w.x.reshape(-1, w.x.shape[-1]).astype(np.float64)

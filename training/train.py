@@ -60,8 +60,7 @@ from tactile.training.data import (
     channel_stats,
     classes_of,
     concat,
-    cut,
-    split_takes,
+    split_windows,
 )
 from tactile.training.dist import Dist
 from tactile.training.evaluate import (
@@ -190,11 +189,7 @@ def train(data: Path, out: Path, cfg: TrainConfig, progress: bool = True, *,
     if missing:
         raise ConfigError(f"emd_channels {missing} not among the input channels {list(channels)}")
     cfg = cfg.replace(channels=channels)
-    split = split_takes(takes, cfg)
-    parts = {
-        name: cut(takes, classes, channels, cfg.window, cfg.hop, rows)
-        for name, rows in (("train", split.train), ("val", split.val), ("test", split.test))
-    }
+    split, parts = split_windows(takes, classes, channels, cfg)
     log.info(f"classes {list(classes)}; windows train {len(parts['train'])}, "
              f"val {len(parts['val'])}, test {len(parts['test'])}; split {split.description}")
     # statistics fitted once (rank 0) and shared: every process normalises alike
