@@ -35,21 +35,9 @@ from sklearn.decomposition import MiniBatchDictionaryLearning
 from sklearn.decomposition import SparseCoder as SkSparseCoder
 
 from tactile.training.sparse import SparseCoder, default_n_nonzero
-from tactile.training.sparse_check import compare
+from tactile.training.sparse_check import compare, structured
 
 SIZES = (("vibration", 176, 200), ("pressure", 25, 100), ("electrodes", 95, 100))
-
-
-def structured(n: int, features: int, seed: int) -> np.ndarray:
-    """(n, features) float32: a few damped tones of a pool each, plus noise (as the tests)."""
-    rng = np.random.default_rng(seed)
-    t = np.linspace(0, 1, features)
-    m = 3 * features // 10 + 8
-    freq, phase, decay = rng.uniform(0.5, features / 4, m), rng.uniform(0, 6.3, m), \
-        rng.uniform(0, 5, m)
-    pool = np.sin(2 * np.pi * freq[:, None] * t + phase[:, None]) * np.exp(-decay[:, None] * t)
-    weights = rng.standard_normal((n, m)) * (rng.random((n, m)) < 4 / m)
-    return (weights @ pool + 0.05 * rng.standard_normal((n, features))).astype(np.float32)
 
 
 def learn(atoms: int, features: int) -> MiniBatchDictionaryLearning:

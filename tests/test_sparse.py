@@ -26,7 +26,7 @@ from sklearn.decomposition import SparseCoder as SkSparseCoder
 
 from tactile.errors import ConfigError
 from tactile.training.sparse import SparseCoder, default_n_nonzero
-from tactile.training.sparse_check import compare, sklearn_order, tie_gap
+from tactile.training.sparse_check import compare, sklearn_order, structured, tie_gap
 
 ATOMS = (20, 100, 200)
 FEATURES = (25, 110, 176)
@@ -47,19 +47,6 @@ ALLOWED_OPS = {
     "Div", "Sqrt", "Where", "Greater", "GreaterOrEqual", "And", "Concat", "Unsqueeze",
     "Squeeze", "Transpose", "Shape", "ConstantOfShape", "Slice", "ReduceSum", "Constant",
 }
-
-
-def structured(n: int, features: int, seed: int) -> np.ndarray:
-    """(n, features) float32 windows: a few of a pool of damped tones each, plus noise (so a
-    dictionary has structure to learn and the windows are not all alike)."""
-    rng = np.random.default_rng(seed)
-    t = np.linspace(0, 1, features)
-    m = 3 * features // 10 + 8
-    freq, phase, decay = rng.uniform(0.5, features / 4, m), rng.uniform(0, 6.3, m), \
-        rng.uniform(0, 5, m)
-    pool = np.sin(2 * np.pi * freq[:, None] * t + phase[:, None]) * np.exp(-decay[:, None] * t)
-    weights = rng.standard_normal((n, m)) * (rng.random((n, m)) < 4 / m)
-    return (weights @ pool + 0.05 * rng.standard_normal((n, features))).astype(np.float32)
 
 
 @pytest.fixture(scope="module")

@@ -5,7 +5,8 @@ Two codes of one window may choose different atoms when float32 rounding decides
 non-zero atoms differ it gives :func:`tie_gap`: at the first atom of scikit-learn's selection
 order (:func:`sklearn_order`) that the other code lacks, the float64 gap between that atom's
 residual correlation and the best rival's, relative to the largest. A gap near zero is a tie;
-a large one is a wrong atom. Used by ``tests/test_sparse.py`` and ``bench/sparse.py``.
+a large one is a wrong atom. Used by ``tests/test_sparse.py`` and ``bench/sparse.py``, with
+the windows of :func:`structured`.
 """
 
 from __future__ import annotations
@@ -71,4 +72,17 @@ def compare(ref: np.ndarray, got: np.ndarray, d: np.ndarray, x: np.ndarray, n: i
             "max_rel": float(rel[same].max()) if same.any() else 0.0, "gaps": gaps}
 
 
-__all__ = ["compare", "sklearn_order", "tie_gap"]
+def structured(n: int, features: int, seed: int) -> np.ndarray:
+    """(n, features) float32 windows: a few of a pool of damped tones each, plus noise (so a
+    dictionary has structure to learn and the windows are not all alike)."""
+    rng = np.random.default_rng(seed)
+    t = np.linspace(0, 1, features)
+    m = 3 * features // 10 + 8
+    freq, phase, decay = rng.uniform(0.5, features / 4, m), rng.uniform(0, 6.3, m), \
+        rng.uniform(0, 5, m)
+    pool = np.sin(2 * np.pi * freq[:, None] * t + phase[:, None]) * np.exp(-decay[:, None] * t)
+    weights = rng.standard_normal((n, m)) * (rng.random((n, m)) < 4 / m)
+    return (weights @ pool + 0.05 * rng.standard_normal((n, features))).astype(np.float32)
+
+
+__all__ = ["compare", "sklearn_order", "structured", "tie_gap"]
