@@ -1,0 +1,438 @@
+"""The granular-media paper's Table 1 on the BioTac recordings and the simulated pen.
+
+    python bench/granular_experiments.py                          # everything, 3 seeds
+    python bench/granular_experiments.py --dataset biotac --block vibration --models sf_rnn
+    python bench/granular_experiments.py --seeds 1 --set epochs=5 # a quick look
+    python bench/granular_experiments.py --report                 # print what the cache holds
+
+Per dataset and block (BioTac: vibration only, all three modalities; the pen: pressure,
+acceleration and rotation), per model (linear, sparse linear, F-RNN, SF-RNN) and per seed:
+``tactile-train DATA --config configs/granular/<row>.toml --set seed=S``, then
+``tactile-export`` of the run, then the exported file's time to label 1 s of data (one
+onnxruntime thread, the model's streaming hop, EMD and coding included). Prints the paper's
+Table 1 layout with the mean and spread over seeds and the paper's figures beside ours.
+
+The data and the runs live in ``--cache`` (outside the repository): the BioTac takes are
+imported once with ``tactile-import-biotac``, the pen set simulated once with ``tactile-sim``;
+a finished step (training, export, timing) is never redone, so an interrupted benchmark
+continues where it stopped (a training stopped by Ctrl-C resumes from its last epoch). Runs
+are kept per configuration: editing a config file or ``--set`` starts new runs. Every run uses
+one torch thread (``--threads``); run it under ``nice`` on a shared machine.
+"""
+
+from __future__ import annotations
+
+import argparse
+import hashlib
+import json
+import os
+import shutil
+import subprocess
+import sys
+import time
+from collections.abc import Iterable, Sequence
+from concurrent.futures import ThreadPoolExecutor
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+REPO = Path(__file__).resolve().parents[1]
+CONFIGS = REPO / "configs" / "granular"
+BIOTAC = REPO.parent / "shared" / "datasets" / "biotac-bolt"
+CACHE = Path(os.environ.get("XDG_CACHE_HOME", Path.home() / ".cache")) / "tactile" / "granular"
+
+MODELS = ("linear", "sparse_linear", "f_rnn", "sf_rnn")
+LABELS = {"linear": "linear", "sparse_linear": "sparse linear", "f_rnn": "F-RNN",
+          "sf_rnn": "SF-RNN"}
+BLOCKS = {"biotac": ("vibration", "all"), "pen": ("all",)}
+TITLES = {("biotac", "vibration"): "BioTac, vibration only",
+          ("biotac", "all"): "BioTac, all three modalities (vibration, pressure, electrodes)",
+          ("pen", "all"): "simulated pen, all three modalities (pressure, acceleration, "
+                          "rotation)"}
+PEN_TEXTURES = ("non_contact", "paper", "nonwoven_cloth", "plastic_folder", "mouse_pad")
+
+# The paper's Table 1 (granular media, two classes): dims of the feature space, neurons,
+# time to label 1 s of data (ms), validation / test / novel accuracy (%).
+PAPER = {
+    "vibration": {"linear": (8, None, 1.9, 49.5, 49.1, 49.3),
+                  "sparse_linear": (200, None, 2.4, 67.0, 72.0, 50.7),
+                  "f_rnn": (200, 50, 0.4, 63.5, 79.9, 61.4),
+                  "sf_rnn": (200, 50, 2.6, 95.9, 95.7, 94.8)},
+    "all": {"linear": (32, None, 2.2, 60.8, 62.0, 62.0),
+            "sparse_linear": (400, None, 2.7, 99.7, 99.7, 85.3),
+            "f_rnn": (400, 50, 0.6, 90.5, 84.1, 79.4),
+            "sf_rnn": (400, 50, 3.0, 98.4, 98.7, 98.0)},
+}
+
+
+@dataclass(frozen=True)
+class Row:
+    """One line of a table: a dataset, a block (which modalities) and a model."""
+
+    dataset: str
+    block: str
+    model: str
+
+    @property
+    def name(self) -> str:
+        """The config file's stem: ``biotac-vibration-sf_rnn``, ``pen-linear``."""
+        if self.dataset == "pen":
+            return f"pen-{self.model}"
+        return f"{self.dataset}-{self.block}-{self.model}"
+
+    def config(self, folder: Path = CONFIGS) -> Path:
+        return folder / f"{self.name}.toml"
+
+
+def rows(datasets: Iterable[str], blocks: Iterable[str] | None,
+         models: Iterable[str]) -> list[Row]:
+    """Every (dataset, block, model) asked for, in table order; blocks a dataset lacks are
+    left out (the pen has only ``all``)."""
+    out = []
+    for d in datasets:
+        for b in BLOCKS[d]:
+            if blocks is None or b in blocks:
+                out += [Row(d, b, m) for m in MODELS if m in models]
+    return out
+
+
+# --- commands ------------------------------------------------------------------------------
+
+def command(name: str) -> list[str]:
+    """The toolkit's command ``name`` as installed beside this Python (the same environment)."""
+    here = Path(sys.executable).with_name(name)
+    found = str(here) if here.exists() else shutil.which(name)
+    if found is None:
+        raise SystemExit(f"granular_experiments: {name} not found: install the project "
+                         "(pip install -e '.[train,biotac]')")
+    return [found]
+
+
+def call(argv: Sequence[str], log: Path | None = None) -> float:
+    """Run a command; its output goes to ``log`` (stdout and stderr), or to ours. Returns its
+    CPU time (user + sys, s, with its children). A failure ends the benchmark with the
+    command's last lines."""
+    with open(log, "a") if log is not None else open(os.devnull, "w") as f:
+        if log is not None:
+            f.write(f"$ {' '.join(argv)}\n")
+            f.flush()
+        out = f if log is not None else None
+        proc = subprocess.Popen(list(argv), stdout=out, stderr=subprocess.STDOUT if out else None)
+        _, status, usage = os.wait4(proc.pid, 0)
+        proc.returncode = os.waitstatus_to_exitcode(status)
+    if proc.returncode != 0:
+        tail = "" if log is None else "\n" + "".join(log.read_text().splitlines(True)[-5:])
+        raise RuntimeError(f"{' '.join(argv[:2])}... exited with {proc.returncode}{tail}")
+    return usage.ru_utime + usage.ru_stime
+
+
+# --- data ----------------------------------------------------------------------------------
+
+def _ready(folder: Path, make) -> Path:
+    """``folder`` made once by ``make(tmp)``: written to a temporary sibling, then renamed,
+    so that an interrupted import is never taken for a finished one."""
+    if folder.exists():
+        return folder
+    tmp = folder.with_name(folder.name + ".partial")
+    shutil.rmtree(tmp, ignore_errors=True)
+    tmp.parent.mkdir(parents=True, exist_ok=True)
+    make(tmp)
+    tmp.rename(folder)
+    return folder
+
+
+def biotac_data(cache: Path, source: Path = BIOTAC) -> Path:
+    """The BioTac BOLT trials as takes (``tactile-import-biotac``), imported once."""
+    files = sorted(source.glob("*.h5"))
+    if not files:
+        raise SystemExit(f"granular_experiments: no .h5 files in {source} (--biotac)")
+    return _ready(cache / "data" / "biotac", lambda tmp: call(
+        [*command("tactile-import-biotac"), *map(str, files), "--out", str(tmp)]))
+
+
+def pen_data(cache: Path, users: int, seconds: float) -> Path:
+    """The simulated pen set (``tactile-sim --dataset``): ``users`` users x the pen paper's
+    experiment-2 textures x ``seconds``, made once per size."""
+    return _ready(cache / "data" / f"pen-{users}x{seconds:g}s", lambda tmp: call(
+        [*command("tactile-sim"), "--dataset", str(tmp), "--takes", str(users),
+         "--seconds", f"{seconds:g}", "--textures", ",".join(PEN_TEXTURES), "--seed", "1"]))
+
+
+# --- runs ----------------------------------------------------------------------------------
+
+@dataclass(frozen=True)
+class Job:
+    row: Row
+    seed: int
+    config: Path
+    data: Path
+    folder: Path  # the run folder
+    sets: tuple[str, ...]  # --set KEY=VALUE beyond seed and threads
+
+    def train_argv(self, threads: int) -> list[str]:
+        if (self.folder / "resume.pt").exists():  # stopped by Ctrl-C: continue it
+            return [*command("tactile-train"), "--resume", str(self.folder), "--quiet"]
+        argv = [*command("tactile-train"), str(self.data), "--config", str(self.config),
+                "--out", str(self.folder), "--force", "--quiet",
+                "--set", f"seed={self.seed}", "--set", f"threads={threads}"]
+        for s in self.sets:
+            argv += ["--set", s]
+        return argv
+
+
+def settings_key(config: Path, sets: Sequence[str], data: Path) -> str:
+    """8 hex digits naming a configuration: the config file's text, the ``--set`` overrides
+    and the dataset, so that changed settings never reuse an old run."""
+    h = hashlib.sha256(config.read_bytes())
+    h.update(json.dumps([list(sets), data.name]).encode())
+    return h.hexdigest()[:8]
+
+
+def jobs_for(rows_: Sequence[Row], seeds: Sequence[int], data: dict[str, Path], cache: Path,
+             sets: Sequence[str], configs: Path = CONFIGS) -> list[Job]:
+    out = []
+    for row in rows_:
+        cfg = row.config(configs)
+        if not cfg.exists():
+            raise SystemExit(f"granular_experiments: {cfg} missing")
+        key = settings_key(cfg, sets, data[row.dataset])
+        for s in seeds:
+            out.append(Job(row, s, cfg, data[row.dataset],
+                           cache / "runs" / row.name / key / f"seed{s}", tuple(sets)))
+    return out
+
+
+def finished(folder: Path) -> dict | None:
+    """The run's metrics when its training finished (not interrupted), else None."""
+    try:
+        m = json.loads((folder / "metrics.json").read_text())
+    except (OSError, ValueError):
+        return None
+    return None if m.get("interrupted") or (folder / "resume.pt").exists() else m
+
+
+def train_job(job: Job, threads: int, say=print) -> None:
+    """Train (or resume) and export one run; every finished step is kept and skipped."""
+    job.folder.mkdir(parents=True, exist_ok=True)
+    log = job.folder / "bench.log"
+    if finished(job.folder) is None:
+        t0 = time.perf_counter()
+        cpu = call(job.train_argv(threads), log)
+        cost = {"wall_seconds": round(time.perf_counter() - t0, 1), "cpu_seconds": round(cpu, 1)}
+        (job.folder / "cost.json").write_text(json.dumps(cost) + "\n")
+        m = finished(job.folder) or {}
+        say(f"<!-- {job.row.name} seed {job.seed}: val {m.get('val_accuracy', float('nan')):.3f}"
+            f" test {m.get('accuracy', float('nan')):.3f}, best epoch "
+            f"{m.get('best_epoch', -1) + 1} of {m.get('epochs_run')}, {cost['cpu_seconds']} s CPU "
+            f"({cost['wall_seconds']} s wall) -->", flush=True)
+    onnx = job.folder / "model.onnx"
+    if not onnx.exists():
+        call([*command("tactile-export"), str(job.folder), "-o", str(onnx),
+              "--data", str(job.data)], log)
+
+
+def time_job(job: Job) -> dict:
+    """The exported file's time to label 1 s of data (ms), measured once and kept."""
+    path = job.folder / "timing.json"
+    if path.exists():
+        return json.loads(path.read_text())
+    t = label_time(job.folder / "model.onnx")
+    path.write_text(json.dumps(t) + "\n")
+    return t
+
+
+def label_time(onnx: Path) -> dict:
+    """Milliseconds to label 1 s of data with one onnxruntime thread at the model's streaming
+    hop (preprocessing included): windows per second x batch-1 latency of one window."""
+    from tactile.export.check import load_contract
+    from tactile.export.quantize import latency_ms
+
+    _, c = load_contract(onnx)
+    lat = latency_ms(str(onnx), c.window, len(c.channels), (c.state_layers, c.state_hidden),
+                     runs=50)
+    per_s = c.sample_rate_hz / c.hop
+    return {"ms_per_s": round(lat["p50_ms"] * per_s, 3), "window_ms": lat["p50_ms"],
+            "windows_per_s": per_s, "method": "p50 batch-1 window x windows per second"}
+
+
+# --- what a run is: its size, its figures --------------------------------------------------
+
+def shape_of(folder: Path) -> tuple[int, int | None]:
+    """(dims of the feature space the classifier sees, neurons per recurrent layer or None)."""
+    import torch
+
+    ck = torch.load(folder / "checkpoint.pt", map_location="cpu", weights_only=True)
+    cfg = ck["config"]
+    if cfg["model"] == "linear":
+        return ck["state_dict"]["head.out.weight"].shape[1], None
+    return -1, int(cfg["hidden"])
+
+
+@dataclass
+class Figures:
+    """One row's figures over its finished seeds (accuracies as fractions)."""
+
+    seeds: list[int]
+    dims: int | None
+    neurons: int | None
+    ms: list[float]
+    val: list[float]
+    test: list[float]
+    novel: list[float]
+    cpu: list[float]
+    epochs: list[str]
+
+
+def collect(jobs: Sequence[Job], timing: bool = True) -> dict[Row, Figures]:
+    out: dict[Row, Figures] = {}
+    for job in jobs:
+        f = out.setdefault(job.row, Figures([], None, None, [], [], [], [], [], []))
+        m = finished(job.folder)
+        if m is None:
+            continue
+        f.seeds.append(job.seed)
+        f.dims, f.neurons = shape_of(job.folder)
+        f.val.append(m["val_accuracy"])
+        f.test.append(m["accuracy"])
+        f.novel.append(m["shifted"]["mean"] if m.get("shifted") else float("nan"))
+        f.epochs.append(f"{m['best_epoch'] + 1}/{m['epochs_run']}")
+        cost = job.folder / "cost.json"
+        if cost.exists():
+            f.cpu.append(json.loads(cost.read_text()).get("cpu_seconds", float("nan")))
+        if timing and (job.folder / "model.onnx").exists():
+            f.ms.append(time_job(job)["ms_per_s"])
+    return out
+
+
+def spread(values: Sequence[float], scale: float = 100.0, digits: int = 1) -> str:
+    """``mean +/- sd`` (population sd over seeds) of ``values`` x ``scale``; ``-`` if none."""
+    v = np.array([x for x in values if x == x], dtype=float) * scale
+    if not len(v):
+        return "-"
+    if len(v) == 1:
+        return f"{v[0]:.{digits}f}"
+    return f"{v.mean():.{digits}f} +/- {v.std():.{digits}f}"
+
+
+def table(dataset: str, block: str, figs: dict[Row, Figures]) -> str:
+    """The paper's Table 1 layout for one dataset and block, the paper's figures beside."""
+    paper = PAPER[block]
+    lines = [f"#### {TITLES[(dataset, block)]}", "",
+             "| model | feature dims | neurons | time to label 1 s (ms) | validation (%) | "
+             "test (%) | novel, +/-0.2 s (%) | test - novel | seeds | paper: dims, neurons, "
+             "ms, validation / test / novel |",
+             "|---|---|---|---|---|---|---|---|---|---|"]
+    for row, f in figs.items():
+        if (row.dataset, row.block) != (dataset, block):
+            continue
+        p = paper[row.model]
+        drop = [t - n for t, n in zip(f.test, f.novel, strict=True)]
+        cells = [LABELS[row.model], "-" if f.dims is None else str(f.dims),
+                 "N/A" if f.neurons is None else str(f.neurons),
+                 spread(f.ms, 1.0, 2), spread(f.val), spread(f.test), spread(f.novel),
+                 spread(drop), ", ".join(map(str, f.seeds)) or "none finished",
+                 f"{p[0]}, {'N/A' if p[1] is None else p[1]}, {p[2]}, "
+                 f"{p[3]} / {p[4]} / {p[5]}"]
+        lines.append("| " + " | ".join(cells) + " |")
+    return "\n".join(lines)
+
+
+def details(figs: dict[Row, Figures]) -> str:
+    """Per-row seeds' figures as HTML comments (what the table averages)."""
+    out = []
+    for row, f in figs.items():
+        if not f.seeds:
+            continue
+        out.append(f"<!-- {row.name}: seeds {f.seeds}; test {[round(t, 3) for t in f.test]}; "
+                   f"novel {[round(n, 3) for n in f.novel]}; best epoch/epochs {f.epochs}; "
+                   f"CPU s per run {f.cpu} -->")
+    return "\n".join(out)
+
+
+# --- command line --------------------------------------------------------------------------
+
+def _seeds(text: str) -> tuple[int, ...]:
+    """``3`` (seeds 0, 1, 2) or a list ``0,4,7``."""
+    try:
+        if "," not in text:
+            n = int(text)
+            if n < 1:
+                raise ValueError
+            return tuple(range(n))
+        seeds = tuple(int(v) for v in text.split(",") if v.strip())
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r}: a count (3) or seeds (0,1,2)") from None
+    if not seeds:
+        raise argparse.ArgumentTypeError("give at least one seed")
+    return seeds
+
+
+def _choices(allowed: Sequence[str]):
+    def parse(text: str) -> tuple[str, ...]:
+        got = tuple(v.strip() for v in text.split(",") if v.strip())
+        bad = [v for v in got if v not in allowed]
+        if bad or not got:
+            raise argparse.ArgumentTypeError(f"{text!r}: choose from {', '.join(allowed)}")
+        return got
+    return parse
+
+
+def build_parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    p.add_argument("--cache", type=Path, default=CACHE,
+                   help=f"data and runs (default {CACHE}); outside the repository")
+    p.add_argument("--dataset", type=_choices(tuple(BLOCKS)), default=tuple(BLOCKS),
+                   help="comma-separated: biotac, pen (default both)")
+    p.add_argument("--block", type=_choices(("vibration", "all")),
+                   help="comma-separated: vibration, all (default every block)")
+    p.add_argument("--models", type=_choices(MODELS), default=MODELS,
+                   help=f"comma-separated subset of {', '.join(MODELS)}")
+    p.add_argument("--seeds", type=_seeds, default=(0, 1, 2),
+                   help="a count (3: seeds 0, 1, 2, the default) or a list 0,1,2")
+    p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
+                   help="tactile-train --set for every run (new runs: part of the run's key)")
+    p.add_argument("--threads", type=int, default=1, help="torch threads per run (default 1)")
+    p.add_argument("--jobs", type=int, default=1, help="runs trained at the same time")
+    p.add_argument("--biotac", type=Path, default=BIOTAC, help="folder of the BOLT .h5 files")
+    p.add_argument("--pen-users", type=int, default=15,
+                   help="simulated users per texture (default 15: 9 train, 3 validate, 3 test)")
+    p.add_argument("--pen-seconds", type=float, default=60.0, help="seconds per take")
+    p.add_argument("--configs", type=Path, default=CONFIGS, help=argparse.SUPPRESS)
+    p.add_argument("--report", action="store_true",
+                   help="train nothing: print the tables of the runs the cache holds")
+    p.add_argument("--no-timing", action="store_true", help="leave out the time to label 1 s")
+    return p
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    todo = rows(args.dataset, args.block, args.models)
+    if not todo:
+        raise SystemExit("granular_experiments: no row matches --dataset/--block/--models")
+    data = {}
+    if "biotac" in args.dataset:
+        data["biotac"] = biotac_data(args.cache, args.biotac)
+    if "pen" in args.dataset:
+        data["pen"] = pen_data(args.cache, args.pen_users, args.pen_seconds)
+    jobs = jobs_for(todo, args.seeds, data, args.cache, args.set, args.configs)
+    if not args.report:
+        # seed-major: every row gets its first seed before any row gets its second
+        order = sorted(jobs, key=lambda j: (args.seeds.index(j.seed), todo.index(j.row)))
+        if args.jobs > 1:
+            with ThreadPoolExecutor(args.jobs) as pool:
+                list(pool.map(lambda j: train_job(j, args.threads), order))
+        else:
+            for j in order:
+                train_job(j, args.threads)
+    figs = collect(jobs, timing=not args.no_timing)
+    for dataset in args.dataset:
+        for block in BLOCKS[dataset]:
+            if any((r.dataset, r.block) == (dataset, block) for r in todo):
+                print("\n" + table(dataset, block, figs) + "\n", flush=True)
+    print(details(figs))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
