@@ -15,7 +15,8 @@ contact-pressure setting, e.g. 150), ``repetition`` (1..5) and ``user``: the rep
 split. Channels, 44 per finger (:func:`channels`): ``f0_pac_00`` .. ``f0_pac_21`` (the 22
 vibration sub-samples of a frame, in time order: one 2.2 kHz signal), ``f0_pdc``,
 ``f0_ele_00`` .. ``f0_ele_18``, ``f0_tac``, ``f0_tdc``, then the same for ``f1``. Values are the
-raw 12-bit ADC counts as recorded: unit ``count``, scale 1.
+raw 12-bit ADC counts as recorded: unit ``count``, scale 1. The JSON's ``signals`` declares
+each finger's vibration channels one high-rate signal (:func:`signals`: ``f0_pac``, ``f1_pac``).
 
 Every input is checked before anything is written: a file that is not HDF5, a trial group whose
 name or datasets are not as above, lengths that disagree, values that are not 12-bit counts, or
@@ -165,7 +166,14 @@ def _metadata(trial: Trial, stamps: np.ndarray) -> dict:
         "licence": LICENCE,
         "notes": "f<k>_pac_00..21 are the 22 vibration samples of each 10 ms frame in time "
                  "order (one 2.2 kHz signal); all values raw 12-bit ADC counts",
+        "signals": signals(),
     }
+
+
+def signals(fingers: tuple[int, ...] = FINGERS) -> dict[str, list[str]]:
+    """The takes' high-rate signal declarations: ``f<k>_pac`` = the 22 vibration channels of
+    finger k in time order (one 2.2 kHz signal at 100 frames/s)."""
+    return {f"f{k}_pac": [f"f{k}_pac_{i:02d}" for i in range(PAC_SAMPLES)] for k in fingers}
 
 
 def import_biotac(files: list[Path], out: Path, force: bool = False) -> list[Path]:

@@ -53,6 +53,9 @@ _META = {
     "gaps": (False, lambda v: isinstance(v, list), "a list"),
     "decoder": (False, lambda v: isinstance(v, dict), "an object"),
     "complete": (False, lambda v: isinstance(v, bool), "true or false"),
+    "signals": (False, lambda v: isinstance(v, dict) and all(
+        isinstance(k, str) and k and isinstance(c, list) and c and all(map(_text, c))
+        for k, c in v.items()), "an object of signal name -> non-empty list of channel names"),
 }
 _DEVICE = {
     "sample_rate_hz": (True, _is_number, "a number"),
@@ -126,4 +129,23 @@ def read_meta(json_path: Path) -> tuple[dict, DeviceInfo]:
         info = DeviceInfo.from_dict(meta["device"])
     except (TactileError, ValueError, TypeError, OverflowError) as e:  # FrameError: its limits
         raise RecordingError(f"{json_path}: key 'device': {e}") from None
+    _check_signals(meta.get("signals", {}), info.channel_names, json_path)
     return meta, info
+
+
+def _check_signals(signals: dict, channels: tuple[str, ...], path: Path) -> None:
+    """A take's high-rate signal declarations, ``{name: [channel, ...]}`` (the channels that
+    hold one signal's consecutive sub-samples per frame, in time order): every channel is one
+    of the take's, none is in two signals, no signal is named like a channel."""
+    owner: dict[str, str] = {}
+    for name, names in signals.items():
+        if name in channels:
+            raise RecordingError(f"{path}: key 'signals.{name}': a channel has that name")
+        for c in names:
+            if c not in channels:
+                raise RecordingError(f"{path}: key 'signals.{name}': channel {c!r} is not one "
+                                     "of the take's channels")
+            if c in owner:
+                raise RecordingError(f"{path}: key 'signals.{name}': channel {c!r} is in "
+                                     f"signal {owner[c]!r} too")
+            owner[c] = name

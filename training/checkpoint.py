@@ -115,14 +115,20 @@ def load_checkpoint(run_dir: Path):
     """Rebuild the model of a run from its checkpoint (data only: weights_only=True); returns
     (model in eval mode, the checkpoint dict). Every key is checked first
     (:func:`check_checkpoint`)."""
-    from tactile.training.model import TextureModel
+    from tactile.training.model import build_model
 
     path = Path(run_dir)
     path = path / CHECKPOINT if path.is_dir() else path
     ck = _read(path, "checkpoint", "train a run with tactile-train first")
     cfg = check_checkpoint(ck, path)
-    model = TextureModel(cfg, len(ck["classes"]), torch.tensor(ck["mean"]),
-                         torch.tensor(ck["std"]), list(ck["emd_index"]), list(ck["center_index"]))
+    try:
+        model = build_model(cfg, len(ck["classes"]), torch.tensor(ck["mean"]),
+                            torch.tensor(ck["std"]), channels=tuple(ck["channels"]),
+                            rate_hz=float(ck["sample_rate_hz"]),
+                            emd_index=list(ck["emd_index"]),
+                            center_index=list(ck["center_index"]))
+    except TactileError as e:  # modalities that do not fit the channels
+        raise RecordingError(f"{path}: checkpoint key 'config': {e}") from None
     try:
         model.load_state_dict(ck["state_dict"])
     except RuntimeError as e:  # missing, unexpected or wrongly shaped weights

@@ -16,7 +16,9 @@ from pathlib import Path
 
 from tactile.errors import ConfigError
 
-MODELS = ("lstm", "linear")
+MODELS = ("lstm", "linear", "sf_rnn", "f_rnn", "sparse_linear")
+GRANULAR_MODELS = ("sf_rnn", "f_rnn", "sparse_linear")  # need modalities
+MAX_IMFS = 16  # tactile.training.emd's limit
 FRONTS = ("spectral", "none")
 STATE_MODES = ("window", "carry")
 SPLITS = ("user", "take", "time")
@@ -26,6 +28,100 @@ DEVICES = ("auto", "cpu", "cuda")
 MAX_AUTO_THREADS = 4
 # ``test`` / ``val`` selectors: FIELD:VALUE[,VALUE...] (see TrainConfig)
 SELECTOR = re.compile(r"^(?P<field>[A-Za-z_][A-Za-z0-9_]*):(?P<values>.+)$")
+# a signal's or a modality's name: it names ONNX metadata entries and run folders' tables
+NAME = re.compile(r"^[A-Za-z_][A-Za-z0-9_]{0,31}$")
+
+
+@dataclass(frozen=True)
+class Modality:
+    """One sensing modality of the granular models (a ``[modalities.NAME]`` table).
+
+    ``channels``: shell-style patterns over the channel names and the high-rate signal names
+    (a signal is one unit; the channels of a signal are not matched on their own); ``imfs``
+    IMFs of EMD per channel or signal over the window at the modality's own rate (0: no EMD,
+    the normalised values); ``steps`` samples at that rate in each step's data image;
+    ``atoms`` of its sparse-coding dictionary (``sf_rnn``, ``sparse_linear``); ``nonzero``
+    atoms per code (0: scikit-learn's default, a tenth of the image's features, at least 1).
+    """
+
+    name: str
+    channels: tuple[str, ...]
+    imfs: int = 0
+    steps: int = 5
+    atoms: int = 100
+    nonzero: int = 0
+
+    def __post_init__(self) -> None:
+        where = f"modalities.{self.name}"
+        if not isinstance(self.name, str) or not NAME.match(self.name):
+            raise ConfigError(f"modality name {self.name!r}: must be a letter or _ then letters, "
+                              "digits or _ (at most 32)")
+        if not (isinstance(self.channels, tuple) and self.channels
+                and all(isinstance(c, str) and c for c in self.channels)):
+            raise ConfigError(f"{where}.channels={_shown(self.channels)}: must be a non-empty "
+                              "list of channel or signal name patterns")
+        for key, lo, hi in (("imfs", 0, MAX_IMFS), ("steps", 1, None), ("atoms", 1, None),
+                            ("nonzero", 0, None)):
+            v = getattr(self, key)
+            if isinstance(v, bool) or not isinstance(v, int) or v < lo or (
+                    hi is not None and v > hi):
+                want = f"{lo}..{hi}" if hi is not None else f">= {lo}"
+                raise ConfigError(f"{where}.{key}={v!r}: must be an integer {want}")
+        if self.nonzero > self.atoms:
+            raise ConfigError(f"{where}.nonzero={self.nonzero}: must be at most atoms="
+                              f"{self.atoms}")
+
+    def to_dict(self) -> dict:
+        return {"channels": list(self.channels), "imfs": self.imfs, "steps": self.steps,
+                "atoms": self.atoms, "nonzero": self.nonzero}
+
+    @classmethod
+    def from_dict(cls, name: str, d) -> Modality:
+        if not isinstance(d, dict):
+            raise ConfigError(f"modalities.{name}={_shown(d)}: must be a table (channels, imfs, "
+                              "steps, atoms, nonzero)")
+        known = [f.name for f in dataclasses.fields(cls) if f.name != "name"]
+        unknown = sorted(set(d) - set(known))
+        if unknown:
+            raise ConfigError(f"modalities.{name}: unknown key(s) {unknown}; allowed: {known}")
+        if "channels" not in d:
+            raise ConfigError(f"modalities.{name}: give channels (name patterns)")
+        ch = d["channels"]
+        kw = {**d, "channels": tuple(ch) if isinstance(ch, list) else ch}
+        return cls(name=name, **kw)
+
+
+def _shown(v) -> str:
+    text = repr(list(v) if isinstance(v, tuple) else v)
+    return text if len(text) <= 60 else text[:57] + "..."
+
+
+def signals_from(d) -> tuple[tuple[str, tuple[str, ...]], ...]:
+    """``[signals]`` (name -> list of channel name patterns) as the config holds it."""
+    if isinstance(d, tuple):  # already the frozen form
+        return d
+    if not isinstance(d, dict):
+        raise ConfigError(f"signals={_shown(d)}: must be a table of name = [channel patterns]")
+    out = []
+    for name, pats in d.items():
+        if not isinstance(name, str) or not NAME.match(name):
+            raise ConfigError(f"signals.{name}: a signal's name must be a letter or _ then "
+                              "letters, digits or _ (at most 32)")
+        if not (isinstance(pats, (list, tuple)) and pats
+                and all(isinstance(p, str) and p for p in pats)):
+            raise ConfigError(f"signals.{name}={_shown(pats)}: must be a non-empty list of "
+                              "channel name patterns")
+        out.append((name, tuple(pats)))
+    return tuple(out)
+
+
+def modalities_from(d) -> tuple[Modality, ...]:
+    """``[modalities.NAME]`` tables as the config holds them, in the file's order."""
+    if isinstance(d, tuple):
+        return d
+    if not isinstance(d, dict):
+        raise ConfigError(f"modalities={_shown(d)}: must be tables [modalities.NAME]")
+    return tuple(Modality.from_dict(name, m) for name, m in d.items())
 
 
 @dataclass(frozen=True)
@@ -60,6 +156,18 @@ class TrainConfig:
     of each feature, batch-normalised; ``none``: over the samples, as the pen paper) or
     ``linear`` (a linear classifier on the log energies of the IMFs, the granular-media paper's
     baseline; needs ``emd_channels``).
+    The granular-media paper's models (``docs/granular.md``) work on ``modalities``, one
+    :class:`Modality` per ``[modalities.NAME]`` table (name patterns over channels and signals,
+    ``imfs``, ``steps``, ``atoms``, ``nonzero``): EMD of each modality over the window at its
+    own rate, then a data image per step (one step per frame): ``sf_rnn`` (sparse codes of each
+    modality's images over dictionaries learned from the training windows, fused by a fully
+    connected layer, an LSTM of ``layers`` x ``hidden``), ``f_rnn`` (an LSTM per modality on
+    its images, fused per step), ``sparse_linear`` (a linear classifier on the codes' mean
+    magnitudes over the window) and, given modalities, ``linear`` (on the log energy of each
+    IMF over the window). ``signals``: high-rate signals, ``[signals]`` name = [channel
+    patterns]: the matching channels, in recording order, are the consecutive sub-samples of
+    one signal per frame (the BioTac's ``f0_pac_00..21``: 2.2 kHz); empty: the takes' own
+    ``signals`` declarations (every take must declare the same).
     ``state``: ``window`` classifies each window from a fresh state (the pen paper); ``carry``
     carries the LSTM state from window to window (needs ``hop == window``) and trains on runs of
     ``carry_steps`` consecutive windows.
@@ -83,6 +191,8 @@ class TrainConfig:
     emd_channels: tuple[str, ...] = ()
     emd_imfs: int = 4
     emd_sifts: int = 10
+    signals: tuple[tuple[str, tuple[str, ...]], ...] = ()
+    modalities: tuple[Modality, ...] = ()
     model: str = "lstm"
     front: str = "spectral"
     frame: int = 20
@@ -119,7 +229,7 @@ class TrainConfig:
             (self.hop >= 1, "hop must be >= 1 sample", ("hop",)),
             (self.model in MODELS, f"model must be one of {', '.join(MODELS)}", ("model",)),
             (self.front in FRONTS, f"front must be one of {', '.join(FRONTS)}", ("front",)),
-            (2 <= self.frame <= self.window and self.frame_hop >= 1,
+            (self.model != "lstm" or 2 <= self.frame <= self.window and self.frame_hop >= 1,
              "frame must be 2..window samples and frame_hop >= 1",
              ("frame", "frame_hop", "window")),
             (self.epoch_windows >= 0, "epoch_windows must be >= 0 (0: every window)",
@@ -169,8 +279,20 @@ class TrainConfig:
             )
         if self.state == "carry" and self.model != "lstm":
             raise ConfigError("state='carry' needs model='lstm'")
-        if self.model == "linear" and not self.emd_channels:
-            raise ConfigError("model='linear' classifies EMD features: give emd_channels")
+        if self.model == "linear" and not (self.emd_channels or self.modalities):
+            raise ConfigError("model='linear' classifies EMD features: give emd_channels or "
+                              "[modalities.NAME] tables")
+        if self.model in GRANULAR_MODELS and not self.modalities:
+            raise ConfigError(f"model={self.model!r} needs modalities: give at least one "
+                              "[modalities.NAME] table (channels, imfs, steps, atoms)")
+        if self.modalities and self.model == "lstm":
+            raise ConfigError("modalities are for model='sf_rnn', 'f_rnn', 'sparse_linear' or "
+                              "'linear' (got model='lstm')")
+        names = [n for n, _ in self.signals]
+        for what, seen in (("signal", names), ("modality", [m.name for m in self.modalities])):
+            twice = sorted({n for n in seen if seen.count(n) > 1})
+            if twice:
+                raise ConfigError(f"{what} {twice[0]!r} named twice")
 
     @property
     def refits(self) -> bool:
@@ -178,8 +300,13 @@ class TrainConfig:
         return self.refit == "on" or (self.refit == "auto" and self.split == "time")
 
     def to_dict(self) -> dict:
-        return {f.name: (list(v) if isinstance(v, tuple) else v)
-                for f in dataclasses.fields(self) for v in [getattr(self, f.name)]}
+        """Plain data (TOML's shapes): lists, and for ``signals`` / ``modalities`` tables
+        (dicts in the config's order); :meth:`from_dict` reads it back."""
+        out = {f.name: (list(v) if isinstance(v, tuple) else v)
+               for f in dataclasses.fields(self) for v in [getattr(self, f.name)]}
+        out["signals"] = {name: list(pats) for name, pats in self.signals}
+        out["modalities"] = {m.name: m.to_dict() for m in self.modalities}
+        return out
 
     @classmethod
     def from_dict(cls, d: dict) -> TrainConfig:
@@ -188,6 +315,10 @@ class TrainConfig:
         if unknown:
             raise ConfigError(f"unknown config key(s) {unknown}; allowed: {sorted(known)}")
         kw = {k: tuple(v) if isinstance(v, list) else v for k, v in d.items()}
+        if "signals" in d:
+            kw["signals"] = signals_from(d["signals"])
+        if "modalities" in d:
+            kw["modalities"] = modalities_from(d["modalities"])
         return cls(**kw)
 
     @classmethod
@@ -205,7 +336,12 @@ def _check_types(cfg: TrainConfig) -> None:
     hints = typing.get_type_hints(type(cfg))
     for f in dataclasses.fields(cfg):
         value, hint = getattr(cfg, f.name), hints[f.name]
-        if typing.get_origin(hint) is tuple:
+        if f.name in ("signals", "modalities"):  # checked when read (signals_from, Modality)
+            ok = isinstance(value, tuple) and all(
+                isinstance(v, Modality) if f.name == "modalities" else
+                isinstance(v, tuple) and len(v) == 2 for v in value)
+            want = "tables (see TrainConfig)"
+        elif typing.get_origin(hint) is tuple:
             ok = isinstance(value, tuple) and all(isinstance(v, str) for v in value)
             want = "a list of names"
         elif hint is float:
@@ -265,6 +401,6 @@ def resolve_device(device: str, cuda_available: bool | None = None) -> str:
     return device
 
 
-__all__ = ["TrainConfig", "MODELS", "FRONTS", "STATE_MODES", "SPLITS", "SCHEDULES", "REFITS",
-           "DEVICES",
+__all__ = ["TrainConfig", "Modality", "MODELS", "GRANULAR_MODELS", "FRONTS", "STATE_MODES",
+           "SPLITS", "SCHEDULES", "REFITS", "DEVICES", "signals_from", "modalities_from",
            "apply_threads", "resolve_threads", "resolve_device", "usable_cpus"]

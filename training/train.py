@@ -72,7 +72,9 @@ from tactile.training.evaluate import (
     summary,
     table,
 )
-from tactile.training.model import TextureModel
+from tactile.training.granular import learn_dictionaries, pooled_stats
+from tactile.training.modality import literal_signals, resolve, resolve_signals, signals_of_takes
+from tactile.training.model import TextureModel, build_model
 from tactile.training.sampling import epoch_order
 
 EXIT_INTERRUPTED = 130  # the shell's code for a command ended by SIGINT
@@ -188,19 +190,44 @@ def train(data: Path, out: Path, cfg: TrainConfig, progress: bool = True, *,
     missing = [c for c in cfg.emd_channels if c not in channels]
     if missing:
         raise ConfigError(f"emd_channels {missing} not among the input channels {list(channels)}")
-    cfg = cfg.replace(channels=channels)
+    signals = ()
+    if cfg.modalities:  # the high-rate signals as exact names, then the layout (fail early)
+        signals = (resolve_signals(cfg.signals, channels) if cfg.signals
+                   else signals_of_takes(takes, channels))
+        cfg = cfg.replace(channels=channels, signals=literal_signals(signals))
+        layout = resolve(cfg, channels, takes[0].info.sample_rate_hz)
+        log.info("modalities: " + "; ".join(
+            f"{m.name} {', '.join(m.units)} ({m.rate_hz:g} Hz, {m.features} features)"
+            for m in layout))
+    else:
+        cfg = cfg.replace(channels=channels)
     split, parts = split_windows(takes, classes, channels, cfg)
     log.info(f"classes {list(classes)}; windows train {len(parts['train'])}, "
              f"val {len(parts['val'])}, test {len(parts['test'])}; split {split.description}")
     # statistics fitted once (rank 0) and shared: every process normalises alike
-    mean, std = dist.broadcast(*channel_stats(parts["train"]))
+    stats = (pooled_stats(parts["train"].x, channels, signals) if cfg.modalities
+             else channel_stats(parts["train"]))
+    mean, std = dist.broadcast(*stats)
     emd_index = [channels.index(c) for c in cfg.emd_channels]
-    center_index = centered(channels, cfg.center)
-    _log_center(log, channels, cfg.center, center_index)
-    model = TextureModel(cfg, len(classes), torch.from_numpy(mean), torch.from_numpy(std),
-                         emd_index, center_index)
+    center_index = [] if cfg.modalities else centered(channels, cfg.center)
+    if not cfg.modalities:
+        _log_center(log, channels, cfg.center, center_index)
+    model = build_model(cfg, len(classes), torch.from_numpy(mean), torch.from_numpy(std),
+                        channels=channels, rate_hz=takes[0].info.sample_rate_hz,
+                        emd_index=emd_index, center_index=center_index)
     t0 = time.perf_counter()
-    feats = {k: _features(model, w, log, k, dist) for k, w in parts.items()}
+    if getattr(model.pre, "needs_dictionaries", False):  # images, dictionaries, then codes
+        images = {k: _features(model.pre.images, w, log, f"images {k}", dist)
+                  for k, w in parts.items()}
+        t1 = time.perf_counter()
+        rows = learn_dictionaries(model.pre, images["train"], cfg.seed, dist)
+        log.info(f"dictionaries learned from {rows[0]} training image rows in "
+                 f"{time.perf_counter() - t1:.1f} s")
+        feats = {k: _apply(model.pre.post, v, log, f"codes {k}", dist)
+                 for k, v in images.items()}
+        del images
+    else:
+        feats = {k: _features(model.pre, w, log, k, dist) for k, w in parts.items()}
     feature_s = time.perf_counter() - t0
     model.to(device)
     ctx = Context(cfg, log, dist, device, None, on_epoch)
@@ -273,16 +300,23 @@ def _seed(seed: int) -> None:
     torch.manual_seed(seed)
 
 
-def _features(model: TextureModel, w: Windows, log: Log, name: str, dist: Dist) -> torch.Tensor:
-    """(N, T, F) features of every window, computed once (they have no trainable part); under
-    DDP each process computes a slice and all of them receive the whole."""
-    x = torch.from_numpy(w.x)
+def _features(fn, w: Windows, log: Log, name: str, dist: Dist) -> torch.Tensor:
+    """``fn`` (the model's ``pre``, or a stage of it) on every window: (N, T', F), computed
+    once (no trainable part); under DDP each process computes a slice and all of them
+    receive the whole."""
+    return _apply(fn, torch.from_numpy(w.x), log, f"features {name}", dist)
+
+
+def _apply(fn, x: torch.Tensor, log: Log, desc: str, dist: Dist,
+           chunk: int = 512) -> torch.Tensor:
+    """``fn`` over the rows of ``x`` in chunks, each process its :meth:`Dist.slice`."""
     lo, hi = dist.slice(len(x))
-    chunks = [torch.zeros(0, x.shape[1], model.pre.n_features)]
     with torch.no_grad():
-        for i in tqdm(range(lo, hi, 512), desc=f"features {name}", disable=not log.bars,
-                      leave=False, file=sys.stderr):
-            chunks.append(model.pre(x[i : min(i + 512, hi)]))
+        shape = fn(x[:1]).shape[1:]  # the output's shape per row, for an empty slice too
+        chunks = [torch.zeros(0, *shape)]
+        for i in tqdm(range(lo, hi, chunk), desc=desc, disable=not log.bars, leave=False,
+                      file=sys.stderr):
+            chunks.append(fn(x[i : min(i + chunk, hi)]))
     return dist.gather(torch.cat(chunks), len(x))
 
 

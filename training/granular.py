@@ -1,0 +1,383 @@
+"""The granular-media paper's preprocessing: per-modality EMD, data images, sparse codes.
+
+:class:`GranularPre` turns a window ``x (B, T, C)`` in the channels' units into the features
+of the granular models, in three stages that export composes (``docs/granular.md``):
+
+1. :meth:`~GranularPre.normalise`: ``z = (x - mean) / std`` with the training split's
+   statistics; the channels of one high-rate signal share one pooled mean and std
+   (:func:`pooled_stats`). No centring.
+2. :meth:`~GranularPre.emd_inputs`: per modality with ``imfs > 0`` its units at the
+   modality's rate, ``(B, n, T * r)`` (a high-rate signal unpacked by a reshape); the
+   ``EMD(imfs, emd_sifts)`` modules in :attr:`~GranularPre.emds` decompose them.
+3. :meth:`~GranularPre.finish`: the data images, one per step (one step per frame; steps whose
+   image would start before the window are dropped: S = T - max ceil(steps / r) + 1): at step
+   t a modality's image holds its last ``steps`` samples at its own rate ending with frame t,
+   feature order (unit, IMF, time) flattened; imfs = 0 uses the normalised values. Then, by
+   ``mode``: ``codes`` (sf_rnn, sparse_linear) one :class:`SparseCoder` per modality over
+   the image, ``(B, S, sum atoms)``; ``images`` (f_rnn) the images ``(B, S, sum features)``;
+   ``energy`` (linear) one row per window ``(B, 1, F)``: the log mean energy of each IMF of
+   each unit (imfs = 0: the mean and the log standard deviation of each unit).
+
+Dictionaries are learned from training images only by scikit-learn's
+``MiniBatchDictionaryLearning`` (:func:`learn_dictionaries`) and live in the coders' buffers,
+so a checkpoint's state dict holds them.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import torch
+from torch import Tensor, nn
+
+from tactile.training.config import TrainConfig
+from tactile.training.emd import EMD
+from tactile.training.modality import ModalityLayout, Signals, n_steps
+from tactile.training.sparse import SparseCoder, default_n_nonzero
+
+LOG_EPS = 1e-6
+MODES = {"sf_rnn": "codes", "sparse_linear": "codes", "f_rnn": "images", "linear": "energy"}
+DICTIONARY_ROWS = 20_000
+"""At most this many training image rows (window, step) are drawn, seeded, to learn each
+dictionary: 100 rows per atom for the largest dictionary (200 atoms) and far more than the
+176 features of a vibration image, while one fit stays well under a minute on one core.
+Consecutive steps of one window overlap (a pressure image shares 4 of its 5 frames with the
+next), so more rows of the same windows add little."""
+
+
+def pooled_stats(x: np.ndarray, channels: tuple[str, ...],
+                 signals: Signals) -> tuple[np.ndarray, np.ndarray]:
+    """Per-channel mean and std (C,) float32 over training windows ``x (N, T, C)``, except
+    that the channels of each high-rate signal share the mean and std of all their values
+    pooled (per-sub-sample statistics would distort the signal). A constant unit gets std 1."""
+    flat = x.reshape(-1, x.shape[-1]).astype(np.float64)
+    mean, std = flat.mean(0), flat.std(0)
+    for _, names in signals:
+        idx = [channels.index(c) for c in names]
+        mean[idx] = flat[:, idx].mean()
+        std[idx] = flat[:, idx].std()
+    std[std < 1e-8] = 1.0
+    return mean.astype(np.float32), std.astype(np.float32)
+
+
+class GranularPre(nn.Module):
+    """(B, T, C) window in units -> features (see the module's text), for ``mode`` one of
+    ``codes``, ``images``, ``energy``.
+
+    Args:
+        layout: the modalities (:func:`tactile.training.modality.resolve`).
+        mean, std: (C,) normalisation (:func:`pooled_stats`).
+        window: T, frames per window; emd_sifts: sifts per IMF.
+    """
+
+    def __init__(self, layout: tuple[ModalityLayout, ...], mean: Tensor, std: Tensor,
+                 window: int, emd_sifts: int, mode: str) -> None:
+        super().__init__()
+        self.layout, self.mode, self.window = tuple(layout), mode, window
+        self.register_buffer("mean", mean.float().clone())  # (C,)
+        self.register_buffer("std", std.float().clone())  # (C,)
+        self.steps = n_steps(self.layout, window)  # S
+        self.emds = nn.ModuleList(EMD(m.imfs, emd_sifts) for m in self.layout if m.imfs > 0)
+        first = max(m.frames for m in self.layout) - 1  # the frame of the first step
+        for k, m in enumerate(self.layout):
+            self.register_buffer(f"index_{k}", torch.tensor(m.index, dtype=torch.long),
+                                 persistent=False)
+            # samples of each step's image at the modality's rate: (S * steps,)
+            start = (first + 1) * m.r - m.steps
+            pos = start + m.r * torch.arange(self.steps)[:, None] + torch.arange(m.steps)
+            self.register_buffer(f"image_{k}", pos.flatten(), persistent=False)
+        self.coders = nn.ModuleList(
+            SparseCoder(np.zeros((m.atoms, m.features), np.float32), self.n_nonzero(m))
+            for m in self.layout) if mode == "codes" else None
+
+    @staticmethod
+    def n_nonzero(m: ModalityLayout) -> int:
+        """The modality's non-zeros: its ``nonzero``, or scikit-learn's default."""
+        return m.nonzero or default_n_nonzero(m.features, m.atoms)
+
+    @property
+    def image_features(self) -> tuple[int, ...]:
+        return tuple(m.features for m in self.layout)
+
+    @property
+    def n_features(self) -> int:
+        if self.mode == "codes":
+            return sum(m.atoms for m in self.layout)
+        if self.mode == "images":
+            return sum(self.image_features)
+        return sum(m.n * (m.imfs if m.imfs else 2) for m in self.layout)
+
+    @property
+    def needs_dictionaries(self) -> bool:
+        return self.mode == "codes"
+
+    # --- the three stages -----------------------------------------------------------------
+
+    def normalise(self, x: Tensor) -> Tensor:
+        """x (B, T, C) in units -> z (B, T, C)."""
+        return (x - self.mean) / self.std
+
+    def _units(self, z: Tensor, k: int) -> Tensor:
+        """Modality k's units at its own rate: (B, T, C) -> (B, n, T * r)."""
+        m = self.layout[k]
+        sel = torch.index_select(z, 2, getattr(self, f"index_{k}"))  # (B, T, n * r)
+        b, t = sel.shape[0], sel.shape[1]
+        return sel.reshape(b, t, m.n, m.r).permute(0, 2, 1, 3).reshape(b, m.n, t * m.r)
+
+    def emd_inputs(self, z: Tensor) -> list[Tensor]:
+        """One (B, n_k, L_k) per entry of :attr:`emds`: the modalities with imfs > 0."""
+        return [self._units(z, k) for k, m in enumerate(self.layout) if m.imfs > 0]
+
+    def _signals(self, z: Tensor, imfs: list[Tensor]) -> list[Tensor]:
+        """Per modality (B, n, max(imfs, 1), L): its IMFs, or its normalised units."""
+        out, j = [], 0
+        for k, m in enumerate(self.layout):
+            if m.imfs > 0:
+                out.append(imfs[j].to(z.dtype))
+                j += 1
+            else:
+                out.append(self._units(z, k)[:, :, None, :])
+        return out
+
+    def _image(self, s: Tensor, k: int) -> Tensor:
+        """(B, n, K, L) -> (B, S, n * K * steps), feature order (unit, IMF, time)."""
+        m = self.layout[k]
+        b, n, kk = s.shape[0], s.shape[1], s.shape[2]
+        img = torch.index_select(s, 3, getattr(self, f"image_{k}"))  # (B, n, K, S * steps)
+        img = img.reshape(b, n, kk, self.steps, m.steps).permute(0, 3, 1, 2, 4)
+        return img.reshape(b, self.steps, n * kk * m.steps)
+
+    def images_from(self, z: Tensor, imfs: list[Tensor]) -> Tensor:
+        """The data images of every modality, concatenated: (B, S, sum features)."""
+        sig = self._signals(z, imfs)
+        return torch.cat([self._image(s, k) for k, s in enumerate(sig)], dim=2)
+
+    def post(self, images: Tensor) -> Tensor:
+        """(B, S, sum features) images -> the head's features: codes (B, S, sum atoms) in
+        ``codes`` mode, the images themselves in ``images`` mode."""
+        if self.mode != "codes":
+            return images
+        b, s = images.shape[0], images.shape[1]
+        flat = images.reshape(b * s, images.shape[2])
+        out, at = [], 0
+        for coder, f in zip(self.coders, self.image_features):
+            out.append(coder(flat[:, at : at + f]).reshape(b, s, coder.atoms))
+            at += f
+        return torch.cat(out, dim=2)
+
+    def _energy(self, z: Tensor, imfs: list[Tensor]) -> Tensor:
+        """(B, 1, F): per modality and unit, the log mean energy of each IMF over the window
+        (imfs = 0: the unit's mean and log standard deviation)."""
+        out = []
+        for m, s in zip(self.layout, self._signals(z, imfs)):
+            if m.imfs > 0:
+                out.append(torch.log(s.pow(2).mean(dim=3) + LOG_EPS).flatten(1))  # (B, n*K)
+            else:
+                mu = s.mean(dim=3)  # (B, n, 1)
+                var = (s - mu[..., None]).pow(2).mean(dim=3)
+                out.append(torch.cat([mu, 0.5 * torch.log(var + LOG_EPS)], 2).flatten(1))
+        return torch.cat(out, dim=1)[:, None, :]
+
+    def finish(self, z: Tensor, imfs: list[Tensor]) -> Tensor:
+        """z (B, T, C) and imfs[k] (B, n_k, K_k, L_k) (the EMDs of :meth:`emd_inputs`) ->
+        features (B, S, n_features), or (B, 1, n_features) in ``energy`` mode."""
+        if self.mode == "energy":
+            return self._energy(z, imfs)
+        return self.post(self.images_from(z, imfs))
+
+    def decompose(self, z: Tensor) -> list[Tensor]:
+        return [emd(s)[0] for emd, s in zip(self.emds, self.emd_inputs(z))]
+
+    def images(self, x: Tensor) -> Tensor:
+        """x (B, T, C) -> the data images (B, S, sum features), before any coding."""
+        z = self.normalise(x)
+        return self.images_from(z, self.decompose(z))
+
+    def forward(self, x: Tensor) -> Tensor:
+        z = self.normalise(x)
+        return self.finish(z, self.decompose(z))
+
+    def set_dictionaries(self, dictionaries: list[np.ndarray]) -> None:
+        """Put one learned dictionary (atoms_m, features_m) per modality into the coders."""
+        # C order, as a checkpoint restores them: another memory layout takes other matmul
+        # kernels, whose float32 rounding differs in the last bits
+        self.coders = nn.ModuleList(
+            SparseCoder(np.ascontiguousarray(d, dtype=np.float32), self.n_nonzero(m))
+            for d, m in zip(dictionaries, self.layout))
+
+
+def sample_rows(n_rows: int, cap: int, seed: int) -> np.ndarray:
+    """Sorted indices of ``min(cap, n_rows)`` rows drawn without replacement from ``seed``."""
+    rng = np.random.default_rng(seed)
+    return np.sort(rng.choice(n_rows, size=min(cap, n_rows), replace=False))
+
+
+def fit_dictionary(rows: np.ndarray, m: ModalityLayout, seed: int) -> np.ndarray:
+    """``MiniBatchDictionaryLearning`` on image rows (N, features) float32 -> the dictionary
+    (atoms, features) float32 (``components_``)."""
+    from sklearn.decomposition import MiniBatchDictionaryLearning
+
+    mbdl = MiniBatchDictionaryLearning(
+        n_components=m.atoms, transform_algorithm="omp",
+        transform_n_nonzero_coefs=m.nonzero or None, random_state=seed)
+    mbdl.fit(np.ascontiguousarray(rows, dtype=np.float32))
+    return np.ascontiguousarray(mbdl.components_, dtype=np.float32)
+
+
+def learn_dictionaries(pre: GranularPre, train_images: Tensor, seed: int, dist,
+                       cap: int = DICTIONARY_ROWS) -> list[int]:
+    """Learn each modality's dictionary from the training split's images ``(N, S, sum
+    features)`` (only those: the caller passes no other split) on rank 0, broadcast them, and
+    put them into ``pre``'s coders. Returns the rows each was learned from."""
+    n_rows = train_images.shape[0] * train_images.shape[1]
+    pick = sample_rows(n_rows, cap, seed)
+    dicts = []
+    at = 0
+    for m in pre.layout:
+        if dist.is_main:
+            flat = train_images.reshape(n_rows, -1)[:, at : at + m.features]
+            dicts.append(fit_dictionary(flat[torch.from_numpy(pick)].numpy(), m, seed))
+        else:
+            dicts.append(np.zeros((m.atoms, m.features), np.float32))
+        at += m.features
+    pre.set_dictionaries(list(dist.broadcast(*dicts)))
+    return [len(pick)] * len(pre.layout)
+
+
+# --- the heads: features (B, S, F) + state -> logits -------------------------------------
+
+
+class SFRNNHead(nn.Module):
+    """SF-RNN (the paper's sec. II.B-C, D.d): codes (B, S, sum atoms) -> batch normalisation
+    of each code -> fully connected fusion layer (sum atoms -> hidden) with ReLU -> dropout ->
+    LSTM (``layers`` x ``hidden``, dropout between layers) over the S steps -> the last step's
+    output -> dropout -> linear -> logits. State (layers, B, hidden) x 2."""
+
+    def __init__(self, n_in: int, n_classes: int, hidden: int, layers: int, dropout: float):
+        super().__init__()
+        self.layers, self.hidden = layers, hidden
+        self.norm = nn.BatchNorm1d(n_in)
+        self.fuse = nn.Linear(n_in, hidden)
+        self.drop = nn.Dropout(dropout)
+        self.lstm = nn.LSTM(hidden, hidden, layers, batch_first=True,
+                            dropout=dropout if layers > 1 else 0.0)
+        self.out = nn.Linear(hidden, n_classes)
+
+    @property
+    def state_shape(self) -> tuple[int, int]:
+        return self.layers, self.hidden
+
+    def forward(self, f: Tensor, h: Tensor, c: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+        b, s, n = f.shape
+        g = self.norm(f.reshape(b * s, n)).reshape(b, s, n)
+        g = self.drop(torch.relu(self.fuse(g)))  # (B, S, H)
+        y, (h, c) = self.lstm(g, (h, c))
+        return self.out(self.drop(y[:, -1])), h, c
+
+
+class FRNNHead(nn.Module):
+    """F-RNN (the paper's sec. II.D.c, after Jain et al.): per modality m its images
+    (B, S, features_m) -> batch normalisation -> its own LSTM (``layers`` x ``hidden``,
+    dropout between layers); at every step the M outputs concatenated -> fully connected
+    fusion layer (M x hidden -> hidden) with ReLU; the last step's fused vector -> dropout ->
+    linear -> logits. State (layers, B, M x hidden) x 2: modality m's LSTM state is the m-th
+    block of ``hidden``."""
+
+    def __init__(self, sizes: tuple[int, ...], n_classes: int, hidden: int, layers: int,
+                 dropout: float):
+        super().__init__()
+        self.sizes, self.layers, self.hidden = tuple(sizes), layers, hidden
+        self.norms = nn.ModuleList(nn.BatchNorm1d(n) for n in self.sizes)
+        self.lstms = nn.ModuleList(
+            nn.LSTM(n, hidden, layers, batch_first=True, dropout=dropout if layers > 1 else 0.0)
+            for n in self.sizes)
+        self.fuse = nn.Linear(len(self.sizes) * hidden, hidden)
+        self.drop = nn.Dropout(dropout)
+        self.out = nn.Linear(hidden, n_classes)
+
+    @property
+    def state_shape(self) -> tuple[int, int]:
+        return self.layers, len(self.sizes) * self.hidden
+
+    def forward(self, f: Tensor, h: Tensor, c: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+        b, s, _ = f.shape
+        ys, hs, cs, at = [], [], [], 0
+        for k, (n, norm, lstm) in enumerate(zip(self.sizes, self.norms, self.lstms)):
+            part = norm(f[:, :, at : at + n].reshape(b * s, n)).reshape(b, s, n)
+            blk = slice(k * self.hidden, (k + 1) * self.hidden)
+            y, (hk, ck) = lstm(part, (h[:, :, blk].contiguous(), c[:, :, blk].contiguous()))
+            ys.append(y)
+            hs.append(hk)
+            cs.append(ck)
+            at += n
+        fused = torch.relu(self.fuse(torch.cat(ys, dim=2)))  # (B, S, H)
+        return self.out(self.drop(fused[:, -1])), torch.cat(hs, 2), torch.cat(cs, 2)
+
+
+class PooledLinearHead(nn.Module):
+    """A linear classifier on features pooled over the window's steps: ``abs_mean`` (sparse
+    linear: the mean magnitude of each code over the S steps, (B, sum atoms)) or ``mean`` (the
+    linear baseline: its single row (B, 1, F)). The pooled vector is standardised by a batch
+    normalisation without learned scale or shift (in evaluation a fixed affine map, so the
+    classifier stays linear in the pooled features), then one ``Linear`` -> logits. The state
+    passes through untouched ((1, B, 1) x 2)."""
+
+    def __init__(self, n_in: int, n_classes: int, pool: str):
+        super().__init__()
+        self.pool = pool
+        self.norm = nn.BatchNorm1d(n_in, affine=False)
+        self.out = nn.Linear(n_in, n_classes)
+
+    @property
+    def state_shape(self) -> tuple[int, int]:
+        return 1, 1
+
+    def forward(self, f: Tensor, h: Tensor, c: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+        pooled = f.abs().mean(dim=1) if self.pool == "abs_mean" else f.mean(dim=1)
+        return self.out(self.norm(pooled)), h, c
+
+
+class GranularModel(nn.Module):
+    """A granular-media model with :class:`~tactile.training.model.TextureModel`'s interface:
+    ``forward(x, h, c)``: x (B, T, C) float32 in the channels' units, h and c
+    ``(layers, B, width)`` (:attr:`state_shape`) -> probabilities (B, classes), h, c.
+
+    Args:
+        cfg: the run's config (``model`` one of sf_rnn, f_rnn, sparse_linear, linear, with
+            ``modalities``); layout: its modalities resolved; mean, std: (C,).
+    """
+
+    def __init__(self, cfg: TrainConfig, n_classes: int, layout: tuple[ModalityLayout, ...],
+                 mean: Tensor, std: Tensor) -> None:
+        super().__init__()
+        self.cfg, self.layout = cfg, tuple(layout)
+        self.pre = GranularPre(layout, mean, std, cfg.window, cfg.emd_sifts, MODES[cfg.model])
+        n = self.pre.n_features
+        if cfg.model == "sf_rnn":
+            self.head = SFRNNHead(n, n_classes, cfg.hidden, cfg.layers, cfg.dropout)
+        elif cfg.model == "f_rnn":
+            self.head = FRNNHead(self.pre.image_features, n_classes, cfg.hidden, cfg.layers,
+                                 cfg.dropout)
+        else:
+            self.head = PooledLinearHead(n, n_classes,
+                                         "abs_mean" if cfg.model == "sparse_linear" else "mean")
+
+    @property
+    def state_shape(self) -> tuple[int, int]:
+        return self.head.state_shape
+
+    def zero_state(self, batch: int) -> tuple[Tensor, Tensor]:
+        layers, width = self.state_shape
+        z = torch.zeros(layers, batch, width)
+        return z, z.clone()
+
+    def logits(self, x: Tensor, h: Tensor, c: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+        return self.head(self.pre(x), h, c)
+
+    def forward(self, x: Tensor, h: Tensor, c: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+        logits, h, c = self.logits(x, h, c)
+        return torch.softmax(logits, dim=1), h, c
+
+
+__all__ = ["GranularPre", "GranularModel", "SFRNNHead", "FRNNHead", "PooledLinearHead",
+           "pooled_stats", "learn_dictionaries", "fit_dictionary", "sample_rows",
+           "DICTIONARY_ROWS", "MODES"]
