@@ -24,6 +24,7 @@ from __future__ import annotations
 
 import argparse
 import hashlib
+import importlib.util
 import json
 import os
 import resource
@@ -292,41 +293,58 @@ def train_job(job: Job, threads: int, say=print) -> None:
               "--data", str(job.data)], log)
 
 
-def time_job(job: Job) -> dict:
-    """The exported file's time to label 1 s of data (ms), measured once and kept."""
+def time_job(job: Job, seconds: float = 5.0) -> dict:
+    """The exported file's time to label 1 s of data, measured once and kept: the export's
+    :func:`label_time` (``bench/label_time.py``: one onnxruntime thread, batch 1 at the
+    contract's hop, EMD and coding in the graph) on ``seconds`` of consecutive windows of the
+    run's first test take."""
     path = job.folder / "timing.json"
     if path.exists():
         return json.loads(path.read_text())
-    t = label_time(job.folder / "model.onnx")
+    t = _label_time()(job.folder / "model.onnx", windows=test_windows(job, seconds))
+    t = {k: v for k, v in t.items() if isinstance(v, (int, float, str))}
     path.write_text(json.dumps(t) + "\n")
     return t
 
 
-def label_time(onnx: Path) -> dict:
-    """Milliseconds to label 1 s of data with one onnxruntime thread at the model's streaming
-    hop (preprocessing included): windows per second x batch-1 latency of one window."""
-    from tactile.export.check import load_contract
-    from tactile.export.quantize import latency_ms
+def _label_time():
+    spec = importlib.util.spec_from_file_location("label_time", REPO / "bench" / "label_time.py")
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    return mod.label_time
 
-    _, c = load_contract(onnx)
-    lat = latency_ms(str(onnx), c.window, len(c.channels), (c.state_layers, c.state_hidden),
-                     runs=50)
-    per_s = c.sample_rate_hz / c.hop
-    return {"ms_per_s": round(lat["p50_ms"] * per_s, 3), "window_ms": lat["p50_ms"],
-            "windows_per_s": per_s, "method": "p50 batch-1 window x windows per second"}
+
+def test_windows(job: Job, seconds: float) -> np.ndarray:
+    """(N, window, C) float32: consecutive windows at the run's hop from its first test take,
+    ``seconds`` of data, in the contract's channels (recycled if the take is shorter)."""
+    import torch
+
+    from tactile.device.recording import read_take
+
+    ck = torch.load(job.folder / "checkpoint.pt", map_location="cpu", weights_only=True)
+    take = read_take(job.data / sorted(ck["test_rows"])[0])
+    cfg = ck["config"]
+    v = take.values()[:, [take.channels.index(c) for c in ck["channels"]]].astype(np.float32)
+    n = max(1, round(seconds * take.info.sample_rate_hz / cfg["hop"]))
+    starts = np.arange(0, len(v) - cfg["window"] + 1, cfg["hop"])
+    starts = starts[np.arange(n) % len(starts)]
+    return v[starts[:, None] + np.arange(cfg["window"])[None, :]]
 
 
 # --- what a run is: its size, its figures --------------------------------------------------
 
 def shape_of(folder: Path) -> tuple[int, int | None]:
-    """(dims of the feature space the classifier sees, neurons per recurrent layer or None)."""
-    import torch
+    """(dims of the feature space the classifier sees, neurons per recurrent layer or None):
+    the Table's two size columns. Codes: the atoms of every modality; F-RNN: the images'
+    features; linear: its inputs."""
+    from tactile.training.checkpoint import load_checkpoint
 
-    ck = torch.load(folder / "checkpoint.pt", map_location="cpu", weights_only=True)
-    cfg = ck["config"]
-    if cfg["model"] == "linear":
-        return ck["state_dict"]["head.out.weight"].shape[1], None
-    return -1, int(cfg["hidden"])
+    model, ck = load_checkpoint(folder)
+    cfg = model.cfg
+    rnn = cfg.model in ("sf_rnn", "f_rnn", "lstm")
+    if cfg.modalities:
+        return model.pre.n_features, cfg.hidden if rnn else None
+    return model.head.out.in_features, cfg.hidden if rnn else None
 
 
 @dataclass
