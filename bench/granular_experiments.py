@@ -110,21 +110,19 @@ def command(name: str) -> list[str]:
     return [found]
 
 
-def call(argv: Sequence[str], log: Path | None = None) -> float:
-    """Run a command; its output goes to ``log`` (stdout and stderr), or to ours. Returns its
-    CPU time (user + sys, s, with its children). A failure ends the benchmark with the
-    command's last lines."""
-    with open(log, "a") if log is not None else open(os.devnull, "w") as f:
-        if log is not None:
-            f.write(f"$ {' '.join(argv)}\n")
-            f.flush()
-        out = f if log is not None else None
-        proc = subprocess.Popen(list(argv), stdout=out, stderr=subprocess.STDOUT if out else None)
+def call(argv: Sequence[str], log: Path) -> float:
+    """Run a command, its stdout and stderr appended to ``log``; returns its CPU time (user +
+    sys, s, with its children). A failure ends the benchmark with the log's last lines."""
+    log.parent.mkdir(parents=True, exist_ok=True)
+    with open(log, "a") as f:
+        f.write(f"$ {' '.join(argv)}\n")
+        f.flush()
+        proc = subprocess.Popen(list(argv), stdout=f, stderr=subprocess.STDOUT)
         _, status, usage = os.wait4(proc.pid, 0)
         proc.returncode = os.waitstatus_to_exitcode(status)
     if proc.returncode != 0:
-        tail = "" if log is None else "\n" + "".join(log.read_text().splitlines(True)[-5:])
-        raise RuntimeError(f"{' '.join(argv[:2])}... exited with {proc.returncode}{tail}")
+        tail = "".join(log.read_text().splitlines(True)[-5:])
+        raise RuntimeError(f"{' '.join(argv[:2])}... exited with {proc.returncode}:\n{tail}")
     return usage.ru_utime + usage.ru_stime
 
 
@@ -149,15 +147,18 @@ def biotac_data(cache: Path, source: Path = BIOTAC) -> Path:
     if not files:
         raise SystemExit(f"granular_experiments: no .h5 files in {source} (--biotac)")
     return _ready(cache / "data" / "biotac", lambda tmp: call(
-        [*command("tactile-import-biotac"), *map(str, files), "--out", str(tmp)]))
+        [*command("tactile-import-biotac"), *map(str, files), "--out", str(tmp)],
+        cache / "data" / "biotac.log"))
 
 
 def pen_data(cache: Path, users: int, seconds: float) -> Path:
     """The simulated pen set (``tactile-sim --dataset``): ``users`` users x the pen paper's
     experiment-2 textures x ``seconds``, made once per size."""
-    return _ready(cache / "data" / f"pen-{users}x{seconds:g}s", lambda tmp: call(
+    name = f"pen-{users}x{seconds:g}s"
+    return _ready(cache / "data" / name, lambda tmp: call(
         [*command("tactile-sim"), "--dataset", str(tmp), "--takes", str(users),
-         "--seconds", f"{seconds:g}", "--textures", ",".join(PEN_TEXTURES), "--seed", "1"]))
+         "--seconds", f"{seconds:g}", "--textures", ",".join(PEN_TEXTURES), "--seed", "1"],
+        cache / "data" / f"{name}.log"))
 
 
 # --- runs ----------------------------------------------------------------------------------
