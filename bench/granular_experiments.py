@@ -17,7 +17,9 @@ imported once with ``tactile-import-biotac``, the pen set simulated once with ``
 a finished step (training, export, timing) is never redone, so an interrupted benchmark
 continues where it stopped (a training stopped by Ctrl-C resumes from its last epoch). Runs
 are kept per configuration: editing a config file or ``--set`` starts new runs. Every run uses
-one torch thread (``--threads``); run it under ``nice`` on a shared machine.
+one torch thread (``--threads``); run it under ``nice`` on a shared machine. Several processes
+may share one cache (e.g. one per dataset, or the same command twice): each run is locked by
+the process training it, and the others pass it by.
 """
 
 from __future__ import annotations
@@ -263,13 +265,53 @@ class EMDMemo:
         EMD.forward = forward
 
 
+class Busy(Exception):
+    """Another live benchmark process is working on this run."""
+
+
+class RunLock:
+    """``RUN/.lock`` holding the pid of the process working on the run, so that several
+    benchmark processes can share one cache (each takes the runs no other one holds). A lock
+    whose process is gone is taken over."""
+
+    def __init__(self, folder: Path) -> None:
+        self.path = folder / ".lock"
+
+    def __enter__(self) -> RunLock:
+        self.path.parent.mkdir(parents=True, exist_ok=True)
+        for _ in range(2):
+            try:
+                fd = os.open(self.path, os.O_CREAT | os.O_EXCL | os.O_WRONLY)
+            except FileExistsError:
+                try:
+                    os.kill(int(self.path.read_text() or "0"), 0)
+                except (ProcessLookupError, ValueError):  # stale: its process is gone
+                    self.path.unlink(missing_ok=True)
+                    continue
+                except PermissionError:
+                    pass
+                raise Busy(str(self.path.parent)) from None
+            os.write(fd, str(os.getpid()).encode())
+            os.close(fd)
+            return self
+        raise Busy(str(self.path.parent))
+
+    def __exit__(self, *exc) -> None:
+        self.path.unlink(missing_ok=True)
+
+
 def train_job(job: Job, threads: int, say=print) -> None:
-    """Train (or resume, after Ctrl-C) and export one run; a finished step is skipped."""
+    """Train (or resume, after Ctrl-C) and export one run; a finished step is skipped. Raises
+    :class:`Busy` when another process holds the run."""
+    with RunLock(job.folder):
+        _train_job(job, threads, say)
+
+
+def _train_job(job: Job, threads: int, say=print) -> None:
     from tactile.training.checkpoint import load_resume
     from tactile.training.config import TrainConfig
     from tactile.training.train import train
 
-    job.folder.mkdir(parents=True, exist_ok=True)
     log = job.folder / "bench.log"
     if finished(job.folder) is None:
         t0, c0 = time.perf_counter(), _cpu()
@@ -503,7 +545,11 @@ def main(argv: list[str] | None = None) -> int:
         if not args.no_memo:
             memo.install()
         for j in order:
-            train_job(j, args.threads)
+            try:
+                train_job(j, args.threads)
+            except Busy:
+                print(f"<!-- {j.row.name} seed {j.seed}: another process holds it -->",
+                      flush=True)
         if not args.no_memo:
             print(f"<!-- EMD memo: {memo.hits} batches reused, {memo.misses} computed -->")
     figs = collect(jobs, timing=not args.no_timing)

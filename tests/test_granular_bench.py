@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import importlib.util
 import json
+import os
 import re
 import sys
 
@@ -177,3 +178,18 @@ def test_every_config_parses_and_builds_a_model_on_matching_data(path):
     assert probs.shape == (2, 5)
     assert torch.allclose(probs.sum(1), torch.ones(2), atol=1e-5)
     assert torch.isfinite(h).all()
+
+
+def test_a_run_held_by_a_live_process_is_passed_by_and_a_stale_lock_taken_over(tmp_path):
+    import subprocess
+
+    done = subprocess.run([sys.executable, "-c", "import os; print(os.getpid())"],
+                          capture_output=True, text=True, check=True)
+    dead = int(done.stdout)  # a pid whose process has ended
+    with ge.RunLock(tmp_path):
+        with pytest.raises(ge.Busy):  # held by this (live) process
+            ge.RunLock(tmp_path).__enter__()
+    assert not (tmp_path / ".lock").exists()
+    (tmp_path / ".lock").write_text(str(dead))
+    with ge.RunLock(tmp_path):
+        assert (tmp_path / ".lock").read_text() == str(os.getpid())
