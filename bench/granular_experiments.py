@@ -449,8 +449,9 @@ def table(dataset: str, block: str, figs: dict[Row, Figures]) -> str:
             continue
         p = paper[row.model]
         drop = [t - n for t, n in zip(f.test, f.novel, strict=True)]
-        cells = [LABELS[row.model], "-" if f.dims is None else str(f.dims),
-                 "N/A" if f.neurons is None else str(f.neurons),
+        size = ("-", "-") if not f.seeds else (
+            str(f.dims), "N/A" if f.neurons is None else str(f.neurons))
+        cells = [LABELS[row.model], *size,
                  spread(f.ms, 1.0, 2), spread(f.val), spread(f.test), spread(f.novel),
                  spread(drop), ", ".join(map(str, f.seeds)) or "none finished",
                  f"{p[0]}, {'N/A' if p[1] is None else p[1]}, {p[2]}, "
