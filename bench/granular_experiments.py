@@ -25,6 +25,7 @@ the process training it, and the others pass it by.
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import hashlib
 import importlib.util
 import json
@@ -330,10 +331,15 @@ def _train_job(job: Job, threads: int, say=print) -> None:
             f"{m['accuracy']:.3f} novel {m['shifted']['mean']:.3f}, best epoch "
             f"{m['best_epoch'] + 1} of {m['epochs_run']}, {cost['cpu_seconds']} s CPU "
             f"({cost['wall_seconds']} s wall) -->", flush=True)
-    onnx = job.folder / "model.onnx"
-    if not onnx.exists():
-        call([*command("tactile-export"), str(job.folder), "-o", str(onnx),
-              "--data", str(job.data)], log)
+    onnx, failed = job.folder / "model.onnx", job.folder / "export-failed.txt"
+    if not onnx.exists() and not failed.exists():
+        try:
+            call([*command("tactile-export"), str(job.folder), "-o", str(onnx),
+                  "--data", str(job.data)], log)
+        except RuntimeError as e:  # e.g. parity refused: the run's figures still stand
+            failed.write_text(f"{e}\n")
+            say(f"<!-- {job.row.name} seed {job.seed}: export failed: "
+                f"{str(e).splitlines()[-1]} -->", flush=True)
 
 
 def time_job(job: Job, seconds: float = 5.0) -> dict:
@@ -403,6 +409,7 @@ class Figures:
     novel: list[float]
     cpu: list[float]
     epochs: list[str]
+    export_failed: list[int] = dataclasses.field(default_factory=list)
 
 
 def collect(jobs: Sequence[Job], timing: bool = True) -> dict[Row, Figures]:
@@ -423,6 +430,8 @@ def collect(jobs: Sequence[Job], timing: bool = True) -> dict[Row, Figures]:
             f.cpu.append(json.loads(cost.read_text()).get("cpu_seconds", float("nan")))
         if timing and (job.folder / "model.onnx").exists():
             f.ms.append(time_job(job)["ms_per_s"])
+        elif (job.folder / "export-failed.txt").exists():
+            f.export_failed.append(job.seed)
     return out
 
 
@@ -449,10 +458,12 @@ def table(dataset: str, block: str, figs: dict[Row, Figures]) -> str:
             continue
         p = paper[row.model]
         drop = [t - n for t, n in zip(f.test, f.novel, strict=True)]
+        failed = (f" (export failed: seed {', '.join(map(str, f.export_failed))})"
+                  if f.export_failed else "")
         size = ("-", "-") if not f.seeds else (
             str(f.dims), "N/A" if f.neurons is None else str(f.neurons))
         cells = [LABELS[row.model], *size,
-                 spread(f.ms, 1.0, 2), spread(f.val), spread(f.test), spread(f.novel),
+                 spread(f.ms, 1.0, 2) + failed, spread(f.val), spread(f.test), spread(f.novel),
                  spread(drop), ", ".join(map(str, f.seeds)) or "none finished",
                  f"{p[0]}, {'N/A' if p[1] is None else p[1]}, {p[2]}, "
                  f"{p[3]} / {p[4]} / {p[5]}"]
