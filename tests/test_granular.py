@@ -424,3 +424,46 @@ def test_dictionaries_are_learned_from_training_windows_only(toy, tmp_path, monk
         near = np.abs(rows[:, None, :] - train_rows[None, :, :]).max(2).min(1)
         assert near.max() < 1e-4, name  # each is a training row
         at += m.features
+
+
+def test_two_processes_share_rank_0s_dictionaries(toy, tmp_path):
+    """torchrun, 2 processes (gloo on loopback): rank 0 learns the dictionaries from the whole
+    training split and broadcasts them; each process codes its share of the windows with them.
+    The run's test figures must then be what one process computes from the checkpoint."""
+    import os
+    import subprocess
+    import sys
+
+    from test_train_ddp import free_port
+
+    # test takes of both classes in each process's half of the test windows (rows 0-34:
+    # a_3, a_4; 35-68: a_4, b_4), so that codes made with other dictionaries in one of the
+    # processes would change the run's figures
+    cfg = _cfg("sf_rnn", epochs=8, test="name:a_3,a_4,b_4", val="name:a_2,b_2")
+    toml = tmp_path / "c.toml"
+    toml.write_text(_toml(cfg.to_dict()))
+    env = {**os.environ, "GLOO_SOCKET_IFNAME": "lo", "OMP_NUM_THREADS": "1"}
+    cmd = [sys.executable, "-m", "torch.distributed.run", "--nproc-per-node", "2",
+           "--master-addr", "127.0.0.1", "--master-port", str(free_port()),
+           "-m", "tactile.training.train", str(toy), "--out", str(tmp_path / "run"),
+           "--config", str(toml), "--quiet"]
+    proc = subprocess.run(cmd, capture_output=True, text=True, env=env, timeout=900)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    model, ck = load_checkpoint(tmp_path / "run")
+    assert ck["metrics"]["processes"] == 2
+    s = evaluate_run(tmp_path / "run", toy, threads=1)  # one process, the saved dictionaries
+    assert s["confusion"] == ck["metrics"]["confusion"]
+    assert s["accuracy"] >= 0.9, s["accuracy"]
+
+
+def _toml(d: dict) -> str:
+    """A config dict as TOML (flat keys, then [signals] and [modalities.NAME] tables)."""
+    def value(v):
+        return json.dumps(v) if not isinstance(v, bool) else str(v).lower()
+
+    lines = [f"{k} = {value(v)}" for k, v in d.items() if k not in ("signals", "modalities")]
+    if d["signals"]:
+        lines += ["[signals]"] + [f"{k} = {value(v)}" for k, v in d["signals"].items()]
+    for name, m in d["modalities"].items():
+        lines += [f"[modalities.{name}]"] + [f"{k} = {value(v)}" for k, v in m.items()]
+    return "\n".join(lines) + "\n"
