@@ -54,9 +54,9 @@ def export_run(run_dir: Path, out: Path, data: Path | None = None, int8: bool = 
         _require(q, "int8")
         figures = {**q.to_dict(), "float32": parity.to_dict()}
         quantization = "int8-dynamic"
-        report["int8"] = _tradeoff(graph, final, parity, q, ck)
+        report["int8"] = _tradeoff(graph, final, parity, q, ck, model.state_shape)
         log(_tradeoff_line(report["int8"]))
-    attach(final, contract_for(ck, figures, quantization, run_dir.resolve().name))
+    attach(final, contract_for(ck, figures, quantization, run_dir.resolve().name, model))
     with tempfile.NamedTemporaryFile(dir=out.parent, suffix=".onnx", delete=False) as tmp:
         tmp_path = Path(tmp.name)
     try:
@@ -94,11 +94,9 @@ def _require(p: Parity, what: str) -> None:
         )
 
 
-def _tradeoff(f32: onnx.ModelProto, q: onnx.ModelProto, pf: Parity, pq: Parity, ck: dict) -> dict:
-    cfg = ck["config"]
-    lstm = cfg["model"] == "lstm"
-    state = (cfg["layers"], cfg["hidden"]) if lstm else (1, 1)
-    args = (cfg["window"], len(ck["channels"]), state)
+def _tradeoff(f32: onnx.ModelProto, q: onnx.ModelProto, pf: Parity, pq: Parity, ck: dict,
+              state: tuple[int, int]) -> dict:
+    args = (ck["config"]["window"], len(ck["channels"]), state)
     return {
         "bytes_float32": f32.ByteSize(), "bytes_int8": q.ByteSize(),
         "latency_float32": latency_ms(f32.SerializeToString(), *args),

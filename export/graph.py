@@ -5,16 +5,19 @@ opset :data:`tactile.contract.OPSET` (18), with an example batch of 3 and ``batc
 dynamic. It captures ``nn.LSTM`` as ONNX ``LSTM`` nodes with a symbolic batch, and it is the path
 the EMD graph is built with, so both halves share one exporter.
 
-Without EMD features the whole :class:`TextureModel` is one export. With them the graph is
-composed of three parts, because the EMD is assembled by hand with ``Loop`` nodes
-(:func:`tactile.training.emd.onnx_export.build_emd_model`) rather than traced::
+Any model whose ``pre`` has the three-stage interface (``emds``, ``normalise``, ``emd_inputs``,
+``finish``; :class:`tactile.training.model.Preprocess` and the granular preprocessing) and whose
+``head`` maps ``(features, h, c) -> (logits, h, c)`` is exported. Without EMDs the whole model is
+one export. With them the graph is composed of parts, because each EMD is assembled by hand
+with ``Loop`` nodes (:func:`tactile.training.emd.onnx_export.build_emd_model`) rather than
+traced::
 
-    x (B, T, C) -> [pre: normalise, centre, pick EMD channels] -> z (B, T, C), sel (B, Ce, T)
-    sel -> [EMD Loop graph, float32] -> imfs (B, Ce, K, T)
-    z, imfs, h, c -> [post: concatenate features, head, softmax] -> probs (B, classes), h, c
+    x (B, T, C) -> [pre: normalise, emd_inputs] -> z (B, T, C), emd0_in (B, n_0, L_0), ...
+    emdk_in -> [EMD Loop graph k: its own IMFs, sifts, length; float32] -> imfsk (B, n_k, K_k, L_k)
+    z, imfs0.., h, c -> [post: finish (features, sparse codes), head, softmax] -> probs, h, c
 
-``pre`` and ``post`` reuse the trained model's own buffers and head; the export-time parity check
-compares the composed graph with ``TextureModel.forward`` itself, so a drift between this split
+``pre`` and ``post`` reuse the trained model's own modules; the export-time parity check
+compares the composed graph with the model's ``forward`` itself, so a drift between this split
 and the training code fails the export.
 """
 
@@ -28,7 +31,6 @@ import tactile
 from tactile.contract import BATCH, INPUTS, OPSET, OUTPUTS
 from tactile.export.compose import join, renamed, value_info
 from tactile.training.emd.onnx_export import build_emd_model, export_traced
-from tactile.training.model import Preprocess, TextureModel
 
 EXAMPLE_BATCH = 3
 """Example batch of the traced export: > 1, so that the tracer cannot fix the batch size."""
@@ -40,61 +42,64 @@ _STATE_AXES = {1: BATCH}
 
 
 class _Pre(nn.Module):
-    """x (B, T, C) in units -> z (B, T, C) normalised and centred, sel (B, Ce, T) for the EMD.
+    """x (B, T, C) in units -> z (B, T, C) and one (B, n_k, L_k) input per EMD of ``pre``."""
 
-    The same ops, in the same order, as the first half of :meth:`Preprocess.forward`.
-    """
-
-    def __init__(self, pre: Preprocess) -> None:
+    def __init__(self, pre: nn.Module) -> None:
         super().__init__()
         self.pre = pre
 
-    def forward(self, x: Tensor) -> tuple[Tensor, Tensor]:
-        p = self.pre
-        z = (x - p.mean) / p.std  # (B, T, C)
-        z = z - z.mean(dim=1, keepdim=True) * p.center_mask
-        sel = torch.index_select(z, 2, p.emd_index).transpose(1, 2)  # (B, Ce, T)
-        return z, sel
+    def forward(self, x: Tensor) -> tuple[Tensor, ...]:
+        z = self.pre.normalise(x)
+        return (z, *self.pre.emd_inputs(z))
 
 
 class _Post(nn.Module):
-    """z (B, T, C), imfs (B, Ce, K, T), h, c (L, B, H) -> probs (B, classes), h, c."""
+    """z, imfs_0..imfs_{k-1} (B, n_k, K_k, L_k), h, c (L, B, H) -> probs (B, classes), h, c."""
 
-    def __init__(self, model: TextureModel) -> None:
+    def __init__(self, model: nn.Module) -> None:
         super().__init__()
-        self.head = model.head
+        self.pre, self.head = model.pre, model.head
+        self.n_emd = len(model.pre.emds)
 
-    def forward(self, z: Tensor, imfs: Tensor, h: Tensor, c: Tensor):
-        feats = imfs.flatten(1, 2).transpose(1, 2)  # (B, T, Ce*K)
-        f = torch.cat([z, feats.to(z.dtype)], dim=2)  # (B, T, C + Ce*K)
-        logits, h, c = self.head(f, h, c)
+    def forward(self, z: Tensor, *rest: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+        imfs, (h, c) = list(rest[: self.n_emd]), rest[self.n_emd :]
+        logits, h, c = self.head(self.pre.finish(z, imfs), h, c)
         return torch.softmax(logits, dim=1), h, c
 
 
-def split_forward(model: TextureModel, x: Tensor, h: Tensor, c: Tensor):
-    """The composed graph's computation in eager torch (pre, torch EMD, post), for tests."""
-    z, sel = _Pre(model.pre)(x)
-    imfs, _, _ = model.pre.emd(sel)
-    return _Post(model)(z, imfs, h, c)
+def split_forward(model: nn.Module, x: Tensor, h: Tensor, c: Tensor):
+    """The composed graph's computation in eager torch (pre, torch EMDs, post), for tests."""
+    z, *sel = _Pre(model.pre)(x)
+    imfs = [emd(s)[0] for emd, s in zip(model.pre.emds, sel, strict=True)]
+    return _Post(model)(z, *imfs, h, c)
 
 
 trace = export_traced  # the pinned exporter path, shared with the EMD graph
 
 
-def build_graph(model: TextureModel) -> onnx.ModelProto:
+def example_input(model: nn.Module, batch: int = EXAMPLE_BATCH, seed: int = 0) -> Tensor:
+    """(batch, window, C) float32 windows in units: N(mean, std) of the training split.
+
+    Uses the pre's ``mean`` and ``std`` buffers (C,) (every preprocessing module has them).
+    """
+    pre = model.pre
+    g = torch.Generator().manual_seed(seed)
+    z = torch.randn(batch, model.cfg.window, int(pre.mean.numel()), generator=g)
+    return z * pre.std + pre.mean
+
+
+def build_graph(model: nn.Module) -> onnx.ModelProto:
     """The float32 graph of ``model`` (no metadata yet), checked by ``onnx.checker``.
 
     Inputs ``x`` (batch, window, channels), ``h``, ``c`` (layers, batch, hidden); outputs
     ``probs`` (batch, classes), ``h_out``, ``c_out`` (layers, batch, hidden).
     """
     model = model.eval().float()
-    cfg = model.cfg
-    b, t, ch = EXAMPLE_BATCH, cfg.window, model.pre.n_channels
-    x = torch.randn(b, t, ch) * model.pre.std + model.pre.mean  # (B, T, C) in units
-    h, c = model.zero_state(b)
+    x = example_input(model)
+    h, c = model.zero_state(EXAMPLE_BATCH)
     state = {"h": _STATE_AXES, "c": _STATE_AXES, "h_out": _STATE_AXES, "c_out": _STATE_AXES}
     with torch.no_grad():
-        if model.pre.emd is None:
+        if not len(model.pre.emds):
             out = trace(model, [x, h, c], INPUTS, OUTPUTS,
                         {"x": {0: BATCH}, "probs": {0: BATCH}, **state})
         else:
@@ -106,22 +111,26 @@ def build_graph(model: TextureModel) -> onnx.ModelProto:
     return out
 
 
-def _compose(model: TextureModel, x: Tensor, h: Tensor, c: Tensor, state: dict) -> onnx.ModelProto:
+def _compose(model: nn.Module, x: Tensor, h: Tensor, c: Tensor, state: dict) -> onnx.ModelProto:
+    """pre (traced) -> one EMD Loop graph per entry of ``model.pre.emds`` -> post (traced)."""
     pre_m = _Pre(model.pre)
-    z, sel = pre_m(x)
-    emd = model.pre.emd
-    imfs, _, _ = emd(sel)
-    pre = trace(pre_m, [x], ["x"], ["z", "sel"],
-                {"x": {0: BATCH}, "z": {0: BATCH}, "sel": {0: BATCH}})
-    mid = build_emd_model(emd.n_imfs, emd.n_sifts, int(sel.shape[1]), int(sel.shape[2]),
-                          torch.float32)
-    post = trace(_Post(model), [z, imfs, h, c], ["z", "imfs", "h", "c"], OUTPUTS,
-                 {"z": {0: BATCH}, "imfs": {0: BATCH}, "probs": {0: BATCH}, **state})
-    emd_in, emd_out = mid.graph.input[0].name, mid.graph.output[0].name  # x_in, imfs
-    graphs = [
-        renamed(pre, "pre/", {"x": "x", "z": "z", "sel": "emd_in"}),
-        renamed(mid, "emd/", {emd_in: "emd_in", emd_out: "imfs"}),
-        renamed(post, "post/", {n: n for n in ["z", "imfs", "h", "c", *OUTPUTS]}),
-    ]
+    z, *sel = pre_m(x)
+    emds = list(model.pre.emds)
+    ins = [f"emd{k}_in" for k in range(len(emds))]
+    outs = [f"imfs{k}" for k in range(len(emds))]
+    batch = {0: BATCH}
+    pre = trace(pre_m, [x], ["x"], ["z", *ins],
+                {"x": batch, "z": batch, **dict.fromkeys(ins, batch)})
+    graphs = [renamed(pre, "pre/", {"x": "x", "z": "z", **{n: n for n in ins}})]
+    imfs = []
+    for k, (emd, s) in enumerate(zip(emds, sel, strict=True)):
+        imfs.append(emd(s)[0])  # (B, n_k, K_k, L_k): the post's example input
+        mid = build_emd_model(emd.n_imfs, emd.n_sifts, int(s.shape[1]), int(s.shape[2]),
+                              torch.float32)
+        emd_in, emd_out = mid.graph.input[0].name, mid.graph.output[0].name  # x_in, imfs
+        graphs.append(renamed(mid, f"emd{k}/", {emd_in: ins[k], emd_out: outs[k]}))
+    post = trace(_Post(model), [z, *imfs, h, c], ["z", *outs, "h", "c"], OUTPUTS,
+                 {"z": batch, **dict.fromkeys(outs, batch), "probs": batch, **state})
+    graphs.append(renamed(post, "post/", {n: n for n in ["z", *outs, "h", "c", *OUTPUTS]}))
     return join(graphs, value_info(pre, ["x"]) + value_info(post, ["h", "c"]),
                 value_info(post, OUTPUTS), OPSET, "tactile")

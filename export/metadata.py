@@ -8,20 +8,37 @@ import onnx
 import torch
 
 import tactile
-from tactile.contract import ModelContract
+from tactile.contract import CODED_MODELS, ModalitySpec, ModelContract, SignalSpec
 from tactile.export.graph import EXPORTER
 
 
 def contract_for(ck: dict, parity: dict, quantization: str = "none",
-                 source_run: str = "") -> ModelContract:
-    """The :class:`ModelContract` of checkpoint ``ck`` with the measured ``parity`` figures."""
+                 source_run: str = "", model=None) -> ModelContract:
+    """The :class:`ModelContract` of checkpoint ``ck`` with the measured ``parity`` figures.
+
+    ``model`` (the checkpoint's model) gives the state's shape and, for a granular model, its
+    resolved modalities (``layout``); without it the state comes from the config."""
     cfg = ck["config"]
     channels = list(ck["channels"])
     lstm = cfg["model"] == "lstm"
     emd = None
-    if cfg["emd_channels"]:
+    if cfg.get("emd_channels"):
         emd = {"channels": list(cfg["emd_channels"]), "imfs": cfg["emd_imfs"],
                "sifts": cfg["emd_sifts"]}
+    if model is not None:
+        layers, hidden = model.state_shape
+    else:
+        layers, hidden = (int(cfg["layers"]), int(cfg["hidden"])) if lstm else (1, 1)
+    layout = tuple(getattr(model, "layout", None) or ())
+    signals, modalities = _granular(layout, channels, cfg["model"])
+    preprocessing = {
+        "mean": [float(v) for v in ck["mean"]],
+        "std": [float(v) for v in ck["std"]],
+        "center": [channels[i] for i in ck.get("center_index", [])],
+        "emd": emd,
+    }
+    if modalities:
+        preprocessing["sifts"] = int(cfg["emd_sifts"])
     extra = {
         "exporter": f"{EXPORTER}; torch {torch.__version__}, onnx {onnx.__version__}",
         "training_config": _json(cfg),
@@ -37,20 +54,40 @@ def contract_for(ck: dict, parity: dict, quantization: str = "none",
         hop=int(cfg["hop"]),
         state_mode=cfg["state"],
         model=cfg["model"],
-        state_layers=int(cfg["layers"]) if lstm else 1,
-        state_hidden=int(cfg["hidden"]) if lstm else 1,
-        preprocessing={
-            "mean": [float(v) for v in ck["mean"]],
-            "std": [float(v) for v in ck["std"]],
-            "center": [channels[i] for i in ck["center_index"]],
-            "emd": emd,
-        },
+        state_layers=int(layers),
+        state_hidden=int(hidden),
+        preprocessing=preprocessing,
         package_version=tactile.__version__,
         training_metrics={**_metrics(ck.get("metrics", {})), **_test_takes(ck)},
         parity=parity,
         quantization=quantization,
         extra=extra,
+        signals=signals,
+        modalities=modalities,
     )
+
+
+def _granular(layout: tuple, channels: list[str], model: str
+              ) -> tuple[tuple[SignalSpec, ...], tuple[ModalitySpec, ...]]:
+    """The contract's signals and modalities from a granular model's resolved ``layout``
+    (:class:`tactile.training.modality.ModalityLayout`: ``index`` into the channels,
+    signal-major; ``units`` the signals' or channels' names). A coded model's ``nonzero`` is
+    the count its coders use (scikit-learn's default when the config says 0); the others have
+    no dictionary (atoms and nonzero 0)."""
+    from tactile.training.sparse import default_n_nonzero
+
+    signals, modalities = [], []
+    for m in layout:
+        names = tuple(channels[i] for i in m.index)
+        if m.signal:
+            for k, unit in enumerate(m.units):
+                signals.append(SignalSpec(unit, names[k * m.r : (k + 1) * m.r], float(m.rate_hz)))
+        coded = model in CODED_MODELS
+        nonzero = (m.nonzero or default_n_nonzero(m.features, m.atoms)) if coded else 0
+        modalities.append(ModalitySpec(m.name, names, bool(m.signal), float(m.rate_hz),
+                                       int(m.imfs), int(m.steps), int(m.atoms) if coded else 0,
+                                       int(nonzero)))
+    return tuple(signals), tuple(modalities)
 
 
 def _metrics(m: dict) -> dict:

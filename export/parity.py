@@ -1,14 +1,16 @@
 """Parity: the ONNX graph in onnxruntime against the PyTorch model, on the same windows.
 
-The reference is ``TextureModel.forward`` in eager float32 torch (the model as trained and
-evaluated), never onnxruntime itself, run in batches of :data:`EVAL_BATCH` windows as
-``tactile-eval`` runs it. onnxruntime runs the same batches, and every window alone (batch 1,
-as ``tactile-run`` runs it): both must match. Criterion (``strict``, float32 files): every
-probability within :data:`ATOL` and identical labels, except windows whose PyTorch top-two
-margin is below :data:`MARGIN` (a tie a rounding may break either way). Window mode runs every
-window from a zero state; carry mode feeds each output state back, window after window, along
-runs of at least :data:`MIN_CARRY` consecutive windows. An int8 file (``int8`` criterion)
-passes when at least :data:`INT8_AGREEMENT` of its labels equal PyTorch's.
+The reference is the model's ``forward`` (``TextureModel``, ``GranularModel``) in eager float32
+torch (the model as trained and evaluated), never onnxruntime itself, run in batches of
+:data:`EVAL_BATCH` windows as ``tactile-eval`` runs it. onnxruntime runs the same batches, and
+every window alone (batch 1, as ``tactile-run`` runs it): both must match. Criterion
+(``strict``, float32 files): every probability within :data:`ATOL` and identical labels, except
+windows whose PyTorch top-two margin is below :data:`MARGIN` (a tie a rounding may break either
+way). Window mode runs every window from a zero state; carry mode feeds each output state back,
+window after window, along runs of at least :data:`MIN_CARRY` consecutive windows. An int8 file
+(``int8`` criterion) passes when at least :data:`INT8_AGREEMENT` of its labels equal PyTorch's.
+A model with sparse coders also has its graph's codes checked against scikit-learn's
+(:mod:`tactile.export.codes`).
 """
 
 from __future__ import annotations
@@ -16,12 +18,14 @@ from __future__ import annotations
 from dataclasses import asdict, dataclass
 
 import numpy as np
+import onnx
 import onnxruntime as ort
 import torch
+from torch import nn
 
 from tactile.errors import ModelContractError
+from tactile.export.codes import code_parity, coders, table_rows
 from tactile.export.windows import CARRY_STEPS, Probe, random_windows, simulated
-from tactile.training.model import TextureModel
 
 ATOL = 1e-4
 """Largest allowed |p_onnx - p_torch| of any probability."""
@@ -72,6 +76,8 @@ class Parity:
     accuracy_torch: float | None = None
     accuracy_onnx: float | None = None
     reference: str = "torch float32 eager, TextureModel.forward"
+    codes: list[dict] | None = None  # per coder: the graph's codes vs scikit-learn's
+
 
     def to_dict(self) -> dict:
         return {k: (round(v, 9) if isinstance(v, float) else v) for k, v in asdict(self).items()}
@@ -93,15 +99,18 @@ class Parity:
             ("accuracy", acc),
             ("criterion", self.criterion if self.criterion == "strict"
              else f"int8: agreement >= {INT8_AGREEMENT}"),
+            *table_rows(self.codes or []),
             ("result", "PASS" if self.passed else "FAIL"),
         ]
         return "\n".join(f"{k:<17}{v}" for k, v in rows)
 
 
 @torch.no_grad()
-def compare(model: TextureModel, onnx_model: bytes | str, probe: Probe, ck: dict,
+def compare(model: nn.Module, onnx_model: bytes | str, probe: Probe, ck: dict,
             criterion: str = "strict") -> Parity:
-    """Run ``probe`` through both and measure (carry mode also along each run)."""
+    """Run ``probe`` through both and measure (carry mode also along each run); for a model
+    with sparse coders also the graph's codes of the probe's windows against scikit-learn's
+    (:func:`tactile.export.codes.code_parity`), which must pass too."""
     model = model.eval()
     sess = session(onnx_model)
     carry = model.cfg.state == "carry"
@@ -133,12 +142,19 @@ def compare(model: TextureModel, onnx_model: bytes | str, probe: Probe, ck: dict
         n = len(probe)  # window-mode rows come first, in probe order
         acc_t = float((lab_t[:n] == probe.y).mean())
         acc_o = float((lab_o[:n] == probe.y).mean())
+    codes = None
+    if criterion == "strict" and coders(model):
+        graph = (onnx.load_from_string(onnx_model) if isinstance(onnx_model, bytes)
+                 else onnx.load(onnx_model))
+        codes = code_parity(model, graph, probe.x[: len(probe)])
+        passed = passed and all(r["passed"] for r in codes)
     return Parity(passed, criterion, probe.source, len(p_t), diff, s_diff, diff_1, agreement,
                   int(differ.sum()), int(excused.sum()), n_runs, steps, longest,
-                  accuracy_torch=acc_t, accuracy_onnx=acc_o)
+                  accuracy_torch=acc_t, accuracy_onnx=acc_o,
+                  reference=f"torch float32 eager, {type(model).__name__}.forward", codes=codes)
 
 
-def _window_mode(model: TextureModel, sess: ort.InferenceSession, x: np.ndarray):
+def _window_mode(model: nn.Module, sess: ort.InferenceSession, x: np.ndarray):
     """Every window from a zero state: PyTorch and onnxruntime in batches of
     :data:`EVAL_BATCH`, onnxruntime also one window at a time. Returns probabilities (N, K)
     x3 (torch, onnx batched, onnx batch 1) and the max state difference of either onnx run."""
@@ -160,7 +176,7 @@ def _window_mode(model: TextureModel, sess: ort.InferenceSession, x: np.ndarray)
     return np.concatenate(pt), np.concatenate(po), np.concatenate(p1), sd
 
 
-def _carry_mode(model: TextureModel, sess: ort.InferenceSession, probe: Probe):
+def _carry_mode(model: nn.Module, sess: ort.InferenceSession, probe: Probe):
     """Each run window after window, each side feeding back its own state."""
     pt, po, sd = [], [], 0.0
     runs = [r for r in probe.runs if len(r) >= 2]

@@ -33,10 +33,16 @@ from tactile.errors import ModelContractError
 
 FORMAT = "tactile-onnx"
 """Value of the ``tactile.format`` key: marks a file made by ``tactile-export``."""
-FORMAT_VERSION = 1
-"""Version of this contract; a reader refuses files of a newer version."""
-PREPROCESSING_VERSION = 1
-"""Version of the in-graph preprocessing (normalise, centre, EMD features, concatenate)."""
+FORMAT_VERSION = 2
+"""Newest version of this contract this reader understands; it refuses newer files. A file is
+written with the lowest version that holds it: 1 for the pen's models (``lstm``, ``linear``
+without modalities: readable by every reader), 2 for the granular models (the ``signals`` and
+``modalities`` keys, ``model`` ``sf_rnn``, ``f_rnn``, ``sparse_linear``), which a version-1
+reader refuses in one line (``tactile.format_version`` is 2; it understands 1..1)."""
+PREPROCESSING_VERSION = 2
+"""Newest in-graph preprocessing this reader understands: 1 normalise, centre, EMD features,
+concatenate (the pen's models); 2 per-modality EMD, data images and sparse codes (described by
+the ``modalities`` key)."""
 OPSET = 18
 """ONNX opset (default domain) the exporter writes."""
 
@@ -48,7 +54,15 @@ FLOAT = "tensor(float)"
 """Element type of every input and output, as onnxruntime spells it."""
 
 STATE_MODES = ("window", "carry")
-MODELS = ("lstm", "linear")
+MODELS = ("lstm", "linear", "sf_rnn", "f_rnn", "sparse_linear")
+RECURRENT = ("lstm", "sf_rnn", "f_rnn")
+"""Models with an LSTM state (may carry it); the others pass a (1, batch, 1) state through."""
+MODALITY_MODELS = ("sf_rnn", "f_rnn", "sparse_linear")
+"""Models that need the ``modalities`` key (``linear`` may have it; ``lstm`` may not)."""
+CODED_MODELS = ("sf_rnn", "sparse_linear")
+"""Models whose features are sparse codes (each modality has a dictionary: atoms, nonzero)."""
+MAX_IMFS = 16
+"""Most IMFs of one EMD (as :class:`tactile.training.emd.EMDConfig`)."""
 QUANTIZATIONS = ("none", "int8-dynamic")
 
 # One source of truth for the metadata keys: name -> (required, meaning).
@@ -62,23 +76,32 @@ KEYS: dict[str, tuple[bool, str]] = {
     "window": (True, "samples per window (integer): x's time axis"),
     "hop": (True, "samples between window starts (integer); carry mode needs hop == window"),
     "state_mode": (True, '"window": zero state per window; "carry": feed h_out, c_out back'),
-    "model": (True, '"lstm" or "linear" (a linear head passes the state through)'),
+    "model": (True, '"lstm", "linear", "sf_rnn", "f_rnn" or "sparse_linear" (linear and '
+                    'sparse_linear pass the state through)'),
     "state_layers": (True, "state tensors' first axis (integer)"),
     "state_hidden": (True, "state tensors' last axis (integer)"),
     "preprocessing": (True, "JSON object: mean, std (per channel), center (channel names), "
-                            "emd (null or {channels, imfs, sifts}), as computed in the graph"),
+                            "emd (null or {channels, imfs, sifts}), as computed in the graph; "
+                            "with modalities also sifts (the modalities' EMD sifts)"),
     "preprocessing_version": (True, f"version of the preprocessing (integer, this reader: "
                                     f"{PREPROCESSING_VERSION})"),
     "package_version": (True, "tactile version that exported the file"),
     "training_metrics": (True, "JSON object: the run's test figures (accuracy, windows, ...)"),
     "parity": (True, "JSON object: ONNX vs PyTorch figures measured at export (passed, ...)"),
     "quantization": (True, '"none" (float32) or "int8-dynamic"'),
+    "signals": (False, "JSON list of high-rate signals {name, channels (sub-samples of a "
+                       "frame, in time order), rate_hz}; absent: none (format version 2)"),
+    "modalities": (False, "JSON list of modalities {name, channels (names, in the order the "
+                          "graph takes them), signal, rate_hz, imfs, steps, atoms, nonzero}; "
+                          "absent: none (format version 2)"),
     "exporter": (False, "how the graph was made: torch version, exporter path, opset"),
     "training_config": (False, "JSON object: the run's resolved training config"),
     "source_run": (False, "name of the run folder the model came from"),
 }
 REQUIRED = tuple(k for k, (req, _) in KEYS.items() if req)
 OPTIONAL = tuple(k for k, (req, _) in KEYS.items() if not req)
+PARSED_OPTIONAL = ("signals", "modalities")
+"""Optional keys parsed into :class:`ModelContract` fields (the others are kept as text)."""
 
 
 @dataclass(frozen=True)
@@ -88,6 +111,45 @@ class TensorSpec:
     name: str
     dims: tuple[int | str, ...]
     elem_type: str = FLOAT
+
+
+@dataclass(frozen=True)
+class SignalSpec:
+    """A high-rate signal: ``channels`` are the consecutive sub-samples of one frame, in time
+    order, so the signal runs at ``rate_hz`` = the sample rate x ``len(channels)``."""
+
+    name: str
+    channels: tuple[str, ...]
+    rate_hz: float
+
+    def to_json(self) -> dict:
+        return {"name": self.name, "channels": list(self.channels), "rate_hz": self.rate_hz}
+
+
+@dataclass(frozen=True)
+class ModalitySpec:
+    """A modality as the graph computes it.
+
+    ``channels``: x's channel names in the order the graph takes them (a signal's sub-samples
+    together, in time order); ``signal``: they are whole high-rate signals (else plain
+    channels); ``rate_hz``: the modality's rate; ``imfs``: IMFs of its EMD (0: none);
+    ``steps``: image time steps at its rate; ``atoms``, ``nonzero``: its dictionary's size and
+    the codes' non-zeros (the number the graph uses; 0 when the model has no codes).
+    """
+
+    name: str
+    channels: tuple[str, ...]
+    signal: bool
+    rate_hz: float
+    imfs: int
+    steps: int
+    atoms: int
+    nonzero: int
+
+    def to_json(self) -> dict:
+        return {"name": self.name, "channels": list(self.channels), "signal": self.signal,
+                "rate_hz": self.rate_hz, "imfs": self.imfs, "steps": self.steps,
+                "atoms": self.atoms, "nonzero": self.nonzero}
 
 
 @dataclass(frozen=True)
@@ -109,12 +171,24 @@ class ModelContract:
     training_metrics: dict[str, Any]
     parity: dict[str, Any]
     quantization: str = "none"
-    preprocessing_version: int = PREPROCESSING_VERSION
-    format_version: int = FORMAT_VERSION
+    preprocessing_version: int | None = None  # None: the version this content needs
+    format_version: int | None = None  # None: the lowest version that holds this content
     extra: dict[str, str] = field(default_factory=dict)
+    signals: tuple[SignalSpec, ...] = ()
+    modalities: tuple[ModalitySpec, ...] = ()
 
     def __post_init__(self) -> None:
+        if self.preprocessing_version is None:
+            object.__setattr__(self, "preprocessing_version", 2 if self.modalities else 1)
+        if self.format_version is None:
+            object.__setattr__(self, "format_version", self.needed_format_version())
         _validate(self)
+
+    def needed_format_version(self) -> int:
+        """The lowest contract version that holds this content: 2 with signals, modalities or a
+        granular model, else 1."""
+        granular = self.signals or self.modalities or self.model not in ("lstm", "linear")
+        return 2 if granular else 1
 
     # -- metadata ----------------------------------------------------------------------------
 
@@ -155,7 +229,9 @@ class ModelContract:
             parity=_object(meta, "parity"),
             quantization=_choice(meta, "quantization", QUANTIZATIONS),
             format_version=version,
-            extra={k: v for k, v in meta.items() if k in OPTIONAL},
+            extra={k: v for k, v in meta.items() if k in OPTIONAL and k not in PARSED_OPTIONAL},
+            signals=_signals(meta),
+            modalities=_modalities(meta),
         )
 
     def to_metadata(self) -> dict[str, str]:
@@ -180,6 +256,10 @@ class ModelContract:
             "parity": json.dumps(self.parity, sort_keys=True),
             "quantization": self.quantization,
         }
+        if self.signals:
+            meta["signals"] = json.dumps([s.to_json() for s in self.signals])
+        if self.modalities:
+            meta["modalities"] = json.dumps([m.to_json() for m in self.modalities])
         meta.update(self.extra)
         return meta
 
@@ -263,14 +343,29 @@ def _validate(c: ModelContract) -> None:
         bad("quantization", f"{c.quantization!r} is not one of {', '.join(QUANTIZATIONS)}")
     if c.state_mode == "carry" and c.hop != c.window:
         bad("hop", f"carry mode needs hop == window (hop {c.hop}, window {c.window})")
-    if c.state_mode == "carry" and c.model != "lstm":
-        bad("state_mode", "carry mode needs model 'lstm'")
-    if c.model == "linear" and (c.state_layers, c.state_hidden) != (1, 1):
-        bad("state_layers", "a linear head's state is (1, batch, 1)")
-    if c.preprocessing_version != PREPROCESSING_VERSION:
+    if c.state_mode == "carry" and c.model not in RECURRENT:
+        bad("state_mode", f"carry mode needs a recurrent model ({', '.join(RECURRENT)}), "
+                          f"not {c.model!r}")
+    if c.model not in RECURRENT and (c.state_layers, c.state_hidden) != (1, 1):
+        bad("state_layers", f"a {c.model} head's state is (1, batch, 1)")
+    if c.model in MODALITY_MODELS and not c.modalities:
+        bad("modalities", f"model {c.model!r} needs modalities")
+    if c.model == "lstm" and c.modalities:
+        bad("modalities", "model 'lstm' takes no modalities")
+    if c.format_version < c.needed_format_version():
+        what = ("model " + repr(c.model)) if c.model not in ("lstm", "linear") else (
+            "'signals'" if c.signals else "'modalities'")
+        bad("tactile.format_version", f"{c.format_version}, but {what} needs version "
+                                      f"{c.needed_format_version()}")
+    if not 1 <= c.preprocessing_version <= PREPROCESSING_VERSION:
         bad("preprocessing_version", f"{c.preprocessing_version}; this reader understands "
-                                     f"{PREPROCESSING_VERSION}")
+                                     f"1..{PREPROCESSING_VERSION}")
+    if c.preprocessing_version != (2 if c.modalities else 1):
+        bad("preprocessing_version", f"{c.preprocessing_version} with "
+                                     f"{'' if c.modalities else 'no '}'modalities' (version 2 "
+                                     "is the modalities' images, 1 the pen's features)")
     _validate_preprocessing(c.preprocessing, c.channels, bad)
+    _validate_modalities(c, bad)
     if not isinstance(c.parity.get("passed"), bool):
         bad("parity", "needs a boolean 'passed'")
     if not c.package_version:
@@ -302,6 +397,81 @@ def _validate_preprocessing(p: dict, channels: tuple[str, ...], bad) -> None:
         v = emd.get(name)
         if not (isinstance(v, int) and not isinstance(v, bool) and v >= 1):
             bad(key, f"'emd.{name}' must be an integer >= 1")
+
+
+def _validate_modalities(c: ModelContract, bad) -> None:
+    """``signals`` and ``modalities`` against ``channels``, the rate, the window, the model."""
+    channels = set(c.channels)
+    owner: dict[str, str] = {}  # channel -> signal name
+    signals = {}
+    for s in c.signals:
+        if s.name in signals or s.name in channels:
+            bad("signals", f"signal name {s.name!r} is used twice (or is a channel's name)")
+        signals[s.name] = s
+        for ch in s.channels:
+            if ch not in channels:
+                bad("signals", f"signal {s.name!r}: {ch!r} is not among the channels")
+            if ch in owner:
+                bad("signals", f"channel {ch!r} is in signals {owner[ch]!r} and {s.name!r}")
+            owner[ch] = s.name
+        want = c.sample_rate_hz * len(s.channels)
+        if not math.isclose(s.rate_hz, want, rel_tol=1e-6):
+            bad("signals", f"signal {s.name!r}: rate_hz {s.rate_hz:g}, but {len(s.channels)} "
+                           f"sub-samples per frame at {c.sample_rate_hz:g} Hz are {want:g} Hz")
+    names, used = set(), {}
+    for m in c.modalities:
+        if m.name in names:
+            bad("modalities", f"modality name {m.name!r} is used twice")
+        names.add(m.name)
+        for ch in m.channels:
+            if ch not in channels:
+                bad("modalities", f"modality {m.name!r}: {ch!r} is not among the channels")
+            if ch in used:
+                bad("modalities", f"channel {ch!r} is in modalities {used[ch]!r} and "
+                                  f"{m.name!r}")
+            used[ch] = m.name
+        r = _sub_samples(m, owner, signals, lambda msg, n=m.name: bad("modalities",
+                                                                      f"modality {n!r}: {msg}"))
+        if not math.isclose(m.rate_hz, c.sample_rate_hz * r, rel_tol=1e-6):
+            bad("modalities", f"modality {m.name!r}: rate_hz {m.rate_hz:g}, expected "
+                              f"{c.sample_rate_hz * r:g}")
+        if not 0 <= m.imfs <= MAX_IMFS:
+            bad("modalities", f"modality {m.name!r}: imfs {m.imfs} not in 0..{MAX_IMFS}")
+        if m.steps < 1 or -(-m.steps // r) > c.window:
+            bad("modalities", f"modality {m.name!r}: steps {m.steps} must be 1..{c.window * r} "
+                              f"(the window's {c.window} frames at {r} sample(s) per frame)")
+        lo = 1 if c.model in CODED_MODELS else 0
+        if m.atoms < lo or not lo <= m.nonzero <= max(m.atoms, lo):
+            bad("modalities", f"modality {m.name!r}: atoms {m.atoms}, nonzero {m.nonzero}: "
+                              f"need {lo} <= nonzero <= atoms" + (
+                                  f" for model {c.model!r}" if lo else ""))
+    if c.modalities and any(m.imfs for m in c.modalities):
+        sifts = c.preprocessing.get("sifts")
+        if not (isinstance(sifts, int) and not isinstance(sifts, bool) and sifts >= 1):
+            bad("preprocessing", "'sifts' must be an integer >= 1 (the modalities' EMD sifts)")
+
+
+def _sub_samples(m: ModalitySpec, owner: dict, signals: dict, bad) -> int:
+    """Sub-samples per frame of modality ``m`` (1 for plain channels), checking that a signal
+    modality is whole signals in their order, and a plain one no signal's sub-sample."""
+    if not m.signal:
+        taken = [ch for ch in m.channels if ch in owner]
+        if taken:
+            bad(f"{taken[0]!r} is a sub-sample of signal {owner[taken[0]]!r} (signal is false)")
+        return 1
+    rs, i = set(), 0
+    while i < len(m.channels):
+        name = owner.get(m.channels[i])
+        if name is None:
+            bad(f"{m.channels[i]!r} is in no signal (signal is true)")
+        want = signals[name].channels
+        if tuple(m.channels[i : i + len(want)]) != want:
+            bad(f"signal {name!r} must appear whole, in time order: {list(want)}")
+        rs.add(len(want))
+        i += len(want)
+    if len(rs) != 1:
+        bad(f"its signals have different sub-sample counts {sorted(rs)}")
+    return rs.pop()
 
 
 def _isnum(x: object) -> bool:
@@ -367,6 +537,51 @@ def _choice(meta: Mapping[str, str], key: str, allowed: tuple[str, ...]) -> str:
     return v
 
 
+def _list_of_objects(meta: Mapping[str, str], key: str) -> list[dict]:
+    if key not in meta:
+        return []
+    v = _json(meta, key)
+    if not (isinstance(v, list) and v and all(isinstance(x, dict) for x in v)):
+        raise ModelContractError(f"metadata key {key!r} must be a non-empty JSON list of "
+                                 f"objects, got {meta[key][:60]!r}")
+    return v
+
+
+def _field(key: str, i: int, obj: dict, name: str, kind: str):
+    """``obj[name]`` of entry ``i`` of list ``key``, checked to be a ``kind``."""
+    v = obj.get(name)
+    ok = {
+        "name": isinstance(v, str) and bool(v),
+        "names": isinstance(v, list) and bool(v) and all(isinstance(x, str) for x in v)
+        and len(set(v)) == len(v),
+        "bool": isinstance(v, bool),
+        "int": isinstance(v, int) and not isinstance(v, bool),
+        "rate": _isnum(v) and v > 0,
+    }[kind]
+    if not ok:
+        what = {"name": "a non-empty string", "names": "a non-empty list of distinct names",
+                "bool": "true or false", "int": "an integer", "rate": "a number > 0"}[kind]
+        raise ModelContractError(f"metadata key {key!r}: entry {i} {name!r} must be {what}, "
+                                 f"got {json.dumps(v)[:60]}")
+    return tuple(v) if kind == "names" else (float(v) if kind == "rate" else v)
+
+
+def _signals(meta: Mapping[str, str]) -> tuple[SignalSpec, ...]:
+    return tuple(SignalSpec(_field("signals", i, o, "name", "name"),
+                            _field("signals", i, o, "channels", "names"),
+                            _field("signals", i, o, "rate_hz", "rate"))
+                 for i, o in enumerate(_list_of_objects(meta, "signals")))
+
+
+def _modalities(meta: Mapping[str, str]) -> tuple[ModalitySpec, ...]:
+    out = []
+    for i, o in enumerate(_list_of_objects(meta, "modalities")):
+        f = [("name", "name"), ("channels", "names"), ("signal", "bool"), ("rate_hz", "rate"),
+             ("imfs", "int"), ("steps", "int"), ("atoms", "int"), ("nonzero", "int")]
+        out.append(ModalitySpec(*(_field("modalities", i, o, n, k) for n, k in f)))
+    return tuple(out)
+
+
 def model_file(path: str | Path) -> Path:
     """``path`` as a model file to load: :class:`ModelContractError` (exit 3) when it is missing
     or a folder, with the same line in every command that loads a model."""
@@ -380,7 +595,8 @@ def model_file(path: str | Path) -> Path:
 
 __all__ = [
     "FORMAT", "FORMAT_VERSION", "PREPROCESSING_VERSION", "OPSET", "INPUTS", "OUTPUTS", "BATCH",
-    "FLOAT", "KEYS", "REQUIRED", "OPTIONAL", "STATE_MODES", "MODELS", "QUANTIZATIONS",
-    "TensorSpec", "ModelContract", "model_file",
+    "FLOAT", "KEYS", "REQUIRED", "OPTIONAL", "STATE_MODES", "MODELS", "RECURRENT",
+    "MODALITY_MODELS", "CODED_MODELS", "QUANTIZATIONS", "TensorSpec", "SignalSpec",
+    "ModalitySpec", "ModelContract", "model_file",
 ]
 

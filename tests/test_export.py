@@ -135,7 +135,7 @@ def test_contract_names_every_missing_key(key):
 
 @pytest.mark.parametrize("change, message", [
     ({"tactile.format": "other"}, "not a model made by tactile-export"),
-    ({"tactile.format_version": "2"}, "understands 1..1"),
+    ({"tactile.format_version": "3"}, "understands 1..2"),
     ({"classes": "desk,paper"}, "'classes' is not valid JSON"),
     ({"classes": '["desk"]'}, "at least 2 classes"),
     ({"classes": '["a", "a"]'}, "unique"),

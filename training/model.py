@@ -24,6 +24,11 @@ class Preprocess(nn.Module):
     Each channel is normalised with the training split's mean and std (and the ``center_index``
     channels have their mean over the window removed); the IMFs of the
     normalised ``emd_index`` channels (``EMD(n_imfs, n_sifts)``, over the window) are appended.
+
+    The three stages every preprocessing module exposes (export composes them, running each
+    entry of ``emds`` as a hand-built ONNX EMD graph): :meth:`normalise`, :meth:`emd_inputs`
+    (one ``(B, n_k, L_k)`` tensor per entry of ``emds``), :meth:`finish` (the features from the
+    normalised window and the IMFs); ``forward(x) == finish(z, [emd(s)[0] ...])``.
     """
 
     def __init__(
@@ -37,7 +42,8 @@ class Preprocess(nn.Module):
         self.register_buffer("mean", mean.float().clone())  # (C,)
         self.register_buffer("std", std.float().clone())  # (C,)
         self.register_buffer("emd_index", torch.tensor(emd_index, dtype=torch.long))  # (Ce,)
-        self.emd = EMD(n_imfs, n_sifts) if emd_index else None
+        # EMD has no parameters or buffers: the state dict's keys are those of the single `emd`
+        self.emds = nn.ModuleList([EMD(n_imfs, n_sifts)] if emd_index else [])
         self.n_channels = int(mean.numel())
         self.n_emd = len(emd_index) * n_imfs
 
@@ -45,16 +51,29 @@ class Preprocess(nn.Module):
     def n_features(self) -> int:
         return self.n_channels + self.n_emd
 
-    def forward(self, x: Tensor) -> Tensor:
+    def normalise(self, x: Tensor) -> Tensor:
+        """x (B, T, C) in units -> z (B, T, C) normalised, the centre channels centred."""
         z = (x - self.mean) / self.std  # (B, T, C)
         # offsets (gravity on a tilted pen, a gyroscope's bias) say little of the surface
-        z = z - z.mean(dim=1, keepdim=True) * self.center_mask
-        if self.emd is None:
+        return z - z.mean(dim=1, keepdim=True) * self.center_mask
+
+    def emd_inputs(self, z: Tensor) -> list[Tensor]:
+        """z (B, T, C) -> [(B, Ce, T)]: the EMD channels (empty list without EMD)."""
+        if not len(self.emds):
+            return []
+        return [torch.index_select(z, 2, self.emd_index).transpose(1, 2)]
+
+    def finish(self, z: Tensor, imfs: list[Tensor]) -> Tensor:
+        """z (B, T, C), imfs [(B, Ce, K, T)] -> features (B, T, C + Ce*K) (z without EMD)."""
+        if not imfs:
             return z
-        sel = torch.index_select(z, 2, self.emd_index).transpose(1, 2)  # (B, Ce, T)
-        imfs, _, _ = self.emd(sel)  # (B, Ce, K, T)
-        feats = imfs.flatten(1, 2).transpose(1, 2)  # (B, T, Ce*K)
+        feats = imfs[0].flatten(1, 2).transpose(1, 2)  # (B, T, Ce*K)
         return torch.cat([z, feats.to(z.dtype)], dim=2)
+
+    def forward(self, x: Tensor) -> Tensor:
+        z = self.normalise(x)
+        imfs = [emd(s)[0] for emd, s in zip(self.emds, self.emd_inputs(z), strict=True)]
+        return self.finish(z, imfs)
 
 
 class SpectralFront(nn.Module):

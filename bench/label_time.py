@@ -1,0 +1,142 @@
+"""Time to label 1 s of data (the granular-media paper's speed figure) for an exported model.
+
+    python bench/label_time.py model.onnx [model2.onnx ...] [--data DATA] [--rounds 5]
+
+Measured on the exported file as ``tactile-run`` runs it: onnxruntime on one thread, one window
+at a time (batch 1) at the model's streaming hop (the contract's ``hop``), preprocessing, EMD
+and sparse coding included (they are in the graph), the state zeroed or carried as the contract
+says. Windows come from ``--data`` (consecutive windows of its first takes, cut at the hop) or,
+without it, from Gaussian noise with the contract's per-channel mean and std (the EMD's sift
+loop stops early on smooth data, so real windows may be faster than noise).
+
+    ms per 1 s of data = windows per second (rate / hop) x time per window
+
+The time per window is the total time of a pass over the windows divided by their number; the
+fastest of ``--rounds`` passes is reported (a shared machine's interference only adds time),
+with the median pass beside it. Reference measured in the same run: the same windows in one
+batched call per second of data (the file's own throughput without streaming), as a ratio.
+Targets (issue 23): at most 100 ms per 1 s of data, aim 10 ms.
+
+:func:`label_time` is the function other scripts call (e.g. the results tables).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+TARGET_MS = 100.0
+"""Issue 23's limit: 1 s of data labelled in at most a tenth of a core-second."""
+AIM_MS = 10.0
+
+
+def _windows(contract, data: Path | None, seconds: float, seed: int = 0) -> np.ndarray:
+    """(N, window, C) float32 windows covering ``seconds`` of data at the contract's hop."""
+    c = contract
+    n = max(1, int(round(seconds * c.sample_rate_hz / c.hop)))
+    if data is not None:
+        from tactile.device.recording import load_dataset
+
+        out = []
+        for take in load_dataset(data):
+            if tuple(take.channels) != tuple(c.channels):
+                continue
+            v = np.asarray(take.values(), np.float32)  # (rows, C) in units
+            starts = np.arange(0, len(v) - c.window + 1, c.hop)
+            out += [v[s : s + c.window] for s in starts]
+            if len(out) >= n:
+                return np.stack(out[:n])
+        if out:
+            return np.stack([out[i % len(out)] for i in range(n)])
+        raise SystemExit(f"{data}: no take with the model's channels")
+    rng = np.random.default_rng(seed)
+    mean = np.asarray(c.preprocessing["mean"], np.float32)
+    std = np.asarray(c.preprocessing["std"], np.float32)
+    return (rng.standard_normal((n, c.window, len(mean))) * std + mean).astype(np.float32)
+
+
+def label_time(model_path: str | os.PathLike, windows: np.ndarray | None = None,
+               data: Path | None = None, seconds: float = 2.0, rounds: int = 5) -> dict:
+    """Time to label 1 s of data with the exported ``model_path`` (one onnxruntime thread).
+
+    ``windows`` (N, window, channels) float32 in units, consecutive at the contract's hop, or
+    ``data`` (a dataset folder), or Gaussian windows; ``seconds`` of data per pass, ``rounds``
+    passes. Returns ``ms_per_s`` (fastest pass: windows per second x time per window),
+    ``ms_per_s_median``, ``window_ms`` (fastest pass, per window), ``windows_per_s``, ``hop``,
+    ``window``, ``rate_hz``, ``windows`` (per pass), ``batched_ms_per_s`` (the reference: one
+    batched call per second of data) and ``model``.
+    """
+    from tactile.runtime.model import Model
+
+    model = Model(model_path, threads=1)
+    c = model.contract
+    x = windows if windows is not None else _windows(c, data, seconds)
+    x = np.ascontiguousarray(x, np.float32)
+    per_s = c.sample_rate_hz / c.hop
+    carry = c.state_mode == "carry"
+    h0, c0 = model.zero_state(1)
+    for w in x[: min(3, len(x))]:  # warm-up
+        model.classify(w[None], h0, c0)
+    passes = []
+    for _ in range(rounds):
+        h, cc = h0, c0
+        t = time.perf_counter()
+        for w in x:
+            _, h1, c1 = model.classify(w[None], h, cc)
+            if carry:
+                h, cc = h1, c1
+        passes.append((time.perf_counter() - t) * 1e3 / len(x))
+    block = max(1, int(round(per_s)))
+    hb, cb = model.zero_state(min(block, len(x)))
+    batched = []
+    for _ in range(rounds):
+        t = time.perf_counter()
+        for i in range(0, len(x), block):
+            xb = x[i : i + block]
+            model.session.run(None, {"x": xb, "h": hb[:, : len(xb)], "c": cb[:, : len(xb)]})
+        batched.append((time.perf_counter() - t) * 1e3 / len(x))
+    best = min(passes)
+    return {
+        "model": str(model_path), "model_kind": c.model, "window": c.window, "hop": c.hop,
+        "rate_hz": c.sample_rate_hz, "windows_per_s": per_s, "windows": len(x),
+        "window_ms": round(best, 4), "ms_per_s": round(best * per_s, 3),
+        "ms_per_s_median": round(float(np.median(passes)) * per_s, 3),
+        "batched_ms_per_s": round(min(batched) * per_s, 3),
+    }
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    p.add_argument("models", nargs="+", type=Path, help="exported .onnx files")
+    p.add_argument("--data", type=Path, help="dataset folder: real windows (else Gaussian)")
+    p.add_argument("--seconds", type=float, default=2.0, help="seconds of data per pass")
+    p.add_argument("--rounds", type=int, default=5, help="passes; the fastest is reported")
+    p.add_argument("--json", action="store_true", help="one JSON object per model")
+    args = p.parse_args(argv)
+    for path in args.models:
+        r = label_time(path, data=args.data, seconds=args.seconds, rounds=args.rounds)
+        if args.json:
+            print(json.dumps(r))
+            continue
+        verdict = "meets the aim" if r["ms_per_s"] <= AIM_MS else (
+            "meets the target" if r["ms_per_s"] <= TARGET_MS else "misses the target")
+        print(f"{path.name}: {r['model_kind']}, window {r['window']} hop {r['hop']} at "
+              f"{r['rate_hz']:g} Hz ({r['windows_per_s']:g} windows/s)\n"
+              f"  time to label 1 s of data  {r['ms_per_s']:.2f} ms (median pass "
+              f"{r['ms_per_s_median']:.2f}); {r['window_ms']:.3f} ms per window, batch 1, "
+              f"1 thread\n"
+              f"  reference: batched, one call per second of data  {r['batched_ms_per_s']:.2f} "
+              f"ms ({r['ms_per_s'] / r['batched_ms_per_s']:.2f}x)\n"
+              f"  {verdict} ({TARGET_MS:g} ms limit, {AIM_MS:g} ms aim)")
+    return 0
+
+
+if __name__ == "__main__":
+    os.environ.setdefault("OMP_NUM_THREADS", "1")
+    sys.exit(main())
