@@ -99,12 +99,21 @@ def test_the_toml_tables_round_trip_through_to_dict(tmp_path):
     ({"modalities": ["a"]}, r"modalities=\['a'\]: must be tables"),
     ({"signals": {"s": "a_*"}}, r"signals.s='a_\*': must be a non-empty list"),
     ({"signals": ["a_*"]}, r"signals=\['a_\*'\]: must be a table"),
+    ({"emd_channels": ["a"]}, r"emd_channels=\['a'\] is for the pen's models"),
 ])
 def test_bad_tables_are_one_line_errors_naming_the_value(change, message):
     base = {"model": "sf_rnn", "modalities": {"v": {"channels": ["a"]}}}
     with pytest.raises(ConfigError, match=message) as e:
         TrainConfig.from_dict({**base, **change})
     assert "\n" not in str(e.value)
+
+
+def test_set_does_not_reach_the_tables():
+    from tactile.training.train import parse_sets
+
+    for key in ("signals", "modalities"):
+        with pytest.raises(ConfigError, match=f"--set {key}: a table .* give it in the --config"):
+            parse_sets([f"{key}=a"], TrainConfig())
 
 
 def test_a_bad_modality_in_a_config_file_is_exit_1_and_one_line(tmp_path, capsys):

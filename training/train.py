@@ -681,6 +681,8 @@ def parse_sets(pairs: list[str], base: TrainConfig) -> TrainConfig:
             raise ConfigError(f"--set {pair!r}: expected KEY=VALUE")
         if key not in d:
             raise ConfigError(f"--set {key}: unknown setting; allowed: {sorted(d)}")
+        if key in ("signals", "modalities"):
+            raise ConfigError(f"--set {key}: a table ([{key}...]): give it in the --config file")
         current = getattr(TrainConfig, key)
         try:
             if isinstance(current, tuple):
