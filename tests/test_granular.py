@@ -142,7 +142,7 @@ def test_the_biotac_layout_is_the_designs():
 
 @pytest.mark.parametrize("tables, message", [
     ({"v": {"channels": ["f0_pac", "nope*"]}},
-     r"modalities.v.channels: pattern 'nope\*' matches no one of: f0_pac, f1_pac, f0_pdc"),
+     r"modalities.v.channels: pattern 'nope\*' matches none of: f0_pac, f1_pac, f0_pdc"),
     ({"v": {"channels": ["f0_pac_0*"]}},
      r"pattern 'f0_pac_0\*' matches only sub-samples of the high-rate signal 'f0_pac': name"),
     ({"a": {"channels": ["f0_pdc"]}, "b": {"channels": ["f0_*"]}},
@@ -165,7 +165,7 @@ def test_layout_errors_name_the_bad_value(tables, message):
 def test_signal_patterns_resolve_in_recording_order_and_refuse_overlaps():
     names = ("b_1", "a", "b_0", "b_2")
     assert resolve_signals((("b", ("b_*",)),), names) == (("b", ("b_1", "b_0", "b_2")),)
-    with pytest.raises(ConfigError, match=r"signals.x: pattern 'z\*' matches no one of: b_1"):
+    with pytest.raises(ConfigError, match=r"signals.x: pattern 'z\*' matches none of: b_1"):
         resolve_signals((("x", ("z*",)),), names)
     with pytest.raises(ConfigError, match="signals.c: channel 'b_0' is already in signal 'b'"):
         resolve_signals((("b", ("b_*",)), ("c", ("b_0",))), names)

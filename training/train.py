@@ -221,7 +221,7 @@ def train(data: Path, out: Path, cfg: TrainConfig, progress: bool = True, *,
                   for k, w in parts.items()}
         t1 = time.perf_counter()
         rows = learn_dictionaries(model.pre, images["train"], cfg.seed, dist)
-        log.info(f"dictionaries learned from {rows[0]} training image rows in "
+        log.info(f"dictionaries learned from {rows} training image rows in "
                  f"{time.perf_counter() - t1:.1f} s")
         feats = {k: _apply(model.pre.post, v, log, f"codes {k}", dist)
                  for k, v in images.items()}
