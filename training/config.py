@@ -229,7 +229,7 @@ class TrainConfig:
             (self.hop >= 1, "hop must be >= 1 sample", ("hop",)),
             (self.model in MODELS, f"model must be one of {', '.join(MODELS)}", ("model",)),
             (self.front in FRONTS, f"front must be one of {', '.join(FRONTS)}", ("front",)),
-            (2 <= self.frame <= self.window and self.frame_hop >= 1,
+            (self.model != "lstm" or 2 <= self.frame <= self.window and self.frame_hop >= 1,
              "frame must be 2..window samples and frame_hop >= 1",
              ("frame", "frame_hop", "window")),
             (self.epoch_windows >= 0, "epoch_windows must be >= 0 (0: every window)",
@@ -285,6 +285,9 @@ class TrainConfig:
         if self.model in GRANULAR_MODELS and not self.modalities:
             raise ConfigError(f"model={self.model!r} needs modalities: give at least one "
                               "[modalities.NAME] table (channels, imfs, steps, atoms)")
+        if self.modalities and self.emd_channels:
+            raise ConfigError(f"emd_channels={list(self.emd_channels)} is for the pen's models: "
+                              "with modalities, set imfs per modality")
         if self.modalities and self.model == "lstm":
             raise ConfigError("modalities are for model='sf_rnn', 'f_rnn', 'sparse_linear' or "
                               "'linear' (got model='lstm')")

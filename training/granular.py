@@ -198,8 +198,11 @@ class GranularPre(nn.Module):
 
     def set_dictionaries(self, dictionaries: list[np.ndarray]) -> None:
         """Put one learned dictionary (atoms_m, features_m) per modality into the coders."""
+        # C order, as a checkpoint restores them: another memory layout takes other matmul
+        # kernels, whose float32 rounding differs in the last bits
         self.coders = nn.ModuleList(
-            SparseCoder(d, self.n_nonzero(m)) for d, m in zip(dictionaries, self.layout))
+            SparseCoder(np.ascontiguousarray(d, dtype=np.float32), self.n_nonzero(m))
+            for d, m in zip(dictionaries, self.layout))
 
 
 def sample_rows(n_rows: int, cap: int, seed: int) -> np.ndarray:
@@ -217,14 +220,15 @@ def fit_dictionary(rows: np.ndarray, m: ModalityLayout, seed: int) -> np.ndarray
         n_components=m.atoms, transform_algorithm="omp",
         transform_n_nonzero_coefs=m.nonzero or None, random_state=seed)
     mbdl.fit(np.ascontiguousarray(rows, dtype=np.float32))
-    return mbdl.components_.astype(np.float32)
+    return np.ascontiguousarray(mbdl.components_, dtype=np.float32)
 
 
 def learn_dictionaries(pre: GranularPre, train_images: Tensor, seed: int, dist,
-                       cap: int = DICTIONARY_ROWS) -> list[int]:
+                       cap: int = DICTIONARY_ROWS) -> int:
     """Learn each modality's dictionary from the training split's images ``(N, S, sum
     features)`` (only those: the caller passes no other split) on rank 0, broadcast them, and
-    put them into ``pre``'s coders. Returns the rows each was learned from."""
+    put them into ``pre``'s coders. Returns how many image rows (window, step) each was
+    learned from: the same rows for every modality."""
     n_rows = train_images.shape[0] * train_images.shape[1]
     pick = sample_rows(n_rows, cap, seed)
     dicts = []
@@ -237,7 +241,7 @@ def learn_dictionaries(pre: GranularPre, train_images: Tensor, seed: int, dist,
             dicts.append(np.zeros((m.atoms, m.features), np.float32))
         at += m.features
     pre.set_dictionaries(list(dist.broadcast(*dicts)))
-    return [len(pick)] * len(pre.layout)
+    return len(pick)
 
 
 # --- the heads: features (B, S, F) + state -> logits -------------------------------------

@@ -1,0 +1,478 @@
+"""The granular-media models: config tables, modalities and high-rate signals, data images,
+dictionaries from training windows only, the four models on a separable toy set, checkpoints.
+
+Every test uses small synthetic takes written here; the BioTac round trip uses a small HDF5 file
+in the BOLT layout (no shared data needed).
+"""
+
+from __future__ import annotations
+
+import json
+import math
+
+import numpy as np
+import pytest
+import torch
+from test_biotac import write_h5
+
+from tactile.device.biotac import import_biotac
+from tactile.device.info import ChannelSpec, DeviceInfo
+from tactile.device.recording import TakeWriter, load_dataset, read_take
+from tactile.errors import ConfigError, RecordingError
+from tactile.training import granular
+from tactile.training import train as train_mod
+from tactile.training.checkpoint import load_checkpoint
+from tactile.training.config import Modality, TrainConfig
+from tactile.training.data import classes_of, split_windows
+from tactile.training.evaluate import evaluate_run, predict
+from tactile.training.granular import GranularPre, pooled_stats, sample_rows
+from tactile.training.modality import resolve, resolve_signals, signals_of_takes
+from tactile.training.train import main as train_main
+from tactile.training.train import train
+
+BIOTAC_TOML = """
+model = "sf_rnn"
+window = 50
+hop = 50
+[signals]
+f0_pac = ["f0_pac_*"]
+[modalities.vibration]
+channels = ["f0_pac"]
+imfs = 8
+steps = 22
+atoms = 200
+[modalities.pressure]
+channels = ["f0_pdc"]
+imfs = 5
+steps = 5
+atoms = 100
+[modalities.electrodes]
+channels = ["f0_ele_*"]
+imfs = 0
+steps = 5
+atoms = 100
+"""
+
+
+def biotac_names() -> tuple[str, ...]:
+    from tactile.device.biotac import channels
+
+    return tuple(c.name for c in channels())
+
+
+# --- config ---------------------------------------------------------------------------------
+
+def test_the_toml_tables_round_trip_through_to_dict(tmp_path):
+    path = tmp_path / "c.toml"
+    path.write_text(BIOTAC_TOML)
+    cfg = TrainConfig.from_toml(path)
+    assert cfg.signals == (("f0_pac", ("f0_pac_*",)),)
+    assert cfg.modalities == (
+        Modality("vibration", ("f0_pac",), imfs=8, steps=22, atoms=200, nonzero=0),
+        Modality("pressure", ("f0_pdc",), imfs=5, steps=5, atoms=100),
+        Modality("electrodes", ("f0_ele_*",), imfs=0, steps=5, atoms=100))
+    d = cfg.to_dict()
+    assert list(d["modalities"]) == ["vibration", "pressure", "electrodes"]  # order kept
+    assert d["modalities"]["pressure"] == {"channels": ["f0_pdc"], "imfs": 5, "steps": 5,
+                                           "atoms": 100, "nonzero": 0}
+    assert d["signals"] == {"f0_pac": ["f0_pac_*"]}
+    assert TrainConfig.from_dict(json.loads(json.dumps(d))) == cfg  # plain data both ways
+    assert cfg.replace(hidden=7).modalities == cfg.modalities
+
+
+@pytest.mark.parametrize("change, message", [
+    ({"model": "sf_rnn", "modalities": {}}, "model='sf_rnn' needs modalities"),
+    ({"model": "lstm"}, "modalities are for model="),
+    ({"modalities": {"v": {"channels": ["a"], "imfs": 17}}},
+     r"modalities.v.imfs=17: must be an integer 0..16"),
+    ({"modalities": {"v": {"channels": ["a"], "steps": 0}}},
+     r"modalities.v.steps=0: must be an integer >= 1"),
+    ({"modalities": {"v": {"channels": ["a"], "atoms": 10, "nonzero": 11}}},
+     r"modalities.v.nonzero=11: must be at most atoms=10"),
+    ({"modalities": {"v": {"channels": ["a"], "atom": 10}}},
+     r"modalities.v: unknown key\(s\) \['atom'\]"),
+    ({"modalities": {"v": {"imfs": 2}}}, r"modalities.v: give channels"),
+    ({"modalities": {"v": {"channels": []}}}, r"modalities.v.channels=\[\]: must be a non-emp"),
+    ({"modalities": {"v": {"channels": "a"}}}, r"modalities.v.channels='a'"),
+    ({"modalities": {"v": 3}}, r"modalities.v=3: must be a table"),
+    ({"modalities": {"2v": {"channels": ["a"]}}}, r"modality name '2v'"),
+    ({"modalities": ["a"]}, r"modalities=\['a'\]: must be tables"),
+    ({"signals": {"s": "a_*"}}, r"signals.s='a_\*': must be a non-empty list"),
+    ({"signals": ["a_*"]}, r"signals=\['a_\*'\]: must be a table"),
+    ({"emd_channels": ["a"]}, r"emd_channels=\['a'\] is for the pen's models"),
+])
+def test_bad_tables_are_one_line_errors_naming_the_value(change, message):
+    base = {"model": "sf_rnn", "modalities": {"v": {"channels": ["a"]}}}
+    with pytest.raises(ConfigError, match=message) as e:
+        TrainConfig.from_dict({**base, **change})
+    assert "\n" not in str(e.value)
+
+
+def test_set_does_not_reach_the_tables():
+    from tactile.training.train import parse_sets
+
+    for key in ("signals", "modalities"):
+        with pytest.raises(ConfigError, match=f"--set {key}: a table .* give it in the --config"):
+            parse_sets([f"{key}=a"], TrainConfig())
+
+
+def test_a_bad_modality_in_a_config_file_is_exit_1_and_one_line(tmp_path, capsys):
+    path = tmp_path / "c.toml"
+    path.write_text(BIOTAC_TOML.replace("imfs = 8", "imfs = 80"))
+    assert train_main([str(tmp_path), "--config", str(path), "--out", str(tmp_path / "r")]) == 1
+    err = capsys.readouterr().err.strip().splitlines()
+    assert err == ["tactile-train: error: modalities.vibration.imfs=80: must be an integer "
+                   "0..16"]
+
+
+# --- modalities and signals resolved --------------------------------------------------------
+
+def test_the_biotac_layout_is_the_designs():
+    cfg = TrainConfig.from_dict(__import__("tomllib").loads(BIOTAC_TOML))
+    vib, pdc, ele = resolve(cfg, biotac_names(), 100.0)
+    assert (vib.index, vib.n, vib.r, vib.rate_hz, vib.features) == (
+        tuple(range(22)), 1, 22, 2200.0, 176)
+    assert vib.signal and vib.units == ("f0_pac",) and vib.frames == 1
+    assert (pdc.index, pdc.n, pdc.r, pdc.features) == ((22,), 1, 1, 25)
+    assert (ele.index, ele.n, ele.r, ele.features) == (tuple(range(23, 42)), 19, 1, 95)
+    pre = GranularPre((vib, pdc, ele), torch.zeros(88), torch.ones(88), 50, 10, "codes")
+    assert pre.steps == 46 and pre.n_features == 400 and len(pre.emds) == 2
+    assert [c.n_nonzero for c in pre.coders] == [17, 2, 9]  # scikit-learn's int(features/10)
+
+
+@pytest.mark.parametrize("tables, message", [
+    ({"v": {"channels": ["f0_pac", "nope*"]}},
+     r"modalities.v.channels: pattern 'nope\*' matches none of: f0_pac, f1_pac, f0_pdc"),
+    ({"v": {"channels": ["f0_pac_0*"]}},
+     r"pattern 'f0_pac_0\*' matches only sub-samples of the high-rate signal 'f0_pac': name"),
+    ({"a": {"channels": ["f0_pdc"]}, "b": {"channels": ["f0_*"]}},
+     r"modalities.b.channels: 'f0_pdc' is in modalities 'a' and 'b'"),
+    ({"v": {"channels": ["f0_pac", "f0_pdc"]}},
+     r"modalities.v.channels: mixes rates \(f0_pac \(x22\), f0_pdc \(x1\)\)"),
+    ({"v": {"channels": ["f0_pdc"], "steps": 51}},
+     r"modalities.v.steps=51: longer than the window \(50 frames x 1 = 50 samples at 100 Hz\)"),
+    ({"v": {"channels": ["f0_pac"], "steps": 1101}},
+     r"modalities.v.steps=1101: longer than the window \(50 frames x 22 = 1100 samples"),
+])
+def test_layout_errors_name_the_bad_value(tables, message):
+    cfg = TrainConfig.from_dict({"model": "f_rnn", "modalities": tables,
+                                 "signals": {"f0_pac": ["f0_pac_*"], "f1_pac": ["f1_pac_*"]}})
+    with pytest.raises(ConfigError, match=message) as e:
+        resolve(cfg, biotac_names(), 100.0)
+    assert "\n" not in str(e.value)
+
+
+def test_signal_patterns_resolve_in_recording_order_and_refuse_overlaps():
+    names = ("b_1", "a", "b_0", "b_2")
+    assert resolve_signals((("b", ("b_*",)),), names) == (("b", ("b_1", "b_0", "b_2")),)
+    with pytest.raises(ConfigError, match=r"signals.x: pattern 'z\*' matches none of: b_1"):
+        resolve_signals((("x", ("z*",)),), names)
+    with pytest.raises(ConfigError, match="signals.c: channel 'b_0' is already in signal 'b'"):
+        resolve_signals((("b", ("b_*",)), ("c", ("b_0",))), names)
+    with pytest.raises(ConfigError, match="signals.a: a channel has that name"):
+        resolve_signals((("a", ("b_*",)),), names)
+
+
+# --- high-rate declarations: import -> JSON -> resolve -> the signal ----------------------
+
+def test_the_biotac_declaration_round_trips_to_the_2200_hz_signal(tmp_path):
+    written = write_h5(tmp_path / "cork.h5", {"cork_pdc100_1cm_01": 30})
+    import_biotac([tmp_path / "cork.h5"], tmp_path / "data")
+    meta = json.loads((tmp_path / "data" / "cork_pdc100_1cm_01.json").read_text())
+    assert meta["signals"] == {f"f{k}_pac": [f"f{k}_pac_{i:02d}" for i in range(22)]
+                               for k in (0, 1)}
+    takes = load_dataset(tmp_path / "data")
+    channels = takes[0].channels
+    signals = signals_of_takes(takes, channels)
+    assert signals == tuple((f"f{k}_pac", tuple(f"f{k}_pac_{i:02d}" for i in range(22)))
+                            for k in (0, 1))
+    cfg = TrainConfig(model="f_rnn", window=30, modalities=(
+        Modality("vibration", ("f*_pac",), imfs=0, steps=22),))
+    (vib,) = resolve(cfg, channels, 100.0, signals)
+    assert vib.units == ("f0_pac", "f1_pac") and vib.r == 22 and vib.rate_hz == 2200.0
+    pre = GranularPre((vib,), torch.zeros(88), torch.ones(88), 30, 10, "images")
+    x = torch.from_numpy(takes[0].values()).float()[None]  # (1, 30, 88)
+    sig = pre._units(pre.normalise(x), 0)  # (1, n = 2, 30 x 22)
+    group = written["cork_pdc100_1cm_01"]
+    for k in (0, 1):  # the 660 samples of each finger: frame after frame, sub-samples in order
+        assert sig[0, k].numpy().tolist() == group[f"finger_{k}/pac"].reshape(-1).tolist()
+
+
+def _bad_signals_take(tmp_path, signals):
+    info = DeviceInfo(100.0, (ChannelSpec("v_0", ""), ChannelSpec("v_1", ""),
+                              ChannelSpec("p", "")))
+    with TakeWriter(tmp_path, "a", info, name="t", extra={"signals": signals}) as w:
+        w.write(0, 0, np.zeros((5, 3), np.int64))
+    return tmp_path / "t.csv"
+
+
+@pytest.mark.parametrize("signals, message", [
+    ({"v": ["v_0", "v_9"]}, r"key 'signals.v': channel 'v_9' is not one of the take's"),
+    ({"v": ["v_0", "v_1"], "w": ["v_1"]}, r"key 'signals.w': channel 'v_1' is in signal 'v'"),
+    ({"p": ["v_0", "v_1"]}, r"key 'signals.p': a channel has that name"),
+    ({"v": []}, r"key 'signals' must be an object of signal name -> non-empty list"),
+    ({"v": "v_0"}, r"key 'signals' must be an object of signal name -> non-empty list"),
+])
+def test_a_bad_declaration_is_a_recording_error_naming_the_file(tmp_path, signals, message):
+    path = _bad_signals_take(tmp_path, signals)
+    with pytest.raises(RecordingError, match=message) as e:
+        read_take(path)
+    assert str(e.value).startswith(str(tmp_path / "t.json"))
+
+
+def test_a_bad_declaration_stops_training_with_exit_1(tmp_path, capsys):
+    _bad_signals_take(tmp_path, {"v": ["v_0", "nope"]})
+    assert train_main([str(tmp_path), "--out", str(tmp_path / "run"), "--quiet"]) == 1
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "key 'signals.v': channel 'nope'" in err[0]
+
+
+def test_takes_that_declare_other_signals_are_refused(tmp_path):
+    takes = []
+    for name, sig in (("t1", {"v": ["v_0", "v_1"]}), ("t2", {"v": ["v_1", "v_0"]})):
+        folder = tmp_path / name
+        folder.mkdir()
+        _bad_signals_take(folder, sig)
+        takes.append(read_take(folder / "t.csv"))
+    with pytest.raises(ConfigError, match=r"t.csv: declares signals \{'v': \('v_1', 'v_0'\)\}"):
+        signals_of_takes(takes, takes[0].channels)
+
+
+# --- images: shapes and order against hand-computed examples --------------------------------
+
+def _layout(tables: dict, channels: tuple[str, ...], window: int, signals=None):
+    cfg = TrainConfig.from_dict({"model": "f_rnn", "window": window, "modalities": tables,
+                                 "signals": signals or {}})
+    return resolve(cfg, channels, 100.0)
+
+
+def test_images_hold_the_last_steps_samples_at_each_modalitys_rate():
+    # a signal s of 3 sub-samples per frame (300 Hz) with images of 4 samples (spanning 2
+    # frames), a plain channel c with images of 2 frames; T = 4 -> S = 4 - 2 + 1 = 3 steps
+    channels = ("s_0", "s_1", "s_2", "c")
+    layout = _layout({"sig": {"channels": ["s"], "steps": 4}, "chan": {"channels": ["c"],
+                      "steps": 2}}, channels, 4, {"s": ["s_*"]})
+    pre = GranularPre(layout, torch.zeros(4), torch.ones(4), 4, 10, "images")
+    t = torch.arange(4.0)[:, None]
+    x = torch.cat([100 * t + torch.arange(3.0), 1000 + t], 1)[None]  # s: 100 t + j, c: 1000 + t
+    f = pre(x)
+    assert f.shape == (1, 3, 6) and pre.n_features == 6
+    assert f[0].tolist() == [[2, 100, 101, 102, 1000, 1001],
+                             [102, 200, 201, 202, 1001, 1002],
+                             [202, 300, 301, 302, 1002, 1003]]
+
+
+def test_image_features_are_unit_then_imf_then_time():
+    layout = _layout({"m": {"channels": ["c*"], "imfs": 2, "steps": 3}}, ("c0", "c1"), 4)
+    pre = GranularPre(layout, torch.zeros(2), torch.ones(2), 4, 10, "images")
+    n, k, el = torch.meshgrid(torch.arange(2.0), torch.arange(2.0), torch.arange(4.0),
+                              indexing="ij")
+    imfs = (1000 * n + 100 * k + el)[None]  # (1, n=2, K=2, L=4): unit, IMF, sample
+    f = pre.finish(torch.zeros(1, 4, 2), [imfs])  # S = 4 - 3 + 1 = 2 steps of 3 samples
+    assert f[0].tolist() == [[0, 1, 2, 100, 101, 102, 1000, 1001, 1002, 1100, 1101, 1102],
+                             [1, 2, 3, 101, 102, 103, 1001, 1002, 1003, 1101, 1102, 1103]]
+
+
+def test_energy_features_are_log_imf_energies_and_mean_log_std():
+    layout = _layout({"a": {"channels": ["c0"], "imfs": 2}, "b": {"channels": ["c1"]}},
+                     ("c0", "c1"), 5)
+    pre = GranularPre(layout, torch.zeros(2), torch.ones(2), 5, 10, "energy")
+    rng = np.random.default_rng(0)
+    imfs = rng.normal(size=(1, 1, 2, 5))
+    z = rng.normal(size=(1, 5, 2))
+    f = pre.finish(torch.from_numpy(z).float(), [torch.from_numpy(imfs).float()])
+    want = [math.log((imfs[0, 0, 0] ** 2).mean() + 1e-6), math.log((imfs[0, 0, 1] ** 2).mean()
+            + 1e-6), z[0, :, 1].mean(), 0.5 * math.log(z[0, :, 1].var() + 1e-6)]
+    assert f.shape == (1, 1, 4) == (1, 1, pre.n_features)
+    np.testing.assert_allclose(f[0, 0].numpy(), want, rtol=1e-5, atol=1e-6)
+
+
+def test_a_signal_shares_one_pooled_mean_and_std():
+    rng = np.random.default_rng(1)
+    x = rng.normal(size=(7, 10, 3)) * [1.0, 3.0, 5.0] + [0.0, 10.0, -4.0]
+    mean, std = pooled_stats(x, ("s_0", "s_1", "c"), (("s", ("s_0", "s_1")),))
+    both = x[:, :, :2].reshape(-1)
+    np.testing.assert_allclose(mean, [both.mean(), both.mean(), x[:, :, 2].mean()], rtol=1e-5)
+    np.testing.assert_allclose(std, [both.std(), both.std(), x[:, :, 2].std()], rtol=1e-5)
+
+
+def test_sample_rows_is_capped_seeded_and_without_repeats():
+    a, b = sample_rows(1000, 300, 4), sample_rows(1000, 300, 4)
+    assert len(a) == 300 == len(set(a.tolist())) and np.array_equal(a, b)
+    assert not np.array_equal(a, sample_rows(1000, 300, 5))
+    assert sample_rows(50, 300, 4).tolist() == list(range(50))
+
+
+# --- training on a separable toy set --------------------------------------------------------
+
+TOY = ("a", "b")
+
+
+def _toy_dataset(folder, takes_per_class: int = 5, frames: int = 240, seed: int = 0):
+    """Two classes: ``a`` vibrates (a 25 Hz tone plus noise on the 400 Hz signal v), presses
+    harder and lifts electrode e0; ``b`` only has noise. Signals declared in the JSON."""
+    rng = np.random.default_rng(seed)
+    chans = ([ChannelSpec(f"v_{i}", "count") for i in range(4)]
+             + [ChannelSpec("p", "count"), ChannelSpec("e0", "count"), ChannelSpec("e1", "count")])
+    info = DeviceInfo(100.0, tuple(chans))
+    for label in TOY:
+        for k in range(takes_per_class):
+            t = np.arange(frames * 4) / 400.0
+            vib = rng.normal(0, 20, frames * 4)
+            if label == "a":
+                vib += 60 * np.sin(2 * np.pi * 25 * t + rng.uniform(0, 6))
+            p = 500 + rng.normal(0, 10, frames) + (60 if label == "a" else 0)
+            e = rng.normal(1000, 10, (frames, 2)) + ([50, 0] if label == "a" else [0, 0])
+            raw = np.column_stack([vib.reshape(frames, 4), p, e]).round().astype(np.int64)
+            with TakeWriter(folder, label, info, name=f"{label}_{k}",
+                            extra={"signals": {"v": [f"v_{i}" for i in range(4)]}}) as w:
+                w.write(0, 0, raw)
+    return folder
+
+
+@pytest.fixture(scope="module")
+def toy(tmp_path_factory):
+    return _toy_dataset(tmp_path_factory.mktemp("toy"))
+
+
+def _cfg(model: str, **kw) -> TrainConfig:
+    return TrainConfig.from_dict({
+        "model": model, "window": 20, "hop": 10, "split": "take", "test": "name:*_4",
+        "val": "name:*_3", "epochs": 15, "patience": 15, "layers": 1, "hidden": 16,
+        "batch_size": 32, "lr": 1e-2, "augment_gain": 0.0, "dropout": 0.1, "threads": 1,
+        "emd_sifts": 5,
+        "modalities": {"vibration": {"channels": ["v"], "imfs": 3, "steps": 8, "atoms": 20},
+                       "pressure": {"channels": ["p"], "imfs": 2, "steps": 4, "atoms": 10},
+                       "electrodes": {"channels": ["e*"], "steps": 3, "atoms": 10}}, **kw})
+
+
+@pytest.fixture(scope="module")
+def runs(toy, tmp_path_factory):
+    """Each model trained on the toy set, with the model object as it was saved."""
+    out = {}
+    saved = {}
+    real = train_mod._write_run
+
+    def spy(run_dir, cfg, model, *args, **kwargs):
+        saved[cfg.model] = model
+        return real(run_dir, cfg, model, *args, **kwargs)
+
+    train_mod._write_run = spy
+    try:
+        for model in ("sf_rnn", "f_rnn", "sparse_linear", "linear"):
+            run = tmp_path_factory.mktemp(model)
+            metrics = train(toy, run, _cfg(model), progress=False)
+            out[model] = (run, metrics, saved[model])
+    finally:
+        train_mod._write_run = real
+    return out
+
+
+@pytest.mark.parametrize("model", ["sf_rnn", "f_rnn", "sparse_linear", "linear"])
+def test_each_model_beats_chance_on_a_separable_toy_set(runs, model):
+    _, m, _ = runs[model]
+    assert m["windows"] == 46  # 2 takes x 23 windows of 20 frames every 10
+    assert m["accuracy"] >= 0.9, m["accuracy"]  # chance: 0.5
+    assert set(m["shifted"]) == {"-0.2s", "-0.1s", "+0.1s", "+0.2s", "mean"}
+    assert m["shifted"]["mean"] >= 0.8
+
+
+@pytest.mark.parametrize("model", ["sf_rnn", "f_rnn", "sparse_linear", "linear"])
+def test_the_checkpoint_rebuilds_the_model_exactly(runs, toy, model):
+    run, metrics, trained = runs[model]
+    loaded, ck = load_checkpoint(run)
+    assert ck["config"]["modalities"]["vibration"]["atoms"] == 20
+    assert ck["config"]["signals"] == {"v": ["v_0", "v_1", "v_2", "v_3"]}  # from the takes
+    takes = load_dataset(toy)
+    _, parts = split_windows(takes, classes_of(takes), loaded.cfg.channels, loaded.cfg)
+    trained.eval()
+    x = torch.from_numpy(parts["test"].x)
+    h, c = loaded.zero_state(len(x))
+    with torch.no_grad():
+        assert torch.equal(loaded(x, h, c)[0], trained(x, h, c)[0])
+    if model in ("sf_rnn", "sparse_linear"):  # the learned dictionaries came back
+        for a, b in zip(loaded.pre.coders, trained.pre.coders):
+            assert torch.equal(a.dictionary, b.dictionary) and a.dictionary.abs().sum() > 0
+    probs = predict(loaded, parts["test"])
+    assert float((probs.argmax(1) == parts["test"].y).mean()) == metrics["accuracy"]
+
+
+def test_tactile_eval_reads_a_granular_run(runs, toy):
+    run, metrics, _ = runs["sf_rnn"]
+    s = evaluate_run(run, toy, threads=1)
+    assert s["accuracy"] == metrics["accuracy"] and s["shifted"] == metrics["shifted"]
+
+
+def test_dictionaries_are_learned_from_training_windows_only(toy, tmp_path, monkeypatch):
+    fitted = []
+    real = granular.fit_dictionary
+
+    def spy(rows, m, seed):
+        fitted.append((m.name, rows.copy()))
+        return real(rows, m, seed)
+
+    monkeypatch.setattr(granular, "fit_dictionary", spy)
+    cfg = _cfg("sparse_linear", epochs=1)
+    train(toy, tmp_path / "run", cfg, progress=False)
+    model, _ = load_checkpoint(tmp_path / "run")
+    takes = load_dataset(toy)
+    _, parts = split_windows(takes, classes_of(takes), model.cfg.channels, model.cfg)
+    with torch.no_grad():
+        images = {k: model.pre.images(torch.from_numpy(w.x)) for k, w in parts.items()}
+    assert [name for name, _ in fitted] == ["vibration", "pressure", "electrodes"]
+    at = 0
+    for (name, rows), m in zip(fitted, model.layout):
+        flat = {k: v[:, :, at : at + m.features].reshape(-1, m.features).numpy()
+                for k, v in images.items()}
+        train_rows = flat["train"]
+        assert len(rows) == len(train_rows)  # every training row (fewer than the cap)
+        for split in ("val", "test"):
+            other = flat[split]
+            near = np.abs(rows[:, None, :] - other[None, :, :]).max(2).min(1)
+            assert near.min() > 1e-3, (name, split)  # no row of theirs was learned from
+        near = np.abs(rows[:, None, :] - train_rows[None, :, :]).max(2).min(1)
+        assert near.max() < 1e-4, name  # each is a training row
+        at += m.features
+
+
+def test_two_processes_share_rank_0s_dictionaries(toy, tmp_path):
+    """torchrun, 2 processes (gloo on loopback): rank 0 learns the dictionaries from the whole
+    training split and broadcasts them; each process codes its share of the windows with them.
+    The run's test figures must then be what one process computes from the checkpoint."""
+    import os
+    import subprocess
+    import sys
+
+    from test_train_ddp import free_port
+
+    # test takes of both classes in each process's half of the test windows (rows 0-34:
+    # a_3, a_4; 35-68: a_4, b_4), so that codes made with other dictionaries in one of the
+    # processes would change the run's figures
+    cfg = _cfg("sf_rnn", epochs=8, test="name:a_3,a_4,b_4", val="name:a_2,b_2")
+    toml = tmp_path / "c.toml"
+    toml.write_text(_toml(cfg.to_dict()))
+    env = {**os.environ, "GLOO_SOCKET_IFNAME": "lo", "OMP_NUM_THREADS": "1"}
+    cmd = [sys.executable, "-m", "torch.distributed.run", "--nproc-per-node", "2",
+           "--master-addr", "127.0.0.1", "--master-port", str(free_port()),
+           "-m", "tactile.training.train", str(toy), "--out", str(tmp_path / "run"),
+           "--config", str(toml), "--quiet"]
+    proc = subprocess.run(cmd, capture_output=True, text=True, env=env, timeout=900)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    model, ck = load_checkpoint(tmp_path / "run")
+    assert ck["metrics"]["processes"] == 2
+    s = evaluate_run(tmp_path / "run", toy, threads=1)  # one process, the saved dictionaries
+    assert s["confusion"] == ck["metrics"]["confusion"]
+    assert s["accuracy"] >= 0.9, s["accuracy"]
+
+
+def _toml(d: dict) -> str:
+    """A config dict as TOML (flat keys, then [signals] and [modalities.NAME] tables)."""
+    def value(v):
+        return json.dumps(v) if not isinstance(v, bool) else str(v).lower()
+
+    lines = [f"{k} = {value(v)}" for k, v in d.items() if k not in ("signals", "modalities")]
+    if d["signals"]:
+        lines += ["[signals]"] + [f"{k} = {value(v)}" for k, v in d["signals"].items()]
+    for name, m in d["modalities"].items():
+        lines += [f"[modalities.{name}]"] + [f"{k} = {value(v)}" for k, v in m.items()]
+    return "\n".join(lines) + "\n"
