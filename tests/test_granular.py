@@ -13,6 +13,7 @@ import math
 import numpy as np
 import pytest
 import torch
+from conftest import SHARED
 from test_biotac import write_h5
 
 from tactile.device.biotac import import_biotac
@@ -476,3 +477,38 @@ def _toml(d: dict) -> str:
     for name, m in d["modalities"].items():
         lines += [f"[modalities.{name}]"] + [f"{k} = {value(v)}" for k, v in m.items()]
     return "\n".join(lines) + "\n"
+
+
+@pytest.mark.skipif(not (SHARED / "datasets" / "biotac-bolt").is_dir(),
+                    reason=f"BioTac BOLT recordings absent ({SHARED / 'datasets' / 'biotac-bolt'})")
+def test_a_real_trial_gives_the_designs_images(tmp_path):
+    """One real trial (copied into a temporary file): its take declares the vibration signal,
+    and a window's images are the normalised sub-samples and electrode values of the right
+    frames (imfs = 0 here, so that the values can be checked against the HDF5 file)."""
+    import tomllib
+
+    import h5py
+
+    bolt, group = SHARED / "datasets" / "biotac-bolt", "cork_pdc150_1cm_04"
+    with h5py.File(bolt / "cork.h5", "r") as src, h5py.File(tmp_path / "cork.h5", "w") as dst:
+        src.copy(src[group], dst, name=group)
+        pac = src[group]["finger_0/pac"][()].astype(np.float64)  # (T, 22)
+        ele = src[group]["finger_0/electrodes"][()].astype(np.float64)  # (T, 19)
+    import_biotac([tmp_path / "cork.h5"], tmp_path / "data")
+    takes = load_dataset(tmp_path / "data")
+    d = tomllib.loads(BIOTAC_TOML)
+    del d["signals"]  # the take's own declaration
+    d["modalities"]["vibration"]["imfs"] = 0
+    cfg = TrainConfig.from_dict(d)
+    channels = takes[0].channels
+    layout = resolve(cfg, channels, 100.0, signals_of_takes(takes, channels))
+    x = takes[0].values()[None, 100:150].astype(np.float32)  # frames 100..149
+    mean, std = pooled_stats(takes[0].values()[None], channels, signals_of_takes(takes, channels))
+    pre = GranularPre(layout, torch.from_numpy(mean), torch.from_numpy(std), 50, 10, "images")
+    f = pre(torch.from_numpy(x))[0].numpy()
+    assert f.shape == (46, 22 + 25 + 95)  # vibration 1 x 22, pressure 5 IMFs x 5, 19 x 5
+    for s in (0, 17, 45):  # step s ends with frame 100 + 4 + s
+        t = 104 + s
+        np.testing.assert_allclose(f[s, :22], (pac[t] - pac.mean()) / pac.std(), atol=1e-4)
+        want = ((ele[t - 4 : t + 1] - ele.mean(0)) / ele.std(0)).T.reshape(-1)  # (unit, time)
+        np.testing.assert_allclose(f[s, 47:], want, atol=1e-4)
