@@ -130,3 +130,13 @@ def page_url(stderr) -> str:
         if m:
             return m[1]
     pytest.fail("stderr ended without saying where the live page is")
+
+
+def rows_in(folder: Path) -> int:
+    """Complete data rows in the one CSV being written in ``folder`` (0 before it exists)."""
+    csvs = list(folder.glob("*.csv"))
+    if not csvs:
+        return 0
+    text = csvs[0].read_bytes()
+    return sum(1 for ln in text[: text.rfind(b"\n") + 1].splitlines()[1:]
+               if not ln.startswith(b"#"))
