@@ -38,6 +38,16 @@ def listening() -> tuple[socket.socket, str]:
     return srv, f"socket://127.0.0.1:{srv.getsockname()[1]}"
 
 
+def stop_listening(srv: socket.socket) -> None:
+    """Close a listening socket, waking a thread blocked in its accept() (close alone does
+    not: the socket would go on taking connections until accept's timeout)."""
+    try:
+        srv.shutdown(socket.SHUT_RDWR)
+    except OSError:  # already closed
+        pass
+    srv.close()
+
+
 def until(condition, what: str, seconds: float = 30) -> None:
     """Poll ``condition()`` until true; fail after ``seconds`` (a deadline, not a delay)."""
     deadline = time.monotonic() + seconds
@@ -187,7 +197,7 @@ def test_after_an_unplug_only_the_same_pen_is_taken_back(reap):
         proc.wait(timeout=30)
     finally:
         done.set()
-        srv.close()
+        stop_listening(srv)
         server.join(30) if server.is_alive() else None
     err = "".join(err) + rest
     assert proc.returncode == 0, err
@@ -327,9 +337,13 @@ class InTurn:
             chunks = {"pen": self._first, "other": other_pen, "pen again": lambda: pen(5)}[name]
             stream(conn, chunks(), self.done)
 
+    def hang_up(self) -> None:
+        """Stop listening: connections to :attr:`url` are refused from now on."""
+        stop_listening(self.srv)
+
     def close(self) -> None:
         self.done.set()
-        self.srv.close()
+        self.hang_up()
         self.thread.join(30)
 
 
@@ -373,7 +387,8 @@ def test_the_monitor_takes_back_the_same_pen_only(reap):
             if m is None:
                 continue
             samples, reconnects = int(m[1]), int(m[2])
-            dev.unplug.set()  # samples came: pull the cable
+            if any(" on socket://" in ln for ln in out):  # the pen's header came: pull the
+                dev.unplug.set()  # cable (before it, nothing tells one device from another)
             since = samples if reconnects and since is None else since
             if since is not None and samples >= since + 100:  # 1 s of samples after it
                 break
@@ -410,7 +425,7 @@ def test_the_recorder_finds_an_auto_detected_pen_under_its_new_name(tmp_path, mo
         until(lambda: rows_in(tmp_path) > 0, "a row in the take", 60)
         first.unplug.set()
         listed[:] = [_FakePort(second.url, None)]
-        first.srv.close()  # connections to the old name are refused from now on
+        first.hang_up()  # connections to the old name are refused from now on
 
     helper = threading.Thread(target=unplug, daemon=True)
     helper.start()
