@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import re
+import socket
 import subprocess
 import sys
 import threading
@@ -140,3 +141,13 @@ def rows_in(folder: Path) -> int:
     text = csvs[0].read_bytes()
     return sum(1 for ln in text[: text.rfind(b"\n") + 1].splitlines()[1:]
                if not ln.startswith(b"#"))
+
+
+def listening() -> tuple[socket.socket, str]:
+    """A TCP server on 127.0.0.1 (a device behind ``socket://``) and its URL; its accept()
+    fails after 30 s rather than hangs."""
+    srv = socket.socket()
+    srv.settimeout(30)
+    srv.bind(("127.0.0.1", 0))
+    srv.listen()
+    return srv, f"socket://127.0.0.1:{srv.getsockname()[1]}"

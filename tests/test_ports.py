@@ -16,7 +16,7 @@ import time
 
 import pytest
 import serial
-from conftest import REPO, rows_in
+from conftest import REPO, listening, rows_in
 
 import tactile.device  # noqa: F401  (registers sim://)
 from tactile.device.decoder import Header, StreamDecoder
@@ -28,14 +28,6 @@ from tactile.device.simulator import PenSimulator
 
 SHIPPED = REPO / "models" / "pen-exp2.onnx"
 TCP_CLOSE_WAIT = 8  # tcp_info.tcpi_state once the peer's FIN has arrived
-
-
-def listening() -> tuple[socket.socket, str]:
-    srv = socket.socket()
-    srv.settimeout(30)  # accept() fails rather than hangs
-    srv.bind(("127.0.0.1", 0))
-    srv.listen()
-    return srv, f"socket://127.0.0.1:{srv.getsockname()[1]}"
 
 
 def stop_listening(srv: socket.socket) -> None:

@@ -13,7 +13,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import serial
-from conftest import read_link, rows_in, start_and_signal
+from conftest import listening, read_link, rows_in, start_and_signal
 
 import tactile.device  # noqa: F401  (registers sim://)
 from tactile.device.decoder import Gap, StreamDecoder
@@ -762,17 +762,11 @@ def test_a_pen_that_never_sends_its_header_ends_with_a_count_of_what_was_not_rec
         tmp_path, reap):
     """tactile-record on a socket device sending 1000 samples and no header: its progress says
     how many samples it holds; stopped, it exits 2 saying all 1000 were not recorded."""
-    import socket
-
     from tactile.device.protocol import encode_samples
 
     raw = PenSimulator("paper", seed=3).read(1000)
     data = b"".join(encode_samples(k, k * 10_000, raw[k : k + 1]) for k in range(1000))
-    srv = socket.socket()
-    srv.settimeout(30)  # accept() gives up if tactile-record never connects
-    srv.bind(("127.0.0.1", 0))
-    srv.listen()
-    url = f"socket://127.0.0.1:{srv.getsockname()[1]}"
+    srv, url = listening()
     proc = reap(subprocess.Popen(
         [sys.executable, "-m", "tactile.device.recorder", "--port", url, "--label", "paper",
          "--out", str(tmp_path)], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True))
