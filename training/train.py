@@ -223,7 +223,9 @@ def train(data: Path, out: Path, cfg: TrainConfig, progress: bool = True, *,
         rows = learn_dictionaries(model.pre, images["train"], cfg.seed, dist)
         log.info(f"dictionaries learned from {rows} training image rows in "
                  f"{time.perf_counter() - t1:.1f} s")
-        feats = {k: _apply(model.pre.post, v, log, f"codes {k}", dist)
+        # 32 windows (1,472 image rows) a call: OMP's (rows, steps, atoms) temporaries stay in
+        # cache; 512 a call took 1.9x the CPU time (13.9 against 7.2 ms a BioTac window)
+        feats = {k: _apply(model.pre.post, v, log, f"codes {k}", dist, chunk=32)
                  for k, v in images.items()}
         del images
     else:
