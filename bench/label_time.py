@@ -65,7 +65,7 @@ def _windows(contract, data: Path | None, seconds: float, seed: int = 0) -> np.n
                 return np.stack(out[:n])
         if out:
             return np.stack([out[i % len(out)] for i in range(n)])
-        raise SystemExit(f"{data}: no take with the model's channels")
+        print(f"{data}: no take with the model's channels: Gaussian windows", file=sys.stderr)
     rng = np.random.default_rng(seed)
     mean = np.asarray(c.preprocessing["mean"], np.float32)
     std = np.asarray(c.preprocessing["std"], np.float32)
