@@ -1,6 +1,14 @@
 """Time to label 1 s of data (the granular-media paper's speed figure) for an exported model.
 
     python bench/label_time.py model.onnx [model2.onnx ...] [--data DATA] [--rounds 5]
+    python bench/label_time.py --paper-biotac 0 --paper-biotac 01 --data DATA
+
+``--paper-biotac FINGERS`` also times an SF-RNN of the paper's sizes on those BioTac fingers
+(``0`` or ``01``: vibration 8 IMFs x 10 sifts of each 2.2 kHz signal, 22 steps, 200 atoms;
+pressure 5 IMFs, 5 steps, 100 atoms; electrodes 5 steps, 100 atoms; scikit-learn's default
+non-zeros; a 4 x 50 LSTM; window = hop = 50 frames), built untrained (random unit-norm
+dictionaries, default weights): its time does not depend on training, only on the sizes (and
+on the windows, through the EMD's early stops: give ``--data`` with BioTac takes).
 
 Measured on the exported file as ``tactile-run`` runs it: onnxruntime on one thread, one window
 at a time (batch 1) at the model's streaming hop (the contract's ``hop``), preprocessing, EMD
@@ -57,7 +65,7 @@ def _windows(contract, data: Path | None, seconds: float, seed: int = 0) -> np.n
                 return np.stack(out[:n])
         if out:
             return np.stack([out[i % len(out)] for i in range(n)])
-        raise SystemExit(f"{data}: no take with the model's channels")
+        print(f"{data}: no take with the model's channels: Gaussian windows", file=sys.stderr)
     rng = np.random.default_rng(seed)
     mean = np.asarray(c.preprocessing["mean"], np.float32)
     std = np.asarray(c.preprocessing["std"], np.float32)
@@ -117,15 +125,62 @@ def label_time(model_path: str | os.PathLike, windows: np.ndarray | None = None,
     }
 
 
+def paper_biotac_file(fingers: str, out: Path) -> Path:
+    """Write an untrained SF-RNN of the paper's sizes on BioTac ``fingers`` ("0", "1", "01")
+    to ``out``, with its contract (for timing only: its parity key says so)."""
+    import onnx
+    import torch
+
+    from tactile.device import biotac
+    from tactile.export.graph import build_graph
+    from tactile.export.metadata import attach, contract_for
+    from tactile.training.config import TrainConfig
+    from tactile.training.model import build_model
+
+    sizes = (("vibration", "pac", 8, 22, 200), ("pressure", "pdc", 5, 5, 100),
+             ("electrodes", "ele_*", 0, 5, 100))
+    mods = {name: {"channels": [f"f{k}_{pat}" for k in fingers], "imfs": imfs,
+                   "steps": steps, "atoms": atoms} for name, pat, imfs, steps, atoms in sizes}
+    channels = tuple(c.name for c in biotac.channels())
+    cfg = TrainConfig.from_dict({"model": "sf_rnn", "window": 50, "hop": 50, "layers": 4,
+                                 "hidden": 50, "modalities": mods, "signals": biotac.signals()})
+    cfg = cfg.replace(channels=channels)
+    n = len(channels)
+    mean, std = [2000.0] * n, [100.0] * n
+    model = build_model(cfg, 5, torch.tensor(mean), torch.tensor(std), channels=channels,
+                        rate_hz=100.0)
+    rng = np.random.default_rng(0)
+    dicts = []
+    for m in model.pre.layout:
+        d = rng.standard_normal((m.atoms, m.features))
+        dicts.append((d / np.linalg.norm(d, axis=1, keepdims=True)).astype(np.float32))
+    model.pre.set_dictionaries(dicts)
+    graph = build_graph(model.eval())
+    ck = {"config": cfg.to_dict(), "channels": list(channels), "units": ["count"] * n,
+          "sample_rate_hz": 100.0, "classes": [f"class{i}" for i in range(5)], "mean": mean,
+          "std": std}
+    parity = {"passed": True, "note": "untrained, random dictionaries: for timing only"}
+    onnx.save(attach(graph, contract_for(ck, parity, model=model)), out)
+    return out
+
+
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    p.add_argument("models", nargs="+", type=Path, help="exported .onnx files")
+    p.add_argument("models", nargs="*", type=Path, help="exported .onnx files")
+    p.add_argument("--paper-biotac", action="append", default=[], metavar="FINGERS",
+                   choices=("0", "1", "01"),
+                   help="also an untrained SF-RNN of the paper's sizes on these fingers")
     p.add_argument("--data", type=Path, help="dataset folder: real windows (else Gaussian)")
     p.add_argument("--seconds", type=float, default=2.0, help="seconds of data per pass")
     p.add_argument("--rounds", type=int, default=5, help="passes; the fastest is reported")
     p.add_argument("--json", action="store_true", help="one JSON object per model")
     args = p.parse_args(argv)
-    for path in args.models:
+    import tempfile
+
+    tmp = tempfile.TemporaryDirectory()
+    paper = [paper_biotac_file(f, Path(tmp.name) / f"sf_rnn-paper-biotac-f{f}.onnx")
+             for f in args.paper_biotac]
+    for path in [*args.models, *paper]:
         r = label_time(path, data=args.data, seconds=args.seconds, rounds=args.rounds)
         if args.json:
             print(json.dumps(r))

@@ -89,7 +89,11 @@ _CACHE: dict[str, tuple] = {}
 
 @pytest.fixture(params=sorted(RUNS), scope="module")
 def exported(request, dataset, tmp_path_factory):
-    name = request.param
+    return _exported(request.param, dataset, tmp_path_factory)
+
+
+def _exported(name: str, dataset: Path, tmp_path_factory) -> tuple:
+    """Train and export run ``name`` once per module."""
     if name not in _CACHE:
         root = tmp_path_factory.mktemp(name)
         cfg = TrainConfig.from_dict({**BASE, **RUNS[name]})
@@ -218,12 +222,11 @@ def test_sf_rnn_labels_a_replayed_biotac_trial(tmp_path, capsys):
     assert [d["label"] for d in labels] == [classes[i] for i in p_t.argmax(1)]
 
 
-def test_int8_of_a_granular_model(exported, dataset):
+def test_int8_of_a_granular_model(dataset, tmp_path_factory):
     """Two EMD graphs whose loop bodies read main-graph values: the quantiser's reordering
-    must not leave a file that onnx.checker refuses (it did before export/compose.toposorted)."""
-    name, root, _, _, _, _ = exported
-    if name != "sf_rnn":
-        pytest.skip("one granular int8 export is enough (sf_rnn: both EMDs and the coders)")
+    must not leave a file that onnx.checker refuses (it did before export/compose.toposorted).
+    The sf_rnn: both EMDs and the coders."""
+    _, root, _, _, _, _ = _exported("sf_rnn", dataset, tmp_path_factory)
     report = export_run(root / "run", root / "int8.onnx", data=dataset, int8=True,
                         log=lambda s: None)
     assert report["int8"]["label_agreement"] >= 0.9
