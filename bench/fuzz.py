@@ -1,6 +1,8 @@
 """Decoder fuzzing: corrupted streams against ground truth, and the decoder's worst-case speed.
 
-    python bench/fuzz.py --cases N [--seed S] [--jobs J] [--no-speed]
+    python bench/fuzz.py --cases N [--seed S] [--first I] [--jobs J] [--out F] [--no-speed]
+    python bench/fuzz.py --summary CHUNK.json ...
+
 
 Each case is a short stream, binary frames or CSV lines, built from samples whose contents say
 which sample they are (binary: channel 0 holds its index in the case; CSV: the first field), then
@@ -21,7 +23,9 @@ failure columns (each should be 0) are:
 Then the throughput: the decoder on adversarial inputs (noise, runs of 0x01 and 0x02, a MB
 without a delimiter, all-comma lines, ...) in reads of several sizes, each against clean frames
 decoded in the same run at the same read size (the reference). ``--cases`` splits across
-``--jobs`` processes; case ``i`` depends only on ``(seed, i)``.
+``--jobs`` processes; case ``i`` depends only on ``(seed, i)``, so a long run can be cut into
+chunks (``--first``, ``--out``) whose totals ``--summary`` adds up, checking that they cover one
+seed's cases without a hole or an overlap.
 """
 
 from __future__ import annotations
@@ -32,12 +36,12 @@ import random
 import sys
 import time
 import traceback
-from dataclasses import dataclass, field, fields
+from dataclasses import asdict, dataclass, field, fields
 from functools import cache
 
 import numpy as np
 
-from tactile.device.decoder import Gap, Samples, StreamDecoder
+from tactile.device.decoder import REPLAY_WINDOW, Gap, Samples, StreamDecoder
 from tactile.device.info import ChannelSpec, DeviceInfo
 from tactile.device.protocol import MAX_ENCODED, SEQ_MODULO, encode_header, encode_samples
 
@@ -66,6 +70,7 @@ class Totals:
     unrecovered: int = 0
     by_kind: dict = field(default_factory=dict)  # kind -> cases
     first_failure: str = ""  # "seed:index kind column" of the first failing case
+    failing: list = field(default_factory=list)  # "index kind column" of failing cases (<= 100)
 
     def add(self, other: Totals) -> None:
         for f in fields(self):
@@ -74,6 +79,9 @@ class Totals:
                     self.by_kind[k] = self.by_kind.get(k, 0) + v
             elif f.name == "first_failure":
                 self.first_failure = self.first_failure or other.first_failure
+            elif f.name == "failing":
+                self.failing = sorted(self.failing + other.failing,
+                                      key=lambda x: int(x.split()[0]))[:100]
             else:
                 setattr(self, f.name, getattr(self, f.name) + getattr(other, f.name))
 
@@ -95,6 +103,11 @@ class Item:
     ids: tuple[int, int] = (0, 0)  # samples: [first, end) indices in the case
     session: int = 0
     damaged: bool = False
+    orig: bytes = b""  # the frame as sent (with its delimiter); garbage: empty
+
+    def __post_init__(self) -> None:
+        if not self.orig and self.kind != "garbage":
+            self.orig = self.data
 
 
 @cache
@@ -191,7 +204,7 @@ def binary_case(r: random.Random, kind: str):
                 if items[m].kind in ("samples", "header") and items[m].session != it.session:
                     later = m
                     break
-            items.insert(later, Item(it.data, it.kind, it.ids, it.session, it.damaged))
+            items.insert(later, Item(it.data, it.kind, it.ids, it.session, it.damaged, it.orig))
         elif op == "swap" and j + 1 < len(items) and it.session == items[j + 1].session:
             # (not across a reboot: a link does not deliver the rebooted device's frames first)
             items[j], items[j + 1] = items[j + 1], items[j]
@@ -208,6 +221,10 @@ def binary_case(r: random.Random, kind: str):
             items[0].data, items[0].damaged = items[0].data[cut:], True
     if kind == "noise":
         items = [Item(_noise(r, r.randint(1, 3000)), "garbage")]
+    for it in items:
+        # intact: the frame's bytes and its delimiter are all there, whatever was glued in
+        # front of them (bytes inserted at its start, a cut that removed nothing)
+        it.damaged = it.kind != "garbage" and not it.data.endswith(it.orig)
     return items, raw, session, devseq
 
 
@@ -237,12 +254,42 @@ def _expected_binary(items: list[Item], n: int):
     return must, refused & ~honoured
 
 
-def check_binary(events, raw, session, devseq, must, refused, t: Totals) -> str:
-    """Add one case's failures to ``t``; returns the first failing column's name or ''."""
+def restart_reading(items: list[Item], devseq: np.ndarray):
+    """What the stream shows of the documented reading of an ambiguous frame
+    (``device/PROTOCOL.md``, "Restart"): a frame that went back behind its whole run, with a
+    count a fresh device has (below ``REPLAY_WINDOW``) and a header since the last delivered
+    frame, is the first frame of a restarted device, as the same bytes are when a device
+    restarts again. Returns ``reads_as_restart(prev_id, sid)``: sample ``sid`` is the first of
+    an intact frame sent with such a count, and a header came after the first intact frame
+    carrying ``prev_id`` (the sample delivered before it) and before it."""
+    copies: dict[int, list[int]] = {}  # sample id -> positions of intact frames carrying it
+    heads = [pos for pos, it in enumerate(items)
+             if not it.damaged and it.kind in ("header", "bad_header")]
+    for pos, it in enumerate(items):
+        if it.kind == "samples" and not it.damaged:
+            for i in range(*it.ids):
+                copies.setdefault(i, []).append(pos)
+
+    def reads_as_restart(prev_id: int, sid: int) -> bool:
+        if devseq[sid] % SEQ_MODULO >= REPLAY_WINDOW or not copies.get(prev_id):
+            return False
+        first = copies[prev_id][0]
+        return any(first < h < f for f in copies.get(sid, ()) for h in heads)
+
+    return reads_as_restart
+
+
+def check_binary(events, raw, session, devseq, must, refused, t: Totals,
+                 reads_as_restart=None) -> str:
+    """Add one case's failures to ``t``; returns the first failing column's name or ''.
+
+    ``reads_as_restart`` (from :func:`restart_reading`), when given, accepts the documented
+    reading of a frame that went back after a header as a restarted device's first frame."""
     before = {f: getattr(t, f) for f in FAILURES}
     n = len(raw)
     seen = np.zeros(n, bool)
     last_id = -1
+    run_min = n  # smallest id delivered since the last restart gap
     prev = None  # (host seq, id) of the previous delivered sample
     pending: list[Gap] = []
     last_t = None
@@ -269,15 +316,22 @@ def check_binary(events, raw, session, devseq, must, refused, t: Totals) -> str:
                 t.duplicated += 1
                 continue
             seen[sid] = True
-            if sid < last_id:
+            restart = any(g.reason == "restart" for g in pending)
+            # the documented reading: a frame behind its whole run, read as a restarted device's
+            restarted = (sid < last_id and restart and sid < run_min and k == 0
+                         and reads_as_restart is not None and prev is not None
+                         and reads_as_restart(prev[1], sid))
+            if restarted:
+                last_id = sid
+            elif sid < last_id:
                 t.reordered += 1
             last_id = max(last_id, sid)
+            run_min = sid if restart else min(run_min, sid)
             if prev is not None:
                 p_host, p_id = prev
                 jump = host - p_host - 1
                 accounted = sum(g.missing for g in pending if g.reason in ("drop", "rejected"))
-                restart = any(g.reason == "restart" for g in pending)
-                if session[sid] == session[p_id]:
+                if session[sid] == session[p_id] and not restarted:
                     dev_jump = int(devseq[sid] - devseq[p_id]) - 1
                     if restart or jump != dev_jump or accounted != jump:
                         t.bad_gaps += 1
@@ -420,12 +474,15 @@ def run_case(seed: int, index: int, t: Totals) -> None:
             t.samples_sent += len(raw)
             t.bytes_fed += len(data)
             events = feed_in_reads(dec, data, r)
-            failed = check_binary(events, raw, session, devseq, must, refused, t)
+            failed = check_binary(events, raw, session, devseq, must, refused, t,
+                                  restart_reading(items, devseq))
     except Exception:  # noqa: BLE001 - the column counts them
         t.exceptions += 1
         failed = "exceptions: " + traceback.format_exc(limit=3).replace("\n", " | ")
     if failed and not t.first_failure:
         t.first_failure = f"seed {seed} case {index} ({kind}): {failed}"
+    if failed and len(t.failing) < 100:
+        t.failing.append(f"{index} {kind} {failed.split(':')[0]}")
 
 
 def run_range(seed: int, start: int, stop: int) -> Totals:
@@ -439,14 +496,15 @@ def _run_range_args(args) -> Totals:
     return run_range(*args)
 
 
-def run(cases: int, seed: int = 0, jobs: int = 1) -> Totals:
-    """Run cases ``0..cases-1`` of ``seed``, split over ``jobs`` processes."""
+def run(cases: int, seed: int = 0, jobs: int = 1, first: int = 0) -> Totals:
+    """Run cases ``first..first+cases-1`` of ``seed``, split over ``jobs`` processes."""
     if jobs <= 1:
-        return run_range(seed, 0, cases)
+        return run_range(seed, first, first + cases)
     import multiprocessing
 
     step = max(1, min(10_000, cases // (jobs * 8)))
-    parts = [(seed, a, min(a + step, cases)) for a in range(0, cases, step)]
+    stop = first + cases
+    parts = [(seed, a, min(a + step, stop)) for a in range(first, stop, step)]
     total = Totals()
     with multiprocessing.get_context("fork").Pool(jobs) as pool:
         for part in pool.imap_unordered(_run_range_args, parts):
@@ -541,24 +599,67 @@ def throughput(nbytes: int = 1_000_000, reads=(1, 64, 4096)) -> list[dict]:
     return rows
 
 
-def main(argv: list[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--cases", type=int, default=10_000)
-    ap.add_argument("--seed", type=int, default=0)
-    ap.add_argument("--jobs", type=int, default=1)
-    ap.add_argument("--no-speed", action="store_true", help="skip the throughput part")
-    ap.add_argument("--speed-bytes", type=int, default=1_000_000)
-    args = ap.parse_args(argv)
-    t0 = time.perf_counter()
-    t = run(args.cases, args.seed, args.jobs)
-    dt = time.perf_counter() - t0
-    print(f"cases {t.cases} (seed {args.seed}, {dt:.0f} s, {args.jobs} jobs): "
+def _print_totals(t: Totals, what: str) -> None:
+    print(f"cases {t.cases} ({what}): "
           f"{t.samples_sent} samples sent, {t.samples_expected} expected, "
           f"{t.samples_delivered} delivered, {t.bytes_fed / 1e6:.1f} MB fed")
     print("  " + "  ".join(f"{f} {getattr(t, f)}" for f in FAILURES))
     print("  kinds: " + ", ".join(f"{k} {v}" for k, v in sorted(t.by_kind.items())))
     if t.first_failure:
         print("  first failure: " + t.first_failure)
+    if t.failing:
+        print("  failing cases: " + ", ".join(t.failing))
+
+
+def summary(paths: list[str]) -> int:
+    """Merge chunk files written by ``--out``: one seed, ranges that neither overlap nor leave
+    a hole. Prints the merged totals; exit status 1 on a failure or a bad set of chunks."""
+    chunks = []
+    for path in paths:
+        with open(path) as f:
+            d = json.load(f)
+        chunks.append((d["first"], d["first"] + d["totals"]["cases"], d["seed"], path, d))
+    chunks.sort()
+    seeds = {c[2] for c in chunks}
+    if len(seeds) != 1:
+        print(f"chunks of seeds {sorted(seeds)}: a summary is of one seed", file=sys.stderr)
+        return 1
+    total, end = Totals(), chunks[0][0]
+    for a, b, _, path, d in chunks:
+        if a != end:
+            print(f"{path}: starts at case {a}, the chunks before end at {end}", file=sys.stderr)
+            return 1
+        end = b
+        total.add(Totals(**d["totals"]))
+    spent = sum(c[4]["seconds"] for c in chunks)
+    _print_totals(total, f"seed {seeds.pop()}, cases {chunks[0][0]}..{end - 1}, "
+                         f"{len(chunks)} chunks, {spent:.0f} s")
+    return 1 if total.failures else 0
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--cases", type=int, default=10_000)
+    ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--first", type=int, default=0, help="index of the first case to run")
+    ap.add_argument("--jobs", type=int, default=1)
+    ap.add_argument("--out", help="also write the totals to this JSON file (a chunk)")
+    ap.add_argument("--summary", nargs="+", metavar="CHUNK",
+                    help="merge chunk files written by --out and print their totals (no run)")
+    ap.add_argument("--no-speed", action="store_true", help="skip the throughput part")
+    ap.add_argument("--speed-bytes", type=int, default=1_000_000)
+    args = ap.parse_args(argv)
+    if args.summary:
+        return summary(args.summary)
+    t0 = time.perf_counter()
+    t = run(args.cases, args.seed, args.jobs, args.first)
+    dt = time.perf_counter() - t0
+    _print_totals(t, f"seed {args.seed}, cases {args.first}..{args.first + args.cases - 1}, "
+                     f"{dt:.0f} s, {args.jobs} jobs")
+    if args.out:
+        with open(args.out, "w") as f:
+            json.dump({"seed": args.seed, "first": args.first, "seconds": round(dt, 1),
+                       "totals": asdict(t)}, f)
     if not args.no_speed:
         rows = throughput(args.speed_bytes)
         print(f"{'input':28s} {'mode':6s} {'read':>5s} {'kB/s':>8s} {'clean':>8s} {'ratio':>6s}")
