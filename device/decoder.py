@@ -409,7 +409,10 @@ class StreamDecoder:
         header since the last frame (a device sends its header when it starts), or with a count
         no device that started within ``replay_window`` samples has, and its device
         time fits (by the rate when one is known, else it is earlier by what a rate between
-        1 Hz and 1 MHz explains); else the device restarted."""
+        1 Hz and 1 MHz explains); else the device restarted. So a frame behind its whole run
+        with a fresh count after a header is a restart even when its time fits: those are the
+        bytes of a device that restarted again (``device/PROTOCOL.md``, "Restart"), and
+        reading them as late would join its next frames to the run before it."""
         end = min(s_u + len(raw), self._dev_next_u)
         period = self._period_us(estimate_only=True)
         matched = 0
