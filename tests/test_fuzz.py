@@ -127,3 +127,26 @@ def test_the_restart_reading_is_accepted_only_where_the_rule_gives_it():
         fuzz.check_binary(events, raw, session, devseq, must, refused, t,
                           fuzz.restart_reading(items(count0, header), devseq))
         assert (t.reordered, t.bad_gaps) == ((0, 0) if ok else (1, 1)), (count0, header)
+
+
+def test_chunks_add_up_to_the_whole_run(tmp_path, capsys):
+    """--first/--out chunks of one seed merge (--summary) to the totals of one run over their
+    range; chunks that overlap, leave a hole or mix seeds are refused."""
+    whole = fuzz.run_range(7, 0, 60)
+    for first, cases in ((0, 25), (25, 35)):
+        fuzz.main(["--seed", "7", "--first", str(first), "--cases", str(cases), "--no-speed",
+                   "--out", str(tmp_path / f"c{first}.json")])
+    fuzz.main(["--seed", "8", "--cases", "5", "--no-speed", "--out", str(tmp_path / "s8.json")])
+    fuzz.main(["--seed", "7", "--first", "20", "--cases", "5", "--no-speed",
+               "--out", str(tmp_path / "o20.json")])
+    fuzz.main(["--seed", "7", "--first", "70", "--cases", "3", "--no-speed",
+               "--out", str(tmp_path / "h70.json")])
+    capsys.readouterr()
+    assert fuzz.main(["--summary", str(tmp_path / "c25.json"), str(tmp_path / "c0.json")]) == 0
+    out = capsys.readouterr().out
+    assert out.startswith("cases 60 (seed 7, cases 0..59, 2 chunks, ")
+    assert f"{whole.samples_sent} samples sent, {whole.samples_expected} expected, " \
+           f"{whole.samples_delivered} delivered" in out
+    for bad in (["c0.json", "s8.json"], ["c0.json", "o20.json"],
+                ["c0.json", "c25.json", "h70.json"]):
+        assert fuzz.main(["--summary", *(str(tmp_path / b) for b in bad)]) == 1
