@@ -3,7 +3,6 @@
     python bench/fuzz.py --cases N [--seed S] [--first I] [--jobs J] [--out F] [--no-speed]
     python bench/fuzz.py --summary CHUNK.json ...
 
-
 Each case is a short stream, binary frames or CSV lines, built from samples whose contents say
 which sample they are (binary: channel 0 holds its index in the case; CSV: the first field), then
 corrupted in one or more of the ways a serial link and a hostile device do it, and fed to a
