@@ -1,15 +1,17 @@
 """Benchmark: EMD as tensor ops (torch eager, onnxruntime) against PyEMD, one thread.
 
-    python bench/emd.py [--repeats 3] [--pieces | --profile | --node-costs | --layouts | --batches]
+    python bench/emd.py [--repeats 3] [--case CxTxM ...]
+                        [--pieces | --profile | --node-costs | --layouts | --batches]
 
-Prints, for 8-channel 50-sample windows and 1-channel 1000-sample windows (4 IMFs x 10 sifts,
-the same windows for every implementation, measured in this run): milliseconds per window and
-the speed-up over PyEMD ``EMD(FIXE=10).emd(x, max_imf=4)`` looping over channels; then the ONNX
-graph's export time, node counts, file size and session creation time. The implementations are
-timed in ``--repeats`` rounds, each running every one of them in turn (after a warm-up round),
-and each timing is the fastest of its rounds (PyEMD's too): on a shared machine, interference
-only ever adds time, so the minimum is the steadiest estimate of what the code costs, and a
-slow spell of the host falls on all of them alike. Instead of that:
+Prints, for 8-channel 50-sample windows and 1-channel 1000-sample windows (4 IMFs x 10 sifts)
+and 1-channel 1100-sample windows (8 IMFs x 10 sifts: the BioTac's vibration, 0.5 s at 2.2 kHz),
+the same windows for every implementation, measured in this run (``--case`` picks some):
+milliseconds per window and the speed-up over PyEMD ``EMD(FIXE=10).emd(x, max_imf=M)`` looping
+over channels; then the ONNX graph's export time, node counts, file size and session creation
+time. The implementations are timed in ``--repeats`` rounds, each running every one of them in
+turn (after a warm-up round), and each timing is the fastest of its rounds (PyEMD's too): on a
+shared machine, interference only ever adds time, so the minimum is the steadiest estimate of
+what the code costs, and a slow spell of the host falls on all of them alike. Instead of that:
 
 * ``--pieces`` times each piece of one sift on its own, at batch 1 (8 rows of 50 samples) or,
   with ``--rows 2048``, at batch 256 (where element throughput, not node count, decides);
@@ -100,7 +102,14 @@ def session(path: Path) -> ort.InferenceSession:
     return ort.InferenceSession(str(path), opts, providers=["CPUExecutionProvider"])
 
 
-def bench_shape(n_channels: int, n_time: int, n_ref: int, repeats: int, tmp: Path) -> list[str]:
+CASES = ((8, 50, 4), (1, 1000, 4), (1, 1100, 8))
+"""Default (channels, samples, IMFs) cases: the pen's 8 x 50 windows, a long window, and the
+BioTac vibration's 0.5 s at 2.2 kHz with the granular models' 8 IMFs."""
+
+
+def bench_shape(
+    n_channels: int, n_time: int, n_ref: int, repeats: int, tmp: Path, n_imfs: int = N_IMFS
+) -> list[str]:
     x = signal_windows(256, n_channels, n_time)
     x32 = x.astype(np.float32)
     ref = PyEMD(FIXE=N_SIFTS, spline_kind="cubic", nbsym=2, extrema_detection="simple")
@@ -108,17 +117,18 @@ def bench_shape(n_channels: int, n_time: int, n_ref: int, repeats: int, tmp: Pat
     def pyemd_loop():
         for w in x[:n_ref]:
             for ch in w:
-                ref.emd(ch, max_imf=N_IMFS)
+                ref.emd(ch, max_imf=n_imfs)
 
     start = time.perf_counter()
-    path = tmp / f"emd_{n_channels}x{n_time}.onnx"
-    onnx_model = export_emd_onnx(path, N_IMFS, N_SIFTS, n_channels, n_time)
+    path = tmp / f"emd_{n_channels}x{n_time}x{n_imfs}.onnx"
+    onnx_model = export_emd_onnx(path, n_imfs, N_SIFTS, n_channels, n_time)
     t_export = time.perf_counter() - start
     start = time.perf_counter()
     sess = session(path)
     t_session = time.perf_counter() - start
-    sess_256 = session(path)  # its own session: batch 256 runs the other loop body
-    model = EMD(N_IMFS, N_SIFTS)
+    sess_2 = session(path)  # a session per batch size (docs/emd.md: onnxruntime runs a
+    sess_256 = session(path)  # body slower at a batch size other than the first it ran)
+    model = EMD(n_imfs, N_SIFTS)
     # Every implementation runs once in each round (after one warm-up round), and each keeps its
     # fastest round: a host that slows down for a while hits them all alike, so the ratios stay
     # fair (timed one after the other, a slow spell could fall on the reference alone).
@@ -127,6 +137,8 @@ def bench_shape(n_channels: int, n_time: int, n_ref: int, repeats: int, tmp: Pat
         "torch_1": (lambda: [model(torch.from_numpy(x32[i : i + 1])) for i in range(8)], 8),
         "torch_256": (lambda: model(torch.from_numpy(x32)), 256),
         "ort_1": (lambda: [sess.run(None, {"x_in": x32[i : i + 1]}) for i in range(32)], 32),
+        "ort_2": (lambda: [sess_2.run(None, {"x_in": x32[i : i + 2]}) for i in range(0, 32, 2)],
+                  32),
         "ort_256": (lambda: sess_256.run(None, {"x_in": x32}), 256),
     }
     best = {name: float("inf") for name in runs}
@@ -142,12 +154,13 @@ def bench_shape(n_channels: int, n_time: int, n_ref: int, repeats: int, tmp: Pat
         ("torch eager, batch 1", best["torch_1"]),
         ("torch eager, batch 256", best["torch_256"]),
         ("onnxruntime, batch 1", best["ort_1"]),
+        ("onnxruntime, batch 2", best["ort_2"]),
         ("onnxruntime, batch 256", best["ort_256"]),
     ]
     fewest, most = sift_path_nodes(onnx_model, n_time)
     large = "{} to {}".format(*sift_path_nodes(onnx_model, n_time, large=True))
     lines = [
-        f"## {n_channels} channel(s) x {n_time} samples, {N_IMFS} IMFs x {N_SIFTS} sifts",
+        f"## {n_channels} channel(s) x {n_time} samples, {n_imfs} IMFs x {N_SIFTS} sifts",
         "",
         "| implementation | ms / window | x PyEMD |",
         "|---|---:|---:|",
@@ -441,7 +454,19 @@ def main(argv: list[str] | None = None) -> int:
                         help="only time the few-row against the many-row layout at each batch size")
     parser.add_argument("--batches", action="store_true",
                         help="only measure how far a window's IMFs move with the batch size")
+    parser.add_argument("--case", action="append", metavar="CxTxM",
+                        help="time only this case: channels x samples x IMFs, e.g. 1x1100x8 "
+                        "(repeatable; default: " + ", ".join("x".join(map(str, c)) for c in CASES)
+                        + ")")
     args = parser.parse_args(argv)
+    cases = CASES
+    if args.case:
+        try:
+            cases = tuple(tuple(int(v) for v in c.lower().split("x")) for c in args.case)
+            if any(len(c) != 3 or min(c) < 1 for c in cases):
+                raise ValueError
+        except ValueError:
+            parser.error(f"--case takes channels x samples x IMFs, e.g. 1x1100x8, got {args.case}")
     if args.rows is not None and (not args.pieces or args.rows < 1):
         parser.error(f"--rows takes a count of at least 1 and goes with --pieces, got {args.rows}")
     torch.set_num_threads(1)
@@ -464,8 +489,9 @@ def main(argv: list[str] | None = None) -> int:
                 print("\n".join(bench_node_costs(Path(tmp), args.repeats)))
         return 0
     with tempfile.TemporaryDirectory() as tmp:
-        lines = bench_shape(8, 50, 20, args.repeats, Path(tmp))
-        lines += bench_shape(1, 1000, 20, args.repeats, Path(tmp))
+        lines = []
+        for n_channels, n_time, n_imfs in cases:
+            lines += bench_shape(n_channels, n_time, 20, args.repeats, Path(tmp), n_imfs)
     print("\n".join(lines))
     return 0
 

@@ -6,6 +6,7 @@ linear classifier on EMD energies and a logistic regression on per-window spectr
 
     python bench/train_experiments.py --out runs/experiments          # the full runs
     python bench/train_experiments.py --out runs/smoke --users 8 --seconds 20 --epochs 3  # smoke
+    python bench/train_experiments.py --out runs/experiments --only exp2 --rows "with EMD"
 
 Each simulated take is one user session of 60 s; users are split into train, validation and test,
 so the test users are never seen in training. Training uses every core given by --threads.
@@ -51,6 +52,7 @@ PAPER = {
 }
 EMD_CHANNELS_PEN = ("pressure_0", "accel_x", "accel_y", "accel_z")
 EMD_CHANNELS_HAPMAT = ("accel_x", "accel_y", "accel_z")
+ROWS = ("without EMD", "with EMD")
 BAND_HZ = 5.0  # the logistic baseline's band width: 0-5, 5-10, ... up to the Nyquist frequency
 
 
@@ -165,6 +167,8 @@ def main() -> None:
     p.add_argument("--only", choices=("exp1", "exp2", "hapmat"), action="append")
     p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
                    help="change a default for every run, as tactile-train --set")
+    p.add_argument("--rows", choices=ROWS, action="append",
+                   help="experiments 1 and 2: only this row (repeatable; default both)")
     p.add_argument("--seeds", type=_seeds, default=(0, 1, 2),
                    help="HapMat: comma-separated seeds, one LSTM run each (default 0,1,2)")
     args = p.parse_args()
@@ -185,6 +189,8 @@ def main() -> None:
         sim = base.replace(hop=25)
         for label, cfg in (("without EMD", sim),
                            ("with EMD", sim.replace(emd_channels=list(EMD_CHANNELS_PEN)))):
+            if args.rows and label not in args.rows:
+                continue
             m = run_one(f"{exp}-{label.replace(' ', '-')}", data, args.out, cfg)
             print(f"**{label}**: test accuracy {m['accuracy']:.3f} on {m['windows']} windows "
                   f"of unseen users (train {m['split_windows']['train']} windows); shifted "

@@ -193,12 +193,23 @@ class StreamDecoder:
         Never raises on any bytes: what cannot be used is counted in :attr:`stats`."""
         self.stats.bytes_in += len(data)
         buf = self._buf
-        if (self.mode == "binary" and b"\x00" not in data
-                and len(buf) + len(data) <= MAX_ENCODED):
-            # no delimiter, nothing to cut: what _feed_binary would do is only to remember where
-            # the search for one stopped (the common case of small reads, kept cheap)
-            buf += data
-            self._scan = len(buf)
+        # No delimiter of the mode in the read and nothing to cut: all the full path would do is
+        # append, and remember where the search for a delimiter stopped (small reads, kept cheap;
+        # `0 in data` tests for a zero byte several times faster than `b"\x00" in data`)
+        mode = self.mode
+        if mode == "binary":
+            if 0 not in data and len(buf) + len(data) <= MAX_ENCODED:
+                buf += data
+                self._scan = len(buf)
+                return []
+        elif mode == "csv":
+            if 10 not in data and len(buf) + len(data) <= MAX_CSV_LINE:
+                buf += data
+                self._scan = len(buf)
+                return []
+        elif (0 not in data and 10 not in data
+              and len(buf) + len(data) <= AUTO_PENDING):
+            buf += data  # _detect looks at completed chunks and lines only
             return []
         buf += data
         if self.mode == "auto":
@@ -409,7 +420,10 @@ class StreamDecoder:
         header since the last frame (a device sends its header when it starts), or with a count
         no device that started within ``replay_window`` samples has, and its device
         time fits (by the rate when one is known, else it is earlier by what a rate between
-        1 Hz and 1 MHz explains); else the device restarted."""
+        1 Hz and 1 MHz explains); else the device restarted. So a frame behind its whole run
+        with a fresh count after a header is a restart even when its time fits: those are the
+        bytes of a device that restarted again (``device/PROTOCOL.md``, "Restart"), and
+        reading them as late would join its next frames to the run before it."""
         end = min(s_u + len(raw), self._dev_next_u)
         period = self._period_us(estimate_only=True)
         matched = 0

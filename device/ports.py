@@ -13,8 +13,11 @@ only to the same pen.
   device errors midway (an unplug) it raises and discards what it had read, up to ``n - 1``
   bytes. With ``timeout=0`` its posix and socket reads make one ``os.read``/``recv`` and return.
 * :func:`reconnect` reopens the port (or the pen under a new name, found by its USB serial
-  number or by auto-detection) and accepts it only when its header shows the same pen
-  (:class:`PenId`).
+  number or among the likely pens listed) and accepts it only when its header shows the same
+  pen (:class:`PenId`).
+
+:class:`~tactile.device.connection.Connection` is the loop built on these that every command
+reading a pen live uses.
 """
 
 from __future__ import annotations
@@ -33,6 +36,7 @@ import serial
 
 from tactile.device.decoder import Header, StreamDecoder
 from tactile.device.info import DeviceInfo
+from tactile.device.portlist import looks_like_pen
 from tactile.errors import DeviceError, TactileError
 
 T = TypeVar("T")
@@ -198,13 +202,6 @@ def usb_serial(port: str) -> str | None:
     return None
 
 
-def ports_with_serial(number: str) -> list[str]:
-    """The devices listed with USB serial number ``number`` (the pen under its new name)."""
-    from serial.tools import list_ports
-
-    return [p.device for p in list_ports.comports() if p.serial_number == number]
-
-
 @dataclass(frozen=True)
 class PenId:
     """What a reopened port must show to be taken for the pen that was unplugged.
@@ -242,6 +239,15 @@ class PenId:
                f"{mine.sample_rate_hz:g} Hz / {mine.protocol_version}"
 
 
+@dataclass(frozen=True)
+class Probe:
+    """What :func:`probe` found on a reopened port."""
+
+    why: str | None = None  # why it is not the pen; None: it is
+    data: bytes = b""  # the bytes read, when it is the pen (the caller decodes them)
+    other: bool = False  # it showed another device (a header), not merely nothing yet
+
+
 def probe(
     link: serial.SerialBase,
     pen: PenId,
@@ -249,13 +255,12 @@ def probe(
     stop: dict,
     wait: float = 0.05,
     seconds: float = PROBE_S,
-) -> tuple[str | None, bytes]:
+) -> Probe:
     """Read a reopened port until its first header (at most ``seconds`` or
-    :data:`PROBE_BYTES`) and compare it with ``pen``. Returns ``(None, bytes read)`` for the
-    same pen (the caller feeds those bytes to its own decoder: nothing is lost), else
-    ``(why not, b"")``."""
+    :data:`PROBE_BYTES`) and compare it with ``pen``. Same pen: the bytes read come back in
+    :attr:`Probe.data` (the caller feeds them to its own decoder: nothing is lost)."""
     if pen.info is None:
-        return None, b""
+        return Probe()
     dec = new_decoder()
     got = bytearray()
     until = time.monotonic() + seconds
@@ -265,16 +270,21 @@ def probe(
         try:
             events = dec.feed(data) if data else []
         except TactileError as e:  # a decoder that gives up on these bytes: not our pen
-            return f"unreadable ({e})", b""
+            return Probe(f"unreadable ({e})", other=True)
         for ev in events:
             if isinstance(ev, Header):
                 why = pen.differs(ev.info)
-                return (None, bytes(got)) if why is None else (why, b"")
+                return Probe(data=bytes(got)) if why is None else Probe(why, other=True)
         if lost is not None:
-            return f"lost again ({lost})", b""
+            return Probe(f"lost again ({lost})")
     if stop["flag"]:
-        return "stopped", b""
-    return f"no header in {time.monotonic() - until + seconds:.1f} s ({len(got)} B)", b""
+        return Probe("stopped")
+    return Probe(f"no header in {time.monotonic() - until + seconds:.1f} s ({len(got)} B)")
+
+
+def _key(name: str) -> str:
+    """What two names of one device have in common (a URL is its own)."""
+    return name if "://" in name else os.path.realpath(name)
 
 
 def reconnect(
@@ -286,49 +296,71 @@ def reconnect(
     say: Callable[[str], None],
     deadline: float = math.inf,
     status_every: float = 5.0,
-    find: Callable[[], str | None] | None = None,
+    detect: bool = False,
     wait: float = 0.05,
 ) -> tuple[serial.SerialBase, str, bytes] | None:
     """Reopen the pen after an unplug: ``(link, its name, the bytes its probe read)``, or None
     when ``stop["flag"]`` is set or ``deadline`` passes first.
 
-    Candidates, tried with backoff (0.1 s doubling to 2 s): ``port`` itself; the devices with the
-    pen's USB serial number (``pen.usb``: it came back under another name); and ``find()``,
-    the auto-detection that found the pen at start, if it did. Each one that opens must show
-    the pen's header (:func:`probe`); one that does not is closed, said once, and looked at
-    again later (it may be the pen, still starting). A busy port is waited for, the holder
-    said once. A port that can never open raises its :class:`DeviceError` at once."""
+    Candidates, tried with backoff (0.1 s doubling to 2 s): ``port`` itself; the devices listed
+    with the pen's USB serial number (``pen.usb``: it came back under another name); and, with
+    ``detect`` (the pen was found by auto-detection) or once ``port`` has shown another device,
+    every likely pen listed (:func:`~tactile.device.portlist.looks_like_pen`; only when there
+    is one, as at start, before the pen's header is known). A device listed with another USB
+    serial number than the pen's is not opened. Each one that opens must show the pen's header
+    (:func:`probe`); one that does not is closed and said once; ``port`` is looked at again
+    later (it may be the pen, still starting), another name that showed another device only
+    once it has left the listing and come back. A busy port is waited for, the holder said
+    once. A port that can never open raises its :class:`DeviceError` at once."""
+    from serial.tools import list_ports
+
     said: set[str] = set()
+    others: set[str] = set()  # detected names that showed another device, while listed
+    look_around = [detect]
 
     def once(msg: str) -> None:
         if msg not in said:
             said.add(msg)
             say(msg)
 
-    def attempt() -> tuple[serial.SerialBase, str, bytes] | None:
+    def candidates() -> tuple[list[str], dict[str, str]]:
+        listed = [(p, getattr(p, "serial_number", None)) for p in list_ports.comports()]
+        numbers = {_key(p.device): n for p, n in listed if n}
         names = [port]
         if pen.usb:
-            names += ports_with_serial(pen.usb)
-        if find is not None:
-            try:
-                names.append(find())
-            except TactileError:  # no or several likely pens right now: look again later
-                pass
-        for name in dict.fromkeys(n for n in names if n):
-            try:
-                link = open_port(name, baud)
-            except PortBusy as e:
-                once(str(e))
-                continue
-            except PortAbsent:
-                continue
-            left = max(0.0, min(PROBE_S, deadline - time.monotonic()))
-            why, data = probe(link, pen, new_decoder, stop, wait, left)
-            if why is None:
-                return link, name, data
-            link.close()
-            if why != "stopped":
-                once(f"{name} is not the pen: {why}; still looking")
+            names += [p.device for p, n in listed if n == pen.usb]
+        if look_around[0]:
+            likely = [p.device for p, _ in listed if looks_like_pen(p)]
+            names += likely if pen.info is not None or len(likely) == 1 else []
+        others.intersection_update(p.device for p, _ in listed)
+        return [n for n in dict.fromkeys(names) if n == port or n not in others], numbers
+
+    def attempt() -> tuple[serial.SerialBase, str, bytes] | None:
+        names, numbers = candidates()
+        for name in names:
+            number = numbers.get(_key(name))
+            if pen.usb and number and number != pen.usb:
+                found = Probe(f"USB serial number {number}, not {pen.usb}", other=True)
+            else:
+                try:
+                    link = open_port(name, baud)
+                except PortBusy as e:
+                    once(str(e))
+                    continue
+                except PortAbsent:
+                    continue
+                left = max(0.0, min(PROBE_S, deadline - time.monotonic()))
+                found = probe(link, pen, new_decoder, stop, wait, left)
+                if found.why is None:
+                    return link, name, found.data
+                link.close()
+                if found.why == "stopped":
+                    return None
+            once(f"{name} is not the pen: {found.why}; still looking")
+            if found.other and name == port:  # its name went to another device: look around
+                look_around[0] = True
+            elif found.other:
+                others.add(name)
         return None
 
     got = keep_trying(attempt, stop, say, "the pen" if pen.info else port, deadline,

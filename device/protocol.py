@@ -259,8 +259,11 @@ def find_frame(chunk: bytes, width: int | None = None) -> tuple[
     (``"crc"``: it has a frame's structure, but the CRC differs; ``"malformed"``: anything else).
 
     ``width``, when known, is the channel count a samples frame found in the search must have.
-    The search costs O(len(chunk)) whatever the bytes (see :class:`_SuffixSearch`).
+    The search costs O(len(chunk)) whatever the bytes (see :class:`_SuffixSearch`). A chunk
+    holding a delimiter (0x00) is a caller's error: ValueError.
     """
+    if 0 in chunk:
+        raise ValueError("find_frame: the chunk holds a delimiter (0x00); split at them first")
     return _SuffixSearch(chunk, width).run()
 
 

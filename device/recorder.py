@@ -21,14 +21,18 @@ from pathlib import Path
 
 import tactile.device  # noqa: F401  (registers sim://)
 from tactile.cli import Parser, add_debug, float_in, int_in, run, started
+from tactile.device.connection import Connection, LinkSettings, Lost, Reconnected
 from tactile.device.decoder import Gap, Header, Samples, StreamDecoder
 from tactile.device.info import DeviceInfo
 from tactile.device.portlist import find_port
-from tactile.device.ports import PenId, open_port, read_some, reconnect, usb_serial
 from tactile.device.recording import TakeWriter, check_label, dataset_folder
 from tactile.errors import DeviceError
 
-MAX_EARLY = 100_000  # samples held while waiting for the first header (binary mode)
+MAX_EARLY = 100_000
+"""Samples held while waiting for the device's first header (a binary device's samples cannot
+be written before it says what they are): 1000 s of a 100 Hz pen, which sends its header every
+second; at most 1.6 MB of counts for 8 channels. One more is an error (exit 2) that says none
+of them was recorded."""
 
 
 @dataclass
@@ -38,6 +42,7 @@ class RecordResult:
     reconnects: int = 0
     stats: dict = field(default_factory=dict)
     stopped_by: str | None = None  # the signal that ended the recording, if one did
+    unrecorded: int = 0  # samples that came before any device header: not in any take
 
 
 class Recorder:
@@ -52,11 +57,14 @@ class Recorder:
         self.max_samples = math.inf  # set from the device's rate when its header arrives
         self.writer: TakeWriter | None = None
         self.early: list[Samples | Gap] = []  # before the first header: kept, in order
+        self.early_samples = 0  # the samples in it (at most MAX_EARLY)
         self.unfit = 0  # samples whose width is not the header's (this take)
         self.result = RecordResult()
 
     def handle(self, events: list, decoder: StreamDecoder) -> int:
-        """Write the events; returns the number of samples written."""
+        """Write the decoder's events (a link's :class:`~tactile.device.connection.Lost`
+        flushes the take, a :class:`~tactile.device.connection.Reconnected` is counted);
+        returns the number of samples written."""
         written = 0
         for ev in events:
             if isinstance(ev, Header):
@@ -68,13 +76,42 @@ class Recorder:
                     for e in self.early:
                         written += self._put(e)
                     self.early.clear()
+                    self.early_samples = 0
+            elif isinstance(ev, Lost):
+                if self.writer is not None:
+                    self.writer.flush()
+            elif isinstance(ev, Reconnected):
+                self.result.reconnects += 1
+                if self.early_samples:  # whose header they were is now beyond knowing
+                    self._unrecorded("the port was lost before the device's header came")
+            elif not isinstance(ev, (Samples, Gap)):
+                continue
             elif self.writer is None:
-                if len(self.early) >= MAX_EARLY:
-                    raise DeviceError("no header from the device after 100000 samples")
-                self.early.append(ev)
+                self._hold(ev)
             else:
                 written += self._put(ev)
         return written
+
+    def _hold(self, ev: Samples | Gap) -> None:
+        """Keep ``ev`` until the first header, at most :data:`MAX_EARLY` samples."""
+        n = len(ev.raw) if isinstance(ev, Samples) else 0
+        if self.early_samples + n > MAX_EARLY or len(self.early) >= MAX_EARLY:
+            self.result.unrecorded += self.early_samples + n
+            self.early.clear()
+            self.early_samples = 0
+            raise DeviceError(
+                f"no device header in the first {self.result.unrecorded} samples: none of them "
+                "is recorded (a binary pen sends its header every second)")
+        self.early.append(ev)
+        self.early_samples += n
+
+    def _unrecorded(self, why: str) -> None:
+        """Give up the samples held for want of a header: counted, and said."""
+        n, self.early_samples = self.early_samples, 0
+        self.early.clear()
+        self.result.unrecorded += n
+        _say(f"{n} sample(s) that came before any device header are not recorded: {why}",
+             progress=True)
 
     def _put(self, ev: Samples | Gap) -> int:
         room = self.max_samples - self.result.samples
@@ -111,8 +148,12 @@ class Recorder:
             writer.close(complete)
 
     def close(self, decoder: StreamDecoder, complete: bool = True) -> None:
-        """Close the take (``complete``: False when the recording ended on an error)."""
+        """Close the take (``complete``: False when the recording ended on an error). Samples
+        still held for want of a header are counted in ``result.unrecorded``."""
         self._close(decoder, complete)
+        self.result.unrecorded += self.early_samples
+        self.early.clear()
+        self.early_samples = 0
         self.result.stats = decoder.stats.as_dict()
 
 
@@ -125,8 +166,11 @@ def record(
     csv_rate_hz: float = 100.0,
     stall_timeout: float = 2.0,
     progress: bool = True,
+    auto: bool = False,
 ) -> RecordResult:
-    """Record until ``seconds`` of samples are written, or SIGINT/SIGTERM."""
+    """Record until ``seconds`` of samples are written, or SIGINT/SIGTERM. ``auto``: ``port``
+    was auto-detected, and after an unplug the pen is looked for among the likely pens too (it
+    may come back under another name)."""
     rec = Recorder(out, label, port, seconds=seconds)
     decoder = StreamDecoder(csv_rate_hz=csv_rate_hz)
     stop = {"flag": False}
@@ -140,66 +184,42 @@ def record(
     if early:  # a signal while the command was starting: no port, no take
         stop["flag"] = True
         rec.result.stopped_by = rec.result.stopped_by or early
-    link = None
-    stalled = False  # one message per silence, and one when the data come back
+    settings = LinkSettings(port, baud, auto=auto, stall_timeout=stall_timeout, poll=0.1)
+    conn = Connection(settings, decoder, stop, lambda m: _say(m, progress))
     try:
         if not stop["flag"]:
-            link = open_port(port, baud)
-        usb = usb_serial(port)  # to find the pen again under another name
-        last_data = last_report = time.monotonic()
+            conn.open()
+        last_report = time.monotonic()
         while not stop["flag"]:
-            data, lost = read_some(link, wait=0.1)  # the bytes read before an unplug are kept
-            if lost is not None:
-                if data:
-                    rec.handle(decoder.feed(data), decoder)
-                _say(f"port lost ({lost}); reconnecting", progress=True)
-                if rec.writer:
-                    rec.writer.flush()
-                link.close()
-                got = reconnect(port, baud, PenId(decoder.info, usb),
-                                lambda: StreamDecoder(csv_rate_hz=csv_rate_hz), stop,
-                                lambda m: _say(m, progress=True), wait=0.1)
-                if got is None:
-                    link = None
-                    break
-                link, _, early = got
-                rec.result.reconnects += 1
-                decoder.reconnected()
-                if early:  # what the probe read to check the header: the pen's data
-                    rec.handle(decoder.feed(early), decoder)
-                last_data, stalled = time.monotonic(), False
-                continue
+            chunk = conn.read()
+            if chunk is None:  # stopped while the pen was away
+                break
+            rec.handle(chunk.events, decoder)
             now = time.monotonic()
-            if data:
-                if stalled:
-                    _say(f"data again after a {now - last_data:.1f} s silence", progress=True)
-                last_data, stalled = now, False
-                rec.handle(decoder.feed(data), decoder)
-            elif not stalled and now - last_data > stall_timeout:
-                stalled = True
-                _say(f"no data for {now - last_data:.1f} s", progress=True)
-            rate = decoder.info.sample_rate_hz if decoder.info else csv_rate_hz
             if progress and now - last_report >= 1.0:
                 last_report = now
-                silent = now - last_data if stalled else None
-                _progress(label, rec.result.samples / rate, seconds, decoder, silent)
+                rate = decoder.info.sample_rate_hz if decoder.info else csv_rate_hz
+                _progress(label, rec.result.samples / rate, seconds, decoder,
+                          conn.silent_for(now), rec.early_samples)
             if rec.result.samples >= rec.max_samples:
                 break
     finally:
         rec.close(decoder, complete=sys.exc_info()[0] is None)  # an error: not complete
-        if link is not None:  # None: stopped before opening it, or while waiting to reconnect
-            link.close()
+        conn.close()
         for s, h in old.items():
             signal.signal(s, h)
     return rec.result
 
 
 def _progress(
-    label: str, done_s: float, total_s: float, decoder: StreamDecoder, silent: float | None
+    label: str, done_s: float, total_s: float, decoder: StreamDecoder, silent: float | None,
+    held: int = 0,
 ) -> None:
     st = decoder.stats
     total = "" if math.isinf(total_s) else f" / {total_s:.0f} s"
     quiet = "" if silent is None else f"  no data for {silent:.1f} s"
+    if held:
+        quiet += f"  no device header yet: {held} samples held"
     _say(
         f"[{label}] {done_s:6.1f} s{total}  samples {st.samples}  gaps {st.gaps} "
         f"(lost {st.samples_lost})  errors {st.errors}{quiet}",
@@ -239,11 +259,12 @@ def build_parser() -> argparse.ArgumentParser:
 def _main(args: argparse.Namespace) -> int:
     check_label(args.label)  # before the port opens: a mistake costs no take
     dataset_folder(args.out)
-    if args.port is None:
+    auto = args.port is None  # found by auto-detection: after an unplug, look again
+    if auto:
         args.port = find_port()
     res = record(
         args.port, args.label, args.out, args.seconds, args.baud, args.csv_rate,
-        progress=not args.quiet,
+        progress=not args.quiet, auto=auto,
     )
     for path in res.takes:
         print(path)
@@ -251,7 +272,9 @@ def _main(args: argparse.Namespace) -> int:
     print(
         f"tactile-record: {res.samples} samples in {len(res.takes)} take(s); gaps {st.get('gaps')}"
         f" (lost {st.get('samples_lost')}), errors crc {st.get('crc_errors')} malformed "
-        f"{st.get('malformed')} csv {st.get('csv_rejected')}, reconnects {res.reconnects}",
+        f"{st.get('malformed')} csv {st.get('csv_rejected')}, reconnects {res.reconnects}"
+        + (f"; {res.unrecorded} before any device header, not recorded" if res.unrecorded
+           else ""),
         file=sys.stderr,
     )
     if not res.takes:
@@ -262,7 +285,8 @@ def _main(args: argparse.Namespace) -> int:
         if st.get("bytes_in"):
             raise DeviceError(
                 f"no take recorded from {args.port}: {st['bytes_in']} bytes read, "
-                f"{st.get('samples', 0)} samples decoded (a binary pen's samples need its header)")
+                f"{st.get('samples', 0)} samples decoded, {res.unrecorded} of them before any "
+                "device header and not recorded (a binary pen's samples need its header)")
         raise DeviceError(f"no data received from {args.port}")
     return 0
 

@@ -91,12 +91,31 @@ def describe(path: Path, c: ModelContract, opset: int | None = OPSET) -> str:
         f"  channels  {', '.join(f'{n} [{u}]' for n, u in zip(c.channels, c.units))}",
         f"  window    {c.window} samples, hop {c.hop}, {c.sample_rate_hz:g} Hz; "
         f"state {c.state_mode}, {c.model} ({c.state_layers} x {c.state_hidden})",
-        f"  emd       {'none' if emd is None else emd}",
+        *_granular_lines(c, emd),
         f"  exported  parity {'passed' if c.parity.get('passed') else 'FAILED'} "
         f"(max |dp| {c.parity.get('max_abs_prob_diff')})",
+        *(f"  codes     {r.get('name')}: {r.get('same_atoms')}/{r.get('rows')} rows the same "
+          f"atoms as scikit-learn, max |dc|/|c| {r.get('max_rel_diff')}"
+          for r in c.parity.get("codes") or []),
         f"  training  {_recorded(c)}",
     ]
     return "\n".join(lines)
+
+
+def _granular_lines(c: ModelContract, emd) -> list[str]:
+    """The pen's EMD line, or a granular model's signals and modalities."""
+    if not c.modalities:
+        return [f"  emd       {'none' if emd is None else emd}"]
+    lines = [f"  signal    {s.name}: {len(s.channels)} sub-samples per frame ({s.channels[0]}"
+             f"..{s.channels[-1]}), {s.rate_hz:g} Hz" for s in c.signals]
+    for m in c.modalities:
+        units = len(m.channels) // max(1, round(m.rate_hz / c.sample_rate_hz))
+        emd_text = f"{m.imfs} IMFs x {c.preprocessing.get('sifts')} sifts" if m.imfs else "no EMD"
+        codes = f", {m.atoms} atoms, {m.nonzero} non-zeros" if m.atoms else ""
+        lines.append(f"  modality  {m.name}: {units} {'signal' if m.signal else 'channel'}"
+                     f"{'s' if units != 1 else ''} at {m.rate_hz:g} Hz, {emd_text}, "
+                     f"{m.steps} steps{codes}")
+    return lines
 
 
 def _fmt(value) -> str:

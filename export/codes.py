@@ -11,11 +11,20 @@ To observe them, the file's own graph is copied with those two values added as o
 nodes are the file's, unchanged) and run by onnxruntime on the parity windows. scikit-learn's
 transform with the coder's dictionary (``sklearn.decomposition.SparseCoder(D,
 transform_algorithm='omp', transform_n_nonzero_coefs=n)``, as ``MiniBatchDictionaryLearning``
-transforms) codes the same images, and :func:`tactile.training.sparse_check.compare` measures:
-the same non-zero atoms on at least :data:`AGREEMENT` of the rows, max |difference| at most
-:data:`RTOL` x the code's norm where they agree, and every disagreement a near-tie (the float64
-correlations of scikit-learn's pick and of the graph's differ by less than :data:`TIE` of the
-largest).
+transforms) codes the same images, and :func:`judge` measures (with
+:func:`tactile.training.sparse_check.compare`): the same non-zero atoms on at least
+:data:`AGREEMENT` of the rows, max |difference| at most :data:`RTOL` x the code's norm where
+they agree, and every disagreement explained.
+
+Real windows need a referee beside scikit-learn: both sides compute in float32, and on the
+BioTac's images (near-silent vibration windows whose atom correlations are all alike;
+electrode images whose five time steps are nearly equal, so their atoms are nearly collinear)
+scikit-learn's float32 run itself leaves the float64 OMP path on a few rows in a thousand, and
+its coefficients on an ill-conditioned atom set are up to ~1.6e-4 x the norm away from the
+float64 least-squares ones. So a row above :data:`RTOL` passes when the graph's code is at
+least as close to float64 least squares as scikit-learn's, and a disagreement passes as a
+near-tie, as the float64 OMP's choice, or as a code whose residual is no larger than
+scikit-learn's (:func:`judge`); each count is reported.
 """
 
 from __future__ import annotations
@@ -121,15 +130,76 @@ def sklearn_codes(dictionary: np.ndarray, n_nonzero: int, x: np.ndarray) -> np.n
                              transform_n_nonzero_coefs=n_nonzero).transform(x)
 
 
+def omp64(d: np.ndarray, x: np.ndarray, n: int) -> np.ndarray:
+    """The referee: scikit-learn's OMP of one window ``x`` (features,) in float64."""
+    from sklearn.linear_model import orthogonal_mp_gram
+
+    d64, x64 = d.astype(np.float64), x.astype(np.float64)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        return orthogonal_mp_gram(d64 @ d64.T, d64 @ x64, n_nonzero_coefs=n)
+
+
+def _lstsq_error(d: np.ndarray, x: np.ndarray, code: np.ndarray) -> float:
+    """max |code - float64 least squares on code's atoms| / its norm."""
+    sup = np.flatnonzero(code)
+    c64 = np.linalg.lstsq(d[sup].astype(np.float64).T, x.astype(np.float64), rcond=None)[0]
+    return float(np.abs(code[sup] - c64).max() / max(np.linalg.norm(c64), 1e-30))
+
+
+def _residual(d: np.ndarray, x: np.ndarray, code: np.ndarray) -> float:
+    """||x - D^T code|| in float64."""
+    return float(np.linalg.norm(x.astype(np.float64) - d.astype(np.float64).T @ code))
+
+
+def judge(ref: np.ndarray, got: np.ndarray, d: np.ndarray, x: np.ndarray, n: int) -> dict:
+    """The graph's codes ``got`` against scikit-learn's ``ref`` (rows, atoms) of images ``x``
+    (rows, features), dictionary ``d`` (atoms, features), ``n`` non-zeros.
+
+    Rows with the same non-zero atoms: max |got - ref| / ||ref|| (``max_rel_diff``); a row
+    above :data:`RTOL` is excused when the graph's code is at least as close to the float64
+    least-squares code on those atoms as scikit-learn's is (scikit-learn's float32 rounding:
+    its own error reaches ~1.6e-4 on ill-conditioned atom sets of real windows). Rows with
+    other atoms are explained, in this order, as a near-tie (:func:`tie_gap` below
+    :data:`TIE` in magnitude), as the float64 OMP's own choice (the graph's atoms are those of
+    :func:`omp64`: scikit-learn's float32 run left the float64 path), or as an equally good
+    code (the graph's float64 residual at most scikit-learn's); anything else fails."""
+    from tactile.training.sparse_check import compare
+
+    stats = compare(ref, got, d, x, n)
+    same = ((ref != 0) == (got != 0)).all(1)
+    rel = np.abs(ref - got).max(1) / np.maximum(np.linalg.norm(ref, axis=1), 1e-30)
+    over = np.flatnonzero(same & (rel > RTOL))
+    unexcused_over, worst_f64 = 0, 0.0
+    for i in over:
+        mine, theirs = _lstsq_error(d, x[i], got[i]), _lstsq_error(d, x[i], ref[i])
+        worst_f64 = max(worst_f64, mine)
+        unexcused_over += mine > max(theirs, RTOL)
+    why = {"tie": 0, "float64": 0, "residual": 0, "unexplained": 0}
+    for i, gap in zip(np.flatnonzero(~same), stats["gaps"]):
+        if abs(gap) < TIE:
+            why["tie"] += 1
+        elif set(np.flatnonzero(omp64(d, x[i], n))) == set(np.flatnonzero(got[i])):
+            why["float64"] += 1
+        elif _residual(d, x[i], got[i]) <= _residual(d, x[i], ref[i]) * (1 + 1e-6):
+            why["residual"] += 1
+        else:
+            why["unexplained"] += 1
+    passed = stats["agree"] >= AGREEMENT and not unexcused_over and not why["unexplained"]
+    return {"rows": stats["windows"], "same_atoms": stats["same"],
+            "agreement": round(stats["agree"], 6), "max_rel_diff": float(f"{stats['max_rel']:.3g}"),
+            "rows_over_rtol": len(over), "rows_over_rtol_unexcused": int(unexcused_over),
+            "max_rel_f64_over_rtol": float(f"{worst_f64:.3g}"),
+            "disagreements": int((~same).sum()), "explained": why, "passed": bool(passed)}
+
+
 def code_parity(model: nn.Module, graph: onnx.ModelProto, windows: np.ndarray,
                 max_rows: int = MAX_ROWS, seed: int = 0) -> list[dict]:
     """Per coder of ``model``: the graph's codes of ``windows`` (N, T, C) float32 (zero state)
-    against scikit-learn's on the same images. One dict per coder: ``coder`` (module path),
-    ``rows`` compared, ``atoms``, ``features``, ``nonzero``, ``same_atoms`` (rows),
-    ``agreement``, ``max_rel_diff`` (where the atoms agree), ``disagreements``,
-    ``worst_tie_gap`` (the largest gap of a disagreement, or None), ``passed``."""
+    against scikit-learn's on the same images (:func:`judge`). One dict per coder: ``coder``
+    (module path), ``name`` (its modality, when the model has a ``layout``), ``atoms``,
+    ``features``, ``nonzero`` and :func:`judge`'s figures."""
     from tactile.export.parity import session
-    from tactile.training.sparse_check import compare
 
     taps = find_coders(model, graph)
     if not taps:
@@ -144,9 +214,10 @@ def code_parity(model: nn.Module, graph: onnx.ModelProto, windows: np.ndarray,
         outs = sess.run(names, {"x": xb, "h": h, "c": h})
         for v, o in zip(names, outs):
             got[v].append(o)
+    layout = getattr(model, "layout", None)
     rng = np.random.default_rng(seed)
     report = []
-    for t in taps:
+    for k, t in enumerate(taps):
         x, codes = np.concatenate(got[t.x]), np.concatenate(got[t.codes])
         d = t.coder.dictionary.numpy()
         if x.ndim != 2 or x.shape[1] != d.shape[1] or codes.shape != (len(x), d.shape[0]):
@@ -157,17 +228,10 @@ def code_parity(model: nn.Module, graph: onnx.ModelProto, windows: np.ndarray,
             keep = np.sort(rng.choice(len(x), max_rows, replace=False))
             x, codes = x[keep], codes[keep]
         n = t.coder.n_nonzero
-        stats = compare(sklearn_codes(d, n, x), codes, d, x, n)
-        gaps = stats["gaps"]
-        passed = (stats["agree"] >= AGREEMENT and stats["max_rel"] <= RTOL
-                  and all(0 <= g < TIE for g in gaps))
-        report.append({
-            "coder": t.path, "rows": stats["windows"], "atoms": int(d.shape[0]),
-            "features": int(d.shape[1]), "nonzero": n, "same_atoms": stats["same"],
-            "agreement": round(stats["agree"], 6), "max_rel_diff": float(f"{stats['max_rel']:.3g}"),
-            "disagreements": len(gaps),
-            "worst_tie_gap": float(f"{max(gaps):.3g}") if gaps else None, "passed": passed,
-        })
+        name = layout[k].name if layout is not None and len(layout) == len(taps) else t.path
+        report.append({"coder": t.path, "name": name, "atoms": int(d.shape[0]),
+                       "features": int(d.shape[1]), "nonzero": n,
+                       **judge(sklearn_codes(d, n, x), codes, d, x, n)})
     return report
 
 
@@ -175,10 +239,15 @@ def table_rows(report: list[dict]) -> list[tuple[str, str]]:
     """Lines for the parity table: one per coder."""
     rows = []
     for r in report:
-        tie = "" if not r["disagreements"] else (
-            f", {r['disagreements']} near-ties (largest gap {r['worst_tie_gap']:.2g})")
-        rows.append((f"codes {r['coder']}",
-                     f"{r['same_atoms']}/{r['rows']} rows same atoms ({r['agreement']:.4f}), "
-                     f"max |dc|/|c| {r['max_rel_diff']:.2g} (limit {RTOL:g}){tie} vs "
-                     f"scikit-learn; {'PASS' if r['passed'] else 'FAIL'}"))
+        e = r["explained"]
+        why = ", ".join(f"{v} {k}" for k, v in e.items() if v)
+        over = "" if not r["rows_over_rtol"] else (
+            f", {r['rows_over_rtol']} above it as close to float64 as scikit-learn's"
+            if not r["rows_over_rtol_unexcused"] else
+            f", {r['rows_over_rtol_unexcused']} above it unexplained")
+        rows.append((f"codes {r['name']}",
+                     f"{r['same_atoms']}/{r['rows']} rows same atoms as scikit-learn "
+                     f"({r['agreement']:.4f}; others: {why or 'none'}), max |dc|/|c| "
+                     f"{r['max_rel_diff']:.2g} (limit {RTOL:g}{over}); "
+                     f"{'PASS' if r['passed'] else 'FAIL'}"))
     return rows

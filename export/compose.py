@@ -67,3 +67,50 @@ def value_info(model: onnx.ModelProto, names: Sequence[str]) -> list[onnx.ValueI
         vi.CopyFrom(found[n])
         out.append(vi)
     return out
+
+
+def outer_names(g: onnx.GraphProto) -> set[str]:
+    """Values a graph reads but does not make: its enclosing scopes' (subgraphs included)."""
+    made = {i.name for i in g.input} | {i.name for i in g.initializer}
+    used: set[str] = set()
+    for node in g.node:
+        used.update(v for v in node.input if v)
+        for attr in node.attribute:
+            for sub in ([attr.g] if attr.type == onnx.AttributeProto.GRAPH else []) + list(
+                    attr.graphs):
+                used |= outer_names(sub)
+        made.update(node.output)
+    return used - made
+
+
+def toposorted(model: onnx.ModelProto) -> onnx.ModelProto:
+    """``model`` with its top-level nodes in an order where every value, including those a
+    ``Loop``/``If`` body reads from the enclosing graph, is made before it is read (stable:
+    nodes keep their order where they can). Some optimisers order by explicit inputs only."""
+    g = model.graph
+    nodes = list(g.node)
+    needs = []
+    for node in nodes:
+        deps = {v for v in node.input if v}
+        for attr in node.attribute:
+            for sub in ([attr.g] if attr.type == onnx.AttributeProto.GRAPH else []) + list(
+                    attr.graphs):
+                deps |= outer_names(sub)
+        needs.append(deps)
+    producer = {o: i for i, n in enumerate(nodes) for o in n.output if o}
+    done: set[int] = set()
+    order: list[int] = []
+    while len(order) < len(nodes):
+        progress = False
+        for i in range(len(nodes)):
+            if i in done:
+                continue
+            if all(producer.get(v, -1) in done or v not in producer for v in needs[i]):
+                order.append(i)
+                done.add(i)
+                progress = True
+        if not progress:
+            raise ValueError("the graph has a cycle")
+    del g.node[:]
+    g.node.extend(nodes[i] for i in order)
+    return model

@@ -10,6 +10,7 @@ from pathlib import Path
 import numpy as np
 import onnx
 
+from tactile.export.compose import toposorted
 from tactile.export.parity import session
 
 
@@ -28,7 +29,9 @@ def quantize_int8(model: onnx.ModelProto) -> onnx.ModelProto:
         onnx.save(model, src)
         quant_pre_process(str(src), str(pre), skip_symbolic_shape=True)
         quantize_dynamic(str(pre), str(out), weight_type=QuantType.QInt8)
-        return onnx.load(out)
+        # the optimiser orders nodes by their explicit inputs only; a Loop or If body may read
+        # a value of the main graph (the EMD graphs' constants) that it then puts later
+        return toposorted(onnx.load(out))
 
 
 def latency_ms(model: bytes | str, window: int, channels: int, state: tuple[int, int],

@@ -28,20 +28,11 @@ from pathlib import Path
 
 import tactile.device  # noqa: F401  (registers sim://)
 from tactile.cli import Parser, add_debug, add_port_options, float_in, int_in, run, started
+from tactile.device.connection import Connection, LinkSettings, Reconnected, Stall
 from tactile.device.decoder import Gap, Header, Samples, StreamDecoder
 from tactile.device.info import DeviceInfo
 from tactile.device.portlist import find_port
-from tactile.device.ports import (
-    PenId,
-    PortAbsent,
-    PortBusy,
-    keep_trying,
-    open_port,
-    read_some,
-    reconnect,
-    usb_serial,
-    wait_for_port,
-)
+from tactile.device.ports import keep_trying
 from tactile.errors import ModelContractError, RecordingError
 from tactile.runtime.model import Model
 from tactile.runtime.stream import Label, Smoother, Stream
@@ -152,10 +143,18 @@ class Runner:
         self.tap: Callable[[object], None] | None = None  # sees each decoder event (--serve)
 
     def handle(self, events: list) -> None:
+        """Decoder events, and the link's (:mod:`~tactile.device.connection`), in order."""
         for ev in events:
             if self.tap is not None:
                 self.tap(ev)
-            if isinstance(ev, Header):
+            if isinstance(ev, Reconnected):  # the same pen, restarted: a new window
+                self.summary.reconnects += 1
+                self.stream.reset()
+                self.printer.event("reconnect", port=ev.port)
+            elif isinstance(ev, Stall):
+                self.summary.stalls += 1
+                self.printer.event("stall", seconds=ev.seconds)
+            elif isinstance(ev, Header):
                 check_device(self.model, ev.info)
                 if ev.changed:
                     self.stream.reset()
@@ -202,73 +201,38 @@ def wait_for_pen(stop: dict, deadline: float, status_every: float) -> str | None
 
 def serve(args: argparse.Namespace, runner: Runner, decoder: StreamDecoder,
           stop: dict) -> None:
-    """The serial loop: read, decode, classify; when the port vanishes, reconnect with backoff
-    to the same pen only (:func:`~tactile.device.ports.reconnect`)."""
+    """The serial loop: read, decode, classify, through a
+    :class:`~tactile.device.connection.Connection` (it reconnects to the same pen only)."""
     summary = runner.summary
     deadline = summary.started + args.seconds
-    try:
-        link = open_port(args.port, args.baud)
-        _say(f"opened {args.port}")
-    except PortBusy:
-        raise
-    except PortAbsent as e:
-        if not args.wait:
-            raise
-        _say(f"{str(e).splitlines()[0]}; waiting for it")
-        link = wait_for_port(args.port, args.baud, stop, _say, deadline, "opened",
-                             args.status_every)
-        if link is None:
+    settings = LinkSettings(args.port, args.baud, auto=getattr(args, "auto", False),
+                            wait=args.wait, stall_timeout=args.stall_timeout,
+                            status_every=args.status_every)
+    with Connection(settings, decoder, stop, _say, deadline) as conn:
+        if not conn.open():
             return
-    usb = usb_serial(args.port)  # to find the pen again under another name
-    rate = runner.model.contract.sample_rate_hz
-    find = (lambda: find_port(wait=True)) if getattr(args, "auto", False) else None
-    last_data = last_status = time.monotonic()
-    stalled = False  # one stall event per silence; the status line says how long it lasts
-    try:
+        last_status = time.monotonic()
         while not stop["flag"] and time.monotonic() < deadline:
-            data, lost = read_some(link)  # the bytes read before an unplug are kept
+            chunk = conn.read()
+            if chunk is None:  # stopped, or out of time, while the pen was away
+                break
+            runner.handle(chunk.events)
             now = time.monotonic()
-            if data:
-                last_data, stalled = now, False
-                runner.handle(decoder.feed(data))
-            elif lost is None and not stalled and now - last_data > args.stall_timeout:
-                stalled = True
-                summary.stalls += 1
-                _say(f"no data for {now - last_data:.1f} s")
-                runner.printer.event("stall", seconds=round(now - last_data, 1))
-            if lost is not None:
-                _say(f"port lost ({lost}); reconnecting")
-                link.close()
-                got = reconnect(args.port, args.baud, PenId(runner.info, usb),
-                                lambda: StreamDecoder(csv_rate_hz=rate), stop, _say, deadline,
-                                args.status_every, find)
-                if got is None:
-                    link = None
-                    break
-                link, name, early = got
-                summary.reconnects += 1
-                decoder.reconnected()
-                runner.stream.reset()
-                runner.printer.event("reconnect", port=name)
-                if early:  # what the probe read to check the header: the pen's data
-                    runner.handle(decoder.feed(early))
-                last_data = time.monotonic()
-                stalled = False
-                continue
             if now - last_status >= args.status_every:
                 last_status = now
-                st = decoder.stats
-                notes = f"  no data for {now - last_data:.0f} s" if stalled else ""
-                if runner.info is None and summary.before_header:
-                    notes += (f"  no device header yet: {summary.before_header} samples "
-                              "left unclassified")
-                _say(f"windows {summary.windows}  gaps {st.gaps} (lost {st.samples_lost})  "
-                     f"crc {st.crc_errors}  malformed {st.malformed}  "
-                     f"rejected {st.csv_rejected}  discarded {st.bytes_discarded} B  "
-                     f"reconnects {summary.reconnects}{notes}")
-    finally:
-        if link is not None:  # None: stopped (or out of time) while waiting to reconnect
-            link.close()
+                _status(runner, decoder, conn.silent_for(now))
+
+
+def _status(runner: Runner, decoder: StreamDecoder, silent: float | None) -> None:
+    """The status line on stderr."""
+    summary, st = runner.summary, decoder.stats
+    notes = f"  no data for {silent:.0f} s" if silent is not None else ""
+    if runner.info is None and summary.before_header:
+        notes += f"  no device header yet: {summary.before_header} samples left unclassified"
+    _say(f"windows {summary.windows}  gaps {st.gaps} (lost {st.samples_lost})  "
+         f"crc {st.crc_errors}  malformed {st.malformed}  "
+         f"rejected {st.csv_rejected}  discarded {st.bytes_discarded} B  "
+         f"reconnects {summary.reconnects}{notes}")
 
 
 def replay(path: Path, runner: Runner, stop: dict, deadline: float = math.inf,

@@ -30,10 +30,10 @@ import numpy as np
 
 import tactile.device  # noqa: F401  (registers sim://)
 from tactile.cli import Parser, add_debug, add_port_options, float_in, run, started
+from tactile.device.connection import Connection, LinkSettings, Reconnected, Stall
 from tactile.device.decoder import Gap, Header, Samples, StreamDecoder
 from tactile.device.info import DeviceInfo
 from tactile.device.portlist import find_port
-from tactile.device.ports import open_port, read_some, wait_for_port
 from tactile.errors import ConfigError, DeviceError
 from tactile.runtime.units import to_units
 
@@ -168,89 +168,63 @@ def _say(msg: str) -> None:
     print(f"tactile-monitor: {msg}", file=sys.stderr, flush=True)
 
 
-class Link:
-    """The port, reopened when it vanishes; ``read`` returns b"" while it is away."""
-
-    def __init__(self, port: str, baud: int, stop: dict, deadline: float) -> None:
-        self.port, self.baud, self.stop, self.deadline = port, baud, stop, deadline
-        self.serial = open_port(port, baud)
-        self.reconnects = 0
-
-    def read(self) -> bytes | None:
-        """Bytes (maybe none); None when the port was lost and not back before the end."""
-        data, lost = read_some(self.serial)  # one read of the port: nothing read is dropped
-        if lost is None:
-            return data
-        _say(f"port lost ({lost}); reconnecting")
-        self.serial.close()
-        self.serial = wait_for_port(self.port, self.baud, self.stop, _say, self.deadline)
-        if self.serial is None:
-            return None
-        self.reconnects += 1
-        return b""
-
-    def close(self) -> None:
-        if self.serial is not None:
-            self.serial.close()
-
-
-def raw_loop(link: Link, stop: dict, deadline: float) -> int:
-    """``--raw``: every byte, in hex, as it arrives; returns the number of bytes."""
+def raw_loop(conn: Connection, stop: dict, deadline: float) -> int:
+    """``--raw``: every byte, in hex, as it arrives; returns the number of bytes. (The bytes
+    are decoded too, unseen: a reconnection needs the pen's header to know it.)"""
     n = 0
     while not stop["flag"] and time.monotonic() < deadline:
-        data = link.read()
-        if data is None:
+        chunk = conn.read()
+        if chunk is None:
             break
-        if data:
-            print(hexdump(n, data), flush=True)
-            n += len(data)
+        if chunk.data:
+            print(hexdump(n, chunk.data), flush=True)
+            n += len(chunk.data)
     return n
 
 
-def watch_loop(args: argparse.Namespace, link: Link, stop: dict, deadline: float, live
-               ) -> tuple[Watch, StreamDecoder]:
+def watch_loop(args: argparse.Namespace, conn: Connection, stop: dict, deadline: float, live
+               ) -> Watch:
     """Decode, show the block every ``--every`` s (and at the end), feed the live page."""
-    watch, decoder, screen = Watch(), StreamDecoder(csv_rate_hz=args.csv_rate), Screen()
+    watch, decoder, screen = Watch(), conn.decoder, Screen()
     if live is not None:
         live.status = lambda: {**_link_status(decoder), "reconnects": watch.reconnects,
                                "stalls": watch.stalls}
-    start = last_show = last_data = time.monotonic()
-    rate, stalled = None, False
+    start = last_show = time.monotonic()
     while True:
         done = stop["flag"] or time.monotonic() >= deadline
-        data = None if done else link.read()
+        chunk = None if done else conn.read()
         now = time.monotonic()
-        if data:
-            last_data, stalled = now, False
+        if chunk is not None and chunk.data:
             watch.first_data = watch.first_data or now
-            events = decoder.feed(data)
-            for ev in events:
-                if isinstance(ev, Header) and (watch.info is None or ev.changed):
-                    screen.text(header_text(ev.info, args.port))
-                if live is not None:
-                    live.feed(ev)
-                    if isinstance(ev, Gap):
-                        live.feed({"event": "gap", "seq": ev.seq, "missing": ev.missing,
-                                   "reason": ev.reason})
-            watch.handle(events)
-        elif data is not None and not stalled and now - last_data > args.stall_timeout:
-            stalled = True
-            watch.stalls += 1
+        for ev in chunk.events if chunk is not None else ():
+            if isinstance(ev, Header) and (watch.info is None or ev.changed):
+                screen.text(header_text(ev.info, conn.port))
+            elif isinstance(ev, Reconnected):
+                watch.reconnects += 1
+            elif isinstance(ev, Stall):
+                watch.stalls += 1
             if live is not None:
-                live.feed({"event": "stall", "seconds": round(now - last_data, 1)})
-        if link.reconnects > watch.reconnects:
-            watch.reconnects = link.reconnects
-            decoder.reconnected()
-            last_data = now
-            if live is not None:
-                live.feed({"event": "reconnect", "port": args.port})
-        if done or data is None or now - last_show >= args.every:
+                _publish(live, ev)
+        if chunk is not None:
+            watch.handle(chunk.events)
+        if chunk is None or now - last_show >= args.every:
             last_show = now
             rate = watch.rate_hz(now, decoder.stats.samples)
-            silent = now - last_data if stalled else None
-            screen.show(block(watch, decoder, rate, silent), now - start)
-        if done or data is None:
-            return watch, decoder
+            screen.show(block(watch, decoder, rate, conn.silent_for(now)), now - start)
+        if chunk is None:
+            return watch
+
+
+def _publish(live, ev) -> None:
+    """A decoder or link event to the live page, as ``tactile-run`` gives it."""
+    if isinstance(ev, Gap):
+        live.feed({"event": "gap", "seq": ev.seq, "missing": ev.missing, "reason": ev.reason})
+    elif isinstance(ev, Stall):
+        live.feed({"event": "stall", "seconds": ev.seconds})
+    elif isinstance(ev, Reconnected):
+        live.feed({"event": "reconnect", "port": ev.port})
+    else:
+        live.feed(ev)
 
 
 def _link_status(decoder: StreamDecoder) -> dict:
@@ -318,6 +292,7 @@ def _main(args: argparse.Namespace) -> int:
     if early:
         _say(f"stopped by {early} while starting")
         return 0
+    auto = args.port is None  # found by auto-detection: after an unplug, look again
     port = args.port = args.port or find_port()
     live = None
     if args.serve:
@@ -326,16 +301,18 @@ def _main(args: argparse.Namespace) -> int:
         live = Live(*parse_address(args.serve), status=dict, say=_say, labels=False)
     begin = time.monotonic()
     deadline = begin + args.seconds
-    link = Link(port, args.baud, stop, deadline)
+    settings = LinkSettings(port, args.baud, auto=auto, stall_timeout=args.stall_timeout)
+    decoder = StreamDecoder(csv_rate_hz=args.csv_rate)
     try:
-        if args.raw:
-            if raw_loop(link, stop, deadline) == 0:
-                raise DeviceError(f"no data from {port} in {time.monotonic() - begin:.1f} s")
-            return 0
-        watch, decoder = watch_loop(args, link, stop, deadline, live)
-        end = time.monotonic()  # before closing the page, which may wait for its viewers
+        with Connection(settings, decoder, stop, _say, deadline) as conn:
+            conn.open()
+            if args.raw:
+                if raw_loop(conn, stop, deadline) == 0:
+                    raise DeviceError(f"no data from {port} in {time.monotonic() - begin:.1f} s")
+                return 0
+            watch = watch_loop(args, conn, stop, deadline, live)
+            end = time.monotonic()  # before closing the page, which may wait for its viewers
     finally:
-        link.close()
         if live is not None:
             live.close()
     took = end - begin

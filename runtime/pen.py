@@ -8,9 +8,8 @@ import time
 from collections.abc import Callable, Iterator
 
 import tactile.device  # noqa: F401  (registers sim://)
+from tactile.device.connection import Connection, LinkSettings
 from tactile.device.decoder import StreamDecoder
-from tactile.device.ports import open_port, read_some, wait_for_port
-from tactile.errors import DeviceError
 from tactile.runtime.cli import Runner, Summary
 from tactile.runtime.model import Model
 from tactile.runtime.stream import Label, Smoother, Stream
@@ -40,19 +39,26 @@ def labels(
     baud: int = 115200,
     seconds: float = math.inf,
     reconnect: bool = True,
+    stall_timeout: float = 2.0,
     on_event: Callable[[str, dict], None] | None = None,
+    say: Callable[[str], None] | None = None,
 ) -> Iterator[Label]:
     """Yield one :class:`~tactile.runtime.stream.Label` per window read from the pen at ``port``
     (a device path or a pyserial URL), classified by ``model`` (a
     :class:`~tactile.runtime.model.Model` or the path of an exported ``.onnx``).
 
-    It does what ``tactile-run`` does between the port and the labels: decodes the stream,
-    checks the device's header against the model's contract (channels, units, rate:
+    It does what ``tactile-run`` does between the port and the labels, through the same
+    :class:`~tactile.device.connection.Connection`: decodes the stream, checks the device's
+    header against the model's contract (channels, units, rate:
     :class:`~tactile.errors.ModelContractError` otherwise), converts counts to units
     (:func:`~tactile.runtime.units.to_units`), starts a new window after lost samples, and, with
-    ``reconnect``, reopens a vanished port (as after an unplug) until it is back. ``on_event``
-    gets ``("gap", {"seq", "missing", "reason"})`` and ``("reconnect", {"port"})``. It stops
-    after ``seconds`` (wall time) or when the caller stops iterating (the port is then closed).
+    ``reconnect``, reopens a vanished port (as after an unplug) once the same pen is back (its
+    header, its USB serial number when it has one; another device that takes its name is
+    refused). ``on_event`` gets ``("gap", {"seq", "missing", "reason"})``,
+    ``("stall", {"seconds"})`` (no data for ``stall_timeout`` s, once per silence) and
+    ``("reconnect", {"port"})``; ``say``, if given, the diagnostic lines ``tactile-run`` writes
+    on stderr (lost, waiting, refused). It stops after ``seconds`` (wall time) or when the
+    caller stops iterating (the port is then closed).
 
     Example::
 
@@ -62,7 +68,7 @@ def labels(
             print(lab.seq, lab.label, round(lab.probability, 2))   # or lab.probabilities
 
     Raises :class:`~tactile.errors.DeviceError` if the port cannot be opened (or, without
-    ``reconnect``, is lost).
+    ``reconnect``, is lost: after the labels of the bytes that came before the loss).
     """
     if not isinstance(model, Model):
         model = Model(model)
@@ -70,26 +76,13 @@ def labels(
     runner = Runner(model, Stream.for_model(model, hop, smoother), out, Summary())
     decoder = StreamDecoder(csv_rate_hz=model.contract.sample_rate_hz)
     deadline = time.monotonic() + seconds
-    link = open_port(port, baud)
-    try:
+    settings = LinkSettings(port, baud, reconnect=reconnect, stall_timeout=stall_timeout)
+    with Connection(settings, decoder, say=say, deadline=deadline) as conn:
+        conn.open()
         while time.monotonic() < deadline:
-            data, e = read_some(link)  # one read of the port: nothing read is dropped
-            if e is not None:
-                link.close()
-                link = None
-                if not reconnect:
-                    raise DeviceError(f"{port}: lost ({e})") from None
-                link = wait_for_port(port, baud, {"flag": False}, lambda _msg: None, deadline)
-                if link is None:
-                    return
-                decoder.reconnected()
-                runner.stream.reset()
-                out.event("reconnect", port=port)
-                continue
-            if data:
-                runner.handle(decoder.feed(data))
-                yield from out.labels
-                out.labels.clear()
-    finally:
-        if link is not None:
-            link.close()
+            chunk = conn.read()
+            if chunk is None:  # the pen did not come back in time
+                return
+            runner.handle(chunk.events)
+            yield from out.labels
+            out.labels.clear()

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import re
+import socket
 import subprocess
 import sys
 import threading
@@ -130,3 +131,23 @@ def page_url(stderr) -> str:
         if m:
             return m[1]
     pytest.fail("stderr ended without saying where the live page is")
+
+
+def rows_in(folder: Path) -> int:
+    """Complete data rows in the one CSV being written in ``folder`` (0 before it exists)."""
+    csvs = list(folder.glob("*.csv"))
+    if not csvs:
+        return 0
+    text = csvs[0].read_bytes()
+    return sum(1 for ln in text[: text.rfind(b"\n") + 1].splitlines()[1:]
+               if not ln.startswith(b"#"))
+
+
+def listening() -> tuple[socket.socket, str]:
+    """A TCP server on 127.0.0.1 (a device behind ``socket://``) and its URL; its accept()
+    fails after 30 s rather than hangs."""
+    srv = socket.socket()
+    srv.settimeout(30)
+    srv.bind(("127.0.0.1", 0))
+    srv.listen()
+    return srv, f"socket://127.0.0.1:{srv.getsockname()[1]}"

@@ -475,3 +475,40 @@ def test_before_a_header_a_kept_tail_moves_on_in_time_and_one_width_is_delivered
     samples = [e for e in events if isinstance(e, Samples)]
     assert [(s.seq, s.t_us) for s in samples] == [(0, 0), (4, 40_000), (7, 70_000)]
     assert {s.raw.shape[1] for s in samples} == {8} and stats.malformed == 1
+
+
+def test_a_frame_behind_its_whole_run_after_a_header_is_read_as_a_restart():
+    """device/PROTOCOL.md, "Restart": the bytes of fuzz seed 1 case 280077 and seed 5 case 4667
+    (minimised), a device's frames with counts 1 and 0 swapped, a header between them, are the
+    bytes of a device that restarted again before its first frame got through. The reading
+    that loses nothing and never joins two runs of a device: a restart, whatever the clocks."""
+    from tactile.device.info import ChannelSpec, DeviceInfo
+
+    raw = np.random.default_rng(5).integers(-2000, 2000, (4, 8)).astype(np.int16)
+    other = DeviceInfo(100.0, tuple(ChannelSpec(f"x{i}", "u") for i in range(8)), "pen")
+    one, zero = encode_samples(1, 27_582, raw[1:2]), encode_samples(0, 17_582, raw[0:1])
+    two = encode_samples(2, 37_582, raw[2:3])
+
+    def seen(events):  # samples as (seq, t_us, first row), gaps as they are
+        return [(e.seq, e.t_us, e.raw[0].tolist()) if isinstance(e, Samples) else e
+                for e in events if isinstance(e, Samples | Gap)]
+
+    def s(seq, t_us, k):
+        return (seq, t_us, raw[k].tolist())
+
+    for head in (encode_header(pen_info()), encode_header(other)):
+        events, stats = decode(one + head + zero + two)
+        assert seen(events) == [
+            s(1, 27_582, 1), Gap(2, 0, "restart"), s(2, 37_582, 0), Gap(4, 1, "drop"),
+            s(4, 57_582, 2)]
+        assert stats.restarts == 1 and stats.late == 0
+    # without a header between them, count 0 is a late frame: dropped, no gap
+    events, stats = decode(one + zero + two)
+    assert seen(events) == [s(1, 27_582, 1), s(2, 37_582, 2)]
+    assert stats.late == 1 and stats.restarts == 0
+    # nor after a header when no device that started recently counts there (4,096 and up)
+    late = encode_samples(5001, 27_582, raw[1:2]) + encode_header(other) \
+        + encode_samples(5000, 17_582, raw[0:1])
+    events, stats = decode(late)
+    assert seen(events) == [s(5001, 27_582, 1)]
+    assert stats.late == 1

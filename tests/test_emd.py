@@ -28,7 +28,7 @@ from tactile.training.emd.knots import (
     n_slots,
     past_dummies,
 )
-from tactile.training.emd.sift import envelopes, sift
+from tactile.training.emd.sift import envelopes, prepare_knots, prepare_system, sift
 from tactile.training.emd.spline import LARGE_ROWS, pcr_solve, spacings, spline_system
 
 PARITY_TOL = 1e-9  # x window std
@@ -221,6 +221,39 @@ def test_pcr_solves_diagonally_dominant_tridiagonal_systems():
     for i in range(50):
         mat = np.diag(b[i]) + np.diag(a[i, 1:], -1) + np.diag(c[i, :-1], 1)
         np.testing.assert_allclose(got[i], np.linalg.solve(mat, r[i]), rtol=1e-12, atol=1e-12)
+
+
+def _cut_envelopes(h: torch.Tensor, cut: int = 0) -> torch.Tensor:
+    """(2, R, N) half envelopes of ``h`` solved on the knots cut to ``knot_width - cut`` slots,
+    or on all K slots (``cut=None``)."""
+    marks = extrema_marks(h)
+    xy, j1, ks, _, width = prepare_knots(h, marks)
+    if cut is not None:
+        xy = xy[..., : int(width) - cut]
+    system, hk, sl = prepare_system(xy, j1, int(h.shape[-1]))
+    return evaluate(h, xy, pcr_solve(system, j1), segment_index(ks, j1), hk, sl)[0]
+
+
+def test_knot_width_cut_changes_no_bit():
+    """A sift solves and evaluates its splines on the knots cut to ``knot_width`` (the batch's
+    most knots + 2): every row gets the same values as on all K slots and as alone, whatever
+    the other rows' knot counts."""
+    rng = np.random.default_rng(6)
+    t = np.arange(400)
+    x = np.stack([
+        rng.standard_normal(400),  # ~130 knots per envelope
+        np.sin(2 * np.pi * t / 37) + 0.05 * rng.standard_normal(400),
+        np.sin(2 * np.pi * t / 150),  # a few knots
+        np.round(3 * np.sin(2 * np.pi * t / 90) + rng.standard_normal(400).cumsum() / 4),  # ties
+        np.sin(2 * np.pi * t / 500),  # one extremum: 3-knot natural splines
+    ])
+    h = torch.tensor(x)
+    full = _cut_envelopes(h, cut=None)
+    assert torch.equal(_cut_envelopes(h), full)
+    for row in range(len(x)):  # alone: a narrower cut
+        assert torch.equal(_cut_envelopes(h[row : row + 1])[:, 0], full[:, row]), row
+    # Two slots fewer (max(j1)) cut the last knot of the row with most knots: the test can tell.
+    assert not torch.equal(_cut_envelopes(h, cut=2), full)
 
 
 @pytest.mark.parametrize("n_knots", [3, 4, 5, 9, 20])

@@ -13,6 +13,7 @@ import math
 import numpy as np
 import pytest
 import torch
+from conftest import SHARED
 from test_biotac import write_h5
 
 from tactile.device.biotac import import_biotac
@@ -99,12 +100,21 @@ def test_the_toml_tables_round_trip_through_to_dict(tmp_path):
     ({"modalities": ["a"]}, r"modalities=\['a'\]: must be tables"),
     ({"signals": {"s": "a_*"}}, r"signals.s='a_\*': must be a non-empty list"),
     ({"signals": ["a_*"]}, r"signals=\['a_\*'\]: must be a table"),
+    ({"emd_channels": ["a"]}, r"emd_channels=\['a'\] is for the pen's models"),
 ])
 def test_bad_tables_are_one_line_errors_naming_the_value(change, message):
     base = {"model": "sf_rnn", "modalities": {"v": {"channels": ["a"]}}}
     with pytest.raises(ConfigError, match=message) as e:
         TrainConfig.from_dict({**base, **change})
     assert "\n" not in str(e.value)
+
+
+def test_set_does_not_reach_the_tables():
+    from tactile.training.train import parse_sets
+
+    for key in ("signals", "modalities"):
+        with pytest.raises(ConfigError, match=f"--set {key}: a table .* give it in the --config"):
+            parse_sets([f"{key}=a"], TrainConfig())
 
 
 def test_a_bad_modality_in_a_config_file_is_exit_1_and_one_line(tmp_path, capsys):
@@ -133,7 +143,7 @@ def test_the_biotac_layout_is_the_designs():
 
 @pytest.mark.parametrize("tables, message", [
     ({"v": {"channels": ["f0_pac", "nope*"]}},
-     r"modalities.v.channels: pattern 'nope\*' matches no one of: f0_pac, f1_pac, f0_pdc"),
+     r"modalities.v.channels: pattern 'nope\*' matches none of: f0_pac, f1_pac, f0_pdc"),
     ({"v": {"channels": ["f0_pac_0*"]}},
      r"pattern 'f0_pac_0\*' matches only sub-samples of the high-rate signal 'f0_pac': name"),
     ({"a": {"channels": ["f0_pdc"]}, "b": {"channels": ["f0_*"]}},
@@ -156,7 +166,7 @@ def test_layout_errors_name_the_bad_value(tables, message):
 def test_signal_patterns_resolve_in_recording_order_and_refuse_overlaps():
     names = ("b_1", "a", "b_0", "b_2")
     assert resolve_signals((("b", ("b_*",)),), names) == (("b", ("b_1", "b_0", "b_2")),)
-    with pytest.raises(ConfigError, match=r"signals.x: pattern 'z\*' matches no one of: b_1"):
+    with pytest.raises(ConfigError, match=r"signals.x: pattern 'z\*' matches none of: b_1"):
         resolve_signals((("x", ("z*",)),), names)
     with pytest.raises(ConfigError, match="signals.c: channel 'b_0' is already in signal 'b'"):
         resolve_signals((("b", ("b_*",)), ("c", ("b_0",))), names)
@@ -424,3 +434,81 @@ def test_dictionaries_are_learned_from_training_windows_only(toy, tmp_path, monk
         near = np.abs(rows[:, None, :] - train_rows[None, :, :]).max(2).min(1)
         assert near.max() < 1e-4, name  # each is a training row
         at += m.features
+
+
+def test_two_processes_share_rank_0s_dictionaries(toy, tmp_path):
+    """torchrun, 2 processes (gloo on loopback): rank 0 learns the dictionaries from the whole
+    training split and broadcasts them; each process codes its share of the windows with them.
+    The run's test figures must then be what one process computes from the checkpoint."""
+    import os
+    import subprocess
+    import sys
+
+    from test_train_ddp import free_port
+
+    # test takes of both classes in each process's half of the test windows (rows 0-34:
+    # a_3, a_4; 35-68: a_4, b_4), so that codes made with other dictionaries in one of the
+    # processes would change the run's figures
+    cfg = _cfg("sf_rnn", epochs=8, test="name:a_3,a_4,b_4", val="name:a_2,b_2")
+    toml = tmp_path / "c.toml"
+    toml.write_text(_toml(cfg.to_dict()))
+    env = {**os.environ, "GLOO_SOCKET_IFNAME": "lo", "OMP_NUM_THREADS": "1"}
+    cmd = [sys.executable, "-m", "torch.distributed.run", "--nproc-per-node", "2",
+           "--master-addr", "127.0.0.1", "--master-port", str(free_port()),
+           "-m", "tactile.training.train", str(toy), "--out", str(tmp_path / "run"),
+           "--config", str(toml), "--quiet"]
+    proc = subprocess.run(cmd, capture_output=True, text=True, env=env, timeout=900)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    model, ck = load_checkpoint(tmp_path / "run")
+    assert ck["metrics"]["processes"] == 2
+    s = evaluate_run(tmp_path / "run", toy, threads=1)  # one process, the saved dictionaries
+    assert s["confusion"] == ck["metrics"]["confusion"]
+    assert s["accuracy"] >= 0.9, s["accuracy"]
+
+
+def _toml(d: dict) -> str:
+    """A config dict as TOML (flat keys, then [signals] and [modalities.NAME] tables)."""
+    def value(v):
+        return json.dumps(v) if not isinstance(v, bool) else str(v).lower()
+
+    lines = [f"{k} = {value(v)}" for k, v in d.items() if k not in ("signals", "modalities")]
+    if d["signals"]:
+        lines += ["[signals]"] + [f"{k} = {value(v)}" for k, v in d["signals"].items()]
+    for name, m in d["modalities"].items():
+        lines += [f"[modalities.{name}]"] + [f"{k} = {value(v)}" for k, v in m.items()]
+    return "\n".join(lines) + "\n"
+
+
+@pytest.mark.skipif(not (SHARED / "datasets" / "biotac-bolt").is_dir(),
+                    reason=f"BioTac BOLT recordings absent ({SHARED / 'datasets' / 'biotac-bolt'})")
+def test_a_real_trial_gives_the_designs_images(tmp_path):
+    """One real trial (copied into a temporary file): its take declares the vibration signal,
+    and a window's images are the normalised sub-samples and electrode values of the right
+    frames (imfs = 0 here, so that the values can be checked against the HDF5 file)."""
+    import tomllib
+
+    import h5py
+
+    bolt, group = SHARED / "datasets" / "biotac-bolt", "cork_pdc150_1cm_04"
+    with h5py.File(bolt / "cork.h5", "r") as src, h5py.File(tmp_path / "cork.h5", "w") as dst:
+        src.copy(src[group], dst, name=group)
+        pac = src[group]["finger_0/pac"][()].astype(np.float64)  # (T, 22)
+        ele = src[group]["finger_0/electrodes"][()].astype(np.float64)  # (T, 19)
+    import_biotac([tmp_path / "cork.h5"], tmp_path / "data")
+    takes = load_dataset(tmp_path / "data")
+    d = tomllib.loads(BIOTAC_TOML)
+    del d["signals"]  # the take's own declaration
+    d["modalities"]["vibration"]["imfs"] = 0
+    cfg = TrainConfig.from_dict(d)
+    channels = takes[0].channels
+    layout = resolve(cfg, channels, 100.0, signals_of_takes(takes, channels))
+    x = takes[0].values()[None, 100:150].astype(np.float32)  # frames 100..149
+    mean, std = pooled_stats(takes[0].values()[None], channels, signals_of_takes(takes, channels))
+    pre = GranularPre(layout, torch.from_numpy(mean), torch.from_numpy(std), 50, 10, "images")
+    f = pre(torch.from_numpy(x))[0].numpy()
+    assert f.shape == (46, 22 + 25 + 95)  # vibration 1 x 22, pressure 5 IMFs x 5, 19 x 5
+    for s in (0, 17, 45):  # step s ends with frame 100 + 4 + s
+        t = 104 + s
+        np.testing.assert_allclose(f[s, :22], (pac[t] - pac.mean()) / pac.std(), atol=1e-4)
+        want = ((ele[t - 4 : t + 1] - ele.mean(0)) / ele.std(0)).T.reshape(-1)  # (unit, time)
+        np.testing.assert_allclose(f[s, 47:], want, atol=1e-4)

@@ -16,6 +16,7 @@ import numpy as np
 import pytest
 from conftest import page_url, read_link
 
+from tactile.device.connection import Connection
 from tactile.device.decoder import Header, Samples, StreamDecoder
 from tactile.device.info import ChannelSpec, DeviceInfo, pen_info
 from tactile.device.protocol import encode_header, encode_samples
@@ -44,16 +45,16 @@ def read_all(monkeypatch, url: str) -> int:
     """``tactile-monitor --port url``, stopped as by Ctrl-C once it has read every byte of the
     simulated link (as many as :func:`read_link` gets): no wall-clock deadline."""
     whole = len(read_link(url.split("?", 1)[1], 7)[0])
-    read, got = monitor.Link.read, [0]
+    read, got = Connection.read, [0]
 
     def counted(self):
-        data = read(self)
-        before, got[0] = got[0], got[0] + len(data or b"")
+        chunk = read(self)
+        before, got[0] = got[0], got[0] + len(chunk.data if chunk else b"")
         if before < whole <= got[0]:
             os.kill(os.getpid(), signal.SIGINT)  # the monitor's handler: stop after this read
-        return data
+        return chunk
 
-    monkeypatch.setattr(monitor.Link, "read", counted)
+    monkeypatch.setattr(Connection, "read", counted)
     return monitor.main(["--port", url, "--seconds", "600"])
 
 

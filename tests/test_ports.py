@@ -3,8 +3,10 @@ goes only to the same pen. Sockets on 127.0.0.1 and ptys; every wait is for an e
 
 from __future__ import annotations
 
+import itertools
 import json
 import os
+import re
 import signal
 import socket
 import subprocess
@@ -14,25 +16,28 @@ import time
 
 import pytest
 import serial
-from conftest import REPO
+from conftest import REPO, listening, rows_in
 
 import tactile.device  # noqa: F401  (registers sim://)
 from tactile.device.decoder import Header, StreamDecoder
 from tactile.device.info import ChannelSpec, DeviceInfo, pen_info
 from tactile.device.ports import PenId, PortBusy, open_port, read_some, reconnect
-from tactile.device.protocol import encode_header
+from tactile.device.protocol import encode_header, encode_samples
 from tactile.device.simlink import LinkConfig, PenLink
+from tactile.device.simulator import PenSimulator
 
 SHIPPED = REPO / "models" / "pen-exp2.onnx"
 TCP_CLOSE_WAIT = 8  # tcp_info.tcpi_state once the peer's FIN has arrived
 
 
-def listening() -> tuple[socket.socket, str]:
-    srv = socket.socket()
-    srv.settimeout(30)  # accept() fails rather than hangs
-    srv.bind(("127.0.0.1", 0))
-    srv.listen()
-    return srv, f"socket://127.0.0.1:{srv.getsockname()[1]}"
+def stop_listening(srv: socket.socket) -> None:
+    """Close a listening socket, waking a thread blocked in its accept() (close alone does
+    not: the socket would go on taking connections until accept's timeout)."""
+    try:
+        srv.shutdown(socket.SHUT_RDWR)
+    except OSError:  # already closed
+        pass
+    srv.close()
 
 
 def until(condition, what: str, seconds: float = 30) -> None:
@@ -184,7 +189,7 @@ def test_after_an_unplug_only_the_same_pen_is_taken_back(reap):
         proc.wait(timeout=30)
     finally:
         done.set()
-        srv.close()
+        stop_listening(srv)
         server.join(30) if server.is_alive() else None
     err = "".join(err) + rest
     assert proc.returncode == 0, err
@@ -228,10 +233,12 @@ def test_the_pen_is_found_again_by_its_usb_serial_number(monkeypatch):
 
 
 def test_an_auto_detected_pen_is_looked_for_again(monkeypatch):
+    from serial.tools import list_ports
+
     pen_url = "sim://?texture=desk&seed=2&speed=max&seconds=5"
+    monkeypatch.setattr(list_ports, "comports", lambda: [_FakePort(pen_url, None)])
     got = reconnect("/dev/no-such-pen", 115200, PenId(pen_info()), StreamDecoder,
-                    {"flag": False}, lambda m: None, time.monotonic() + 60,
-                    find=lambda: pen_url)
+                    {"flag": False}, lambda m: None, time.monotonic() + 60, detect=True)
     assert got is not None and got[1] == pen_url
     got[0].close()
 
@@ -267,8 +274,8 @@ def test_the_recorder_keeps_the_bytes_that_came_with_a_disconnect(tmp_path, reap
         stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True), 120)
     try:
         conn, _ = srv.accept()
-        with conn:  # sent once it reports progress: its socket:// open is over
-            assert proc.stderr.readline().startswith("[paper]")
+        with conn:  # sent once it says it opened the port: its socket:// open is over
+            assert proc.stderr.readline() == f"opened {url}\n"
             conn.sendall(PenLink(LinkConfig(texture="paper", seed=2)).produce(300))
         out, err = proc.communicate(timeout=60)
     finally:
@@ -276,3 +283,217 @@ def test_the_recorder_keeps_the_bytes_that_came_with_a_disconnect(tmp_path, reap
     assert proc.returncode == 0, err
     take = read_take(out.strip())
     assert list(take.seq) == list(range(300))
+
+
+# -- every command reads through one loop: the same pen, and only it, for each ------------------
+
+
+def other_pen():
+    """Another device: its own header ('other-pen', channels and rate as the pen's, so the
+    model's contract does not refuse it) and samples, for as long as it is read."""
+    info, raw = pen_info(device="other-pen"), PenSimulator("desk", 9).read(100)
+    for seq in itertools.count(0, 10):  # 10 samples a chunk, the header every 100
+        yield (encode_header(info) if seq % 100 == 0 else b"") + b"".join(
+            encode_samples(s, s * 10_000, raw[s % 100 : s % 100 + 1]) for s in range(seq, seq + 10))
+
+
+class InTurn:
+    """A device behind a TCP port, unplugged and replugged: connection k gets ``devices[k]``
+    (the last one for every later connection): ``"pen"`` until :attr:`unplug` is set,
+    ``"other"`` (another device on the same name), ``"pen again"`` (the pen, rebooted). Each is
+    served until the client hangs up on it (or the first pen is unplugged); :attr:`log` says
+    which device each connection got, in order."""
+
+    def __init__(self, devices: tuple[str, ...] = ("pen", "other", "pen again")) -> None:
+        self.devices = devices
+        self.srv, self.url = listening()
+        self.unplug, self.done = threading.Event(), threading.Event()
+        self.log: list[str] = []
+        self.thread = threading.Thread(target=self._serve, daemon=True)
+        self.thread.start()
+
+    def _first(self):
+        for chunk in pen(2):
+            if self.unplug.is_set():
+                return
+            yield chunk
+
+    def _serve(self) -> None:
+        while not self.done.is_set():
+            try:
+                conn, _ = self.srv.accept()
+            except OSError:
+                return
+            name = self.devices[min(len(self.log), len(self.devices) - 1)]
+            self.log.append(name)
+            chunks = {"pen": self._first, "other": other_pen, "pen again": lambda: pen(5)}[name]
+            stream(conn, chunks(), self.done)
+
+    def hang_up(self) -> None:
+        """Stop listening: connections to :attr:`url` are refused from now on."""
+        stop_listening(self.srv)
+
+    def close(self) -> None:
+        self.done.set()
+        self.hang_up()
+        self.thread.join(30)
+
+
+def test_labels_take_back_the_same_pen_only():
+    """tactile.runtime.labels(): the pen, unplugged once a label came; another device answers on
+    its name and is refused (here it sends samples its model would label); the pen comes back
+    and labels resume after a reconnect event."""
+    from tactile.runtime import labels
+
+    dev = InTurn()
+    events, after = [], []
+    try:
+        for lab in labels(dev.url, SHIPPED, seconds=120,
+                          on_event=lambda kind, f: events.append(kind)):
+            if "reconnect" not in events:
+                dev.unplug.set()  # a label came: pull the cable
+                continue
+            after.append(lab)
+            break
+    finally:
+        dev.close()
+    assert after, (events, dev.log)
+    # the label after the reconnection is the pen's: the other device was hung up on
+    assert dev.log[:3] == ["pen", "other", "pen again"], dev.log
+    assert events.count("reconnect") == 1 and set(events) <= {"reconnect", "gap", "stall"}
+
+
+def test_the_monitor_takes_back_the_same_pen_only(reap):
+    """tactile-monitor: the same story. Its header line names the pen once (the other device
+    never shows), its link line counts one reconnection, and the samples go on after it."""
+    dev = InTurn()
+    proc = reap(subprocess.Popen(
+        [sys.executable, "-m", "tactile.runtime.monitor", "--port", dev.url, "--every", "0.1",
+         "--stall-timeout", "600"],
+        stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True), 120)
+    out, since = [], None
+    try:
+        for line in proc.stdout:  # a block every 0.1 s; its link line is the last one
+            out.append(line)
+            m = re.match(r"link: frames \d+  samples (\d+) .*  reconnects (\d+)", line)
+            if m is None:
+                continue
+            samples, reconnects = int(m[1]), int(m[2])
+            if any(" on socket://" in ln for ln in out):  # the pen's header came: pull the
+                dev.unplug.set()  # cable (before it, nothing tells one device from another)
+            since = samples if reconnects and since is None else since
+            if since is not None and samples >= since + 100:  # 1 s of samples after it
+                break
+        proc.send_signal(signal.SIGINT)
+        rest, err = proc.communicate(timeout=60)
+    finally:
+        dev.close()
+    out = "".join(out) + rest
+    assert proc.returncode == 0, err
+    assert since is not None, (out[-2000:], err)
+    assert dev.log[:3] == ["pen", "other", "pen again"], dev.log
+    heads = [ln for ln in out.splitlines() if " on socket://" in ln]
+    assert len(heads) == 1 and heads[0].startswith(f"tactile-pen on {dev.url}: "), heads
+    assert f"tactile-monitor: {dev.url} is not the pen: device 'other-pen', not " \
+           "'tactile-pen'" in err, err
+    assert f"tactile-monitor: reconnected to {dev.url}" in err, err
+
+
+def test_the_recorder_finds_an_auto_detected_pen_under_its_new_name(tmp_path, monkeypatch,
+                                                                    capsys):
+    """tactile-record with no --port: the one likely pen is taken; it is unplugged once the take
+    holds a row, and comes back under another name (its old one is gone for good). The take
+    goes on there, after a restart gap, to its 300 samples."""
+    from serial.tools import list_ports
+
+    from tactile.device.recorder import main as record_main
+    from tactile.device.recording import read_take
+
+    first, second = InTurn(), InTurn(("pen again",))
+    listed = [_FakePort(first.url, None)]
+    monkeypatch.setattr(list_ports, "comports", lambda: list(listed))
+
+    def unplug() -> None:  # once the take holds a row: the first name vanishes, a new one comes
+        until(lambda: rows_in(tmp_path) > 0, "a row in the take", 60)
+        first.unplug.set()
+        listed[:] = [_FakePort(second.url, None)]
+        first.hang_up()  # connections to the old name are refused from now on
+
+    helper = threading.Thread(target=unplug, daemon=True)
+    helper.start()
+    guard = threading.Timer(120, os.kill, (os.getpid(), signal.SIGINT))  # fails, not hangs
+    guard.start()
+    try:
+        code = record_main(["--label", "paper", "--out", str(tmp_path), "--seconds", "3"])
+    finally:
+        guard.cancel()
+        first.close()
+        second.close()
+        helper.join(30)
+    out, err = capsys.readouterr()
+    assert code == 0, err
+    assert f"reconnected to {second.url}" in err and "reconnects 1" in err, err
+    take = read_take(out.strip())
+    assert len(take.seq) == 300 and take.meta["complete"]
+    assert [g["reason"] for g in take.meta["gaps"]] == ["restart"], take.meta["gaps"]
+
+
+
+def test_when_its_old_name_shows_another_device_the_pen_is_looked_for_among_the_likely_pens(
+        monkeypatch):
+    """--port given (no auto-detection): the old name now answers with another device (a
+    50 Hz one); the pen is then looked for among the likely pens listed, and found."""
+    from serial.tools import list_ports
+
+    old = "sim://?texture=paper&speed=max&rate=50"
+    pen_url = "sim://?texture=desk&seed=2&speed=max&seconds=5"
+    monkeypatch.setattr(list_ports, "comports", lambda: [_FakePort(pen_url, None)])
+    said: list[str] = []
+    got = reconnect(old, 115200, PenId(pen_info()), StreamDecoder, {"flag": False},
+                    said.append, time.monotonic() + 60)
+    assert got is not None, said
+    got[0].close()
+    assert got[1] == pen_url
+    assert said[0].startswith(f"{old} is not the pen: rate 50 Hz"), said
+
+
+def test_a_device_listed_with_another_usb_serial_number_is_not_opened(monkeypatch):
+    """The old name is listed with another serial number: refused without opening it (opening
+    this one would raise), and the pen is found by its own number."""
+    from serial.tools import list_ports
+
+    old = "sim://?texture=velvet"  # not a texture: opening it raises
+    pen_url = "sim://?texture=paper&seed=1&speed=max&seconds=5"
+    monkeypatch.setattr(list_ports, "comports",
+                        lambda: [_FakePort(old, "OTHER"), _FakePort(pen_url, "PEN1")])
+    said: list[str] = []
+    got = reconnect(old, 115200, PenId(pen_info(), "PEN1"), StreamDecoder, {"flag": False},
+                    said.append, time.monotonic() + 60)
+    assert got is not None and got[1] == pen_url, said
+    got[0].close()
+    assert said[0] == f"{old} is not the pen: USB serial number OTHER, not PEN1; still looking"
+
+
+def test_without_reconnect_a_loss_comes_after_the_bytes_that_came_with_it():
+    """A Connection that does not reconnect: the samples that arrived with the disconnect are
+    decoded, then a Lost event; the next read raises a one-line DeviceError."""
+    from tactile.device.connection import Connection, LinkSettings, Lost
+    from tactile.device.decoder import Samples
+    from tactile.errors import DeviceError
+
+    srv, url = listening()
+    try:
+        conn = Connection(LinkSettings(url, reconnect=False), StreamDecoder())
+        conn.open()
+        peer, _ = srv.accept()
+        with peer:
+            peer.sendall(PenLink(LinkConfig(texture="paper", seed=2)).produce(300))
+        events: list = []
+        while not any(isinstance(ev, Lost) for ev in events):
+            events += conn.read().events
+        with pytest.raises(DeviceError, match=rf"^{re.escape(url)}: lost \("):
+            conn.read()
+    finally:
+        srv.close()
+    assert isinstance(events[-1], Lost)
+    assert sum(len(ev.raw) for ev in events if isinstance(ev, Samples)) == 300

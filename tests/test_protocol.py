@@ -160,3 +160,11 @@ def test_python_encoder_matches_shared_vectors():
     assert [line for line in vectors.generate() if not line.startswith("#")] == [
         line for line in vectors.VECTORS.read_text().splitlines() if not line.startswith("#")
     ]
+
+
+def test_find_frame_refuses_a_chunk_holding_a_delimiter():
+    # the suffix search assumes zero-free chunks; with a 0x00 inside it never ended
+    from tactile.device.protocol import find_frame
+
+    with pytest.raises(ValueError, match="delimiter"):
+        find_frame(b"\x03\x02\x00\x01")

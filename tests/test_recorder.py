@@ -13,7 +13,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import serial
-from conftest import read_link, start_and_signal
+from conftest import listening, read_link, rows_in, start_and_signal
 
 import tactile.device  # noqa: F401  (registers sim://)
 from tactile.device.decoder import Gap, StreamDecoder
@@ -186,7 +186,7 @@ def test_killed_recorder_leaves_a_readable_take(tmp_path):
         stdout=subprocess.PIPE, stderr=subprocess.PIPE,
     )
     try:  # killed once its CSV holds 250 rows (what it has written, not how long it ran)
-        _wait_for(lambda: _rows_in(tmp_path) >= 250, "250 rows in the CSV")
+        _wait_for(lambda: rows_in(tmp_path) >= 250, "250 rows in the CSV")
         proc.send_signal(signal.SIGKILL)
     finally:
         proc.kill()
@@ -198,16 +198,6 @@ def test_killed_recorder_leaves_a_readable_take(tmp_path):
     assert_samples_are_the_pen(take, "paper", 1)
 
 
-def _rows_in(folder: Path) -> int:
-    """Complete data rows in the one CSV being written in ``folder`` (0 before it exists)."""
-    csvs = list(folder.glob("*.csv"))
-    if not csvs:
-        return 0
-    text = csvs[0].read_bytes()
-    return sum(1 for ln in text[: text.rfind(b"\n") + 1].splitlines()[1:]
-               if not ln.startswith(b"#"))
-
-
 def test_ctrl_c_finishes_the_take(tmp_path):
     proc = subprocess.Popen(
         [sys.executable, "-m", "tactile.device.recorder", "--port",
@@ -215,7 +205,7 @@ def test_ctrl_c_finishes_the_take(tmp_path):
         stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
     )
     try:  # interrupted once its CSV holds 101 rows
-        _wait_for(lambda: _rows_in(tmp_path) > 100, "101 rows in the CSV")
+        _wait_for(lambda: rows_in(tmp_path) > 100, "101 rows in the CSV")
         proc.send_signal(signal.SIGINT)
         out, err = proc.communicate(timeout=30)
     finally:
@@ -729,3 +719,73 @@ def test_a_file_size_limit_stops_the_real_recorder_cleanly(tmp_path):
     take = read_take(csv)
     assert not take.meta["complete"] and len(take.seq) > 100
     assert_samples_are_the_pen(take, "desk", 4)
+
+
+def test_samples_before_any_header_are_held_in_bounds_and_never_lost_silently(tmp_path,
+                                                                             monkeypatch):
+    """A device that sends samples frames and no header: what is held is counted in samples
+    (here frames of 32), and one sample past the bound is an error that says none of them is
+    recorded; a recording that ends before a header counts them as unrecorded; held samples
+    that come before a reconnection are given up (whose header they were cannot be known),
+    said, and counted; samples held when the header comes are all written."""
+    from tactile.device import recorder
+    from tactile.device.connection import Reconnected
+    from tactile.device.decoder import Header, Samples
+
+    monkeypatch.setattr(recorder, "MAX_EARLY", 1000)
+    frames = [Samples(32 * k, 0, np.full((32, 8), k, np.int16)) for k in range(32)]
+    dec = StreamDecoder()
+    rec = Recorder(tmp_path, "paper", "test")
+    rec.handle(frames[:31], dec)  # 992 samples held
+    assert rec.early_samples == 992
+    with pytest.raises(DeviceError, match="no device header in the first 1024 samples: none "
+                       "of them is recorded"):
+        rec.handle(frames[31:], dec)
+    rec.close(dec, complete=False)
+    assert rec.result.unrecorded == 1024 and not rec.result.takes and not rec.early
+
+    rec = Recorder(tmp_path, "paper", "test")
+    rec.handle(frames[:5], dec)
+    rec.close(dec)
+    assert rec.result.unrecorded == 160 and not rec.result.takes
+
+    rec = Recorder(tmp_path, "paper", "test")
+    rec.handle([*frames[:3], Reconnected("p"), frames[3], Header(pen_info()), frames[4]], dec)
+    rec.close(dec)
+    assert rec.result.unrecorded == 96 and rec.result.reconnects == 1
+    take = read_take(rec.result.takes[0])
+    assert take.seq.tolist() == list(range(96, 160)) and take.raw[:, 0].tolist() == \
+        [3] * 32 + [4] * 32
+
+
+def test_a_pen_that_never_sends_its_header_ends_with_a_count_of_what_was_not_recorded(
+        tmp_path, reap):
+    """tactile-record on a socket device sending 1000 samples and no header: its progress says
+    how many samples it holds; stopped, it exits 2 saying all 1000 were not recorded."""
+    from tactile.device.protocol import encode_samples
+
+    raw = PenSimulator("paper", seed=3).read(1000)
+    data = b"".join(encode_samples(k, k * 10_000, raw[k : k + 1]) for k in range(1000))
+    srv, url = listening()
+    proc = reap(subprocess.Popen(
+        [sys.executable, "-m", "tactile.device.recorder", "--port", url, "--label", "paper",
+         "--out", str(tmp_path)], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True))
+    try:
+        conn, _ = srv.accept()
+        with conn:
+            assert proc.stderr.readline() == f"opened {url}\n"  # its socket:// open is over
+            conn.sendall(data)
+            for line in proc.stderr:  # progress lines, each second
+                if "no device header yet: 1000 samples held" in line:
+                    break
+            proc.send_signal(signal.SIGINT)
+            out, err = proc.communicate(timeout=30)
+    finally:
+        srv.close()
+    assert proc.returncode == 2 and out == "", err
+    assert "reconnects 0; 1000 before any device header, not recorded" in err
+    assert err.splitlines()[-1] == (
+        f"tactile-record: error: no take recorded from {url}: {len(data)} bytes read, 1000 samples "
+        "decoded, 1000 of them before any device header and not recorded (a binary pen's "
+        "samples need its header)"), err
+    assert not list(tmp_path.glob("*.csv"))

@@ -15,7 +15,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
-from conftest import REPO, read_link, start_and_signal
+from conftest import REPO, listening, read_link, start_and_signal
 
 from tactile.device.info import pen_info
 from tactile.device.protocol_sim import forget_unplugs
@@ -569,11 +569,7 @@ def test_a_pen_without_header_is_reported_in_the_status_line(reap):
     from tactile.device.protocol import encode_samples
 
     raw = PenSimulator("paper", seed=3).read(1000)
-    srv = socket.socket()
-    srv.settimeout(30)  # accept() gives up if tactile-run never connects
-    srv.bind(("127.0.0.1", 0))
-    srv.listen()
-    url = f"socket://127.0.0.1:{srv.getsockname()[1]}"
+    srv, url = listening()
     proc = reap(subprocess.Popen(
         [sys.executable, "-m", "tactile.runtime.cli", "--model", str(SHIPPED), "--port", url,
          "--status-every", "0.2", "--stall-timeout", "600"],

@@ -285,6 +285,9 @@ class TrainConfig:
         if self.model in GRANULAR_MODELS and not self.modalities:
             raise ConfigError(f"model={self.model!r} needs modalities: give at least one "
                               "[modalities.NAME] table (channels, imfs, steps, atoms)")
+        if self.modalities and self.emd_channels:
+            raise ConfigError(f"emd_channels={list(self.emd_channels)} is for the pen's models: "
+                              "with modalities, set imfs per modality")
         if self.modalities and self.model == "lstm":
             raise ConfigError("modalities are for model='sf_rnn', 'f_rnn', 'sparse_linear' or "
                               "'linear' (got model='lstm')")

@@ -224,10 +224,11 @@ def fit_dictionary(rows: np.ndarray, m: ModalityLayout, seed: int) -> np.ndarray
 
 
 def learn_dictionaries(pre: GranularPre, train_images: Tensor, seed: int, dist,
-                       cap: int = DICTIONARY_ROWS) -> list[int]:
+                       cap: int = DICTIONARY_ROWS) -> int:
     """Learn each modality's dictionary from the training split's images ``(N, S, sum
     features)`` (only those: the caller passes no other split) on rank 0, broadcast them, and
-    put them into ``pre``'s coders. Returns the rows each was learned from."""
+    put them into ``pre``'s coders. Returns how many image rows (window, step) each was
+    learned from: the same rows for every modality."""
     n_rows = train_images.shape[0] * train_images.shape[1]
     pick = sample_rows(n_rows, cap, seed)
     dicts = []
@@ -240,7 +241,7 @@ def learn_dictionaries(pre: GranularPre, train_images: Tensor, seed: int, dist,
             dicts.append(np.zeros((m.atoms, m.features), np.float32))
         at += m.features
     pre.set_dictionaries(list(dist.broadcast(*dicts)))
-    return [len(pick)] * len(pre.layout)
+    return len(pick)
 
 
 # --- the heads: features (B, S, F) + state -> logits -------------------------------------

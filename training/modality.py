@@ -62,7 +62,7 @@ def n_steps(layout: tuple[ModalityLayout, ...], window: int) -> int:
 
 def _unmatched(pattern: str, what: str, names: list[str]) -> ConfigError:
     shown = ", ".join(names[:12]) + (f", ... ({len(names)} in all)" if len(names) > 12 else "")
-    return ConfigError(f"{what}: pattern {pattern!r} matches no {shown and 'one of: '}{shown}")
+    return ConfigError(f"{what}: pattern {pattern!r} matches none of: {shown}")
 
 
 def resolve_signals(patterns: Signals, channels: tuple[str, ...]) -> Signals:

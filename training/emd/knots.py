@@ -21,6 +21,15 @@ def n_slots(n_time: int) -> int:
     return n_time // 2 + 6
 
 
+def running_count(flags: Tensor) -> Tensor:
+    """(..., L) 0/1 float flags -> (..., L) int64 running count along the last axis.
+
+    Counted in integers: onnxruntime's ``CumSum`` takes about 15 us on 2 x 1,104 floats and
+    2.5 us on as many int64 (1.32, one thread); the counts are exact either way.
+    """
+    return torch.cumsum(flags.long(), dim=-1)
+
+
 def past_dummies(n_time: int) -> float:
     """The position one past the last dummy of :func:`slot_base` (the dummies sit at
     ``16 N + s`` in slot ``s``, above every knot, which lies within ``-N .. 2N``)."""
@@ -37,7 +46,7 @@ def extrema_counts(marks: Tensor) -> tuple[Tensor, Tensor]:
         cnt: (2, R, N) extrema at samples <= t; n: (2, R, 1, 1) extrema in the row (shaped
         for :func:`end_extrema` and :func:`boundary.boundary_knots`).
     """
-    cnt = torch.cumsum(marks, dim=-1)
+    cnt = running_count(marks).to(marks.dtype)
     return cnt, cnt[..., -1:].unsqueeze(-1)
 
 
@@ -189,8 +198,9 @@ def assemble(
     low, dummies, slots, cands = slot_base(h) if base is None else base
     left, right = bv.split(2, dim=-1)
     valid = torch.cat([left, marks, right], dim=-1)  # (2, R, N + 4), ascending knot order
-    count = torch.cumsum(valid, dim=-1)  # valid knots so far: a valid knot's slot
-    src = slots.scatter_reduce(-1, count.long(), cands, "amin")  # (2, R, K): table index
+    icount = running_count(valid)  # valid knots so far: a valid knot's slot
+    src = slots.scatter_reduce(-1, icount, cands, "amin")  # (2, R, K): table index
+    count = icount.to(dt)
     # Interior candidates [t, h[t] / 2] for both envelopes: (2, 1, R, N) + (2, 2, 1, N).
     t = torch.arange(n_time, dtype=dt, device=dev)
     scale = torch.tensor([0.0, 0.5], dtype=dt, device=dev).reshape(2, 1, 1, 1)

@@ -9,11 +9,12 @@ while a system is still coupled). onnxruntime runs the ~200-node sift body up to
 instead of holding 40 unrolled copies: the file stays small and session creation fast. The
 sift loop stops as soon as no row is active (a stopped row is left unchanged, so the skipped
 sifts would change nothing). An ``If`` on the row count picks one of two such loop nests:
-from :data:`spline.LARGE_ROWS` rows on, the sift lays out the end extrema, the boundary rule and
-the envelope sum for large tensors, as :func:`sift.prepare` and :func:`sift.finish` choose in
-torch; both solve the spline systems by the same PCR steps, so a row's result does not depend
-on the batch. The same torch functions run in eager
-mode, so the graph computes exactly what :func:`decompose.decompose` computes.
+from :data:`spline.LARGE_ROWS` rows on, the sift lays out the end extrema and the boundary rule
+for large tensors, as :func:`sift.prepare` chooses in torch; both solve the spline systems by
+the same PCR steps, so a row's result does not depend on the batch. Each sift cuts the knots
+to the width the batch needs (:func:`spline.knot_width`, bit for bit the same result). The
+same torch functions run in eager mode, so the graph computes exactly what
+:func:`decompose.decompose` computes.
 
 Graph contract: input ``x_in`` (batch, channels, time) float32/float64 with a dynamic batch axis;
 outputs ``imfs`` (batch, channels, n_imfs, time), ``residue`` (batch, channels, time) and
@@ -42,14 +43,15 @@ from .decompose import imf_update
 from .extrema import has_tie, plateau_marks, signs, strict_marks
 from .knots import end_base, n_slots, slot_base
 from .module import EMDConfig
-from .sift import finish, prepare
+from .sift import finish, prepare_knots, prepare_system
 from .spline import (
     LARGE_ROWS,
-    decoupled_after,
+    decoupled_at_width,
     pcr_last,
     pcr_rows,
     pcr_step,
     pcr_steps,
+    slot_rows,
 )
 
 OPSET = 18
@@ -369,21 +371,29 @@ def _sift_graph(
     sg = signs(h)
     marks = strict_marks(sg)
     base = slot_base(h)
-    sys, xy, j1, ks, n_ext, hk, sl = prepare(h, marks, base)
+    # Examples at the full K slots (the traced constants must hold for every knot width).
+    xy, j1, ks, n_ext, _ = prepare_knots(h, marks, base)
+    slot = slot_rows(k, h.dtype)
+    sys, hk, sl = prepare_system(xy, j1, n_time, slot)
     m = sys[2:3]
     sys = pcr_rows(sys)  # the example the PCR steps are traced on
     r1 = {1: "rows"}
     r2 = {2: "rows"}
+    rw = {2: "rows", 3: "width"}  # knots and spline: (a, 2, R, W), W = spline.knot_width
 
-    def pre(h: Tensor, marks: Tensor, *made: Tensor) -> tuple[Tensor, ...]:
+    def pre_knots(h: Tensor, marks: Tensor, *made: Tensor) -> tuple[Tensor, ...]:
         # made: slot_base's four tensors, then (small body) the end samples for TopK.
         ends = None if large else made[4]
-        sys, *rest = prepare(h, marks, made[:4], ends=ends, large=large)
+        *knots, width = prepare_knots(h, marks, made[:4], ends=ends, large=large)
+        done = [decoupled_at_width(width, step) for step in range(always, steps)]
+        return (*knots, width, *done)
+
+    def pre_system(xy: Tensor, j1: Tensor, slot: Tensor) -> tuple[Tensor, ...]:
+        sys, hk, sl = prepare_system(xy, j1, n_time, slot)
         sys = pcr_rows(sys)
         for step in range(always):
             sys = pcr_step(sys, 1 << step)
-        done = [decoupled_after(rest[1], step) for step in range(always, steps)]
-        return (sys, *rest, *done)
+        return sys, hk, sl
 
     done_names = [f"done{s}" for s in range(always, steps)]
     head = trace_graph(_head, [h], ["h"], ["sg", "tie"], {"h": rows, "sg": rows})
@@ -393,32 +403,39 @@ def _sift_graph(
     made = _MADE[:4] if large else _MADE
     made_examples = [*base] if large else [*base, end_base(h)]
     prep = trace_graph(
-        pre,
+        pre_knots,
         [h, marks, *made_examples],
         ["h", "marks", *made],
-        ["sys", "xy", "j1", "ks", "n_ext", "hk", "sl", *done_names],
+        ["xy", "j1", "ks", "n_ext", "width", *done_names],
         {"h": rows, "marks": r1, "low": r2, "dummies": r2, "slots": r1, "cands": r1, "ends": r1,
-         "sys": r2, "xy": r2, "j1": r1, "ks": r1, "n_ext": {0: "rows"}, "hk": r2, "sl": r2},
+         "xy": r2, "j1": r1, "ks": r1, "n_ext": {0: "rows"}},
     )
-    solved = trace_graph(lambda sys: sys[2:3], [sys], ["sys"], ["m"], {"sys": r2, "m": r2})
+    system = trace_graph(
+        pre_system,
+        [xy, j1, slot],
+        ["xy", "j1", "slot"],
+        ["sys", "hk", "sl"],
+        {"xy": rw, "j1": r1, "slot": {1: "width"}, "sys": rw, "hk": rw, "sl": rw},
+    )
+    solved = trace_graph(lambda sys: sys[2:3], [sys], ["sys"], ["m"], {"sys": rw, "m": rw})
     step_models = {
         s: trace_graph(
             lambda sys, st=1 << s: pcr_step(sys, st),
-            [sys], ["sys"], ["out"], {"sys": r2, "out": r2},
+            [sys], ["sys"], ["out"], {"sys": rw, "out": rw},
         )
         for s in range(always, steps - 1)
     }
     last = trace_graph(
         lambda sys: pcr_last(sys, 1 << (steps - 1)), [sys], ["sys"], ["m"],
-        {"sys": r2, "m": r2},
+        {"sys": rw, "m": rw},
     )
     tail = trace_graph(
-        lambda *args: _finish_sift(*args, large=large),
+        _finish_sift,
         [h, act, xy, m, j1, ks, n_ext, hk, sl],
         ["h", "act", "xy", "m", "j1", "ks", "n_ext", "hk", "sl"],
         ["h_out", "act_out", "go"],
-        {"h": rows, "act": rows, "xy": r2, "m": r2, "j1": r1, "ks": r1,
-         "n_ext": {0: "rows"}, "hk": r2, "sl": r2, "h_out": rows, "act_out": rows},
+        {"h": rows, "act": rows, "xy": rw, "m": rw, "j1": r1, "ks": r1,
+         "n_ext": {0: "rows"}, "hk": rw, "sl": rw, "h_out": rows, "act_out": rows},
     )
 
     inits: list[onnx.TensorProto] = []
@@ -429,7 +446,7 @@ def _sift_graph(
         inits.extend(more)
         return nodes
 
-    m_info = [1, 2, "rows", k]
+    m_info = [1, 2, "rows", "width"]
     nodes = add(head, "head/", {"h": "s_h", "sg": "s_sg", "tie": "s_tie"})
     branches = {}
     for name, part in (("plateau", plateau), ("strict", strict)):
@@ -444,10 +461,24 @@ def _sift_graph(
         )
     )
     # What depends only on the shape is made once, outside the loops.
-    outer = {"h": "s_h", "marks": "s_marks", "sys": f"s_sys{always}"}
+    outer = {"h": "s_h", "marks": "s_marks", "xy": "s_xy_all"}
     outer.update({v: f"made_{v}" for v in made})
-    outer.update({v: f"s_{v}" for v in ["xy", "j1", "ks", "n_ext", "hk", "sl", *done_names]})
+    outer.update({v: f"s_{v}" for v in ["j1", "ks", "n_ext", "width", *done_names]})
     nodes += add(prep, "prep/", outer)
+    # The knots and spline.slot_rows cut to the knot width (spline.knot_width).
+    pfx = "large/" if large else ""
+    inits += [helper.make_tensor(f"{pfx}cut_start", TensorProto.INT64, [1], [0]),
+              helper.make_tensor(f"{pfx}cut_axis", TensorProto.INT64, [1], [3]),
+              helper.make_tensor(f"{pfx}cut_axis1", TensorProto.INT64, [1], [1])]
+    nodes += [
+        helper.make_node("Slice", ["s_xy_all", f"{pfx}cut_start", "s_width", f"{pfx}cut_axis"],
+                         ["s_xy"]),
+        helper.make_node("Slice", ["made_slot_rows", f"{pfx}cut_start", "s_width",
+                                   f"{pfx}cut_axis1"], ["s_slot_rows"]),
+    ]
+    outer = {"xy": "s_xy", "j1": "s_j1", "slot": "s_slot_rows", "sys": f"s_sys{always}"}
+    outer.update({v: f"s_{v}" for v in ["hk", "sl"]})
+    nodes += add(system, "system/", outer)
 
     def solve_from(step: int, out: str) -> list[onnx.NodeProto]:
         """Nodes that write the solution to ``out`` from ``s_sys{step}`` (``step`` done)."""
@@ -484,10 +515,10 @@ def _sift_graph(
     return graph, inits
 
 
-def _finish_sift(*args: Tensor, large: bool = False) -> tuple[Tensor, Tensor, Tensor]:
+def _finish_sift(*args: Tensor) -> tuple[Tensor, Tensor, Tensor]:
     """:func:`sift.finish`, and whether any row is still active (the sift loop's condition:
     a row that stopped stays unchanged, so the remaining sifts can be skipped exactly)."""
-    h, active = finish(*args, large=large)
+    h, active = finish(*args)
     return h, active, active.any()
 
 
@@ -646,6 +677,9 @@ def build_emd_model(
         },
     )
     inits += i_inits + f_inits
+    # spline.slot_rows, cut to the knot width in every sift (sift.prepare_system).
+    rows_k = slot_rows(n_slots(n_time), dtype).numpy()
+    inits.append(numpy_helper.from_array(rows_k, "made_slot_rows"))
     inits.append(helper.make_tensor("n_imfs", TensorProto.INT64, [], [n_imfs]))
     inits.append(helper.make_tensor("n_sifts", TensorProto.INT64, [], [n_sifts]))
     inits.append(helper.make_tensor("large_rows", TensorProto.INT64, [], [large_rows]))

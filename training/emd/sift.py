@@ -15,17 +15,17 @@ from .boundary import boundary_knots, side_coordinates
 from .envelope import evaluate, segment_index
 from .extrema import extrema_marks
 from .knots import assemble, end_extrema, end_extrema_topk, extrema_counts, past_dummies
-from .spline import large_path, solve, spacings, spline_system
+from .spline import knot_width, large_path, solve, spacings, spline_system
 
 
-def prepare(
+def prepare_knots(
     h: Tensor,
     marks: Tensor,
     base: tuple[Tensor, Tensor, Tensor, Tensor] | None = None,
     ends: Tensor | None = None,
     large: bool | None = None,
-) -> tuple[Tensor, ...]:
-    """Knots and spline system of both envelopes of every row.
+) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor]:
+    """Knots of both envelopes of every row, and the knot width the rest of the sift needs.
 
     Args:
         h: (R, N) signals, N >= 3, finite; marks: (2, R, N) their extremum marks.
@@ -38,11 +38,9 @@ def prepare(
             By default from :data:`spline.LARGE_ROWS` rows on, as the exported graph chooses.
 
     Returns:
-        sys: (3, 2, R, K) the unit-diagonal system (:func:`spline.spline_system`).
-        xy: (2, 2, R, K) knots; j1: (2, R, 1) last real slot; ks: (2, R, N) slot of the last
-        knot counted at each sample (:func:`knots.assemble`); n_ext: (R, 1) extrema per row
-        (PyEMD's ``extNo``); hk, sl: (1, 2, R, K) knot spacings and secant slopes
-        (:func:`spline.spacings`).
+        xy: (2, 2, R, K) knots (half values); j1: (2, R, 1) last real slot; ks: (2, R, N) slot
+        of the last knot counted at each sample (:func:`knots.assemble`); n_ext: (R, 1) extrema
+        per row (PyEMD's ``extNo``); width: (1,) int64 :func:`spline.knot_width`.
     """
     if large is None:
         large = large_path(int(h.shape[0]))
@@ -58,32 +56,68 @@ def prepare(
         bxy, bv = boundary_knots(h, q, v, n)  # (2, 2, R, 4), (2, R, 4)
     # (2, 2, R, K) knots (half values), (2, R, 1) last slot, (2, R, N) slot at each sample:
     xy, j1, ks = assemble(h, marks, bxy, bv, base)
-    hk, sl = spacings(xy, past_dummies(int(h.shape[-1])))  # for the system and the envelopes
-    return spline_system(xy, j1, hk, sl), xy, j1, ks, n.sum(dim=(0, 3)), hk, sl
+    return xy, j1, ks, n.sum(dim=(0, 3)), knot_width(j1, int(xy.shape[-1]))
+
+
+def prepare_system(
+    xy: Tensor, j1: Tensor, n_time: int, rows: Tensor | None = None
+) -> tuple[Tensor, Tensor, Tensor]:
+    """Spline system of knots cut to their :func:`spline.knot_width`.
+
+    Args:
+        xy: (2, 2, R, W) knots; j1: (2, R, 1) last real slot (``j1 <= W - 2``); n_time: N.
+        rows: (2, W) :func:`spline.slot_rows` (the exported graph cuts them from a constant;
+            made here when not given).
+
+    Returns:
+        sys: (3, 2, R, W) the unit-diagonal system (:func:`spline.spline_system`); hk, sl:
+        (1, 2, R, W) knot spacings and secant slopes (:func:`spline.spacings`), which the
+        envelopes use too.
+    """
+    hk, sl = spacings(xy, past_dummies(n_time))
+    return spline_system(xy, j1, hk, sl, rows), hk, sl
+
+
+def prepare(
+    h: Tensor,
+    marks: Tensor,
+    base: tuple[Tensor, Tensor, Tensor, Tensor] | None = None,
+    ends: Tensor | None = None,
+    large: bool | None = None,
+) -> tuple[Tensor, ...]:
+    """Knots and spline system of both envelopes of every row (:func:`prepare_knots`, the cut
+    to the knot width, :func:`prepare_system`; arguments as :func:`prepare_knots`).
+
+    Returns:
+        sys: (3, 2, R, W) the unit-diagonal system (:func:`spline.spline_system`).
+        xy: (2, 2, R, W) knots; j1: (2, R, 1) last real slot; ks: (2, R, N) slot of the last
+        knot counted at each sample (:func:`knots.assemble`); n_ext: (R, 1) extrema per row
+        (PyEMD's ``extNo``); hk, sl: (1, 2, R, W) knot spacings and secant slopes
+        (:func:`spline.spacings`). ``W``: :func:`spline.knot_width`.
+    """
+    xy, j1, ks, n_ext, width = prepare_knots(h, marks, base, ends, large)
+    xy = xy[..., : int(width)]
+    sys, hk, sl = prepare_system(xy, j1, int(h.shape[-1]))
+    return sys, xy, j1, ks, n_ext, hk, sl
 
 
 def finish(
     h: Tensor, active: Tensor, xy: Tensor, m: Tensor, j1: Tensor, ks: Tensor, n_ext: Tensor,
-    hk: Tensor, sl: Tensor, large: bool | None = None,
+    hk: Tensor, sl: Tensor,
 ) -> tuple[Tensor, Tensor]:
     """Evaluate the envelopes and subtract their mean (the arguments as :func:`prepare` gives
     them, ``m`` (1, 2, R, K) from :func:`spline.solve`); returns as :func:`sift`.
 
-    ``large`` (by default from :data:`spline.LARGE_ROWS` rows on, as in :func:`prepare`) adds
-    the two half envelopes as two tensors instead of reducing over their axis: the same single
-    addition, so the same bits. onnxruntime's reduction over a leading axis costs about 1 ns an
-    element, seven times the split and the addition; with few rows the one reduction node is
-    cheaper.
+    The two half envelopes are added as two tensors rather than by a reduction over their
+    axis (the same single addition, so the same bits), in both layouts. onnxruntime's
+    reduction over a leading axis is slow and has cliffs: on (1, 2, R, N) halves it took
+    8.5 us against 7.2 us for the split and the addition at 1 x 1,100, 51 us against 7.8 us at
+    56 x 50, and was ahead (by 0.2 us) only at 8 x 50 (1.32, one thread).
     """
-    if large is None:
-        large = large_path(int(h.shape[0]))
     half = evaluate(h, xy, m, segment_index(ks, j1), hk, sl)  # (1, 2, R, N) envelopes / 2
     active = active & (n_ext > 2.0)  # (R, 1)
-    if large:
-        upper, lower = half.split(1, dim=1)  # (1, 1, R, N) each
-        mean = (upper + lower).squeeze(1).squeeze(0)
-    else:
-        mean = half.sum(dim=(0, 1))  # (R, N): (upper + lower) / 2, bit for bit as PyEMD's
+    upper, lower = half.split(1, dim=1)  # (1, 1, R, N) each
+    mean = (upper + lower).reshape(-1, int(h.shape[-1]))  # (R, N): (upper + lower) / 2
     return torch.where(active, h - mean, h), active
 
 

@@ -45,33 +45,63 @@ def spacings(xy: Tensor, end: float | None = None) -> tuple[Tensor, Tensor]:
     return hk, dy / hk
 
 
+def knot_width(j1: Tensor, k: int) -> Tensor:
+    """(..., 1) last real knot slots -> (1,) int64: the slots the spline needs, ``max(j1) + 2``
+    (never more than ``k``, the slots there are).
+
+    The rest of a sift (spacings, system, PCR, envelope coefficients) works on the knots cut
+    to this width: long windows have ``K = N // 2 + 6`` slots, but their later IMFs only a few
+    knots (at 1,100 samples about 330, 155, 66, 20, 13, 9, 6 and 4 per envelope, IMF after
+    IMF). The cut changes no bit of any row, whatever the other rows of the batch: the slots
+    past a row's ``j1`` are identity rows of its system (solution 0, coupled to nothing), and
+    PCR fills a shift past the edge with a zero row, which contributes the same zeros as an
+    identity row would (:func:`_eliminate` never reads a neighbour's diagonal); the envelopes
+    read slots up to ``j1`` only. Slot ``max(j1) + 1`` remains, a placeholder of
+    :func:`spacings` above every real knot.
+    """
+    del k  # j1 <= K - 2 (knots.n_slots), so the width never exceeds K
+    return (j1.reshape(-1).amax(0, keepdim=True) + 2.0).long()
+
+
+def slot_rows(k: int, dtype: torch.dtype = torch.float64, device=None) -> Tensor:
+    """(2, K) what :func:`spline_system` needs of the slot numbers: 1 in row 2 (the left
+    not-a-knot or natural row) and 0 elsewhere; each slot's number, with slots 0 and 1 placed
+    at K, past every real knot. Made once for the exported graph and cut to the knot width."""
+    j = torch.arange(k, dtype=dtype, device=device)
+    return torch.stack([(j == 2.0).to(dtype), torch.where(j < 1.5, float(k), j)])
+
+
 def spline_system(
-    xy: Tensor, j1: Tensor, hk: Tensor | None = None, sl: Tensor | None = None
+    xy: Tensor, j1: Tensor, hk: Tensor | None = None, sl: Tensor | None = None,
+    rows: Tensor | None = None,
 ) -> Tensor:
     """Tridiagonal rows for the knots' second derivatives over 6, each divided by its diagonal.
 
     Args:
         xy: (2, ..., K) knot positions (strictly increasing over all K slots) and values; the
             real knots are slots ``1 .. j1``.
-        j1: (..., 1) last real knot slot (``j1 >= 3`` for real rows).
+        j1: (..., 1) last real knot slot (``j1 >= 3`` for real rows, ``j1 <= K - 2``).
         hk, sl: (1, ..., K) :func:`spacings` of ``xy``, computed here when not given.
+        rows: (2, K) :func:`slot_rows` in ``xy``'s dtype, made here when not given (the
+            exported graph passes them cut to the knot width, which varies with the batch).
 
     Returns:
         (3, ..., K): sub-diagonal, super-diagonal and right-hand side of the unit-diagonal rows
         whose solution is ``M / 6`` (the right-hand side is the slope change, without the 6).
     """
     k = int(xy.shape[-1])
-    dt, dev = xy.dtype, xy.device
-    j = torch.arange(k, dtype=dt, device=dev)  # (K,)
-    row2 = (j == 2.0).to(dt)  # (K,) row 2: M[1] eliminated (or natural)
+    if rows is None:
+        rows = slot_rows(k, xy.dtype, xy.device)
+    row2, jpos = rows.split(1)  # (1, K) each: row 2 (M[1] eliminated, or natural); slot numbers
     if hk is None or sl is None:
         hk, sl = spacings(xy)  # (1, ..., K) each
     hm = F.pad(hk, (1, -1), value=1.0)  # (1, ..., K): h[j-1]
     hp = hk  # (1, ..., K): h[j]; the placeholder in row K-1 is positive
     rhs = sl - F.pad(sl, (1, -1))  # (1, ..., K); rows 0, 1 and K-1 are masked
-    # Distance from the last knot, with rows 0 and 1 placed past every slot: negative there,
-    # so one clamp masks both ends (and they are never taken for the right not-a-knot row).
-    dr = j1 - torch.where(j < 1.5, float(k), j)  # (..., K)
+    # Distance from the last knot, with rows 0 and 1 placed past every real knot: negative
+    # there, so one clamp masks both ends (and they are never taken for the right not-a-knot
+    # row).
+    dr = j1 - jpos  # (..., K)
     inner = torch.clamp(dr, 0.0, 1.0)  # rows 2 .. j1-1
     # Every row is [h[j-1], 2 s, h[j]] + w [-h[j], s, -h[j-1]] with s = h[j-1] + h[j]:
     # w = 0 inside and for the natural 3-knot row, w = h[j-1]/h[j] for the left not-a-knot row
@@ -156,6 +186,12 @@ def decoupled_after(j1: Tensor, steps: int) -> Tensor:
     right-hand side is the solution, and further steps would leave it bit for bit unchanged.
     """
     return j1.amax() <= float((1 << steps) + 2)  # j1 holds whole numbers: exact
+
+
+def decoupled_at_width(width: Tensor, steps: int) -> Tensor:
+    """:func:`decoupled_after` from the :func:`knot_width` (``max(j1) + 2``, (1,) int64):
+    (1,) bool, the same answer (the exported sift computes both from one reduction)."""
+    return width <= (1 << steps) + 4
 
 
 def pcr_solve(sys: Tensor, j1: Tensor | None = None) -> Tensor:
