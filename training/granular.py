@@ -32,6 +32,7 @@ from torch import Tensor, nn
 from tactile.training.config import TrainConfig
 from tactile.training.emd import EMD
 from tactile.training.modality import ModalityLayout, Signals, n_steps
+from tactile.training.model import Classifier
 from tactile.training.sparse import SparseCoder, default_n_nonzero
 
 LOG_EPS = 1e-6
@@ -337,7 +338,7 @@ class PooledLinearHead(nn.Module):
         return self.out(self.norm(pooled)), h, c
 
 
-class GranularModel(nn.Module):
+class GranularModel(Classifier):
     """A granular-media model with :class:`~tactile.training.model.TextureModel`'s interface:
     ``forward(x, h, c)``: x (B, T, C) float32 in the channels' units, h and c
     ``(layers, B, width)`` (:attr:`state_shape`) -> probabilities (B, classes), h, c.
@@ -365,18 +366,6 @@ class GranularModel(nn.Module):
     @property
     def state_shape(self) -> tuple[int, int]:
         return self.head.state_shape
-
-    def zero_state(self, batch: int) -> tuple[Tensor, Tensor]:
-        layers, width = self.state_shape
-        z = torch.zeros(layers, batch, width)
-        return z, z.clone()
-
-    def logits(self, x: Tensor, h: Tensor, c: Tensor) -> tuple[Tensor, Tensor, Tensor]:
-        return self.head(self.pre(x), h, c)
-
-    def forward(self, x: Tensor, h: Tensor, c: Tensor) -> tuple[Tensor, Tensor, Tensor]:
-        logits, h, c = self.logits(x, h, c)
-        return torch.softmax(logits, dim=1), h, c
 
 
 __all__ = ["GranularPre", "GranularModel", "SFRNNHead", "FRNNHead", "PooledLinearHead",

@@ -89,26 +89,6 @@ def resolve_signals(patterns: Signals, channels: tuple[str, ...]) -> Signals:
     return tuple(out)
 
 
-def check_signals(signals: Signals, channels: tuple[str, ...], where: str) -> None:
-    """Exact signal declarations (a take's ``signals``) against ``channels``: every name
-    exists, no channel in two signals, none empty, no signal named like a channel. Raises
-    :class:`ConfigError` beginning with ``where``."""
-    owner: dict[str, str] = {}
-    for name, names in signals:
-        if not names:
-            raise ConfigError(f"{where}: signal {name!r} has no channels")
-        if name in channels:
-            raise ConfigError(f"{where}: signal {name!r} is named like a channel")
-        for c in names:
-            if c not in channels:
-                raise ConfigError(f"{where}: signal {name!r}: channel {c!r} is not among the "
-                                  "take's channels")
-            if c in owner:
-                raise ConfigError(f"{where}: channel {c!r} is in signals {owner[c]!r} and "
-                                  f"{name!r}")
-            owner[c] = name
-
-
 def signals_of_takes(takes, channels: tuple[str, ...]) -> Signals:
     """The high-rate signals the takes declare (their JSON's ``signals``), restricted to
     signals whose channels are all among ``channels``. Every take must declare the same;
@@ -138,7 +118,6 @@ def resolve(cfg: TrainConfig, channels: tuple[str, ...], rate_hz: float,
     in two modalities, a modality mixing rates, or an image longer than the window."""
     if signals is None:
         signals = resolve_signals(cfg.signals, channels)
-    check_signals(signals, channels, "signals")
     members = {c for _, names in signals for c in names}
     units: dict[str, tuple[int, ...]] = {n: tuple(channels.index(c) for c in names)
                                          for n, names in signals}
@@ -191,5 +170,5 @@ def literal_signals(signals: Signals) -> Signals:
     return tuple((n, tuple(lit(c) for c in names)) for n, names in signals)
 
 
-__all__ = ["ModalityLayout", "Signals", "resolve", "resolve_signals", "check_signals",
+__all__ = ["ModalityLayout", "Signals", "resolve", "resolve_signals",
            "literal_signals", "signals_of_takes", "n_steps"]

@@ -160,7 +160,32 @@ class LinearHead(nn.Module):
         return self.out(energy), h, c
 
 
-class TextureModel(nn.Module):
+class Classifier(nn.Module):
+    """What every model shares: ``pre`` (window -> features), ``head`` (features + state ->
+    logits + state) and ``state_shape`` (set by the subclass); the zero state, the logits and
+    ``forward(x, h, c) -> (probabilities (B, classes), h, c)``."""
+
+    pre: nn.Module
+    head: nn.Module
+
+    @property
+    def state_shape(self) -> tuple[int, int]:
+        raise NotImplementedError
+
+    def zero_state(self, batch: int) -> tuple[Tensor, Tensor]:
+        layers, width = self.state_shape
+        z = torch.zeros(layers, batch, width)
+        return z, z.clone()
+
+    def logits(self, x: Tensor, h: Tensor, c: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+        return self.head(self.pre(x), h, c)
+
+    def forward(self, x: Tensor, h: Tensor, c: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+        logits, h, c = self.logits(x, h, c)
+        return torch.softmax(logits, dim=1), h, c
+
+
+class TextureModel(Classifier):
     """The whole classifier: raw window in units -> class probabilities, with explicit state.
 
     ``forward(x, h, c)``: x (B, T, C) float32 in the channels' units, h and c (L, B, H);
@@ -186,17 +211,6 @@ class TextureModel(nn.Module):
             return self.head.layers, self.head.hidden
         return 1, 1
 
-    def zero_state(self, batch: int) -> tuple[Tensor, Tensor]:
-        layers, hidden = self.state_shape
-        z = torch.zeros(layers, batch, hidden)
-        return z, z.clone()
-
-    def logits(self, x: Tensor, h: Tensor, c: Tensor) -> tuple[Tensor, Tensor, Tensor]:
-        return self.head(self.pre(x), h, c)
-
-    def forward(self, x: Tensor, h: Tensor, c: Tensor) -> tuple[Tensor, Tensor, Tensor]:
-        logits, h, c = self.logits(x, h, c)
-        return torch.softmax(logits, dim=1), h, c
 
 
 def build_model(cfg: TrainConfig, n_classes: int, mean: Tensor, std: Tensor, *,
