@@ -57,6 +57,30 @@ def tie_gap(d: np.ndarray, x: np.ndarray, order: list[int], other: set[int]) -> 
     return float("inf")
 
 
+def divergence_gap(d: np.ndarray, x: np.ndarray, first: list[int], second: list[int]) -> float:
+    """Relative gap, in float64, between the atoms two OMP runs picked at the first step where
+    their selection orders ``first`` and ``second`` differ (-1: the run had stopped), after the
+    atoms both picked before it: ``(|c_a| - |c_b|) / max |c|`` of the residual correlations of
+    window ``x`` (features,) with dictionary ``d`` (atoms, features). inf when one run stopped
+    there, or when the orders never differ (over their common length).
+
+    Unlike :func:`tie_gap`, which knows only the other code's atoms, this measures the decision
+    where the two runs parted, even when the later steps brought them back to most of the same
+    atoms."""
+    for s, (a, b) in enumerate(zip(first, second)):
+        if a == b:
+            continue
+        if a < 0 or b < 0:
+            return float("inf")
+        d64, resid = d.astype(np.float64), x.astype(np.float64)
+        if s:
+            sub = d64[list(first[:s])]  # (s, F)
+            resid = resid - sub.T @ np.linalg.lstsq(sub.T, resid, rcond=None)[0]
+        corr = np.abs(d64 @ resid)
+        return float((corr[a] - corr[b]) / corr.max())
+    return float("inf")
+
+
 def compare(ref: np.ndarray, got: np.ndarray, d: np.ndarray, x: np.ndarray, n: int) -> dict:
     """Codes ``got`` against scikit-learn's ``ref`` (windows, atoms) for windows ``x``
     (windows, features), dictionary ``d`` and ``n`` non-zeros: ``same`` (windows with the same
@@ -85,4 +109,4 @@ def structured(n: int, features: int, seed: int) -> np.ndarray:
     return (weights @ pool + 0.05 * rng.standard_normal((n, features))).astype(np.float32)
 
 
-__all__ = ["compare", "sklearn_order", "structured", "tie_gap"]
+__all__ = ["compare", "divergence_gap", "sklearn_order", "structured", "tie_gap"]
