@@ -28,8 +28,8 @@ import torch
 from torch import nn
 
 from tactile.errors import ModelContractError
-from tactile.export.codes import TIE, code_parity, coders, table_rows
-from tactile.export.ties import MAX_EXCUSED, Examined, Explainer
+from tactile.export.codes import AGREEMENT, RTOL, TIE, code_parity, coders, table_rows
+from tactile.export.ties import MAX_EXCUSED, RESOLUTION_FACTOR, Examined, Explainer
 from tactile.export.windows import CARRY_STEPS, Probe, random_windows, simulated
 
 ATOL = 1e-4
@@ -102,9 +102,9 @@ class Parity:
             ("max |dp|", f"{self.max_abs_prob_diff:.3g} (limit {self.atol:g}"
              f"{'' if self.flips is None else ', windows not excused'})"
              if self.criterion == "strict" else f"{self.max_abs_prob_diff:.3g}"),
-            *self._flip_rows(),
             ("  of which", f"{self.max_abs_prob_diff_batch1:.3g} onnx at batch 1 vs torch in "
              f"batches of up to {EVAL_BATCH}"),
+            *self._flip_rows(),
             ("max |d state|", f"{self.max_abs_state_diff:.3g}"),
             ("label agreement", f"{self.label_agreement:.4f} ({self.labels_differ} differ, "
                                 f"{self.labels_differ_excused} within margin {self.margin:g})"),
@@ -114,7 +114,37 @@ class Parity:
             *table_rows(self.codes or []),
             ("result", "PASS" if self.passed else "FAIL"),
         ]
-        return "\n".join(f"{k:<17}{v}" for k, v in rows)
+        return "\n".join(f"{k:<16} {v}" for k, v in rows)
+
+    def failures(self) -> list[str]:
+        """What failed, in a few words each (empty when it passed)."""
+        if self.passed:
+            return []
+        if self.criterion != "strict":
+            return [f"label agreement {self.label_agreement:.4f} (at least {INT8_AGREEMENT})"]
+        out = []
+        if self.max_abs_prob_diff > self.atol:
+            not_excused = "" if self.flips is None else " on windows not excused"
+            out.append(f"max |dp| {self.max_abs_prob_diff:.3g} (limit {self.atol:g})"
+                       f"{not_excused}")
+        if self.labels_differ > self.labels_differ_excused:
+            out.append(f"{self.labels_differ - self.labels_differ_excused} of {self.windows} "
+                       f"labels differ (agreement {self.label_agreement:.4f})")
+        if self.carry_runs and self.longest_carry_run < MIN_CARRY:
+            out.append(f"longest carried run {self.longest_carry_run} (at least {MIN_CARRY})")
+        if self.max_excused is not None and self.windows_excused > self.max_excused * self.windows:
+            out.append(f"{self.windows_excused} of {self.windows} windows excused by near-tie "
+                       f"flips (at most {100 * self.max_excused:g}%)")
+        for r in self.codes or []:
+            if not r["passed"]:
+                why = [f"{r['same_atoms']}/{r['rows']} rows the same atoms as scikit-learn"
+                       + (f" (at least {AGREEMENT:.0%})" if r["agreement"] < AGREEMENT else "")]
+                if r["explained"]["unexplained"]:
+                    why.append(f"{r['explained']['unexplained']} others unexplained")
+                if r["rows_over_rtol_unexcused"]:
+                    why.append(f"{r['rows_over_rtol_unexcused']} above {RTOL:g} unexplained")
+                out.append(f"codes {r['name']}: {', '.join(why)}")
+        return out or ["see the table"]
 
     def _flip_rows(self) -> list[tuple[str, str]]:
         if self.flips is None:
@@ -122,11 +152,15 @@ class Parity:
         f = self.flips
         worst = ("" if self.max_abs_prob_diff_excused is None
                  else f", max |dp| {self.max_abs_prob_diff_excused:.3g}")
+        odd = "".join(f", {f[k]} {what}" for k, what in (
+            ("not_reproduced", "not reproduced by the tapped copy"),
+            ("not_by_codes", "not reproduced by PyTorch given the graph's codes")) if f[k])
         return [("near-tie flips", f"{self.windows_excused} of {self.windows} windows excused "
-                 f"(at most {self.max_excused:.0%}){worst}; {f['windows_examined']} above the "
+                 f"(at most {100 * self.max_excused:g}%){worst}; {f['windows_examined']} above the "
                  f"limit, {f['rows_flipped']} of their code rows with other atoms than "
-                 f"PyTorch's, {f['rows_near_tie']} near-ties on the same image (max gap "
-                 f"{f['max_tie_gap']:.2g}, limit {self.tie:g})")]
+                 f"PyTorch's, {f['rows_near_tie']} near-ties on the same image (largest gap "
+                 f"{f['max_tie_gap']:.2g}, at most {f['max_tie_ratio']:.2g} of the tolerance: "
+                 f"{self.tie:g} or {RESOLUTION_FACTOR:g} x float32's resolution){odd}")]
 
 
 @torch.no_grad()
@@ -228,13 +262,24 @@ def _explain_batch(explain: Explainer, rec, x: np.ndarray, state: tuple, p: np.n
     bad = np.flatnonzero(np.abs(o - p).max(1) > ATOL)
     if bad.size:
         probs, _, _, rows = explain.run(x, h, c)
-        for w in bad:
-            same = bool(np.array_equal(probs[w], o[w]))
-            examined.add(first + w, explain.window(rec, w, n, rows, w, same))
+        mix = explain.substituted(x[bad], h[:, bad], c[:, bad],
+                                  [_windows_rows(r[1], bad, n) for r in rows])
+        for j, w in enumerate(bad):
+            f = explain.window(rec, w, n, rows, w, bool(np.array_equal(probs[w], o[w])))
+            f.by_codes = mix is not None and float(np.abs(mix[0][j] - o[w]).max()) <= ATOL
+            examined.add(first + w, f)
     for w in np.flatnonzero(np.abs(o1 - p).max(1) > ATOL):
         probs, _, _, rows = explain.run(x[w : w + 1], h[:, :1], c[:, :1])
-        same = bool(np.array_equal(probs[0], o1[w]))
-        examined.add(first + w, explain.window(rec, w, n, rows, 0, same))
+        mix = explain.substituted(x[w : w + 1], h[:, :1], c[:, :1], [r[1] for r in rows])
+        f = explain.window(rec, w, n, rows, 0, bool(np.array_equal(probs[0], o1[w])))
+        f.by_codes = mix is not None and float(np.abs(mix[0][0] - o1[w]).max()) <= ATOL
+        examined.add(first + w, f)
+
+
+def _windows_rows(rows: np.ndarray, windows: np.ndarray, n: int) -> np.ndarray:
+    """The rows (window-major, ``len(rows) // n`` per window) of ``windows`` of ``n``."""
+    s = len(rows) // n
+    return np.concatenate([rows[w * s : (w + 1) * s] for w in windows])
 
 
 def _carry_mode(model: nn.Module, sess: ort.InferenceSession, probe: Probe,
@@ -270,16 +315,23 @@ def _carry_mode(model: nn.Module, sess: ort.InferenceSession, probe: Probe,
 def _explain_run(explain: Explainer, recs: list, x: np.ndarray, p: np.ndarray, o: np.ndarray,
                  first: int, examined: Examined) -> None:
     """The windows of one carried run above :data:`ATOL`: the tapped copy along the run
-    (feeding back its own state) up to the last of them; a window inherits the flips of the
-    windows before it (its state carries them)."""
+    (feeding back its own state) up to the last of them, and PyTorch's model given the graph's
+    codes along it (feeding back its state); a window inherits the flips of the windows before
+    it (its state carries them)."""
     bad = np.flatnonzero(np.abs(o - p).max(1) > ATOL)
     if not bad.size:
         return
-    h = c = np.zeros((explain.state_shape[0], 1, explain.state_shape[1]), np.float32)
+    h = c = hm = cm = np.zeros((explain.state_shape[0], 1, explain.state_shape[1]), np.float32)
     so_far = None
     for j in range(int(bad[-1]) + 1):
         probs, h, c, rows = explain.run(x[j : j + 1], h, c)
+        mix = explain.substituted(x[j : j + 1], hm, cm, [r[1] for r in rows])
         f = explain.window(recs[j], 0, 1, rows, 0, bool(np.array_equal(probs[0], o[j])))
+        if mix is None:
+            f.by_codes = False
+        else:
+            f.by_codes = float(np.abs(mix[0][0] - o[j]).max()) <= ATOL
+            hm, cm = mix[1], mix[2]
         so_far = f if so_far is None else so_far + f
         if j in bad:
             examined.add(first + j, so_far)

@@ -122,6 +122,7 @@ def test_flips_add_up_and_excuse_only_when_every_flip_is_a_tie():
     assert (both.rows, both.flipped, both.ties, both.max_gap) == (20, 2, 1, 1e-6)
     assert not both.excuses
     assert not (one_tie + Flips(10, 0, 0, reproduced=False)).excuses
+    assert not (one_tie + Flips(10, 0, 0, by_codes=False)).excuses  # the codes do not explain
 
 
 # -- the probability check -------------------------------------------------------------------
@@ -168,7 +169,7 @@ def test_windows_moved_by_near_tie_flips_are_excused(tied):
     assert p.windows_excused == n_used and p.max_abs_prob_diff_excused > 5 * ATOL
     assert p.max_abs_prob_diff <= ATOL and p.max_abs_prob_diff_batch1 <= ATOL
     f = p.flips
-    assert f["windows_examined"] == n_used and f["not_reproduced"] == 0
+    assert f["windows_examined"] == n_used and f["not_reproduced"] == f["not_by_codes"] == 0
     assert f["rows_flipped"] == f["rows_near_tie"] >= n_used and f["max_tie_gap"] < 1e-6
     assert p.windows_excused <= MAX_EXCUSED * p.windows
     d = p.to_dict()
@@ -183,6 +184,7 @@ def test_more_excused_windows_than_the_cap_fail(tied, monkeypatch):
     monkeypatch.setattr(parity, "MAX_EXCUSED", (n_used - 1) / N)
     p = compare(model, graph.SerializeToString(), _probe(N), CK)
     assert not p.passed and p.windows_excused == n_used
+    assert p.failures() == [f"{n_used} of {N} windows excused by near-tie flips (at most 0.5%)"]
 
 
 def test_carried_windows_inherit_the_flips_of_their_run(tied, monkeypatch):
@@ -252,6 +254,7 @@ def test_a_graph_with_a_wrong_coder_fails(name):
     p = compare(model, graph.SerializeToString(), _probe(40, seed=10), CK)
     assert not p.passed and "FAIL" in p.table()
     assert p.windows_excused == 0 and p.max_abs_prob_diff > ATOL
+    assert p.failures()[0].startswith("max |dp| ") and "on windows not excused" in p.failures()[0]
     f = p.flips
     assert f["windows_examined"] >= 10 > MAX_EXCUSED * p.windows, f  # beyond any cap
     if name == "dictionary x 1.01":
@@ -261,4 +264,9 @@ def test_a_graph_with_a_wrong_coder_fails(name):
     else:  # other images: a flip there is no tie on the same image
         assert f["rows_flipped"] > 0 and f["rows_near_tie"] == 0, f
     if name != "mean + 1 % of std":  # scikit-learn codes the graph's images: only a coder
-        assert not all(r["passed"] for r in p.codes)  # differs
+        assert not p.codes[0]["passed"]  # differs, and says so
+        assert p.failures()[1] == {
+            "dictionary x 1.01": "codes pre.coders.0: 720/720 rows the same atoms as "
+                                 "scikit-learn, 720 above 0.0001 unexplained",
+            "one more non-zero": "codes pre.coders.0: 0/720 rows the same atoms as "
+                                 "scikit-learn (at least 99%)"}[name]
