@@ -270,3 +270,13 @@ def test_a_graph_with_a_wrong_coder_fails(name):
                                  "scikit-learn, 720 above 0.0001 unexplained",
             "one more non-zero": "codes pre.coders.0: 0/720 rows the same atoms as "
                                  "scikit-learn (at least 99%)"}[name]
+
+
+def test_tactile_check_names_the_excused_windows():
+    from tactile.export.check import _excused
+
+    parity = {"windows": 256, "windows_excused": 2, "max_abs_prob_diff_excused": 0.0084}
+    assert _excused(parity) == ("; 2 of 256 windows excused for near-tie atom flips, "
+                                "max |dp| 0.0084")
+    assert _excused({**parity, "windows_excused": 0}) == ""
+    assert _excused({"windows": 256}) == ""  # a file of another model, or an older one
