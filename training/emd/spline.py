@@ -188,10 +188,16 @@ def decoupled_after(j1: Tensor, steps: int) -> Tensor:
     return j1.amax() <= float((1 << steps) + 2)  # j1 holds whole numbers: exact
 
 
-def decoupled_at_width(width: Tensor, steps: int) -> Tensor:
-    """:func:`decoupled_after` from the :func:`knot_width` (``max(j1) + 2``, (1,) int64):
-    (1,) bool, the same answer (the exported sift computes both from one reduction)."""
-    return width <= (1 << steps) + 4
+def more_steps(width: Tensor, first: int, steps: int) -> Tensor:
+    """How many of the PCR steps ``first .. steps - 1`` the systems still need, from the
+    :func:`knot_width` (``max(j1) + 2``, (1,) int64): a 0-d int64 count.
+
+    Step ``s`` is needed unless :func:`decoupled_after` holds after ``s`` steps, i.e. unless
+    ``width <= 2^s + 4``; the thresholds grow with ``s``, so the steps needed are the first
+    ``count`` of them (the exported sift runs them in a ``Loop`` of that many iterations).
+    """
+    thresholds = torch.tensor([(1 << s) + 4 for s in range(first, steps)], device=width.device)
+    return (width > thresholds).long().sum()
 
 
 def pcr_solve(sys: Tensor, j1: Tensor | None = None) -> Tensor:
