@@ -15,7 +15,7 @@ from .boundary import boundary_knots, side_coordinates
 from .envelope import evaluate, segment_index
 from .extrema import extrema_marks
 from .knots import assemble, end_extrema, end_extrema_topk, extrema_counts, past_dummies
-from .spline import knot_width, large_path, solve, spacings, spline_system
+from .spline import knot_width, large_path, pick, solve, spacings, spline_system
 
 
 def prepare_knots(
@@ -116,7 +116,7 @@ def finish(
     """
     half = evaluate(h, xy, m, segment_index(ks, j1), hk, sl)  # (1, 2, R, N) envelopes / 2
     active = active & (n_ext > 2.0)  # (R, 1)
-    upper, lower = half.split(1, dim=1)  # (1, 1, R, N) each
+    upper, lower = pick(half, 0, 1, dim=1)  # (1, 1, R, N) each
     mean = (upper + lower).reshape(-1, int(h.shape[-1]))  # (R, N): (upper + lower) / 2
     return torch.where(active, h - mean, h), active
 
