@@ -45,6 +45,7 @@ import onnxruntime as ort
 import torch
 from PyEMD import EMD as PyEMD
 
+from tactile.runtime.model import session_options
 from tactile.training.emd import EMD
 from tactile.training.emd.onnx_export import (
     build_emd_model,
@@ -89,12 +90,9 @@ def timed(fn, repeats: int) -> float:
 
 
 def options() -> ort.SessionOptions:
-    """One intra-op and one inter-op thread, sequential execution, quiet."""
-    opts = ort.SessionOptions()
-    opts.intra_op_num_threads = opts.inter_op_num_threads = 1
-    opts.execution_mode = ort.ExecutionMode.ORT_SEQUENTIAL
-    opts.log_severity_level = 3
-    return opts
+    """The runtime's settings (:func:`tactile.runtime.model.session_options`): one intra-op and
+    one inter-op thread, sequential execution, no spinning, no memory arena, quiet."""
+    return session_options(1)
 
 
 def session(path: Path) -> ort.InferenceSession:
