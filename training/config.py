@@ -24,6 +24,7 @@ STATE_MODES = ("window", "carry")
 SPLITS = ("user", "take", "time")
 SCHEDULES = ("constant", "plateau", "cosine")
 REFITS = ("auto", "on", "off")
+SELECTS = ("loss", "accuracy")
 DEVICES = ("auto", "cpu", "cuda")
 MAX_AUTO_THREADS = 4
 # ``test`` / ``val`` selectors: FIELD:VALUE[,VALUE...] (see TrainConfig)
@@ -208,6 +209,7 @@ class TrainConfig:
     lr: float = 3e-3
     weight_decay: float = 1e-4
     patience: int = 25
+    select: str = "loss"
     schedule: str = "constant"
     label_smoothing: float = 0.0
     ema: float = 0.0
@@ -242,6 +244,8 @@ class TrainConfig:
             (0 <= self.label_smoothing < 1, "label_smoothing must be in [0, 1)",
              ("label_smoothing",)),
             (0 <= self.ema < 1, "ema must be in [0, 1) (0: off)", ("ema",)),
+            (self.select in SELECTS, f"select must be one of {', '.join(SELECTS)}",
+             ("select",)),
             (self.refit in REFITS, f"refit must be one of {', '.join(REFITS)}", ("refit",)),
             (self.layers >= 1 and self.hidden >= 1, "layers and hidden must be >= 1",
              ("layers", "hidden")),
@@ -405,5 +409,5 @@ def resolve_device(device: str, cuda_available: bool | None = None) -> str:
 
 
 __all__ = ["TrainConfig", "Modality", "MODELS", "GRANULAR_MODELS", "FRONTS", "STATE_MODES",
-           "SPLITS", "SCHEDULES", "REFITS", "DEVICES", "signals_from", "modalities_from",
+           "SPLITS", "SCHEDULES", "SELECTS", "REFITS", "DEVICES", "signals_from", "modalities_from",
            "apply_threads", "resolve_threads", "resolve_device", "usable_cpus"]
