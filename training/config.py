@@ -143,7 +143,11 @@ class TrainConfig:
     so that the model does not key on one user's signal levels; an epoch is ``epoch_windows``
     training windows drawn at random without replacement (0 or more than there are: all of
     them; with ``state='carry'`` runs of ``carry_steps`` windows), and training stops when the
-    validation loss has not improved for ``patience`` epochs (at most ``epochs``). Options:
+    validation figure ``select`` names has not improved for ``patience`` epochs (at most
+    ``epochs``); the weights of its best epoch are kept. ``select``: ``accuracy`` (default), the
+    highest validation accuracy, a lower validation loss breaking ties; ``loss``, the lowest
+    validation loss (the loss can bottom out epochs before the accuracy does on a validation
+    set unlike the training data: the model grows confident faster than it grows right). Options:
     ``schedule`` of the learning rate (``constant``, ``plateau``: halved when the validation loss
     stalls for ``patience // 4`` epochs, ``cosine``: down to ``lr / 100`` over ``epochs``),
     ``label_smoothing`` of the training targets, ``ema`` (the decay per step of an exponential
@@ -209,7 +213,7 @@ class TrainConfig:
     lr: float = 3e-3
     weight_decay: float = 1e-4
     patience: int = 25
-    select: str = "loss"
+    select: str = "accuracy"
     schedule: str = "constant"
     label_smoothing: float = 0.0
     ema: float = 0.0

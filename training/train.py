@@ -373,7 +373,8 @@ def _epoch_order(units: np.ndarray, per_epoch: int, gen: torch.Generator) -> np.
 def _train(model: TextureModel, w: Windows, f_all: torch.Tensor, n_epochs: int, ctx: Context,
            val: tuple[Windows, torch.Tensor] | None = None, resume: dict | None = None) -> dict:
     """Adam on the windows ``w`` (features ``f_all``) for at most ``n_epochs``. With ``val``:
-    early stopping on its loss, and the best epoch's weights are kept; without: the last's.
+    early stopping on its accuracy or loss (``select``), and the best epoch's weights are kept;
+    without: the last's.
     ``resume``: continue from the state saved after an epoch (weights, optimiser, schedule,
     random generators, early-stopping counters, history)."""
     cfg, dist, dev = ctx.cfg, ctx.dist, ctx.device
