@@ -301,10 +301,20 @@ def grid_table(grid: dict, seeds: tuple[int, ...]) -> str:
         v = [r["val_accuracy"] for r in runs]
         return ", ".join(f"{a:.3f}" for a in v) + f"; **{np.mean(v):.3f}**"
 
+    def rule(runs: list[dict], r: str, key: str) -> str:
+        v = [run["rules"][r][key] for run in runs]
+        return ", ".join(f"{a:.3f}" for a in v) + f"; **{np.mean(v):.3f}**"
+
     first = next(iter(grid.values()))
     lines.append("| baseline | " + " | ".join(cell(first[n]["baseline"]) for n in names) + " |")
     for label, res in grid.items():
         lines.append(f"| {label} | " + " | ".join(cell(res[n]["ours"]) for n in names) + " |")
+        if all("rules" in run for n in names for run in res[n]["ours"]):
+            for r in RULES:  # what each rule keeps with the default patience
+                lines.append(f"| {label}, select={r} | " + " | ".join(
+                    rule(res[n]["ours"], r, "val_accuracy") for n in names) + " |")
+                lines.append(f"| {label}, select={r}, held-out halves | " + " | ".join(
+                    rule(res[n]["ours"], r, "held_out") for n in names) + " |")
     return "\n".join(lines)
 
 
