@@ -17,9 +17,11 @@ what the code costs, and a slow spell of the host falls on all of them alike. In
   with ``--rows 2048``, at batch 256 (where element throughput, not node count, decides);
 * ``--profile`` runs the 8 x 50 graph at batch 256 with onnxruntime's profiler (a warm-up run,
   then three) and prints each op type's and the top nodes' shares of kernel time;
-* ``--node-costs`` measures what each node of the sift body costs where it runs, at batch 1:
-  a copy of the graph with four extra copies of that node (graph optimizations off, so they
-  are not merged), timed against the unchanged graph in turn (about 10 minutes);
+* ``--node-costs`` measures what each node of the few-row sift body and of its PCR loop costs
+  where it runs, at batch 1, on the first ``--case`` (default 1x1100x8): a variant of the graph
+  computes the node ten more times, the copies kept alive by a ``Max`` that one consumer reads
+  instead of the node's output, timed against a control with the ``Max`` alone, graph
+  optimizations off in both, in CPU time (about 5 minutes);
 * ``--layouts`` times the 8 x 50 graph at each batch size with the few-row and the many-row
   tensor layouts of the sift (the same arithmetic), interleaved, to place the switch between
   them (``spline.LARGE_ROWS``);
@@ -45,6 +47,7 @@ import onnxruntime as ort
 import torch
 from PyEMD import EMD as PyEMD
 
+from tactile.runtime.model import session_options
 from tactile.training.emd import EMD
 from tactile.training.emd.onnx_export import (
     build_emd_model,
@@ -89,12 +92,9 @@ def timed(fn, repeats: int) -> float:
 
 
 def options() -> ort.SessionOptions:
-    """One intra-op and one inter-op thread, sequential execution, quiet."""
-    opts = ort.SessionOptions()
-    opts.intra_op_num_threads = opts.inter_op_num_threads = 1
-    opts.execution_mode = ort.ExecutionMode.ORT_SEQUENTIAL
-    opts.log_severity_level = 3
-    return opts
+    """The runtime's settings (:func:`tactile.runtime.model.session_options`): one intra-op and
+    one inter-op thread, sequential execution, no spinning, no memory arena, quiet."""
+    return session_options(1)
 
 
 def session(path: Path) -> ort.InferenceSession:
@@ -251,63 +251,113 @@ def bench_profile(tmp: Path, batch: int = 256, runs: int = 3) -> list[str]:
     return [*lines, ""]
 
 
-def bench_node_costs(tmp: Path, repeats: int, copies: int = 4, top: int = 25) -> list[str]:
-    """Microseconds each node of the sift body costs where it runs (batch 1, 8 x 50)."""
+def bench_node_costs(
+    repeats: int, case: tuple[int, int, int] = (1, 1100, 8), copies: int = 10, top: int = 30
+) -> list[str]:
+    """CPU microseconds each node of the few-row sift body (and of its PCR loop body) costs
+    where it runs, at batch 1, per sift (a window's cost spread over the sifts it runs).
+
+    For each node, a variant of the graph computes it ``copies`` more times and keeps the copies
+    alive with one ``Max`` (``Or`` for booleans) of the node's output and the copies, read by
+    one of its consumers in place of the output (the same values); the control reads a ``Max``
+    of the output with itself as many times. Graph optimizations are off in both, so that
+    onnxruntime neither merges the copies nor drops them. CPU time of the process (one thread):
+    the host's other load adds no waiting to it. onnxruntime's own profiler is not used: it adds
+    several microseconds to every node it times, more than most nodes cost."""
     import copy
 
-    model = export_emd_onnx(tmp / "emd.onnx", N_IMFS, N_SIFTS, 8, 50)
+    from onnx import helper
+
+    n_channels, n_time, n_imfs = case
+    model = build_emd_model(n_imfs, N_SIFTS, n_channels, n_time)
     opts = options()
     opts.graph_optimization_level = ort.GraphOptimizationLevel.ORT_DISABLE_ALL
+    x = signal_windows(4, n_channels, n_time).astype(np.float32)
+    sifts = _sifts_run(x, n_imfs)
+    # Element types of every value, subgraphs included (only float, int64 and bool are kept).
+    inferred = onnx.shape_inference.infer_shapes(model)
+    elem: dict[str, int] = {}
+    for g in [inferred.graph, *subgraphs(inferred.graph).values()]:
+        for v in [*g.value_info, *g.output, *g.input]:
+            elem[v.name] = v.type.tensor_type.elem_type
 
-    def make(m: onnx.ModelProto) -> ort.InferenceSession:
-        return ort.InferenceSession(m.SerializeToString(), opts,
-                                    providers=["CPUExecutionProvider"])
-
-    x = signal_windows(24, 8, 50).astype(np.float32)
-    feeds = [{"x_in": w[None]} for w in x]
-    base = make(model)
-    sifts_run = _sifts_run(x)
-
-    def per_window(sess: ort.InferenceSession) -> float:
-        start = time.perf_counter()
-        for feed in feeds:
-            sess.run(None, feed)
-        return (time.perf_counter() - start) / len(feeds)
-
-    rows = []
-    for i, node in enumerate(subgraphs(model.graph)["sift"].node):
-        if node.op_type in ("If", "Loop"):
-            continue
-        variant = copy.deepcopy(model)
-        body = subgraphs(variant.graph)["sift"]
-        extra = []
+    def variant(body_name: str, i: int, dup: bool) -> ort.InferenceSession | None:
+        m = copy.deepcopy(model)
+        body = subgraphs(m.graph)[body_name]
+        node = body.node[i]
+        out = node.output[0]
+        users = [n for n in body.node if out in n.input]
+        kind = elem.get(out)
+        if not users or kind not in (onnx.TensorProto.FLOAT, onnx.TensorProto.INT64,
+                                     onnx.TensorProto.BOOL):
+            return None
+        extra, names = [], []
         for c in range(copies):
-            dup = copy.deepcopy(node)
-            dup.name = f"{node.name}_copy{c}"
-            del dup.output[:]
-            dup.output.extend(f"copy{c}_{k}" for k in range(len(node.output)))
-            extra.append(dup)
+            if dup:
+                d = copy.deepcopy(node)
+                d.name = f"{node.name}_copy{c}"
+                del d.output[:]
+                d.output.extend(f"{o}_copy{c}" for o in node.output)
+                extra.append(d)
+                names.append(d.output[0])
+            else:
+                names.append(out)
+        if kind == onnx.TensorProto.BOOL:
+            prev = out
+            for c, v in enumerate(names):
+                extra.append(helper.make_node("Or", [prev, v], [f"{out}_or{c}"]))
+                prev = f"{out}_or{c}"
+            live = prev
+        else:
+            live = f"{out}_max"
+            extra.append(helper.make_node("Max", [out, *names], [live]))
+        users[0].input[:] = [live if v == out else v for v in users[0].input]
         nodes = list(body.node)
         del body.node[:]
         body.node.extend(nodes[: i + 1] + extra + nodes[i + 1 :])
-        sess = make(variant)
-        t_base = t_var = float("inf")
-        for _ in range(repeats):
-            t_base = min(t_base, per_window(base))
-            t_var = min(t_var, per_window(sess))
-        rows.append(((t_var - t_base) / sifts_run / copies * 1e6, node.op_type, node.name))
-    total = sum(r[0] for r in rows)
-    per_sift = min(per_window(base) for _ in range(repeats)) / sifts_run * 1e6
-    lines = [f"## Cost of each sift-body node where it runs (batch 1, 8 x 50, {copies} copies)",
-             "", f"{len(rows)} nodes add up to {total:.0f} us; a sift takes {per_sift:.0f} us "
-             f"({sifts_run:.1f} sifts per window)", "", "| node | op | us |", "|---|---|---:|"]
-    lines += [f"| {name} | {op} | {us:.2f} |" for us, op, name in sorted(rows, reverse=True)[:top]]
-    by_op: dict[str, list[float]] = {}
-    for us, op, _ in rows:
-        by_op.setdefault(op, []).append(us)
-    lines += ["", "| op type | nodes | median us | total us |", "|---|---:|---:|---:|"]
-    lines += [f"| {op} | {len(v)} | {float(np.median(v)):.2f} | {sum(v):.1f} |"
-              for op, v in sorted(by_op.items(), key=lambda kv: -sum(kv[1]))]
+        return ort.InferenceSession(m.SerializeToString(), opts,
+                                    providers=["CPUExecutionProvider"])
+
+    def cpu(sess: ort.InferenceSession) -> float:
+        start = time.process_time()
+        for w in x:
+            sess.run(None, {"x_in": w[None]})
+        return (time.process_time() - start) / len(x)
+
+    rows = []
+    for body_name in ("sift", "pcr"):
+        for i, node in enumerate(subgraphs(model.graph)[body_name].node):
+            if node.op_type in ("If", "Loop"):
+                continue
+            control, dup = variant(body_name, i, False), variant(body_name, i, True)
+            if control is None:
+                continue
+            t_control = t_dup = float("inf")
+            for _ in range(repeats):  # interleaved: drift of the host hits both alike
+                t_control, t_dup = min(t_control, cpu(control)), min(t_dup, cpu(dup))
+            us = (t_dup - t_control) / sifts / copies * 1e6
+            piece = node.name.split("/")[0] or "(wiring)"
+            rows.append((us, node.op_type, f"{body_name}: {node.name or node.op_type}",
+                         "pcr loop" if body_name == "pcr" else piece))
+    plain = options()
+    base = ort.InferenceSession(model.SerializeToString(), plain,
+                                providers=["CPUExecutionProvider"])
+    per_sift = min(cpu(base) for _ in range(repeats)) / sifts * 1e6
+    c, t, m = case
+    lines = [f"## Cost of each node where it runs ({c} x {t}, {m} IMFs, batch 1, "
+             f"{copies} copies, CPU time)", "",
+             f"{len(rows)} nodes measured ({sifts:.1f} sifts a window); a sift takes "
+             f"{per_sift:.0f} us of CPU time; the PCR loop body's nodes are per sift too (they "
+             "run 0 to a few times a sift)", "", "| node | op | us |", "|---|---|---:|"]
+    lines += [f"| {name} | {op} | {us:.2f} |"
+              for us, op, name, _ in sorted(rows, reverse=True)[:top]]
+    for title, key in (("op type", 1), ("piece", 3)):
+        groups: dict[str, list[float]] = {}
+        for r in rows:
+            groups.setdefault(r[key], []).append(r[0])
+        lines += ["", f"| {title} | nodes | median us | total us |", "|---|---:|---:|---:|"]
+        lines += [f"| {k} | {len(v)} | {float(np.median(v)):.2f} | {sum(v):.1f} |"
+                  for k, v in sorted(groups.items(), key=lambda kv: -sum(kv[1]))]
     return [*lines, ""]
 
 
@@ -418,7 +468,7 @@ def bench_batches(tmp: Path, n_windows: int = 512, torch_one: int = 32) -> list[
     return [*lines, ""]
 
 
-def _sifts_run(windows: np.ndarray) -> float:
+def _sifts_run(windows: np.ndarray, n_imfs: int = N_IMFS) -> float:
     """Sifts the graph runs per (C, T) window of ``windows``, one window at a time (the sift
     loop stops once no row is active; counted with the eager pieces)."""
     from tactile.training.emd.decompose import imf_update
@@ -428,7 +478,7 @@ def _sifts_run(windows: np.ndarray) -> float:
     for window in windows:
         x = torch.from_numpy(window.astype(np.float64))
         acc, alive = torch.zeros_like(x), torch.ones(x.shape[0], 1, dtype=torch.bool)
-        for _ in range(N_IMFS):
+        for _ in range(n_imfs):
             h, active = x - acc, alive
             for _ in range(N_SIFTS):
                 if not bool(active.any()):
@@ -449,7 +499,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--profile", action="store_true",
                         help="only profile the 8 x 50 graph at batch 256 (shares of kernel time)")
     parser.add_argument("--node-costs", action="store_true",
-                        help="only measure each sift-body node's cost where it runs (batch 1)")
+                        help="only measure each sift-body node's cost where it runs (batch 1, "
+                        "the first --case, default 1x1100x8)")
     parser.add_argument("--layouts", action="store_true",
                         help="only time the few-row against the many-row layout at each batch size")
     parser.add_argument("--batches", action="store_true",
@@ -481,12 +532,12 @@ def main(argv: list[str] | None = None) -> int:
         with tempfile.TemporaryDirectory() as tmp:
             print("\n".join(bench_batches(Path(tmp))))
         return 0
-    if args.profile or args.node_costs:
+    if args.node_costs:
+        print("\n".join(bench_node_costs(args.repeats, cases[0] if args.case else (1, 1100, 8))))
+        return 0
+    if args.profile:
         with tempfile.TemporaryDirectory() as tmp:
-            if args.profile:
-                print("\n".join(bench_profile(Path(tmp))))
-            if args.node_costs:
-                print("\n".join(bench_node_costs(Path(tmp), args.repeats)))
+            print("\n".join(bench_profile(Path(tmp))))
         return 0
     with tempfile.TemporaryDirectory() as tmp:
         lines = []

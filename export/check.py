@@ -93,13 +93,22 @@ def describe(path: Path, c: ModelContract, opset: int | None = OPSET) -> str:
         f"state {c.state_mode}, {c.model} ({c.state_layers} x {c.state_hidden})",
         *_granular_lines(c, emd),
         f"  exported  parity {'passed' if c.parity.get('passed') else 'FAILED'} "
-        f"(max |dp| {c.parity.get('max_abs_prob_diff')})",
+        f"(max |dp| {c.parity.get('max_abs_prob_diff')}{_excused(c.parity)})",
         *(f"  codes     {r.get('name')}: {r.get('same_atoms')}/{r.get('rows')} rows the same "
           f"atoms as scikit-learn, max |dc|/|c| {r.get('max_rel_diff')}"
           for r in c.parity.get("codes") or []),
         f"  training  {_recorded(c)}",
     ]
     return "\n".join(lines)
+
+
+def _excused(parity: dict) -> str:
+    """The windows a coder model's parity excused for near-tie atom flips, if any."""
+    n = parity.get("windows_excused")
+    if not n:
+        return ""
+    return (f"; {n} of {parity.get('windows')} windows excused for near-tie atom flips, "
+            f"max |dp| {parity.get('max_abs_prob_diff_excused')}")
 
 
 def _granular_lines(c: ModelContract, emd) -> list[str]:

@@ -87,11 +87,7 @@ def output_file(out: Path) -> Path:
 
 def _require(p: Parity, what: str) -> None:
     if not p.passed:
-        raise ParityError(
-            f"{what} parity failed: max |dp| {p.max_abs_prob_diff:.3g} (limit {p.atol:g}), "
-            f"{p.labels_differ - p.labels_differ_excused} of {p.windows} labels differ "
-            f"(agreement {p.label_agreement:.4f}), longest carried run {p.longest_carry_run}"
-        )
+        raise ParityError(f"{what} parity failed: {'; '.join(p.failures())}")
 
 
 def _tradeoff(f32: onnx.ModelProto, q: onnx.ModelProto, pf: Parity, pq: Parity, ck: dict,

@@ -47,6 +47,9 @@ class _Pre(nn.Module):
     def __init__(self, pre: nn.Module) -> None:
         super().__init__()
         self.pre = pre
+        # the wrapper's mode is the model's: the exporter restores the wrapper's mode, with
+        # its children's, after tracing (a new module is in training mode)
+        self.train(pre.training)
 
     def forward(self, x: Tensor) -> tuple[Tensor, ...]:
         z = self.pre.normalise(x)
@@ -60,6 +63,7 @@ class _Post(nn.Module):
         super().__init__()
         self.pre, self.head = model.pre, model.head
         self.n_emd = len(model.pre.emds)
+        self.train(model.training)  # as _Pre
 
     def forward(self, z: Tensor, *rest: Tensor) -> tuple[Tensor, Tensor, Tensor]:
         imfs, (h, c) = list(rest[: self.n_emd]), rest[self.n_emd :]

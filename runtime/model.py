@@ -16,15 +16,20 @@ from tactile.errors import ConfigError, ModelContractError
 
 
 def session_options(threads: int = 1) -> ort.SessionOptions:
-    """onnxruntime settings for a small board: few threads, sequential, no busy-waiting.
+    """onnxruntime settings for a small board: few threads, sequential, no busy-waiting, no
+    memory arena.
 
     Spinning threads burn a core while waiting for work; on a loaded board they were reported to
-    push the p99 latency of a 50-sample window from ~0.25 ms to ~8 ms, so they are off.
+    push the p99 latency of a 50-sample window from ~0.25 ms to ~8 ms, so they are off. The EMD
+    graph allocates hundreds of small tensors a sift: without onnxruntime's CPU arena (plain
+    allocations instead) a window of the runtime's model took about 9% less CPU time, and
+    the EMD alone 4-7% less at batch 1 (onnxruntime 1.32; ``docs/runtime.md``).
     """
     so = ort.SessionOptions()
     so.intra_op_num_threads = threads
     so.inter_op_num_threads = 1
     so.execution_mode = ort.ExecutionMode.ORT_SEQUENTIAL
+    so.enable_cpu_mem_arena = False
     so.add_session_config_entry("session.intra_op.allow_spinning", "0")
     so.add_session_config_entry("session.inter_op.allow_spinning", "0")
     so.log_severity_level = 3

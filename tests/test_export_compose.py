@@ -58,6 +58,20 @@ def test_split_forward_is_the_model_forward_bit_for_bit(which, request):
             assert torch.equal(a, b)
 
 
+def test_building_the_graph_leaves_the_model_in_evaluation_mode():
+    """The composed export traces wrappers around the model's modules; the exporter restores
+    the wrappers' mode afterwards, which must not put the model's batch norms and dropout
+    back into training mode (a model used after build_graph gave other probabilities)."""
+    model = toy.build(coded=False, seed=3)
+    model.head.drop.p = 0.5  # in training mode it would zero half the LSTM's outputs
+    x = torch.from_numpy(toy.windows(4, seed=12))
+    with torch.no_grad():
+        before = model(x, *model.zero_state(4))[0]
+        build_graph(model)
+        assert [n for n, m in model.named_modules() if m.training] == []
+        assert torch.equal(model(x, *model.zero_state(4))[0], before)
+
+
 @pytest.mark.parametrize("which", ["coded", "plain"])
 def test_one_emd_graph_per_emd_and_a_valid_file(which, request):
     model, graph = request.getfixturevalue(which)

@@ -876,6 +876,7 @@ def test_the_session_settings_are_the_board_defaults_and_can_be_replaced():
     board = Model(SHIPPED).session.get_session_options()
     assert board.intra_op_num_threads == 1 and board.inter_op_num_threads == 1
     assert board.execution_mode == ort.ExecutionMode.ORT_SEQUENTIAL
+    assert not board.enable_cpu_mem_arena
     assert spinning(Model(SHIPPED)) == "0"
     so = session_options(2)
     so.add_session_config_entry("session.intra_op.allow_spinning", "1")

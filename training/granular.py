@@ -244,10 +244,8 @@ class GranularPre(nn.Module):
 
     def set_dictionaries(self, dictionaries: list[np.ndarray]) -> None:
         """Put one learned dictionary (atoms_m, features_m) per modality into the coders."""
-        # C order, as a checkpoint restores them: another memory layout takes other matmul
-        # kernels, whose float32 rounding differs in the last bits
-        self.coders = nn.ModuleList(
-            SparseCoder(np.ascontiguousarray(d, dtype=np.float32), self.n_nonzero(m))
+        self.coders = nn.ModuleList(  # each coder keeps a C-ordered copy, as a checkpoint
+            SparseCoder(np.asarray(d, np.float32), self.n_nonzero(m))
             for d, m in zip(dictionaries, self.layout))
 
 

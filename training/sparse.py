@@ -48,8 +48,9 @@ class SparseCoder(nn.Module):
     """Orthogonal matching pursuit with a fixed number of non-zeros.
 
     Args:
-        dictionary: (atoms, features) as scikit-learn stores it (``components_``); rows of
-            any norm (dictionary learning keeps them at norm <= 1). Held as float32 constants.
+        dictionary: (atoms, features) as scikit-learn stores it (``components_``, in any
+            memory order); rows of any norm (dictionary learning keeps them at norm <= 1).
+            Copied into C-ordered float32 constants of the module's own.
         n_nonzero: atoms per code, 1 .. atoms (scikit-learn's limit). Beyond ``features`` the
             residual vanishes and a row stops early, as in scikit-learn.
 
@@ -59,7 +60,10 @@ class SparseCoder(nn.Module):
 
     def __init__(self, dictionary: np.ndarray | Tensor, n_nonzero: int) -> None:
         super().__init__()
-        d = torch.as_tensor(np.asarray(dictionary, dtype=np.float64))
+        # a C-ordered copy of its own: scikit-learn's ``components_`` may be Fortran-ordered,
+        # and another memory layout takes other matmul kernels, whose float32 rounding
+        # differs in the last bits (a checkpoint restores C order)
+        d = torch.as_tensor(np.array(dictionary, dtype=np.float64, order="C"))
         if d.ndim != 2 or d.shape[0] < 1 or d.shape[1] < 1:
             raise ConfigError(f"dictionary of shape {tuple(d.shape)}: must be (atoms, features)")
         if not torch.isfinite(d).all():

@@ -57,6 +57,52 @@ def tie_gap(d: np.ndarray, x: np.ndarray, order: list[int], other: set[int]) -> 
     return float("inf")
 
 
+FLOAT32_EPS = float(np.finfo(np.float32).eps)
+
+
+def divergence(d: np.ndarray, x: np.ndarray, first: list[int], second: list[int]
+               ) -> tuple[float, float]:
+    """Where two OMP runs parted: their selection orders ``first`` and ``second`` (-1: the run
+    had stopped) of window ``x`` (features,) with dictionary ``d`` (atoms, features). Returns
+    ``(gap, resolution)`` at the first step where they differ, in float64 after the atoms P both
+    picked before it:
+
+    * ``gap = (|c_a| - |c_b|) / max |c|``, the residual correlations c = D r of the two picks;
+    * ``resolution = eps32 x cond(D_P) x max |D x| / max |c|``: the float32 error of that step's
+      correlations relative to the largest. OMP computes them as ``D x`` minus what the chosen
+      atoms explain, so float32's absolute error stays at the scale of ``D x`` (amplified by the
+      conditioning of the chosen atoms) while the correlations shrink with the residual; after
+      many atoms of a loud window float32 cannot order atoms whose correlations differ by less.
+
+    ``(inf, 0)`` when one run stopped there, or when the orders never differ (over their
+    common length). Unlike :func:`tie_gap`, which knows only the other code's atoms, this
+    measures the decision where the two runs parted, even when their later steps brought them
+    back to most of the same atoms."""
+    for s, (a, b) in enumerate(zip(first, second)):
+        if a == b:
+            continue
+        if a < 0 or b < 0:
+            return float("inf"), 0.0
+        d64, x64 = d.astype(np.float64), x.astype(np.float64)
+        resid, cond = x64, 1.0
+        if s:
+            sub = d64[list(first[:s])].T  # (F, s)
+            resid = x64 - sub @ np.linalg.lstsq(sub, x64, rcond=None)[0]
+            cond = float(np.linalg.cond(sub))
+        corr = np.abs(d64 @ resid)
+        top = corr.max()
+        if top == 0:  # nothing left to code: every atom ties
+            return 0.0, 0.0
+        return (float((corr[a] - corr[b]) / top),
+                FLOAT32_EPS * cond * float(np.abs(d64 @ x64).max()) / top)
+    return float("inf"), 0.0
+
+
+def divergence_gap(d: np.ndarray, x: np.ndarray, first: list[int], second: list[int]) -> float:
+    """The gap of :func:`divergence`."""
+    return divergence(d, x, first, second)[0]
+
+
 def compare(ref: np.ndarray, got: np.ndarray, d: np.ndarray, x: np.ndarray, n: int) -> dict:
     """Codes ``got`` against scikit-learn's ``ref`` (windows, atoms) for windows ``x``
     (windows, features), dictionary ``d`` and ``n`` non-zeros: ``same`` (windows with the same
@@ -85,4 +131,4 @@ def structured(n: int, features: int, seed: int) -> np.ndarray:
     return (weights @ pool + 0.05 * rng.standard_normal((n, features))).astype(np.float32)
 
 
-__all__ = ["compare", "sklearn_order", "structured", "tie_gap"]
+__all__ = ["compare", "divergence", "divergence_gap", "sklearn_order", "structured", "tie_gap"]

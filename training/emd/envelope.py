@@ -17,15 +17,15 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
-from .spline import spacings
+from .spline import pick, spacings
 
 
 def segment_index(ks: Tensor, j1: Tensor) -> Tensor:
     """Segment of every sample.
 
     Args:
-        ks: (2, R, N) the left end's valid mirrored knots plus the interior extrema at or
-            before each sample (:func:`knots.assemble`: knots sit in slots ``1 .. j1``).
+        ks: (2, R, N) int64, the left end's valid mirrored knots plus the interior extrema at
+            or before each sample (:func:`knots.assemble`: knots sit in slots ``1 .. j1``).
         j1: (2, R, 1) last real knot slot.
 
     Returns:
@@ -44,13 +44,14 @@ def segment_index(ks: Tensor, j1: Tensor) -> Tensor:
     sample or E0, always exists), so its three knots are one left, E0 and one right.
     """
     # Not-a-knot (j1 >= 4) clamps to [2, j1-2], natural 3-knot (j1 = 3) to [1, 2]; rows
-    # without an envelope (j1 < 3) stay inside [1, 2].
-    two = torch.full((1, 1, 1, 1), 2.0, dtype=j1.dtype, device=j1.device)
-    j2 = j1 - two  # (1, 2, R, 1): the leading axis comes with the broadcast, not a node
-    lo = torch.clamp(j2, 1.0, 2.0)
-    hi = torch.clamp(j2, min=2.0)
+    # without an envelope (j1 < 3) stay inside [1, 2]. In integers, like ks: no cast of the
+    # (2, R, N) counts.
+    two = torch.full((1, 1, 1, 1), 2, dtype=torch.int64, device=j1.device)
+    j2 = j1.long() - two  # (1, 2, R, 1): the leading axis comes with the broadcast, not a node
+    lo = torch.clamp(j2, 1, 2)
+    hi = torch.clamp(j2, min=2)
     # Slot of the last knot at or before t: the knots <= t.
-    return torch.minimum(torch.maximum(ks, lo), hi).long()
+    return torch.minimum(torch.maximum(ks, lo), hi)
 
 
 def evaluate(
@@ -76,7 +77,7 @@ def evaluate(
     # c2 = M_k / 2 = 3 m_k, c3 = (M_k+1 - M_k) / (6 h) and c1 = slope - h (2 M_k + M_k+1) / 6.
     c2 = 3.0 * m
     c1 = sl - hk * (c2 + dm)
-    x0, y0 = xy.split(1)  # (1, 2, R, K) each; segments start below slot K-1
+    x0, y0 = pick(xy, 0, 1)  # (1, 2, R, K) each; segments start below slot K-1
     gx, gy, g1, g2, g3 = (torch.gather(c, -1, seg) for c in (x0, y0, c1, c2, dm / hk))
     t = torch.arange(n_time, dtype=xy.dtype, device=xy.device)  # (N,)
     b = t - gx

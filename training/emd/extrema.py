@@ -42,8 +42,9 @@ def has_tie(sg: Tensor) -> Tensor:
 
     ``sg``: :func:`signs` of the signals (R, N); both extremum rules start from it.
 
-    Without ties the plateau rule reduces to the strict rule, so the exported sift takes the
-    cheap branch (:func:`strict_marks`) in an ONNX ``If`` whenever this is false. Quantised
+    Without ties the plateau rule reduces to the strict rule, so the exported sift keeps the
+    cheap :func:`strict_marks` whenever this is false and runs the plateau rule in a ``Loop`` of
+    one iteration only when it is true. Quantised
     data have ties in the first sift; once a mean envelope has been subtracted they are rare.
     """
     return torch.prod(sg) == 0.0  # a product of signs: exactly 0 or +-1, one node
@@ -114,7 +115,7 @@ def find_extrema(h: Tensor) -> Tensor:
 def extrema_marks(h: Tensor) -> Tensor:
     """(R, N) signals -> (2, R, N) 0/1 marks, envelope axis first: [maxima, minima].
 
-    Eager form of the exported ``If``: the plateau rule only when some difference is zero.
+    Eager form of the exported choice: the plateau rule only when some difference is zero.
     """
     sg = signs(h)
     return plateau_marks(sg) if sg.numel() and bool(has_tie(sg)) else strict_marks(sg)

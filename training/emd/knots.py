@@ -180,9 +180,9 @@ def assemble(
             then sum to their mean), stacked on axis 0; the placeholder in slot 0, dummies
             after ``j1``.
         j1: (2, R, 1) last real slot (``j1`` knots).
-        ks: (2, R, N) slot of the last knot counted at each sample: the mirrored knots of
-            the left end plus the interior extrema at or before it (for
-            :func:`envelope.segment_index`).
+        ks: (2, R, N) int64 slot of the last knot counted at each sample: the mirrored knots
+            of the left end plus the interior extrema at or before it (for
+            :func:`envelope.segment_index`, which keeps it in integers).
 
     Every candidate's table index is scattered to its running count of valid candidates, with
     the smaller index kept: a valid candidate's count is its slot, and the invalid candidates
@@ -200,11 +200,10 @@ def assemble(
     valid = torch.cat([left, marks, right], dim=-1)  # (2, R, N + 4), ascending knot order
     icount = running_count(valid)  # valid knots so far: a valid knot's slot
     src = slots.scatter_reduce(-1, icount, cands, "amin")  # (2, R, K): table index
-    count = icount.to(dt)
     # Interior candidates [t, h[t] / 2] for both envelopes: (2, 1, R, N) + (2, 2, 1, N).
     t = torch.arange(n_time, dtype=dt, device=dev)
     scale = torch.tensor([0.0, 0.5], dtype=dt, device=dev).reshape(2, 1, 1, 1)
     grid = torch.stack([t, t * 0.0]).reshape(2, 1, 1, n_time).expand(2, 2, 1, n_time)
     table = torch.cat([low, bxy, h * scale + grid, bxy, dummies], dim=-1)  # (2, 2, R, N+K+8)
     xy = torch.gather(table, -1, src.expand(2, -1, -1, -1))  # (2, 2, R, K)
-    return xy, count[..., -1:], count[..., 2 : n_time + 2]
+    return xy, icount[..., -1:].to(dt), icount[..., 2 : n_time + 2]

@@ -4,8 +4,9 @@ Exporter path (pinned): each small step (the parts of one sift, closing an IMF, 
 and the final reshapes) is traced with ``torch.onnx.export(..., dynamo=False)`` at opset
 :data:`OPSET` with a dynamic row axis, constant-folded by ``onnxscript.optimizer``, and the
 pieces are wired together here with two nested ``Loop`` nodes (IMFs outside, sifts inside)
-and ``If`` nodes inside the sift (the plateau rule only when there are ties; PCR steps only
-while a system is still coupled). onnxruntime runs the ~200-node sift body up to 40 times
+and two more inside the sift that run zero or more times (the plateau rule only when there are
+ties; PCR steps only while a system is still coupled). onnxruntime runs the ~200-node sift body
+up to 40 times
 instead of holding 40 unrolled copies: the file stays small and session creation fast. The
 sift loop stops as soon as no row is active (a stopped row is left unchanged, so the skipped
 sifts would change nothing). An ``If`` on the row count picks one of two such loop nests:
@@ -46,8 +47,7 @@ from .module import EMDConfig
 from .sift import finish, prepare_knots, prepare_system
 from .spline import (
     LARGE_ROWS,
-    decoupled_at_width,
-    pcr_last,
+    more_steps,
     pcr_rows,
     pcr_step,
     pcr_steps,
@@ -343,12 +343,10 @@ def _head(h: Tensor) -> tuple[Tensor, Tensor]:
 
 
 PCR_ALWAYS = 3
-"""PCR steps every sift runs; each later step sits in an ``If`` and runs only while some system
-is still coupled (:func:`spline.decoupled_after`): the few-knot envelopes of later IMFs skip
-them, with bit-identical results. A level of ``If`` costs onnxruntime more than its nodes
-(about 3.5 us in a sift that runs the step anyway, a third of a step), and with 50-sample
-windows nearly every sift needs 3 steps or more: 3 rather than 2 was 2-4% faster at 4-16 rows,
-2% at 32 and the same at 56 (``docs/emd.md``)."""
+"""PCR steps every sift runs; the later steps run in a ``Loop``, as many as some system still
+needs (:func:`spline.more_steps`, :func:`spline.decoupled_after`): the few-knot envelopes of
+later IMFs skip them, with bit-identical results. With 50-sample windows nearly every sift
+needs 3 steps or more (``docs/emd.md``)."""
 
 
 def _sift_graph(
@@ -356,9 +354,10 @@ def _sift_graph(
 ) -> tuple[onnx.GraphProto, list[onnx.TensorProto]]:
     """The Loop body of one sift.
 
-    Differences; an ``If`` choosing the extremum rule; knots and spline system with the first
-    :data:`PCR_ALWAYS` solver steps; nested ``If`` nodes for the remaining steps, each taking
-    the solution as it stands once every system is decoupled; envelopes and the update.
+    Differences; the strict extremum rule, replaced by the plateau rule in a ``Loop`` that runs
+    once when a difference is zero (none otherwise); knots and spline system with the first
+    :data:`PCR_ALWAYS` solver steps; a ``Loop`` of the remaining steps the knot width needs,
+    then the solution; envelopes and the update.
     With ``large``, the body for :data:`spline.LARGE_ROWS` rows or more: the many-row layouts
     of :func:`sift.prepare` and :func:`sift.finish` (the same arithmetic), and its subgraphs'
     names end in ``_large``.
@@ -385,8 +384,7 @@ def _sift_graph(
         # made: slot_base's four tensors, then (small body) the end samples for TopK.
         ends = None if large else made[4]
         *knots, width = prepare_knots(h, marks, made[:4], ends=ends, large=large)
-        done = [decoupled_at_width(width, step) for step in range(always, steps)]
-        return (*knots, width, *done)
+        return (*knots, width, more_steps(width, always, steps))
 
     def pre_system(xy: Tensor, j1: Tensor, slot: Tensor) -> tuple[Tensor, ...]:
         sys, hk, sl = prepare_system(xy, j1, n_time, slot)
@@ -395,7 +393,6 @@ def _sift_graph(
             sys = pcr_step(sys, 1 << step)
         return sys, hk, sl
 
-    done_names = [f"done{s}" for s in range(always, steps)]
     head = trace_graph(_head, [h], ["h"], ["sg", "tie"], {"h": rows, "sg": rows})
     strict = trace_graph(strict_marks, [sg], ["sg"], ["marks"], {"sg": rows, "marks": r1})
     plateau = trace_graph(plateau_marks, [sg], ["sg"], ["marks"], {"sg": rows, "marks": r1})
@@ -406,7 +403,7 @@ def _sift_graph(
         pre_knots,
         [h, marks, *made_examples],
         ["h", "marks", *made],
-        ["xy", "j1", "ks", "n_ext", "width", *done_names],
+        ["xy", "j1", "ks", "n_ext", "width", "pcr_n"],
         {"h": rows, "marks": r1, "low": r2, "dummies": r2, "slots": r1, "cands": r1, "ends": r1,
          "xy": r2, "j1": r1, "ks": r1, "n_ext": {0: "rows"}},
     )
@@ -418,16 +415,10 @@ def _sift_graph(
         {"xy": rw, "j1": r1, "slot": {1: "width"}, "sys": rw, "hk": rw, "sl": rw},
     )
     solved = trace_graph(lambda sys: sys[2:3], [sys], ["sys"], ["m"], {"sys": rw, "m": rw})
-    step_models = {
-        s: trace_graph(
-            lambda sys, st=1 << s: pcr_step(sys, st),
-            [sys], ["sys"], ["out"], {"sys": rw, "out": rw},
-        )
-        for s in range(always, steps - 1)
-    }
-    last = trace_graph(
-        lambda sys: pcr_last(sys, 1 << (steps - 1)), [sys], ["sys"], ["m"],
-        {"sys": rw, "m": rw},
+    # One PCR step traced at the first shift the loop runs; the loop gives its two Pads the
+    # shifts of each later step (_pcr_loop_body).
+    step_model = trace_graph(
+        lambda sys: pcr_step(sys, 1 << always), [sys], ["sys"], ["out"], {"sys": rw, "out": rw}
     )
     tail = trace_graph(
         _finish_sift,
@@ -446,24 +437,24 @@ def _sift_graph(
         inits.extend(more)
         return nodes
 
-    m_info = [1, 2, "rows", "width"]
     nodes = add(head, "head/", {"h": "s_h", "sg": "s_sg", "tie": "s_tie"})
-    branches = {}
-    for name, part in (("plateau", plateau), ("strict", strict)):
-        b_nodes = add(part, f"{name}/", {"sg": "s_sg", "marks": f"{name}/marks"})
-        branches[name] = helper.make_graph(
-            b_nodes, name + suffix, [], [_t(f"{name}/marks", elem, [2, "rows", n_time])]
-        )
-    nodes.append(
+    # The extremum rule: the strict marks, replaced by the plateau rule's in a Loop that runs
+    # once when some difference is zero and not at all otherwise (onnxruntime 1.32 runs a
+    # Loop of no iteration for about a microsecond, an If for several).
+    nodes += add(strict, "strict/", {"sg": "s_sg", "marks": "s_strict"})
+    p_nodes = add(plateau, "plateau/", {"sg": "s_sg", "marks": "s_tie_marks_out"})
+    nodes += [
+        helper.make_node("Cast", ["s_tie"], ["s_tie_n"], to=TensorProto.INT64),
         helper.make_node(
-            "If", ["s_tie"], ["s_marks"],
-            then_branch=branches["plateau"], else_branch=branches["strict"],
-        )
-    )
+            "Loop", ["s_tie_n", "", "s_strict"], ["s_marks"],
+            body=_loop_body("plateau" + suffix, "s_tie", p_nodes,
+                            [("s_tie_marks", elem, [2, "rows", n_time])]),
+        ),
+    ]
     # What depends only on the shape is made once, outside the loops.
     outer = {"h": "s_h", "marks": "s_marks", "xy": "s_xy_all"}
     outer.update({v: f"made_{v}" for v in made})
-    outer.update({v: f"s_{v}" for v in ["j1", "ks", "n_ext", "width", *done_names]})
+    outer.update({v: f"s_{v}" for v in ["j1", "ks", "n_ext", "width", "pcr_n"]})
     nodes += add(prep, "prep/", outer)
     # The knots and spline.slot_rows cut to the knot width (spline.knot_width).
     pfx = "large/" if large else ""
@@ -476,34 +467,15 @@ def _sift_graph(
         helper.make_node("Slice", ["made_slot_rows", f"{pfx}cut_start", "s_width",
                                    f"{pfx}cut_axis1"], ["s_slot_rows"]),
     ]
-    outer = {"xy": "s_xy", "j1": "s_j1", "slot": "s_slot_rows", "sys": f"s_sys{always}"}
+    outer = {"xy": "s_xy", "j1": "s_j1", "slot": "s_slot_rows", "sys": "s_sys"}
     outer.update({v: f"s_{v}" for v in ["hk", "sl"]})
     nodes += add(system, "system/", outer)
-
-    def solve_from(step: int, out: str) -> list[onnx.NodeProto]:
-        """Nodes that write the solution to ``out`` from ``s_sys{step}`` (``step`` done)."""
-        sys_name = f"s_sys{step}"
-        done = helper.make_graph(
-            add(solved, f"solved{step}/", {"sys": sys_name, "m": f"solved{step}/m"}),
-            f"solved{step}{suffix}", [], [_t(f"solved{step}/m", elem, m_info)],
-        )
-        if step == steps - 1:
-            more = add(last, "last/", {"sys": sys_name, "m": "last/m"})
-            more_out = "last/m"
-        else:
-            rename = {"sys": sys_name, "out": f"s_sys{step + 1}"}
-            more = add(step_models[step], f"step{step}/", rename)
-            more_out = f"m{step + 1}"
-            more += solve_from(step + 1, more_out)
-        go_on = helper.make_graph(more, f"step{step}{suffix}", [],
-                                  [_t(more_out, elem, m_info)])
-        return [
-            helper.make_node(
-                "If", [f"s_done{step}"], [out], then_branch=done, else_branch=go_on
-            )
-        ]
-
-    nodes += solve_from(always, "s_m")
+    # The remaining PCR steps, as many as the knot width needs (spline.more_steps), then the
+    # solution: bit for bit what every step would give (spline.decoupled_after).
+    body, body_inits = _pcr_loop_body(step_model, pfx, always, steps, elem, suffix)
+    inits += body_inits
+    nodes.append(helper.make_node("Loop", ["s_pcr_n", "", "s_sys"], ["s_sys_end"], body=body))
+    nodes += add(solved, "solved/", {"sys": "s_sys_end", "m": "s_m"})
     nodes += add(
         tail,
         "sift/",
@@ -513,6 +485,49 @@ def _sift_graph(
     carried = [("s_h", elem, ["rows", n_time]), ("s_a", TensorProto.BOOL, ["rows", 1])]
     graph = _loop_body("sift" + suffix, "s", nodes, carried, cond_out=True)
     return graph, inits
+
+
+def _pcr_loop_body(
+    step_model: onnx.ModelProto, pfx: str, first: int, steps: int, elem: int, suffix: str
+) -> tuple[onnx.GraphProto, list[onnx.TensorProto]]:
+    """The body of the PCR ``Loop``: iteration ``i`` runs step ``first + i``.
+
+    ``step_model`` is :func:`spline.pcr_step` traced at shift ``2^first``; its two ``Pad``
+    nodes (row ``j - st`` and row ``j + st``, each with a zero row appended) get the pads of
+    step ``first + i`` from a table instead of their traced constants, and nothing else
+    changes, so every iteration runs the arithmetic of :func:`spline.pcr_step`.
+    """
+    known = {init.name: numpy_helper.to_array(init) for init in step_model.graph.initializer}
+    pads = [n for n in step_model.graph.node if n.op_type == "Pad"]
+    st = 1 << first
+    traced = [list(known.get(n.input[1], [])) if len(n.input) > 1 else [] for n in pads]
+    want = [[0, 0, 0, st, 1, 0, 0, -st], [0, 0, 0, -st, 1, 0, 0, st]]
+    if traced != want:
+        raise RuntimeError(f"unexpected traced PCR step: Pad pads {traced}, expected {want}")
+    table = np.array([[[0, 0, 0, s, 1, 0, 0, -s], [0, 0, 0, -s, 1, 0, 0, s]]
+                      for s in (1 << k for k in range(first, steps))], dtype=np.int64)
+    prefix = f"{pfx}pcr/"
+    nodes, inits = _inline(step_model, prefix, {"sys": "p_sys", "out": "p_sys_out"})
+    inits.append(numpy_helper.from_array(table[:, 0], f"{prefix}pads_lo"))
+    inits.append(numpy_helper.from_array(table[:, 1], f"{prefix}pads_hi"))
+    gathers = [
+        helper.make_node("Gather", [f"{prefix}pads_{side}", "p_i"], [f"{prefix}step_{side}"],
+                         axis=0)
+        for side in ("lo", "hi")
+    ]
+    for node, side in zip((n for n in nodes if n.op_type == "Pad"), ("lo", "hi")):
+        node.input[1] = f"{prefix}step_{side}"
+    _drop_unused_initializers_list(gathers + nodes, inits)
+    shape = [4, 2, "rows", "width"]
+    return _loop_body("pcr" + suffix, "p", gathers + nodes, [("p_sys", elem, shape)]), inits
+
+
+def _drop_unused_initializers_list(
+    nodes: list[onnx.NodeProto], inits: list[onnx.TensorProto]
+) -> None:
+    """Keep only the initializers ``nodes`` read (in place)."""
+    used = {v for n in nodes for v in n.input}
+    inits[:] = [i for i in inits if i.name in used]
 
 
 def _finish_sift(*args: Tensor) -> tuple[Tensor, Tensor, Tensor]:
@@ -750,16 +765,15 @@ def sift_path_nodes(model: onnx.ModelProto, n_time: int, large: bool = False) ->
     """Nodes one sift runs on input without ties: (fewest, most); ``large``: in the body for
     :data:`spline.LARGE_ROWS` rows or more.
 
-    Fewest: the loop body, the strict extremum branch and the solution taken after the
-    :data:`PCR_ALWAYS` steps; most: every remaining PCR step as well.
+    Fewest: the loop body alone (the :data:`PCR_ALWAYS` steps, the solution taken after them);
+    most: with every remaining PCR step, an iteration of the PCR loop each.
     """
     graphs = subgraph_nodes(model.graph)
     suffix = "_large" if large else ""
     steps = pcr_steps(n_slots(n_time))
     always = min(PCR_ALWAYS, steps - 1)
-    base = graphs["sift" + suffix] + graphs["strict" + suffix]
-    later = sum(graphs[f"step{s}{suffix}"] for s in range(always, steps))
-    return base + graphs[f"solved{always}{suffix}"], base + later
+    base = graphs["sift" + suffix]
+    return base, base + (steps - always) * graphs["pcr" + suffix]
 
 
 def count_nodes(graph: onnx.GraphProto) -> int:

@@ -25,6 +25,13 @@ import torch.nn.functional as F
 from torch import Tensor
 
 
+def pick(t: Tensor, *i: int, dim: int = 0) -> tuple[Tensor, ...]:
+    """Single entries of ``t`` along ``dim``, each keeping the axis: ``index_select`` rather
+    than ``split``, because onnxruntime gathers whole rows on a leading axis for less than a
+    ``Split`` costs (about 0.4 against 1-2 us in a 1 x 1,100 sift, 1.32, one thread)."""
+    return tuple(t.index_select(dim, torch.tensor([k], device=t.device)) for k in i)
+
+
 def spacings(xy: Tensor, end: float | None = None) -> tuple[Tensor, Tensor]:
     """(2, ..., K) knot positions and values -> (1, ..., K) spacings ``x[j+1] - x[j]`` and secant
     slopes.
@@ -41,7 +48,7 @@ def spacings(xy: Tensor, end: float | None = None) -> tuple[Tensor, Tensor]:
         nxt = torch.cat([xy[..., 1:], xy[..., -1:] + 1.0], dim=-1)
     else:
         nxt = F.pad(xy, (-1, 1), value=end)  # (2, ..., K): the next slot's [x, y]
-    hk, dy = (nxt - xy).split(1)  # spacings (all > 0), rises
+    hk, dy = pick(nxt - xy, 0, 1)  # spacings (all > 0), rises
     return hk, dy / hk
 
 
@@ -92,7 +99,7 @@ def spline_system(
     k = int(xy.shape[-1])
     if rows is None:
         rows = slot_rows(k, xy.dtype, xy.device)
-    row2, jpos = rows.split(1)  # (1, K) each: row 2 (M[1] eliminated, or natural); slot numbers
+    row2, jpos = pick(rows, 0, 1)  # (1, K) each: row 2 (M[1] eliminated, or natural); slot numbers
     if hk is None or sl is None:
         hk, sl = spacings(xy)  # (1, ..., K) each
     hm = F.pad(hk, (1, -1), value=1.0)  # (1, ..., K): h[j-1]
@@ -188,10 +195,17 @@ def decoupled_after(j1: Tensor, steps: int) -> Tensor:
     return j1.amax() <= float((1 << steps) + 2)  # j1 holds whole numbers: exact
 
 
-def decoupled_at_width(width: Tensor, steps: int) -> Tensor:
-    """:func:`decoupled_after` from the :func:`knot_width` (``max(j1) + 2``, (1,) int64):
-    (1,) bool, the same answer (the exported sift computes both from one reduction)."""
-    return width <= (1 << steps) + 4
+def more_steps(width: Tensor, first: int, steps: int) -> Tensor:
+    """How many of the PCR steps ``first .. steps - 1`` the systems still need, from the
+    :func:`knot_width` (``max(j1) + 2``, (1,) int64, at most ``2^steps``): (1,) int64.
+
+    Step ``s`` is needed unless :func:`decoupled_after` holds after ``s`` steps, i.e. unless
+    ``width <= 2^s + 4``; the thresholds grow with ``s``, so the steps needed are the first
+    ``count`` of them (the exported sift runs them in a ``Loop`` of that many iterations).
+    The count is read from a table indexed by the width: one node.
+    """
+    table = [sum(w > (1 << s) + 4 for s in range(first, steps)) for w in range((1 << steps) + 1)]
+    return torch.tensor(table, device=width.device)[width]
 
 
 def pcr_solve(sys: Tensor, j1: Tensor | None = None) -> Tensor:

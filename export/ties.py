@@ -1,0 +1,288 @@
+"""Near-tie atom flips: the probability differences they excuse in the parity check.
+
+OMP picks, at every step, the atom whose residual correlation is largest. When two atoms'
+correlations are nearly equal, float32 rounding decides, and PyTorch's coder and the graph's
+(other kernels, other rounding) may decide differently: on the BioTac's vibration images (200
+atoms, 17 non-zeros) on 20 of 70,100 rows of the 1,402 test windows. Such a row's code then
+holds another atom and other coefficients, and its window's probabilities move by up to a few
+hundredths, far beyond :data:`tactile.export.parity.ATOL`, although both sides computed what
+they should.
+
+So for a model with sparse coders a window whose probabilities differ by more than ``ATOL``
+is excused when such flips explain it, and only then:
+
+* the graph's coders are observed on that window by a copy of the file's graph that also
+  outputs each coder's images, codes and per-step picks (its ``ArgMax`` values:
+  :func:`tactile.export.codes.tapped`), run as the window was run (in its batch, alone, or
+  along its carried run); that copy's probabilities must equal the file's bit for bit;
+* PyTorch's coders are observed on the same forward pass by forward hooks (:func:`recording`),
+  the atoms each chose in order by its ``encode`` of the same batch, which must give its codes
+  bit for bit;
+* at least one of the window's rows (any coder; in carry mode also the rows of the earlier
+  windows of its run, whose state it inherits) has other non-zero atoms in the graph than in
+  PyTorch, and every such row is a near-tie on the same image (:func:`judge_rows`): the
+  graph's image within :data:`IMAGE_RTOL` x its norm of PyTorch's, and at the step where the
+  two OMP runs parted, the float64 residual correlations of their two picks (after the atoms
+  both picked before) within :data:`tactile.export.codes.TIE` of the largest
+  (:func:`tactile.training.sparse_check.divergence_gap`; the largest measured on real flips is
+  1.8e-5).
+
+A wrong coder in the graph is not excused: a scaled dictionary moves every code without a flip,
+an extra non-zero adds an atom PyTorch never chose (no near-tie), a wrong normalisation codes
+other images. At most :data:`MAX_EXCUSED` of the windows may be excused.
+"""
+
+from __future__ import annotations
+
+from contextlib import contextmanager
+from dataclasses import dataclass
+
+import numpy as np
+import onnx
+import torch
+from torch import nn
+
+from tactile.export.codes import TIE, CoderNotFound, CoderTap, find_coders, picks, tapped
+from tactile.training.sparse_check import divergence
+
+IMAGE_RTOL = 1e-4
+"""A flipped row counts as the same image when max |x_graph - x_torch| <= this x ||x_torch||."""
+RESOLUTION_FACTOR = 4.0
+"""A flip is a near-tie when its gap is below this many times float32's resolution of the
+step's correlations (:func:`~tactile.training.sparse_check.divergence`), if that exceeds
+:data:`~tactile.export.codes.TIE`: one float32 run's correlation errors reached 2.04 x the
+resolution (median 0.51; ``tests/test_sparse.py``), and a flip's gap holds two runs' errors."""
+MAX_EXCUSED = 0.05
+"""Largest share of the compared windows that near-tie flips may excuse. Measured on all 1,402
+BioTac vibration test windows: 1.4 % excused for a sparse linear model (every flip moves its
+pooled codes), 0.6 % for an SF-RNN; at 1.4 % a sample of 256 windows exceeds 5 % with
+probability 1e-4 (binomial), 2 % with probability 0.16. A wrong coder moves most windows."""
+
+
+@dataclass
+class Flips:
+    """What the rows of a window show: ``rows`` compared, ``flipped`` (other non-zero atoms
+    than PyTorch's), of which ``ties`` near-ties on the same image; ``max_gap`` the largest
+    |gap| among the ties and ``max_ratio`` the largest |gap| / tolerance; ``reproduced`` False
+    when the tapped copy did not give the file's probabilities (or PyTorch's encode not its
+    codes); ``by_codes`` False when PyTorch's model given the graph's codes did not give the
+    graph's probabilities (within ``ATOL``). Nothing is then excused."""
+
+    rows: int = 0
+    flipped: int = 0
+    ties: int = 0
+    max_gap: float = 0.0
+    max_ratio: float = 0.0
+    reproduced: bool = True
+    by_codes: bool = True
+
+    def __add__(self, other: Flips) -> Flips:
+        return Flips(self.rows + other.rows, self.flipped + other.flipped,
+                     self.ties + other.ties, max(self.max_gap, other.max_gap),
+                     max(self.max_ratio, other.max_ratio),
+                     self.reproduced and other.reproduced, self.by_codes and other.by_codes)
+
+    @property
+    def excuses(self) -> bool:
+        """True when the rows hold a flip, every flip is a near-tie and the codes explain the
+        probabilities."""
+        return (self.reproduced and self.by_codes and self.flipped > 0
+                and self.ties == self.flipped)
+
+
+class Pass:
+    """PyTorch's coders in one forward pass: per coder its calls' input images ``(rows,
+    features)`` and output codes ``(rows, atoms)``, recorded by forward hooks."""
+
+    def __init__(self, coders: list[nn.Module]) -> None:
+        self.coders = coders
+        self.calls: list[list[tuple[torch.Tensor, torch.Tensor]]] = [[] for _ in coders]
+        self._rows: dict[int, tuple] = {}
+
+    def rows(self, k: int) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
+        """Coder ``k``'s images, codes and the atoms chosen in order (-1 after an early stop;
+        None when its ``encode`` of the same batch does not give the codes bit for bit), of
+        its first call in the pass."""
+        if k not in self._rows:
+            x, codes = self.calls[k][0]
+            with torch.no_grad():
+                again, order = self.coders[k].encode(x)  # same batch, same kernels
+            self._rows[k] = (x.numpy(), codes.numpy(),
+                             order.numpy() if torch.equal(again, codes) else None)
+        return self._rows[k]
+
+
+@contextmanager
+def recording(coders: list[nn.Module]):
+    """Hooks on ``coders`` for the forward pass inside the block: yields its :class:`Pass`."""
+    rec = Pass(coders)
+
+    def hook(k):
+        def record(module, inputs, output):
+            rec.calls[k].append((inputs[0].detach().clone(), output.detach().clone()))
+        return record
+
+    handles = [c.register_forward_hook(hook(k)) for k, c in enumerate(coders)]
+    try:
+        yield rec
+    finally:
+        for h in handles:
+            h.remove()
+
+
+def graph_order(picks: np.ndarray, codes: np.ndarray) -> np.ndarray:
+    """The graph's atoms in order (rows, n) from its picks (rows, n) (:func:`~tactile.export.
+    codes.picks`), -1 after a row stopped (its picks beyond its non-zeros are masked)."""
+    live = (codes != 0).sum(1)
+    return np.where(np.arange(picks.shape[1])[None, :] < live[:, None], picks, -1)
+
+
+def judge_rows(d: np.ndarray, x_t: np.ndarray, c_t: np.ndarray, order_t: np.ndarray | None,
+               x_g: np.ndarray, c_g: np.ndarray, order_g: np.ndarray | None) -> Flips:
+    """Rows of one coder (dictionary ``d`` (atoms, features)): PyTorch's images ``x_t``,
+    codes ``c_t`` and atoms in order ``order_t`` (rows, n; -1 after a stop), the graph's
+    ``x_g``, ``c_g``, ``order_g``. A row whose non-zero atoms differ is a near-tie when its
+    images agree (:data:`IMAGE_RTOL`) and the two runs parted at a step where their picks'
+    float64 residual correlations differ by less than :data:`~tactile.export.codes.TIE` of the
+    largest, or less than :data:`RESOLUTION_FACTOR` x float32's resolution of that step's
+    correlations when that is coarser (:func:`~tactile.training.sparse_check.divergence` on
+    PyTorch's image). Without the
+    graph's order (``order_g`` None: its coder does not pick one atom per non-zero) no flip is
+    a near-tie."""
+    flipped = np.flatnonzero(((c_t != 0) != (c_g != 0)).any(1))
+    out = Flips(rows=len(c_t), flipped=len(flipped), reproduced=order_t is not None)
+    if order_t is None or order_g is None:
+        return out
+    for i in flipped:
+        err = np.abs(x_g[i].astype(np.float64) - x_t[i]).max()
+        if err > IMAGE_RTOL * np.linalg.norm(x_t[i].astype(np.float64)):
+            continue
+        gap, resolution = divergence(d, x_t[i], order_t[i].tolist(), order_g[i].tolist())
+        tolerance = max(TIE, RESOLUTION_FACTOR * resolution)
+        if abs(gap) < tolerance:
+            out.ties += 1
+            out.max_gap = max(out.max_gap, abs(gap))
+            out.max_ratio = max(out.max_ratio, abs(gap) / tolerance)
+    return out
+
+
+class Explainer:
+    """The graph's coders (a tapped copy of the file's graph) and PyTorch's (hooks) on the
+    windows whose probabilities differ, for a model with coders."""
+
+    def __init__(self, model: nn.Module, graph: bytes | str | onnx.ModelProto) -> None:
+        from tactile.export.parity import session
+
+        if not isinstance(graph, onnx.ModelProto):
+            graph = (onnx.load_from_string(graph) if isinstance(graph, bytes)
+                     else onnx.load(graph))
+        self.taps: list[CoderTap] = find_coders(model, graph)
+        try:  # each coder's picks, unless a coder of the graph has another number of steps
+            self.picks = [picks(t) for t in self.taps]
+        except CoderNotFound:
+            self.picks = None
+        self.sess = session(tapped(graph, self.taps, orders=self.picks is not None)
+                            .SerializeToString())
+        self.names = (["probs", "h_out", "c_out"] + [v for t in self.taps for v in (t.x, t.codes)]
+                      + [v for p in self.picks or [] for v in p])
+        self.coders = [t.coder for t in self.taps]
+        self.model = model
+        self.state_shape = model.state_shape  # (layers, hidden)
+        self.dicts = [c.dictionary.numpy() for c in self.coders]
+
+    def recording(self):
+        """Context manager around the model's forward: yields its :class:`Pass`."""
+        return recording(self.coders)
+
+    def run(self, x: np.ndarray, h: np.ndarray, c: np.ndarray):
+        """The tapped copy on one call: probs, h, c and per coder (images, codes, atoms in
+        order)."""
+        out = self.sess.run(self.names, {"x": x, "h": h, "c": c})
+        rows, at = [], 3 + 2 * len(self.taps)
+        for k, t in enumerate(self.taps):
+            codes, n = out[4 + 2 * k], t.coder.n_nonzero
+            order = (None if self.picks is None
+                     else graph_order(np.concatenate(out[at : at + n], axis=1), codes))
+            rows.append((out[3 + 2 * k], codes, order))
+            at += n
+        return out[0], out[1], out[2], rows
+
+    @torch.no_grad()
+    def substituted(self, x: np.ndarray, h: np.ndarray, c: np.ndarray,
+                    codes: list[np.ndarray]) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
+        """PyTorch's model on windows ``x`` with each coder's output replaced by ``codes[k]``
+        (the graph's codes of those windows, rows window-major): probs, h, c; None when the
+        codes do not fit the coders' outputs."""
+        fits = [True]
+
+        def hook(k):
+            def replace(module, inputs, output):
+                if output.shape != codes[k].shape:
+                    fits[0] = False
+                    return output
+                return torch.from_numpy(np.ascontiguousarray(codes[k]))
+            return replace
+
+        handles = [m.register_forward_hook(hook(k)) for k, m in enumerate(self.coders)]
+        try:
+            p, h1, c1 = self.model(*(torch.from_numpy(np.ascontiguousarray(v))
+                                     for v in (x, h, c)))
+        finally:
+            for handle in handles:
+                handle.remove()
+        return (p.numpy(), h1.numpy(), c1.numpy()) if fits[0] else None
+
+    def window(self, rec: Pass, w: int, n: int, graph_rows: list[tuple], g: int,
+               reproduced: bool) -> Flips:
+        """Window ``w`` of the ``n`` windows of PyTorch's pass ``rec`` against window ``g`` of
+        the tapped run's ``graph_rows`` (per coder (images, codes, order), rows window-major);
+        ``reproduced``: the tapped run gave that window the file's probabilities."""
+        out = Flips(reproduced=reproduced)
+        for k, d in enumerate(self.dicts):
+            if len(rec.calls[k]) != 1:  # encode reproduces a call, not several
+                return Flips(reproduced=False)
+            x_t, c_t, order = rec.rows(k)
+            x_g, c_g, order_g = graph_rows[k]
+            s = len(c_t) // n
+            if s * n != len(c_t) or len(c_g) % s:  # not rows of windows x steps
+                return Flips(reproduced=False)
+            t, r = slice(w * s, (w + 1) * s), slice(g * s, (g + 1) * s)
+            out = out + judge_rows(d, x_t[t], c_t[t], None if order is None else order[t],
+                                   x_g[r], c_g[r], None if order_g is None else order_g[r])
+        return out
+
+
+class Examined:
+    """The windows whose probabilities differed by more than the limit in some comparison
+    (by their row in the parity's result), with the flips of the first comparison that
+    examined each; a window is excused only if every comparison that examined it excuses it."""
+
+    def __init__(self) -> None:
+        self.flips: dict[int, Flips] = {}
+        self.excused: dict[int, bool] = {}
+
+    def add(self, w: int, flips: Flips) -> None:
+        if w not in self.flips:
+            self.flips[w], self.excused[w] = flips, flips.excuses
+        else:
+            self.excused[w] = self.excused[w] and flips.excuses
+
+    def mask(self, n: int) -> np.ndarray:
+        """(n,) True where a window is excused."""
+        out = np.zeros(n, bool)
+        out[[w for w, ok in self.excused.items() if ok]] = True
+        return out
+
+    def to_dict(self) -> dict:
+        """``windows_examined``, ``rows_flipped`` (rows of theirs whose atoms differ from
+        PyTorch's), ``rows_near_tie`` (of those, near-ties on the same image),
+        ``max_tie_gap`` (the largest |gap| of a near-tie), ``max_tie_ratio`` (the largest
+        |gap| / tolerance), ``not_reproduced`` (windows whose tapped copy or encode did not
+        reproduce the pass) and ``not_by_codes`` (windows whose probabilities PyTorch given
+        the graph's codes did not reproduce)."""
+        total = sum(self.flips.values(), Flips())
+        return {"windows_examined": len(self.flips), "rows_flipped": total.flipped,
+                "rows_near_tie": total.ties, "max_tie_gap": float(f"{total.max_gap:.3g}"),
+                "max_tie_ratio": float(f"{total.max_ratio:.3g}"),
+                "not_reproduced": sum(not f.reproduced for f in self.flips.values()),
+                "not_by_codes": sum(not f.by_codes for f in self.flips.values())}
