@@ -230,6 +230,7 @@ def train(data: Path, out: Path, cfg: TrainConfig, progress: bool = True, *,
         del images
     else:
         feats = {k: _features(model.pre, w, log, k, dist) for k, w in parts.items()}
+    model.fit_features(feats["train"])  # what the head keeps of them (an F-RNN's input scale)
     feature_s = time.perf_counter() - t0
     model.to(device)
     ctx = Context(cfg, log, dist, device, None, on_epoch)
@@ -414,9 +415,8 @@ def _train(model: TextureModel, w: Windows, f_all: torch.Tensor, n_epochs: int, 
                 raise Interrupted
             rows = order[i : i + batch]  # (B, S)
             f = f_all[rows].to(dev)  # (B, S, T, F)
-            if cfg.augment_gain:  # a random gain per window and feature (B, S, 1, F)
-                shape = (*rows.shape, 1, f_all.shape[-1])
-                f = f * (1 + cfg.augment_gain * (2 * torch.rand(shape, generator=aug) - 1)).to(dev)
+            if cfg.augment_gain:  # random gains per window: the model's augment_gain
+                f = model.augment_gain(f, cfg.augment_gain, aug)
             h, c = (t.to(dev) for t in model.zero_state(len(rows)))
             logits = step(f, h, c)  # (B, S, classes): the loss of every window, state carried
             loss = loss_fn(logits.flatten(0, 1), y_train[rows].flatten().to(dev))
