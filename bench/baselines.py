@@ -30,6 +30,7 @@ sys of this process) are printed.
 from __future__ import annotations
 
 import argparse
+import json
 import os
 import resource
 import subprocess
@@ -158,18 +159,121 @@ def prepare(name: str, out: Path, cache: Path = CACHE) -> tuple[Path, list[Take]
     return data, load_dataset(data)
 
 
+class ValidationRecorder:
+    """Inside ``with``: keeps the probabilities of every epoch's validation (what
+    :func:`tactile.training.train._validate` predicts), to judge selection rules afterwards
+    (:func:`selection_rules`). The first windows predicted are the validation split's; later
+    calls on the same windows are later epochs; any other windows (the test split) are not
+    kept."""
+
+    def __init__(self) -> None:
+        self.val, self.probs = None, []
+
+    def __enter__(self) -> ValidationRecorder:
+        self._predict = train_module.predict
+
+        def predict(model, w, *a, **kw):
+            probs = self._predict(model, w, *a, **kw)
+            if self.val is None:
+                self.val = w
+            if w is self.val:
+                self.probs.append(probs)
+            return probs
+
+        train_module.predict = predict
+        return self
+
+    def __exit__(self, *exc) -> None:
+        train_module.predict = self._predict
+
+    def save(self, path: Path) -> None:
+        w = self.val
+        np.savez_compressed(path, probs=np.stack(self.probs), y=w.y, take=w.take, start=w.start)
+
+
+def _halves(take: np.ndarray, start: np.ndarray) -> np.ndarray:
+    """True for the windows in the first half (by start) of their take's validation windows."""
+    first = np.zeros(len(take), bool)
+    for t in np.unique(take):
+        rows = np.flatnonzero(take == t)
+        first[rows[np.argsort(start[rows], kind="stable")[: len(rows) // 2]]] = True
+    return first
+
+
+RULES = ("loss", "accuracy")
+
+
+def pick_epoch(rule: str, acc: np.ndarray, loss: np.ndarray, patience: int) -> int:
+    """The epoch (0-based) that ``select=rule`` with ``patience`` keeps, given the curves
+    (the run stops ``patience`` epochs after the last improvement, or at the curves' end);
+    the same comparisons as :func:`tactile.training.train._improves`."""
+    s = {"best": np.inf, "best_acc": -1.0}
+    best, stale = 0, 0
+    for e in range(len(acc)):
+        if train_module._improves(rule, float(acc[e]), float(loss[e]), s):
+            s["best"], s["best_acc"], best, stale = float(loss[e]), float(acc[e]), e, 0
+        else:
+            stale += 1
+            if stale >= patience:
+                break
+    return best
+
+
+def selection_rules(path: Path, patience: int) -> dict:
+    """Each rule judged on held-out validation windows: the rule picks its epoch on the first
+    half (in time) of every validation take and is scored on the second half, and the other
+    way round; the mean of the two accuracies, and the epochs picked on the whole."""
+    d = np.load(path)
+    probs, y = d["probs"], d["y"]
+    hit = probs.argmax(2) == y[None]  # (epochs, N)
+    nll = -np.log(probs[:, np.arange(len(y)), y] + 1e-9)
+    first = _halves(d["take"], d["start"])
+    out = {}
+    for rule in RULES:
+        scores = []
+        for pick, score in ((first, ~first), (~first, first)):
+            e = pick_epoch(rule, hit[:, pick].mean(1), nll[:, pick].mean(1), patience)
+            scores.append(float(hit[e, score].mean()))
+        e_all = pick_epoch(rule, hit.mean(1), nll.mean(1), patience)
+        out[rule] = {"held_out": float(np.mean(scores)), "epoch": e_all + 1,
+                     "val_accuracy": float(hit[e_all].mean())}
+    return out
+
+
 def run_dataset(name: str, data: Path, takes: list[Take], out: Path, seeds: tuple[int, ...],
-                base: TrainConfig) -> dict:
+                base: TrainConfig, curves: bool = False, label: str = "defaults",
+                baselines: Path | None = None) -> dict:
+    """The defaults (``base``) and the baseline on every seed. A run whose folder already holds
+    metrics is read, not trained again (so does a baseline's ``baseline.json``)."""
     ours, base_runs = [], []
     for seed in seeds:
         cfg = base.replace(seed=seed, **SETTINGS[name])
-        t0, c0 = time.perf_counter(), _cpu()
-        m = train_module.train(data, out / f"{name}-seed{seed}", cfg, progress=False)
-        m["wall_seconds"], m["cpu_seconds"] = time.perf_counter() - t0, _cpu() - c0
-        b = band_logistic(takes, cfg)
-        print(f"<!-- {name} seed {seed}: defaults {m['accuracy']:.3f} (val "
+        run = out / f"{name}-seed{seed}"
+        if (run / "metrics.json").exists():
+            m = json.loads((run / "metrics.json").read_text())
+        else:
+            t0, c0 = time.perf_counter(), _cpu()
+            with ValidationRecorder() as rec:
+                m = train_module.train(data, run, cfg, progress=False)
+            m["wall_seconds"], m["cpu_seconds"] = time.perf_counter() - t0, _cpu() - c0
+            (run / "metrics.json").write_text(json.dumps(m, indent=1) + "\n")
+            if curves:
+                rec.save(run / "val-curves.npz")
+        if curves and (run / "val-curves.npz").exists():
+            # the rules with the default patience (a recording run may wait longer)
+            m["rules"] = selection_rules(run / "val-curves.npz", TrainConfig.patience)
+        bfile = (baselines or out / "baseline") / f"{name}-seed{seed}.json"
+        if bfile.exists():
+            b = json.loads(bfile.read_text())
+        else:
+            b = band_logistic(takes, cfg)
+            bfile.parent.mkdir(parents=True, exist_ok=True)
+            bfile.write_text(json.dumps(b, indent=1) + "\n")
+        rules = "".join(f"; select={r}: held-out val {v['held_out']:.3f}, epoch {v['epoch']}, "
+                        f"val {v['val_accuracy']:.3f}" for r, v in m.get("rules", {}).items())
+        print(f"<!-- {name} seed {seed}: {label} {m['accuracy']:.3f} (val "
               f"{m['val_accuracy']:.3f}, best epoch {m['best_epoch'] + 1}, "
-              f"{m['wall_seconds']:.0f} s wall, {m['cpu_seconds']:.0f} s CPU); baseline "
+              f"{m['wall_seconds']:.0f} s wall, {m['cpu_seconds']:.0f} s CPU{rules}); baseline "
               f"{b['accuracy']:.3f} (val {b['val_accuracy']:.3f}, C={b['C']:g}, "
               f"{b['cpu_seconds']:.1f} s CPU) -->", flush=True)
         ours.append(m)
@@ -186,6 +290,34 @@ def _stat(runs: list[dict], key: str = "accuracy") -> str:
     return f"{v.mean():.3f} +/- {v.std():.3f}"
 
 
+def grid_table(grid: dict, seeds: tuple[int, ...]) -> str:
+    """Validation accuracy of each candidate per dataset and seed (and the baseline's)."""
+    names = list(next(iter(grid.values())))
+    lines = ["| candidate | " + " | ".join(f"{n}: val (seed {', '.join(map(str, seeds))}), mean"
+                                         for n in names) + " |",
+             "|---" * (len(names) + 1) + "|"]
+
+    def cell(runs: list[dict]) -> str:
+        v = [r["val_accuracy"] for r in runs]
+        return ", ".join(f"{a:.3f}" for a in v) + f"; **{np.mean(v):.3f}**"
+
+    def rule(runs: list[dict], r: str, key: str) -> str:
+        v = [run["rules"][r][key] for run in runs]
+        return ", ".join(f"{a:.3f}" for a in v) + f"; **{np.mean(v):.3f}**"
+
+    first = next(iter(grid.values()))
+    lines.append("| baseline | " + " | ".join(cell(first[n]["baseline"]) for n in names) + " |")
+    for label, res in grid.items():
+        lines.append(f"| {label} | " + " | ".join(cell(res[n]["ours"]) for n in names) + " |")
+        if all("rules" in run for n in names for run in res[n]["ours"]):
+            for r in RULES:  # what each rule keeps with the default patience
+                lines.append(f"| {label}, select={r} | " + " | ".join(
+                    rule(res[n]["ours"], r, "val_accuracy") for n in names) + " |")
+                lines.append(f"| {label}, select={r}, held-out halves | " + " | ".join(
+                    rule(res[n]["ours"], r, "held_out") for n in names) + " |")
+    return "\n".join(lines)
+
+
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("--out", type=Path, required=True, help="folder for datasets and runs")
@@ -195,16 +327,36 @@ def main(argv: list[str] | None = None) -> int:
                    help=f"folder for the imported BioTac takes (default {CACHE})")
     p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
                    help="change a default for every run (as tactile-train --set)")
+    p.add_argument("--candidate", action="append", nargs="+", metavar=("NAME", "KEY=VALUE"),
+                   help="a grid of candidate defaults instead of the table: NAME and its "
+                        "settings (repeatable; runs in OUT/NAME/, the baseline's in "
+                        "OUT/baseline/); prints every candidate's validation accuracy per "
+                        "dataset and seed")
+    p.add_argument("--curves", action="store_true",
+                   help="keep each run's validation probabilities per epoch (val-curves.npz) "
+                        "and judge the selection rules (select=loss, accuracy) on held-out "
+                        "halves of the validation takes")
     args = p.parse_args(argv)
     seeds = tuple(int(s) for s in args.seeds.split(",") if s.strip())
     base = train_module.parse_sets(args.set, TrainConfig(threads=1))
-    results = {}
+    data = {}
     for name in args.only or DATASETS:
         got = prepare(name, args.out, args.cache)
         if isinstance(got, str):
             print(f"<!-- {name}: skipped, {got} -->", flush=True)
             continue
-        results[name] = run_dataset(name, *got, args.out, seeds, base)
+        data[name] = got
+    if args.candidate:
+        grid = {}
+        for label, *sets in args.candidate:
+            cfg = train_module.parse_sets(sets, base)
+            grid[label] = {name: run_dataset(name, *got, args.out / label, seeds, cfg,
+                                             args.curves, label, args.out / "baseline")
+                           for name, got in data.items()}
+        print(grid_table(grid, seeds))
+        return 0
+    results = {name: run_dataset(name, *got, args.out, seeds, base, args.curves)
+               for name, got in data.items()}
     print(f"\n| dataset | windows train/val/test | defaults: test accuracy (seed "
           f"{', '.join(map(str, seeds))}) | mean +/- sd | baseline: test accuracy | "
           "mean +/- sd | defaults - baseline | validation: defaults / baseline | "

@@ -297,6 +297,105 @@ def test_a_signal_shares_one_pooled_mean_and_std():
     np.testing.assert_allclose(std, [both.std(), both.std(), x[:, :, 2].std()], rtol=1e-5)
 
 
+@pytest.mark.parametrize("mode", ["images", "codes", "energy"])
+def test_a_gain_on_the_features_is_the_gain_on_the_channels(mode):
+    """augment_gain on the features computed once (GranularModel.augment_gain) is what the
+    features of the window with each modality's channels scaled about their training mean
+    would be: a 2-unit modality with IMFs (one gain for both), a high-rate signal with IMFs,
+    and channels without (their mean scales, their log std shifts). Reference: the features
+    recomputed from the scaled window, EMD and codes included."""
+    channels = ("a0", "a1", "s_0", "s_1", "e0", "e1", "e2")
+    tables = {"acc": {"channels": ["a*"], "imfs": 3, "steps": 4, "atoms": 12},
+              "sig": {"channels": ["s"], "imfs": 2, "steps": 6, "atoms": 10},
+              "ele": {"channels": ["e*"], "steps": 3, "atoms": 8}}
+    layout = _layout(tables, channels, 30, {"s": ["s_*"]})
+    rng = np.random.default_rng(7)
+    mean = torch.tensor([5.0, -3.0, 40.0, 40.0, 900.0, 1100.0, 1000.0])
+    std = torch.tensor([2.0, 1.0, 8.0, 8.0, 30.0, 20.0, 25.0])
+    pre = GranularPre(layout, mean, std, 30, 6, mode)
+    if mode == "codes":  # random unit-norm atoms
+        pre.set_dictionaries([d / np.linalg.norm(d, axis=1, keepdims=True) for d in (
+            rng.normal(size=(m.atoms, m.features)).astype(np.float32) for m in layout)])
+    t = np.arange(30)[None, :, None]
+    x = mean.numpy() + std.numpy() * (np.sin(0.7 * t + rng.uniform(0, 6, (5, 1, 7)))
+                                      + 0.5 * rng.normal(size=(5, 30, 7)))
+    x = torch.from_numpy(x.astype(np.float32))  # (5 windows, 30 frames, 7 channels)
+    gains = torch.tensor([[0.7, 1.25, 1.1], [1.3, 0.8, 0.75], [1.0, 1.0, 1.0],
+                          [0.9, 1.15, 1.28], [1.2, 0.72, 0.95]])  # (5, modalities)
+    per_channel = gains[:, [0, 0, 1, 1, 2, 2, 2]]  # each channel's modality
+    scaled = mean + per_channel[:, None, :] * (x - mean)
+    with torch.no_grad():
+        want = pre(scaled)
+        got = pre.apply_gain(pre(x), gains[:, None, :])
+    assert got.shape == want.shape == (5, 1 if mode == "energy" else 27, pre.n_features)
+    # float32 EMD and coding on both sides: 1e-4 of each window's feature scale
+    scale = want.abs().amax(dim=(1, 2), keepdim=True)
+    assert ((got - want).abs() / scale).max() < 1e-4
+    assert ((pre(x) - want).abs() / scale).max() > 0.05  # the gains do change the features
+
+
+def test_augment_gain_draws_one_gain_per_window_and_modality():
+    layout = _layout({"a": {"channels": ["c0"], "imfs": 2, "steps": 2},
+                      "b": {"channels": ["c1", "c2"], "steps": 2}}, ("c0", "c1", "c2"), 6)
+    cfg = TrainConfig.from_dict({"model": "f_rnn", "window": 6, "layers": 1, "hidden": 4,
+                                 "modalities": {"a": {"channels": ["c0"], "imfs": 2, "steps": 2},
+                                                "b": {"channels": ["c1", "c2"], "steps": 2}}})
+    model = granular.GranularModel(cfg, 2, layout, torch.zeros(3), torch.ones(3))
+    f = torch.ones(4, 1, 5, model.pre.n_features)  # (B, S, steps, F): every feature 1
+    out = model.augment_gain(f, 0.3, torch.Generator().manual_seed(0))
+    a, b = out[..., :4], out[..., 4:]  # modality a: 1 unit x 2 IMFs x 2; b: 2 units x 2
+    assert torch.equal(a, a[..., :1].expand_as(a)) and torch.equal(b, b[..., :1].expand_as(b))
+    assert torch.equal(out, out[:, :, :1].expand_as(out))  # the same gain at every step
+    g = torch.cat([a[:, 0, 0, 0], b[:, 0, 0, 0]])
+    assert ((g - 1).abs() <= 0.3).all() and len(set(g.tolist())) == 8  # drawn per window
+
+
+def test_input_scale_is_the_median_window_rms_of_each_feature():
+    rng = np.random.default_rng(3)
+    n, steps = 41, 6
+    loud = np.where(rng.random(n) < 0.1, 40.0, 1.0)  # heavy-tailed: a few loud windows
+    f = rng.normal(size=(n, steps, 4)) * loud[:, None, None] * [1.0, 0.01, 1.0, 1.0]
+    f[: n // 2 + 1, :, 2] = 0.0  # zero in most windows: the RMS over all windows instead
+    f[:, :, 3] = 0.0  # always zero: 1
+    got = granular.input_scale(torch.from_numpy(f).float()).numpy()
+    rms = np.sqrt((f ** 2).mean(axis=1))  # (N, F), float64
+    want = [np.median(rms[:, 0]), np.median(rms[:, 1]), np.sqrt((rms[:, 2] ** 2).mean()), 1.0]
+    np.testing.assert_allclose(got, want, rtol=1e-5)
+    assert got[0] < 0.2 * f[:, :, 0].std()  # the typical window, not the loud ones' scale
+
+
+def test_forget_bias_lstm_starts_its_forget_gates_at_1_and_keeps_it_on_reset():
+    torch.manual_seed(0)
+    lstm = granular.ForgetBiasLSTM(5, 4, 3, batch_first=True)
+    plain = torch.nn.LSTM(5, 4, 3, batch_first=True)
+    assert list(lstm.state_dict()) == list(plain.state_dict())  # exports as nn.LSTM
+    for _ in range(2):  # as built, and after a refit's reset_parameters
+        for k in range(3):
+            b_ih, b_hh = getattr(lstm, f"bias_ih_l{k}"), getattr(lstm, f"bias_hh_l{k}")
+            assert torch.equal(b_ih[4:8], torch.ones(4)) and torch.equal(b_hh[4:8], torch.zeros(4))
+            assert b_ih[:4].abs().max() > 0 and b_ih[8:].abs().max() > 0  # the others: random
+        lstm.reset_parameters()
+
+
+def test_a_4_layer_f_rnn_carries_its_input_to_the_top_at_initialisation():
+    """The cause of the F-RNN runs that never left the untrained loss: with forget-gate bias 0
+    each of the 4 LSTM layers passed about a quarter of its input's variation on, so the top
+    layer's output hardly depended on the window and the loss gradient on the input weights
+    was smaller than the weight decay's. With bias 1 the top layer's output varies over
+    windows several times more (median over 5 initialisations, 4 x 50, 46 steps)."""
+    x = torch.randn(64, 46, 20, generator=torch.Generator().manual_seed(0))
+
+    def top_variation(cls, seed):
+        torch.manual_seed(seed)
+        with torch.no_grad():
+            y, _ = cls(20, 50, 4, batch_first=True)(x)
+        return float(y[:, -1].std(0).mean())  # over windows, at the last step
+
+    ratios = [top_variation(granular.ForgetBiasLSTM, s) / top_variation(torch.nn.LSTM, s)
+              for s in range(5)]
+    assert np.median(ratios) > 3, ratios
+
+
 def test_sample_rows_is_capped_seeded_and_without_repeats():
     a, b = sample_rows(1000, 300, 4), sample_rows(1000, 300, 4)
     assert len(a) == 300 == len(set(a.tolist())) and np.array_equal(a, b)
@@ -396,6 +495,21 @@ def test_the_checkpoint_rebuilds_the_model_exactly(runs, toy, model):
             assert torch.equal(a.dictionary, b.dictionary) and a.dictionary.abs().sum() > 0
     probs = predict(loaded, parts["test"])
     assert float((probs.argmax(1) == parts["test"].y).mean()) == metrics["accuracy"]
+
+
+def test_the_f_rnn_input_scale_comes_from_the_training_windows(runs, toy):
+    _, _, model = runs["f_rnn"]
+    takes = load_dataset(toy)
+    _, parts = split_windows(takes, classes_of(takes), model.cfg.channels, model.cfg)
+    with torch.no_grad():
+        images = {k: model.pre(torch.from_numpy(w.x)).double().numpy() for k, w in parts.items()}
+    # the median of an even count is the lower of the two middle values
+    median_rms = {k: np.sort(np.sqrt((v ** 2).mean(axis=1)), axis=0)[(len(v) - 1) // 2]
+                  for k, v in images.items()}
+    got = model.head.scale.numpy()
+    np.testing.assert_allclose(got, median_rms["train"], rtol=1e-5)  # float32 images
+    for other in ("val", "test"):  # the toy's splits differ enough to tell them apart
+        assert np.abs(got / median_rms[other] - 1).max() > 1e-3
 
 
 def test_tactile_eval_reads_a_granular_run(runs, toy):

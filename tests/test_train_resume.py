@@ -196,3 +196,16 @@ def test_a_resume_state_that_does_not_fit_is_one_line(dataset, tmp_path, capsys)
     (run / RESUME).write_bytes(b"garbage")
     assert train_main(["--resume", str(run)]) == 1
     assert "not a readable resume state" in capsys.readouterr().err
+
+
+def test_a_state_saved_before_select_existed_keeps_stopping_on_the_loss(dataset, tmp_path):
+    run = tmp_path / "r"
+    cfg = TrainConfig(**{**SMALL, "epochs": 3, "patience": 3})
+    assert cfg.select == "accuracy"  # the default the old state must not silently switch to
+    assert train(dataset, run, cfg, progress=False, on_epoch=sigint_after("fit", 1))[
+        "interrupted"]
+    assert load_resume(run)["config"]["select"] == "accuracy"  # saved as it was
+    saved = torch.load(run / RESUME, weights_only=True)
+    del saved["config"]["select"]
+    torch.save(saved, run / RESUME)
+    assert TrainConfig.from_dict(load_resume(run)["config"]).select == "loss"

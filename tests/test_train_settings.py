@@ -170,3 +170,32 @@ def test_eval_help_reads_as_a_sentence(capsys):
     description = capsys.readouterr().out.split("\n\n")[1].replace("\n", " ")
     assert description.startswith("Evaluate a trained run on a dataset") and \
         description.endswith(".")
+
+
+def _kept(select: str, curves: list[tuple[float, float]], patience: int = 3) -> int:
+    """The epoch (0-based) ``_validate``'s rule keeps over (accuracy, loss) per epoch."""
+    from tactile.training.train import _improves
+
+    s, best, stale = {"best": float("inf"), "best_acc": -1.0}, 0, 0
+    for e, (acc, loss) in enumerate(curves):
+        if _improves(select, acc, loss, s):
+            s["best"], s["best_acc"], best, stale = loss, acc, e, 0
+        else:
+            stale += 1
+            if stale >= patience:
+                break
+    return best
+
+
+def test_selection_by_loss_or_by_accuracy_with_the_loss_as_tie_break():
+    # the loss bottoms at epoch 1 while the accuracy climbs until epoch 4
+    curves = [(0.50, 1.0), (0.60, 0.8), (0.65, 0.9), (0.70, 1.1), (0.75, 1.3), (0.74, 1.4),
+              (0.75, 1.2), (0.70, 1.5), (0.60, 1.6)]
+    assert _kept("loss", curves) == 1
+    # epoch 6 ties epoch 4's accuracy with a lower loss; lower by less than 1e-4 is no tie-break
+    assert _kept("accuracy", curves, patience=5) == 6
+    assert _kept("accuracy", curves[:6] + [(0.75, 1.3 - 5e-5)], patience=5) == 4
+    # patience counts epochs without a better one: one (epoch 5) ends the run before epoch 6
+    assert _kept("accuracy", curves, patience=1) == 4
+    with pytest.raises(ConfigError, match="select must be one of loss, accuracy"):
+        TrainConfig(select="f1")

@@ -162,6 +162,9 @@ def load_resume(run_dir: Path) -> dict:
     for key, kind in (("config", dict), ("data", str), ("state", dict)):
         if not isinstance(r.get(key), kind):
             raise RecordingError(f"{path}: key {key!r}: must be a {kind.__name__}")
+    # a state saved before ``select`` existed stopped on the validation loss: it continues so
+    # (the newer default, accuracy, would change the run half-way)
+    r["config"].setdefault("select", "loss")
     try:
         TrainConfig.from_dict(r["config"])
     except TactileError as e:

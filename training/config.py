@@ -24,6 +24,7 @@ STATE_MODES = ("window", "carry")
 SPLITS = ("user", "take", "time")
 SCHEDULES = ("constant", "plateau", "cosine")
 REFITS = ("auto", "on", "off")
+SELECTS = ("loss", "accuracy")
 DEVICES = ("auto", "cpu", "cuda")
 MAX_AUTO_THREADS = 4
 # ``test`` / ``val`` selectors: FIELD:VALUE[,VALUE...] (see TrainConfig)
@@ -142,7 +143,11 @@ class TrainConfig:
     so that the model does not key on one user's signal levels; an epoch is ``epoch_windows``
     training windows drawn at random without replacement (0 or more than there are: all of
     them; with ``state='carry'`` runs of ``carry_steps`` windows), and training stops when the
-    validation loss has not improved for ``patience`` epochs (at most ``epochs``). Options:
+    validation figure ``select`` names has not improved for ``patience`` epochs (at most
+    ``epochs``); the weights of its best epoch are kept. ``select``: ``accuracy`` (default), the
+    highest validation accuracy, a lower validation loss breaking ties; ``loss``, the lowest
+    validation loss (the loss can bottom out epochs before the accuracy does on a validation
+    set unlike the training data: the model grows confident faster than it grows right). Options:
     ``schedule`` of the learning rate (``constant``, ``plateau``: halved when the validation loss
     stalls for ``patience // 4`` epochs, ``cosine``: down to ``lr / 100`` over ``epochs``),
     ``label_smoothing`` of the training targets, ``ema`` (the decay per step of an exponential
@@ -208,6 +213,7 @@ class TrainConfig:
     lr: float = 3e-3
     weight_decay: float = 1e-4
     patience: int = 25
+    select: str = "accuracy"
     schedule: str = "constant"
     label_smoothing: float = 0.0
     ema: float = 0.0
@@ -242,6 +248,8 @@ class TrainConfig:
             (0 <= self.label_smoothing < 1, "label_smoothing must be in [0, 1)",
              ("label_smoothing",)),
             (0 <= self.ema < 1, "ema must be in [0, 1) (0: off)", ("ema",)),
+            (self.select in SELECTS, f"select must be one of {', '.join(SELECTS)}",
+             ("select",)),
             (self.refit in REFITS, f"refit must be one of {', '.join(REFITS)}", ("refit",)),
             (self.layers >= 1 and self.hidden >= 1, "layers and hidden must be >= 1",
              ("layers", "hidden")),
@@ -405,5 +413,5 @@ def resolve_device(device: str, cuda_available: bool | None = None) -> str:
 
 
 __all__ = ["TrainConfig", "Modality", "MODELS", "GRANULAR_MODELS", "FRONTS", "STATE_MODES",
-           "SPLITS", "SCHEDULES", "REFITS", "DEVICES", "signals_from", "modalities_from",
+           "SPLITS", "SCHEDULES", "SELECTS", "REFITS", "DEVICES", "signals_from", "modalities_from",
            "apply_threads", "resolve_threads", "resolve_device", "usable_cpus"]

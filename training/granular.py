@@ -36,6 +36,7 @@ from tactile.training.model import Classifier
 from tactile.training.sparse import SparseCoder, default_n_nonzero
 
 LOG_EPS = 1e-6
+GAIN_SCALE, GAIN_LOG_ENERGY, GAIN_LOG_STD = 0, 1, 2  # how a gain reaches a feature
 MODES = {"sf_rnn": "codes", "sparse_linear": "codes", "f_rnn": "images", "linear": "energy"}
 DICTIONARY_ROWS = 20_000
 """At most this many training image rows (window, step) are drawn, seeded, to learn each
@@ -89,6 +90,50 @@ class GranularPre(nn.Module):
         self.coders = nn.ModuleList(
             SparseCoder(np.zeros((m.atoms, m.features), np.float32), self.n_nonzero(m))
             for m in self.layout) if mode == "codes" else None
+        owner, kind = self._gain_map()
+        self.register_buffer("gain_owner", owner, persistent=False)  # (F,) modality
+        self.register_buffer("gain_kind", kind, persistent=False)  # (F,) GAIN_* of a feature
+
+    def _gain_map(self) -> tuple[Tensor, Tensor]:
+        """Per feature of :meth:`forward`'s output, the modality it comes from and how a gain
+        g on that modality's normalised channels reaches it (:meth:`apply_gain`)."""
+        owner, kind = [], []
+        for k, m in enumerate(self.layout):
+            if self.mode == "codes":
+                kinds = [GAIN_SCALE] * m.atoms
+            elif self.mode == "images":
+                kinds = [GAIN_SCALE] * m.features
+            elif m.imfs > 0:  # log mean energy of each IMF of each unit
+                kinds = [GAIN_LOG_ENERGY] * (m.n * m.imfs)
+            else:  # per unit: its mean, its log standard deviation
+                kinds = [GAIN_SCALE, GAIN_LOG_STD] * m.n
+            owner += [k] * len(kinds)
+            kind += kinds
+        return torch.tensor(owner, dtype=torch.long), torch.tensor(kind, dtype=torch.long)
+
+    def apply_gain(self, f: Tensor, gains: Tensor) -> Tensor:
+        """The features of a window whose channels were scaled about their training mean by
+        one gain per modality, from the features ``f (..., F)`` of the window itself:
+        ``gains (..., M)``, broadcast over f's other axes (e.g. (B, 1, M) for f (B, S, F)).
+
+        Exact because every stage is scale-equivariant: ``z`` scales with the gain, so do
+        the EMD's IMFs (sifting is linear in the signal and blind to an offset), the images,
+        and the OMP codes (the atoms picked by the largest correlation stay the same, the
+        coefficients scale); a log mean energy ``log(E + 1e-6)`` becomes
+        ``log(g^2 E + 1e-6)``, a unit's mean scales, and its ``0.5 log(var + 1e-6)`` becomes
+        ``0.5 log(g^2 var + 1e-6)``. Training applies it to the features computed once,
+        instead of computing them again every batch."""
+        g = torch.index_select(gains, -1, self.gain_owner)  # (..., F)
+        if self.mode != "energy":  # codes and images scale
+            return f * g
+        kind = self.gain_kind
+        out = torch.where(kind == GAIN_SCALE, f * g, f)
+        # the energy under each log feature, scaled by g^2: log energies E, log std var
+        power = torch.where(kind == GAIN_LOG_STD, 2 * f, f)
+        energy = (torch.exp(power) - LOG_EPS).clamp_min(0) * g * g
+        logged = torch.log(energy + LOG_EPS)
+        return torch.where(kind == GAIN_LOG_ENERGY, logged,
+                           torch.where(kind == GAIN_LOG_STD, 0.5 * logged, out))
 
     @staticmethod
     def n_nonzero(m: ModalityLayout) -> int:
@@ -274,21 +319,60 @@ class SFRNNHead(nn.Module):
         return self.out(self.drop(y[:, -1])), h, c
 
 
+def input_scale(images: Tensor) -> Tensor:
+    """The scale of each feature of the data images ``(N, S, F)`` of the training windows,
+    ``(F,)``: the median over the windows (of an even count, the lower middle one) of the
+    feature's RMS over the window's S steps; the RMS over every window instead where that
+    median is below 1e-3 of it (a feature that is 0 in most windows, e.g. an IMF the
+    decomposition seldom reaches), 1 where the feature is always 0.
+
+    The median, not the standard deviation over all windows (batch normalisation's scale),
+    because loudness is heavy-tailed across windows: on the BioTac's vibration the typical
+    window's RMS is 1/35 of the standard deviation, which the few loud windows (contact,
+    sliding) set; scaled by that, the typical window reaches the LSTM at 1/35 of unit size,
+    where its gates are nearly linear and a zero-mean oscillation averages away."""
+    rms = images.double().pow(2).mean(dim=1).sqrt()  # (N, F)
+    overall = rms.pow(2).mean(dim=0).sqrt()  # (F,)
+    typical = rms.median(dim=0).values if len(rms) else overall
+    scale = torch.where(typical >= 1e-3 * overall, typical, overall)
+    return torch.where(scale > 0, scale, torch.ones_like(scale)).float()
+
+
+class ForgetBiasLSTM(nn.LSTM):
+    """``nn.LSTM`` whose forget gates start with bias 1 (``bias_ih`` 1, ``bias_hh`` 0 in the
+    forget rows), as TensorFlow's LSTM cells (``forget_bias=1.0``) and Jozefowicz et al.
+    (2015); kept by ``reset_parameters``, so a refit starts the same way. The state dict and
+    the exported ONNX ``LSTM`` node are those of ``nn.LSTM``."""
+
+    FORGET_BIAS = 1.0
+
+    def reset_parameters(self) -> None:
+        super().reset_parameters()
+        rows = slice(self.hidden_size, 2 * self.hidden_size)  # gate order i, f, g, o
+        with torch.no_grad():
+            for layer in range(self.num_layers):
+                getattr(self, f"bias_ih_l{layer}")[rows].fill_(self.FORGET_BIAS)
+                getattr(self, f"bias_hh_l{layer}")[rows].zero_()
+
+
 class FRNNHead(nn.Module):
     """F-RNN (the paper's sec. II.D.c, after Jain et al.): per modality m its images
-    (B, S, features_m) -> batch normalisation -> its own LSTM (``layers`` x ``hidden``,
-    dropout between layers); at every step the M outputs concatenated -> fully connected
-    fusion layer (M x hidden -> hidden) with ReLU; the last step's fused vector -> dropout ->
-    linear -> logits. State (layers, B, M x hidden) x 2: modality m's LSTM state is the m-th
-    block of ``hidden``."""
+    (B, S, features_m), each feature divided by its input scale (``scale``,
+    :func:`input_scale` of the training windows' images, set by :meth:`fit_scale` before
+    training) -> its own LSTM (``layers`` x ``hidden``, dropout between layers, forget-gate
+    bias 1: :class:`ForgetBiasLSTM`); at every step the M outputs concatenated -> fully
+    connected fusion layer (M x hidden -> hidden) with ReLU; the last step's fused vector ->
+    dropout -> linear -> logits. State (layers, B, M x hidden) x 2: modality m's LSTM state is
+    the m-th block of ``hidden``."""
 
     def __init__(self, sizes: tuple[int, ...], n_classes: int, hidden: int, layers: int,
                  dropout: float):
         super().__init__()
         self.sizes, self.layers, self.hidden = tuple(sizes), layers, hidden
-        self.norms = nn.ModuleList(nn.BatchNorm1d(n) for n in self.sizes)
+        self.register_buffer("scale", torch.ones(sum(self.sizes)))  # (F,) per feature
         self.lstms = nn.ModuleList(
-            nn.LSTM(n, hidden, layers, batch_first=True, dropout=dropout if layers > 1 else 0.0)
+            ForgetBiasLSTM(n, hidden, layers, batch_first=True,
+                           dropout=dropout if layers > 1 else 0.0)
             for n in self.sizes)
         self.fuse = nn.Linear(len(self.sizes) * hidden, hidden)
         self.drop = nn.Dropout(dropout)
@@ -298,13 +382,18 @@ class FRNNHead(nn.Module):
     def state_shape(self) -> tuple[int, int]:
         return self.layers, len(self.sizes) * self.hidden
 
+    def fit_scale(self, f: Tensor) -> None:
+        """Set the input scale of every feature from the training windows' images
+        ``f (N, S, sum features)``."""
+        self.scale.copy_(input_scale(f))
+
     def forward(self, f: Tensor, h: Tensor, c: Tensor) -> tuple[Tensor, Tensor, Tensor]:
-        b, s, _ = f.shape
+        f = f / self.scale
         ys, hs, cs, at = [], [], [], 0
-        for k, (n, norm, lstm) in enumerate(zip(self.sizes, self.norms, self.lstms)):
-            part = norm(f[:, :, at : at + n].reshape(b * s, n)).reshape(b, s, n)
+        for k, (n, lstm) in enumerate(zip(self.sizes, self.lstms)):
             blk = slice(k * self.hidden, (k + 1) * self.hidden)
-            y, (hk, ck) = lstm(part, (h[:, :, blk].contiguous(), c[:, :, blk].contiguous()))
+            y, (hk, ck) = lstm(f[:, :, at : at + n],
+                               (h[:, :, blk].contiguous(), c[:, :, blk].contiguous()))
             ys.append(y)
             hs.append(hk)
             cs.append(ck)
@@ -365,7 +454,21 @@ class GranularModel(Classifier):
     def state_shape(self) -> tuple[int, int]:
         return self.head.state_shape
 
+    def fit_features(self, train: Tensor) -> None:
+        """Statistics of the training windows' features ``(N, S, F)`` the head keeps (before
+        training): the F-RNN's input scale of each feature."""
+        if isinstance(self.head, FRNNHead):
+            self.head.fit_scale(train)
+
+    def augment_gain(self, f: Tensor, amount: float, gen: torch.Generator) -> Tensor:
+        """Training's gain augmentation on the features ``f (B, S, T, F)`` computed once by
+        ``pre``: a random gain in ``1 +/- amount`` (drawn with ``gen``) per window and
+        modality, on the modality's channels before any feature (scaled about their training
+        mean), applied to the features exactly by :meth:`GranularPre.apply_gain`."""
+        g = 1 + amount * (2 * torch.rand((*f.shape[:2], 1, len(self.layout)), generator=gen) - 1)
+        return self.pre.apply_gain(f, g.to(f.device))
+
 
 __all__ = ["GranularPre", "GranularModel", "SFRNNHead", "FRNNHead", "PooledLinearHead",
-           "pooled_stats", "learn_dictionaries", "fit_dictionary", "sample_rows",
-           "DICTIONARY_ROWS", "MODES"]
+           "ForgetBiasLSTM", "input_scale", "pooled_stats", "learn_dictionaries",
+           "fit_dictionary", "sample_rows", "DICTIONARY_ROWS", "MODES"]

@@ -180,6 +180,17 @@ class Classifier(nn.Module):
     def logits(self, x: Tensor, h: Tensor, c: Tensor) -> tuple[Tensor, Tensor, Tensor]:
         return self.head(self.pre(x), h, c)
 
+    def fit_features(self, train: Tensor) -> None:
+        """Statistics of the training windows' features that the model keeps, computed once
+        before training (none here; a granular F-RNN's input scale)."""
+
+    def augment_gain(self, f: Tensor, amount: float, gen: torch.Generator) -> Tensor:
+        """Training's gain augmentation (``augment_gain``) on the features ``f (B, S, T, F)``
+        of B units of S windows computed once by ``pre``: a random gain in ``1 +/- amount``
+        (drawn with ``gen``) per window and feature."""
+        shape = (*f.shape[:2], 1, f.shape[-1])
+        return f * (1 + amount * (2 * torch.rand(shape, generator=gen) - 1)).to(f.device)
+
     def forward(self, x: Tensor, h: Tensor, c: Tensor) -> tuple[Tensor, Tensor, Tensor]:
         logits, h, c = self.logits(x, h, c)
         return torch.softmax(logits, dim=1), h, c

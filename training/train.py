@@ -230,6 +230,7 @@ def train(data: Path, out: Path, cfg: TrainConfig, progress: bool = True, *,
         del images
     else:
         feats = {k: _features(model.pre, w, log, k, dist) for k, w in parts.items()}
+    model.fit_features(feats["train"])  # what the head keeps of them (an F-RNN's input scale)
     feature_s = time.perf_counter() - t0
     model.to(device)
     ctx = Context(cfg, log, dist, device, None, on_epoch)
@@ -373,7 +374,8 @@ def _epoch_order(units: np.ndarray, per_epoch: int, gen: torch.Generator) -> np.
 def _train(model: TextureModel, w: Windows, f_all: torch.Tensor, n_epochs: int, ctx: Context,
            val: tuple[Windows, torch.Tensor] | None = None, resume: dict | None = None) -> dict:
     """Adam on the windows ``w`` (features ``f_all``) for at most ``n_epochs``. With ``val``:
-    early stopping on its loss, and the best epoch's weights are kept; without: the last's.
+    early stopping on its accuracy or loss (``select``), and the best epoch's weights are kept;
+    without: the last's.
     ``resume``: continue from the state saved after an epoch (weights, optimiser, schedule,
     random generators, early-stopping counters, history)."""
     cfg, dist, dev = ctx.cfg, ctx.dist, ctx.device
@@ -392,7 +394,7 @@ def _train(model: TextureModel, w: Windows, f_all: torch.Tensor, n_epochs: int, 
     aug = torch.Generator().manual_seed(cfg.seed + 7919 * dist.rank)  # gains: one per process
     batch = math.ceil(cfg.batch_size / dist.world)  # per process: the global batch stays
     phase = "fit" if val is not None else "refit"
-    s = {"epoch": 0, "best": math.inf, "best_state": None, "stale": 0,
+    s = {"epoch": 0, "best": math.inf, "best_acc": -1.0, "best_state": None, "stale": 0,
          "history": {"train_loss": [], "val_loss": [], "val_acc": [], "best_epoch": 0},
          # exponential moving average of the weights, updated every step (None: off)
          "ema": {k: v.detach().clone() for k, v in head.state_dict().items()}
@@ -413,9 +415,8 @@ def _train(model: TextureModel, w: Windows, f_all: torch.Tensor, n_epochs: int, 
                 raise Interrupted
             rows = order[i : i + batch]  # (B, S)
             f = f_all[rows].to(dev)  # (B, S, T, F)
-            if cfg.augment_gain:  # a random gain per window and feature (B, S, 1, F)
-                shape = (*rows.shape, 1, f_all.shape[-1])
-                f = f * (1 + cfg.augment_gain * (2 * torch.rand(shape, generator=aug) - 1)).to(dev)
+            if cfg.augment_gain:  # random gains per window: the model's augment_gain
+                f = model.augment_gain(f, cfg.augment_gain, aug)
             h, c = (t.to(dev) for t in model.zero_state(len(rows)))
             logits = step(f, h, c)  # (B, S, classes): the loss of every window, state carried
             loss = loss_fn(logits.flatten(0, 1), y_train[rows].flatten().to(dev))
@@ -476,8 +477,9 @@ def _validate(model, val, val_loss_fn, sched, ema, s: dict, epoch: int, bar,
         sched.step(val_loss)
     elif sched is not None:
         sched.step()
-    if val_loss < s["best"] - 1e-4:
-        s["best"], s["stale"], history["best_epoch"] = val_loss, 0, epoch
+    if _improves(cfg.select, val_acc, val_loss, s):
+        s["best"], s["best_acc"], s["stale"] = val_loss, val_acc, 0
+        history["best_epoch"] = epoch
         s["best_state"] = {k: v.clone() for k, v in head.state_dict().items()}
     else:
         s["stale"] += 1
@@ -485,6 +487,16 @@ def _validate(model, val, val_loss_fn, sched, ema, s: dict, epoch: int, bar,
         head.load_state_dict(live)
     return s["stale"] >= cfg.patience, (f"{line}, val loss {val_loss:.3f}, val acc {val_acc:.3f}"
                                         f"{' (best)' if s['stale'] == 0 else ''}")
+
+
+def _improves(select: str, val_acc: float, val_loss: float, s: dict) -> bool:
+    """Whether this epoch beats the best so far: ``loss``, a validation loss lower by more than
+    1e-4; ``accuracy``, a higher validation accuracy, or the same with such a lower loss."""
+    lower = val_loss < s["best"] - 1e-4
+    if select == "loss":
+        return lower
+    best_acc = s.get("best_acc", -1.0)
+    return val_acc > best_acc + 1e-9 or (abs(val_acc - best_acc) <= 1e-9 and lower)
 
 
 def _scheduler(opt: torch.optim.Optimizer, cfg: TrainConfig, n_epochs: int):
@@ -541,8 +553,10 @@ def _restore(r: dict, head: nn.Module, opt, sched, gen, aug) -> dict:
         if sched is not None:
             sched.load_state_dict(r["sched"])
         _set_rng_state(r["rng"], gen, aug)
-        return {k: copy.deepcopy(r[k]) for k in ("epoch", "best", "best_state", "stale",
-                                                 "history", "ema")}
+        state = {k: copy.deepcopy(r[k]) for k in ("epoch", "best", "best_state", "stale",
+                                                  "history", "ema")}
+        state["best_acc"] = float(r.get("best_acc", -1.0))  # absent from older resume files
+        return state
     except (KeyError, TypeError, ValueError, RuntimeError, AttributeError) as e:
         first = " ".join(str(e).split())[:120]
         raise RecordingError(f"{RESUME}: the saved state does not fit this run "
