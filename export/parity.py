@@ -180,16 +180,20 @@ class Parity:
                f"{f['windows_examined']} above the limit{odd}")
         return [
             ("excused", cap),
-            ("  near-tie flips", f"{self.windows_excused} windows"
+            ("  near-tie flips", f"{_windows(self.windows_excused)}"
              f"{worst(self.max_abs_prob_diff_excused)}; {f['rows_flipped']} code rows with "
              f"other atoms than PyTorch's, {f['rows_near_tie']} near-ties on the same image "
              f"(largest gap {f['max_tie_gap']:.2g}, at most {f['max_tie_ratio']:.2g} of the "
              f"tolerance: {self.tie:g} or {RESOLUTION_FACTOR:g} x float32's resolution)"),
-            ("  float32 codes", f"{self.windows_excused_float32} windows"
+            ("  float32 codes", f"{_windows(self.windows_excused_float32)}"
              f"{worst(self.max_abs_prob_diff_excused_float32)}; rows with PyTorch's atoms apart "
              f"by up to {f['max_code_diff']:.2g} of the code's norm, at most "
              f"{f['max_code_ratio']:.2g} of float32's accuracy for them{beyond}"),
         ]
+
+
+def _windows(n: int) -> str:
+    return f"{n} window" if n == 1 else f"{n} windows"
 
 
 @torch.no_grad()

@@ -52,11 +52,13 @@ import torch
 from torch import nn
 
 from tactile.export.codes import (
+    RESOLUTION_FACTOR,
     TIE,
     CoderNotFound,
     CoderTap,
     find_coders,
     float32_apart,
+    graph_order,
     picks,
     tapped,
 )
@@ -65,11 +67,6 @@ from tactile.training.sparse_check import divergence
 IMAGE_RTOL = 1e-4
 """A row codes the same image when max |x_graph - x_torch| <= this x ||x_torch|| (the BioTac's
 images are the same bits in both)."""
-RESOLUTION_FACTOR = 4.0
-"""A flip is a near-tie when its gap is below this many times float32's resolution of the
-step's correlations (:func:`~tactile.training.sparse_check.divergence`), if that exceeds
-:data:`~tactile.export.codes.TIE`: one float32 run's correlation errors reached 2.04 x the
-resolution (median 0.51; ``tests/test_sparse.py``), and a flip's gap holds two runs' errors."""
 MAX_EXCUSED = 0.05
 """Largest share of the compared windows that may be excused, near-tie flips and float32 code
 accuracy together. Measured on all 1,402 BioTac vibration test windows: 1.4 % excused for a
@@ -172,13 +169,6 @@ def recording(coders: list[nn.Module]):
     finally:
         for h in handles:
             h.remove()
-
-
-def graph_order(picks: np.ndarray, codes: np.ndarray) -> np.ndarray:
-    """The graph's atoms in order (rows, n) from its picks (rows, n) (:func:`~tactile.export.
-    codes.picks`), -1 after a row stopped (its picks beyond its non-zeros are masked)."""
-    live = (codes != 0).sum(1)
-    return np.where(np.arange(picks.shape[1])[None, :] < live[:, None], picks, -1)
 
 
 def judge_rows(d: np.ndarray, x_t: np.ndarray, c_t: np.ndarray, order_t: np.ndarray | None,
