@@ -165,6 +165,8 @@ class Parity:
         if self.flips is None:
             return []
         f = self.flips
+        if not f["windows_examined"]:
+            return [("excused", "none (no window above the limit)")]
 
         def worst(dp):
             return "" if dp is None else f", max |dp| {dp:.3g}"

@@ -440,6 +440,16 @@ def _tolerances(model, probe, k: int) -> np.ndarray:
     return np.array([2 * float32_bound(d, c) for c in rec.rows(k)[1]])
 
 
+def test_the_faithful_graph_under_the_sensitive_head_needs_no_excuse(amplifying):
+    """The model's own graph: every window within ATOL, nothing examined, and the table says
+    so in one line."""
+    model, probe = amplifying
+    p = compare(model, build_graph(copy.deepcopy(model)).SerializeToString(), probe, CK)
+    assert p.passed and p.max_abs_prob_diff <= ATOL, p.table()
+    assert p.flips["windows_examined"] == p.windows_excused == p.windows_excused_float32 == 0
+    assert "none (no window above the limit)" in p.table() and "near-tie flips" not in p.table()
+
+
 def test_float32_rounding_amplified_by_the_head_is_excused(amplifying):
     """A graph whose vibration codes are 2.5e-5 smaller than PyTorch's (its dictionary 2.5e-5
     larger: at most 0.5 of float32's accuracy for any of the probe's vibration atom sets,
