@@ -103,12 +103,17 @@ def describe(path: Path, c: ModelContract, opset: int | None = OPSET) -> str:
 
 
 def _excused(parity: dict) -> str:
-    """The windows a coder model's parity excused for near-tie atom flips, if any."""
-    n = parity.get("windows_excused")
-    if not n:
-        return ""
-    return (f"; {n} of {parity.get('windows')} windows excused for near-tie atom flips, "
-            f"max |dp| {parity.get('max_abs_prob_diff_excused')}")
+    """The windows a coder model's parity excused, if any: for near-tie atom flips and for
+    float32 code accuracy (files written before that kind have no count of it)."""
+    out = ""
+    n, m = parity.get("windows_excused"), parity.get("windows_excused_float32")
+    if n:
+        out += (f"; {n} of {parity.get('windows')} windows excused for near-tie atom flips, "
+                f"max |dp| {parity.get('max_abs_prob_diff_excused')}")
+    if m:
+        out += (f"; {m} of {parity.get('windows')} for float32 code accuracy, "
+                f"max |dp| {parity.get('max_abs_prob_diff_excused_float32')}")
+    return out
 
 
 def _granular_lines(c: ModelContract, emd) -> list[str]:

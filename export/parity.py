@@ -11,9 +11,12 @@ window after window, along runs of at least :data:`MIN_CARRY` consecutive window
 (``int8`` criterion) passes when at least :data:`INT8_AGREEMENT` of its labels equal PyTorch's.
 A model with sparse coders also has its graph's codes checked against scikit-learn's
 (:mod:`tactile.export.codes`), and a window of it whose probabilities differ by more than
-:data:`ATOL` is excused when near-tie atom flips between the graph's coders and PyTorch's explain
-it (:mod:`tactile.export.ties`), on at most :data:`~tactile.export.ties.MAX_EXCUSED` of the
-windows; the other windows are held to :data:`ATOL`.
+:data:`ATOL` is excused when the coders' float32 rounding explains it
+(:mod:`tactile.export.ties`): near-tie atom flips between the graph's coders and PyTorch's, or
+codes on the same atoms apart by no more than float32's accuracy for them, and PyTorch given
+the graph's codes giving the graph's probabilities; on at most
+:data:`~tactile.export.ties.MAX_EXCUSED` of the windows, both kinds together. The other
+windows are held to :data:`ATOL`.
 """
 
 from __future__ import annotations
@@ -29,7 +32,14 @@ from torch import nn
 
 from tactile.errors import ModelContractError
 from tactile.export.codes import AGREEMENT, RTOL, TIE, code_parity, coders, table_rows
-from tactile.export.ties import MAX_EXCUSED, RESOLUTION_FACTOR, Examined, Explainer
+from tactile.export.ties import (
+    FLOAT32,
+    MAX_EXCUSED,
+    NEAR_TIE,
+    RESOLUTION_FACTOR,
+    Examined,
+    Explainer,
+)
 from tactile.export.windows import CARRY_STEPS, Probe, random_windows, simulated
 
 ATOL = 1e-4
@@ -82,10 +92,13 @@ class Parity:
     accuracy_onnx: float | None = None
     reference: str = "torch float32 eager, TextureModel.forward"
     codes: list[dict] | None = None  # per coder: the graph's codes vs scikit-learn's
-    # a model with coders: windows above atol excused by near-tie atom flips (export/ties.py)
+    # a model with coders: windows above atol excused (export/ties.py) by near-tie atom flips
     windows_excused: int = 0
     max_abs_prob_diff_excused: float | None = None
-    max_excused: float | None = None  # the largest share of windows that may be excused
+    # ... and by float32 code accuracy (the same atoms, codes apart within float32's accuracy)
+    windows_excused_float32: int = 0
+    max_abs_prob_diff_excused_float32: float | None = None
+    max_excused: float | None = None  # the largest share of windows both kinds may excuse
     tie: float | None = None
     flips: dict | None = None  # Examined.to_dict(): what the windows above atol showed
 
@@ -132,9 +145,11 @@ class Parity:
                        f"labels differ (agreement {self.label_agreement:.4f})")
         if self.carry_runs and self.longest_carry_run < MIN_CARRY:
             out.append(f"longest carried run {self.longest_carry_run} (at least {MIN_CARRY})")
-        if self.max_excused is not None and self.windows_excused > self.max_excused * self.windows:
-            out.append(f"{self.windows_excused} of {self.windows} windows excused by near-tie "
-                       f"flips (at most {100 * self.max_excused:g}%)")
+        excused = self.windows_excused + self.windows_excused_float32
+        if self.max_excused is not None and excused > self.max_excused * self.windows:
+            out.append(f"{excused} of {self.windows} windows excused ({self.windows_excused} "
+                       f"near-tie flips, {self.windows_excused_float32} float32 code accuracy; "
+                       f"at most {100 * self.max_excused:g}%)")
         for r in self.codes or []:
             if not r["passed"]:
                 why = [f"{r['same_atoms']}/{r['rows']} rows the same atoms as scikit-learn"
@@ -150,17 +165,37 @@ class Parity:
         if self.flips is None:
             return []
         f = self.flips
-        worst = ("" if self.max_abs_prob_diff_excused is None
-                 else f", max |dp| {self.max_abs_prob_diff_excused:.3g}")
+        if not f["windows_examined"]:
+            return [("excused", "none (no window above the limit)")]
+
+        def worst(dp):
+            return "" if dp is None else f", max |dp| {dp:.3g}"
+
         odd = "".join(f", {f[k]} {what}" for k, what in (
+            ("rows_image_off", "code rows with other images than PyTorch's"),
             ("not_reproduced", "not reproduced by the tapped copy"),
-            ("not_by_codes", "not reproduced by PyTorch given the graph's codes")) if f[k])
-        return [("near-tie flips", f"{self.windows_excused} of {self.windows} windows excused "
-                 f"(at most {100 * self.max_excused:g}%){worst}; {f['windows_examined']} above the "
-                 f"limit, {f['rows_flipped']} of their code rows with other atoms than "
-                 f"PyTorch's, {f['rows_near_tie']} near-ties on the same image (largest gap "
-                 f"{f['max_tie_gap']:.2g}, at most {f['max_tie_ratio']:.2g} of the tolerance: "
-                 f"{self.tie:g} or {RESOLUTION_FACTOR:g} x float32's resolution){odd}")]
+            ("not_by_codes", "not reproduced by PyTorch given the graph's codes")) if f.get(k))
+        beyond = (f" ({f['rows_beyond_float32']} rows beyond it)"
+                  if f["rows_beyond_float32"] else "")
+        cap = (f"{self.windows_excused + self.windows_excused_float32} of {self.windows} "
+               f"windows excused (at most {100 * self.max_excused:g}%): "
+               f"{f['windows_examined']} above the limit{odd}")
+        return [
+            ("excused", cap),
+            ("  near-tie flips", f"{_windows(self.windows_excused)}"
+             f"{worst(self.max_abs_prob_diff_excused)}; {f['rows_flipped']} code rows with "
+             f"other atoms than PyTorch's, {f['rows_near_tie']} near-ties on the same image "
+             f"(largest gap {f['max_tie_gap']:.2g}, at most {f['max_tie_ratio']:.2g} of the "
+             f"tolerance: {self.tie:g} or {RESOLUTION_FACTOR:g} x float32's resolution)"),
+            ("  float32 codes", f"{_windows(self.windows_excused_float32)}"
+             f"{worst(self.max_abs_prob_diff_excused_float32)}; rows with PyTorch's atoms apart "
+             f"by up to {f['max_code_diff']:.2g} of the code's norm, at most "
+             f"{f['max_code_ratio']:.2g} of float32's accuracy for them{beyond}"),
+        ]
+
+
+def _windows(n: int) -> str:
+    return f"{n} window" if n == 1 else f"{n} windows"
 
 
 @torch.no_grad()
@@ -169,7 +204,7 @@ def compare(model: nn.Module, onnx_model: bytes | str, probe: Probe, ck: dict,
     """Run ``probe`` through both and measure (carry mode also along each run); for a model
     with sparse coders also the graph's codes of the probe's windows against scikit-learn's
     (:func:`tactile.export.codes.code_parity`), which must pass too, and the windows above
-    :data:`ATOL` explained by near-tie atom flips (:mod:`tactile.export.ties`)."""
+    :data:`ATOL` explained by the coders' float32 rounding (:mod:`tactile.export.ties`)."""
     model = model.eval()
     sess = session(onnx_model)
     carry = model.cfg.state == "carry"
@@ -188,10 +223,12 @@ def compare(model: nn.Module, onnx_model: bytes | str, probe: Probe, ck: dict,
     dev_1 = np.zeros(len(p_t))
     dev_1[:n] = np.abs(p_1 - p_t[:n]).max(1)  # onnx at batch 1 (window mode)
     dev = np.maximum(np.abs(p_t - p_o).max(1), dev_1)
-    tie = examined.mask(len(p_t))  # excused by near-tie atom flips
+    tie = examined.mask(len(p_t))  # excused: near-tie atom flips or float32 code accuracy
+    flip, f32 = examined.mask(len(p_t), NEAR_TIE), examined.mask(len(p_t), FLOAT32)
     diff = float(dev[~tie].max(initial=0.0))
     diff_1 = float(dev_1[~tie].max(initial=0.0))
-    diff_tie = float(dev[tie].max()) if tie.any() else None
+    diff_flip = float(dev[flip].max()) if flip.any() else None
+    diff_f32 = float(dev[f32].max()) if f32.any() else None
     lab_t, lab_o = p_t.argmax(1), p_o.argmax(1)
     top2 = np.sort(p_t, axis=1)[:, -2:]
     differ = lab_t != lab_o
@@ -219,7 +256,9 @@ def compare(model: nn.Module, onnx_model: bytes | str, probe: Probe, ck: dict,
                   accuracy_torch=acc_t, accuracy_onnx=acc_o,
                   reference=f"torch float32 eager, {type(model).__name__}.forward", codes=codes,
                   **({} if explain is None else {
-                      "windows_excused": int(tie.sum()), "max_abs_prob_diff_excused": diff_tie,
+                      "windows_excused": int(flip.sum()), "max_abs_prob_diff_excused": diff_flip,
+                      "windows_excused_float32": int(f32.sum()),
+                      "max_abs_prob_diff_excused_float32": diff_f32,
                       "max_excused": MAX_EXCUSED, "tie": TIE, "flips": examined.to_dict()}))
 
 

@@ -1,4 +1,4 @@
-"""Near-tie atom flips: the probability differences they excuse in the parity check.
+"""Near-tie atom flips and float32 code accuracy: the probability differences they excuse.
 
 OMP picks, at every step, the atom whose residual correlation is largest. When two atoms'
 correlations are nearly equal, float32 rounding decides, and PyTorch's coder and the graph's
@@ -6,10 +6,13 @@ correlations are nearly equal, float32 rounding decides, and PyTorch's coder and
 atoms, 17 non-zeros) on 20 of 70,100 rows of the 1,402 test windows. Such a row's code then
 holds another atom and other coefficients, and its window's probabilities move by up to a few
 hundredths, far beyond :data:`tactile.export.parity.ATOL`, although both sides computed what
-they should.
+they should. And where both pick the same atoms, their coefficients differ by float32's
+rounding, which on an ill-conditioned atom set is large (up to 1.7e-4 of the code's norm on
+loud BioTac vibration windows, cond(D_S) ~100) and which a head's batch normalisation may
+multiply (up to x125 in the BioTac SF-RNNs) beyond ``ATOL`` on a window or two in a thousand.
 
 So for a model with sparse coders a window whose probabilities differ by more than ``ATOL``
-is excused when such flips explain it, and only then:
+is excused when the coders' float32 rounding explains it, and only then:
 
 * the graph's coders are observed on that window by a copy of the file's graph that also
   outputs each coder's images, codes and per-step picks (its ``ArgMax`` values:
@@ -18,18 +21,24 @@ is excused when such flips explain it, and only then:
 * PyTorch's coders are observed on the same forward pass by forward hooks (:func:`recording`),
   the atoms each chose in order by its ``encode`` of the same batch, which must give its codes
   bit for bit;
-* at least one of the window's rows (any coder; in carry mode also the rows of the earlier
-  windows of its run, whose state it inherits) has other non-zero atoms in the graph than in
-  PyTorch, and every such row is a near-tie on the same image (:func:`judge_rows`): the
-  graph's image within :data:`IMAGE_RTOL` x its norm of PyTorch's, and at the step where the
-  two OMP runs parted, the float64 residual correlations of their two picks (after the atoms
-  both picked before) within :data:`tactile.export.codes.TIE` of the largest
-  (:func:`tactile.training.sparse_check.divergence_gap`; the largest measured on real flips is
-  1.8e-5).
+* every one of the window's rows (any coder; in carry mode also the rows of the earlier
+  windows of its run, whose state it inherits) codes the same image in the graph as in
+  PyTorch (within :data:`IMAGE_RTOL` x its norm), and either has the same non-zero atoms with
+  codes apart by no more than float32's accuracy for those atoms (twice
+  :func:`tactile.export.codes.float32_bound`, the bound the code parity uses), or other atoms
+  at a near-tie: at the step where the two OMP runs parted, the float64 residual correlations
+  of their two picks (after the atoms both picked before) within
+  :data:`tactile.export.codes.TIE` of the largest or :data:`RESOLUTION_FACTOR` x float32's
+  resolution of the step (:func:`tactile.training.sparse_check.divergence`) (:func:`judge_rows`);
+* PyTorch's model given the graph's codes gives the graph's probabilities within ``ATOL``
+  (:meth:`Explainer.substituted`): the head is right, the codes make the difference.
 
-A wrong coder in the graph is not excused: a scaled dictionary moves every code without a flip,
-an extra non-zero adds an atom PyTorch never chose (no near-tie), a wrong normalisation codes
-other images. At most :data:`MAX_EXCUSED` of the windows may be excused.
+A window with a flip is excused as a near-tie flip (:data:`NEAR_TIE`), one without as float32
+code accuracy (:data:`FLOAT32`); each kind is counted. A wrong graph is not excused: a scaled
+dictionary moves every code beyond float32's accuracy on the well-conditioned rows, an extra
+non-zero adds an atom PyTorch never chose (no near-tie), a wrong normalisation codes other
+images, a wrong head is not reproduced by PyTorch given the graph's codes. At most
+:data:`MAX_EXCUSED` of the windows may be excused, of both kinds together.
 """
 
 from __future__ import annotations
@@ -42,31 +51,46 @@ import onnx
 import torch
 from torch import nn
 
-from tactile.export.codes import TIE, CoderNotFound, CoderTap, find_coders, picks, tapped
+from tactile.export.codes import (
+    RESOLUTION_FACTOR,
+    TIE,
+    CoderNotFound,
+    CoderTap,
+    find_coders,
+    float32_apart,
+    graph_order,
+    picks,
+    tapped,
+)
 from tactile.training.sparse_check import divergence
 
 IMAGE_RTOL = 1e-4
-"""A flipped row counts as the same image when max |x_graph - x_torch| <= this x ||x_torch||."""
-RESOLUTION_FACTOR = 4.0
-"""A flip is a near-tie when its gap is below this many times float32's resolution of the
-step's correlations (:func:`~tactile.training.sparse_check.divergence`), if that exceeds
-:data:`~tactile.export.codes.TIE`: one float32 run's correlation errors reached 2.04 x the
-resolution (median 0.51; ``tests/test_sparse.py``), and a flip's gap holds two runs' errors."""
+"""A row codes the same image when max |x_graph - x_torch| <= this x ||x_torch|| (the BioTac's
+images are the same bits in both)."""
 MAX_EXCUSED = 0.05
-"""Largest share of the compared windows that near-tie flips may excuse. Measured on all 1,402
-BioTac vibration test windows: 1.4 % excused for a sparse linear model (every flip moves its
-pooled codes), 0.6 % for an SF-RNN; at 1.4 % a sample of 256 windows exceeds 5 % with
-probability 1e-4 (binomial), 2 % with probability 0.16. A wrong coder moves most windows."""
+"""Largest share of the compared windows that may be excused, near-tie flips and float32 code
+accuracy together. Measured on all 1,402 BioTac vibration test windows: 1.4 % excused for a
+sparse linear model (every flip moves its pooled codes; no window for float32 accuracy), 0.6 %
++ 0.07 % for an SF-RNN; at 1.4 % a sample of 256 windows exceeds 5 % with probability 1e-4
+(binomial), 2 % with probability 0.16. A wrong coder moves most windows."""
+NEAR_TIE = "near-tie"
+"""The kind of an excused window with an atom flip."""
+FLOAT32 = "float32"
+"""The kind of an excused window without one: the codes' float32 rounding."""
 
 
 @dataclass
 class Flips:
     """What the rows of a window show: ``rows`` compared, ``flipped`` (other non-zero atoms
     than PyTorch's), of which ``ties`` near-ties on the same image; ``max_gap`` the largest
-    |gap| among the ties and ``max_ratio`` the largest |gap| / tolerance; ``reproduced`` False
-    when the tapped copy did not give the file's probabilities (or PyTorch's encode not its
-    codes); ``by_codes`` False when PyTorch's model given the graph's codes did not give the
-    graph's probabilities (within ``ATOL``). Nothing is then excused."""
+    |gap| among the ties and ``max_ratio`` the largest |gap| / tolerance; ``image_off`` rows
+    whose images differ by more than :data:`IMAGE_RTOL`; of the rows with the same atoms,
+    ``beyond`` those whose codes differ by more than float32's accuracy for their atoms
+    (:func:`~tactile.export.codes.float32_apart`), ``max_code_diff`` their largest
+    max |dc| / ||c|| and ``max_code_ratio`` their largest max |dc| / ||c|| / tolerance;
+    ``reproduced`` False when the tapped copy did not give the file's probabilities (or
+    PyTorch's encode not its codes); ``by_codes`` False when PyTorch's model given the graph's
+    codes did not give the graph's probabilities (within ``ATOL``). Nothing is then excused."""
 
     rows: int = 0
     flipped: int = 0
@@ -75,19 +99,36 @@ class Flips:
     max_ratio: float = 0.0
     reproduced: bool = True
     by_codes: bool = True
+    image_off: int = 0
+    beyond: int = 0
+    max_code_diff: float = 0.0
+    max_code_ratio: float = 0.0
 
     def __add__(self, other: Flips) -> Flips:
         return Flips(self.rows + other.rows, self.flipped + other.flipped,
                      self.ties + other.ties, max(self.max_gap, other.max_gap),
                      max(self.max_ratio, other.max_ratio),
-                     self.reproduced and other.reproduced, self.by_codes and other.by_codes)
+                     self.reproduced and other.reproduced, self.by_codes and other.by_codes,
+                     self.image_off + other.image_off, self.beyond + other.beyond,
+                     max(self.max_code_diff, other.max_code_diff),
+                     max(self.max_code_ratio, other.max_code_ratio))
+
+    @property
+    def kind(self) -> str | None:
+        """What excuses the window: ``"near-tie"`` (it holds a flip, every flip a near-tie),
+        ``"float32"`` (no flip), or None; either way every row's image is the same, every row
+        with the same atoms within float32's accuracy, and the codes explain the
+        probabilities."""
+        if not (self.reproduced and self.by_codes and self.rows) or self.image_off or self.beyond:
+            return None
+        if not self.flipped:
+            return FLOAT32
+        return NEAR_TIE if self.ties == self.flipped else None
 
     @property
     def excuses(self) -> bool:
-        """True when the rows hold a flip, every flip is a near-tie and the codes explain the
-        probabilities."""
-        return (self.reproduced and self.by_codes and self.flipped > 0
-                and self.ties == self.flipped)
+        """True when :attr:`kind` is not None."""
+        return self.kind is not None
 
 
 class Pass:
@@ -130,32 +171,34 @@ def recording(coders: list[nn.Module]):
             h.remove()
 
 
-def graph_order(picks: np.ndarray, codes: np.ndarray) -> np.ndarray:
-    """The graph's atoms in order (rows, n) from its picks (rows, n) (:func:`~tactile.export.
-    codes.picks`), -1 after a row stopped (its picks beyond its non-zeros are masked)."""
-    live = (codes != 0).sum(1)
-    return np.where(np.arange(picks.shape[1])[None, :] < live[:, None], picks, -1)
-
-
 def judge_rows(d: np.ndarray, x_t: np.ndarray, c_t: np.ndarray, order_t: np.ndarray | None,
                x_g: np.ndarray, c_g: np.ndarray, order_g: np.ndarray | None) -> Flips:
     """Rows of one coder (dictionary ``d`` (atoms, features)): PyTorch's images ``x_t``,
     codes ``c_t`` and atoms in order ``order_t`` (rows, n; -1 after a stop), the graph's
-    ``x_g``, ``c_g``, ``order_g``. A row whose non-zero atoms differ is a near-tie when its
-    images agree (:data:`IMAGE_RTOL`) and the two runs parted at a step where their picks'
-    float64 residual correlations differ by less than :data:`~tactile.export.codes.TIE` of the
-    largest, or less than :data:`RESOLUTION_FACTOR` x float32's resolution of that step's
-    correlations when that is coarser (:func:`~tactile.training.sparse_check.divergence` on
-    PyTorch's image). Without the
-    graph's order (``order_g`` None: its coder does not pick one atom per non-zero) no flip is
-    a near-tie."""
-    flipped = np.flatnonzero(((c_t != 0) != (c_g != 0)).any(1))
-    out = Flips(rows=len(c_t), flipped=len(flipped), reproduced=order_t is not None)
+    ``x_g``, ``c_g``, ``order_g``. Every row's images must agree (:data:`IMAGE_RTOL`). A row
+    with the same non-zero atoms must have codes within float32's accuracy for those atoms
+    (:func:`~tactile.export.codes.float32_apart`). A row whose non-zero atoms differ is a
+    near-tie when the two runs parted at a step where their picks' float64 residual
+    correlations differ by less than :data:`~tactile.export.codes.TIE` of the largest, or less
+    than :data:`RESOLUTION_FACTOR` x float32's resolution of that step's correlations when that
+    is coarser (:func:`~tactile.training.sparse_check.divergence` on PyTorch's image). Without
+    the graph's order (``order_g`` None: its coder does not pick one atom per non-zero) no flip
+    is a near-tie."""
+    img = np.abs(x_g.astype(np.float64) - x_t).max(1)
+    same_image = img <= IMAGE_RTOL * np.linalg.norm(x_t.astype(np.float64), axis=1)
+    differ = ((c_t != 0) != (c_g != 0)).any(1)
+    flipped = np.flatnonzero(differ)
+    out = Flips(rows=len(c_t), flipped=len(flipped), reproduced=order_t is not None,
+                image_off=int((~same_image).sum()))
+    if (~differ).any():
+        rel, tol = float32_apart(d, c_g[~differ], c_t[~differ])
+        ratio = np.where(rel == 0, 0.0, rel / np.maximum(tol, 1e-300))
+        out.beyond = int((ratio > 1).sum())
+        out.max_code_diff, out.max_code_ratio = float(rel.max()), float(ratio.max())
     if order_t is None or order_g is None:
         return out
     for i in flipped:
-        err = np.abs(x_g[i].astype(np.float64) - x_t[i]).max()
-        if err > IMAGE_RTOL * np.linalg.norm(x_t[i].astype(np.float64)):
+        if not same_image[i]:
             continue
         gap, resolution = divergence(d, x_t[i], order_t[i].tolist(), order_g[i].tolist())
         tolerance = max(TIE, RESOLUTION_FACTOR * resolution)
@@ -255,34 +298,51 @@ class Explainer:
 class Examined:
     """The windows whose probabilities differed by more than the limit in some comparison
     (by their row in the parity's result), with the flips of the first comparison that
-    examined each; a window is excused only if every comparison that examined it excuses it."""
+    examined each; a window is excused only if every comparison that examined it excuses it,
+    as a near-tie flip if any of them saw a flip, else for float32 code accuracy."""
 
     def __init__(self) -> None:
         self.flips: dict[int, Flips] = {}
         self.excused: dict[int, bool] = {}
+        self.flipped: dict[int, bool] = {}
 
     def add(self, w: int, flips: Flips) -> None:
         if w not in self.flips:
             self.flips[w], self.excused[w] = flips, flips.excuses
+            self.flipped[w] = flips.flipped > 0
         else:
             self.excused[w] = self.excused[w] and flips.excuses
+            self.flipped[w] = self.flipped[w] or flips.flipped > 0
 
-    def mask(self, n: int) -> np.ndarray:
-        """(n,) True where a window is excused."""
+    def kind(self, w: int) -> str | None:
+        """What excused window ``w`` (:data:`NEAR_TIE`, :data:`FLOAT32`), None if nothing."""
+        if not self.excused.get(w):
+            return None
+        return NEAR_TIE if self.flipped[w] else FLOAT32
+
+    def mask(self, n: int, kind: str | None = None) -> np.ndarray:
+        """(n,) True where a window is excused (of ``kind``, or of either)."""
         out = np.zeros(n, bool)
-        out[[w for w, ok in self.excused.items() if ok]] = True
+        out[[w for w in self.excused if self.kind(w) is not None
+             and kind in (None, self.kind(w))]] = True
         return out
 
     def to_dict(self) -> dict:
         """``windows_examined``, ``rows_flipped`` (rows of theirs whose atoms differ from
         PyTorch's), ``rows_near_tie`` (of those, near-ties on the same image),
         ``max_tie_gap`` (the largest |gap| of a near-tie), ``max_tie_ratio`` (the largest
-        |gap| / tolerance), ``not_reproduced`` (windows whose tapped copy or encode did not
-        reproduce the pass) and ``not_by_codes`` (windows whose probabilities PyTorch given
-        the graph's codes did not reproduce)."""
+        |gap| / tolerance), ``rows_image_off`` (rows whose images differ), of the rows with the
+        same atoms ``rows_beyond_float32`` (codes apart by more than float32's accuracy),
+        ``max_code_diff`` (their largest max |dc| / ||c||) and ``max_code_ratio`` (largest
+        max |dc| / ||c|| / tolerance), ``not_reproduced`` (windows whose tapped copy or
+        encode did not reproduce the pass) and ``not_by_codes`` (windows whose probabilities
+        PyTorch given the graph's codes did not reproduce)."""
         total = sum(self.flips.values(), Flips())
         return {"windows_examined": len(self.flips), "rows_flipped": total.flipped,
                 "rows_near_tie": total.ties, "max_tie_gap": float(f"{total.max_gap:.3g}"),
                 "max_tie_ratio": float(f"{total.max_ratio:.3g}"),
+                "rows_image_off": total.image_off, "rows_beyond_float32": total.beyond,
+                "max_code_diff": float(f"{total.max_code_diff:.3g}"),
+                "max_code_ratio": float(f"{total.max_code_ratio:.3g}"),
                 "not_reproduced": sum(not f.reproduced for f in self.flips.values()),
                 "not_by_codes": sum(not f.by_codes for f in self.flips.values())}
