@@ -26,7 +26,7 @@ reported beside it (on an idle core the two agree). The fastest of ``--rounds`` 
 reported (interference only adds time), with the median pass beside it. Reference measured in
 the same run: the same windows in one batched call per second of data (the file's own
 throughput without streaming), as a ratio.
-Targets (issue 23): at most 100 ms per 1 s of data, aim 10 ms.
+Targets: at most 100 ms per 1 s of data, aim 10 ms.
 
 :func:`label_time` is the function other scripts call (e.g. the results tables).
 """

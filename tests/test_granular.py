@@ -497,6 +497,48 @@ def test_the_checkpoint_rebuilds_the_model_exactly(runs, toy, model):
     assert float((probs.argmax(1) == parts["test"].y).mean()) == metrics["accuracy"]
 
 
+def test_an_f_rnn_saved_before_the_input_scale_is_refused_in_one_line(runs, tmp_path):
+    """An F-RNN checkpoint with the batch normalisations the input scale replaced (its keys
+    renamed as they were) is a RecordingError that says what to do, not a key dump."""
+    run, _, _ = runs["f_rnn"]
+    ck = torch.load(run / "checkpoint.pt", weights_only=True)
+    sd = ck["state_dict"]
+    scale = sd.pop("head.scale")
+    sd["head.norms.0.weight"], sd["head.norms.0.bias"] = torch.ones_like(scale), 0 * scale
+    torch.save(ck, tmp_path / "checkpoint.pt")
+    with pytest.raises(RecordingError, match="an F-RNN saved before its input scale replaced "
+                       "batch normalisation: train it again") as e:
+        load_checkpoint(tmp_path)
+    assert "\n" not in str(e.value)
+
+
+def test_a_granular_resume_state_from_before_per_modality_gains_is_refused(toy, tmp_path):
+    """Granular models now draw one gain per window and modality: a resume state without the
+    augmentation's version, with gains on, cannot continue the run it started; without gains
+    it can."""
+    import signal
+
+    from tactile.training.checkpoint import RESUME, load_resume
+
+    def stop_after_first(phase, epoch):
+        if (phase, epoch) == ("fit", 1):
+            signal.raise_signal(signal.SIGINT)
+
+    run = tmp_path / "r"
+    cfg = _cfg("sparse_linear", epochs=3, augment_gain=0.3)
+    assert train(toy, run, cfg, progress=False, on_epoch=stop_after_first)["interrupted"]
+    assert load_resume(run)["state"]["augment_version"] == train_mod.AUGMENT_VERSION
+    saved = torch.load(run / RESUME, weights_only=True)
+    del saved["state"]["augment_version"]
+    torch.save(saved, run / RESUME)
+    with pytest.raises(RecordingError, match="saved before granular models drew one gain per "
+                       "window and modality"):
+        load_resume(run)
+    saved["config"]["augment_gain"] = 0.0  # no gains: nothing changed for it
+    torch.save(saved, run / RESUME)
+    assert load_resume(run)["config"]["augment_gain"] == 0.0
+
+
 def test_the_f_rnn_input_scale_comes_from_the_training_windows(runs, toy):
     _, _, model = runs["f_rnn"]
     takes = load_dataset(toy)

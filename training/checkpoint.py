@@ -132,6 +132,10 @@ def load_checkpoint(run_dir: Path):
     try:
         model.load_state_dict(ck["state_dict"])
     except RuntimeError as e:  # missing, unexpected or wrongly shaped weights
+        if cfg.model == "f_rnn" and "head.norms.0.weight" in ck["state_dict"]:
+            raise RecordingError(f"{path}: an F-RNN saved before its input scale replaced batch "
+                                 "normalisation: train it again (its exported .onnx still "
+                                 "runs)") from None
         first = " ".join(str(e).split())[:160]
         raise RecordingError(f"{path}: checkpoint key 'state_dict' does not fit its config "
                              f"({first})") from None
@@ -165,6 +169,10 @@ def load_resume(run_dir: Path) -> dict:
     # a state saved before ``select`` existed stopped on the validation loss: it continues so
     # (the newer default, accuracy, would change the run half-way)
     r["config"].setdefault("select", "loss")
+    if (r["config"].get("modalities") and r["config"].get("augment_gain", 0.3)
+            and isinstance(r.get("state"), dict) and "augment_version" not in r["state"]):
+        raise RecordingError(f"{path}: saved before granular models drew one gain per window "
+                             "and modality (the run cannot go on as it started): train it again")
     try:
         TrainConfig.from_dict(r["config"])
     except TactileError as e:

@@ -331,7 +331,8 @@ def input_scale(images: Tensor) -> Tensor:
     window's RMS is 1/35 of the standard deviation, which the few loud windows (contact,
     sliding) set; scaled by that, the typical window reaches the LSTM at 1/35 of unit size,
     where its gates are nearly linear and a zero-mean oscillation averages away."""
-    rms = images.double().pow(2).mean(dim=1).sqrt()  # (N, F)
+    # (N, F), in float64 a chunk of windows at a time (a copy of every image is ~0.4 GB)
+    rms = torch.cat([c.double().pow(2).mean(dim=1) for c in images.split(4096)]).sqrt()
     overall = rms.pow(2).mean(dim=0).sqrt()  # (F,)
     typical = rms.median(dim=0).values if len(rms) else overall
     scale = torch.where(typical >= 1e-3 * overall, typical, overall)

@@ -77,6 +77,9 @@ from tactile.training.modality import literal_signals, resolve, resolve_signals,
 from tactile.training.model import TextureModel, build_model
 from tactile.training.sampling import epoch_order
 
+AUGMENT_VERSION = 2
+"""The gain augmentation a resume state was saved with: 2 draws one gain per window and
+modality for granular models (before, per window and feature; the pen's is unchanged)."""
 EXIT_INTERRUPTED = 130  # the shell's code for a command ended by SIGINT
 RUN_FILES = (CHECKPOINT, RESUME, "metrics.json")  # a folder holding one of these is a run
 
@@ -541,6 +544,7 @@ def _snapshot(phase: str, s: dict, head: nn.Module, opt, sched, gen, aug, ctx: C
         "phase": phase, **s, "head": head.state_dict(), "opt": opt.state_dict(),
         "sched": sched.state_dict() if sched is not None else None,
         "rng": _rng_state(gen, aug), "fit_history": ctx.fit_history, "fit_best": ctx.fit_best,
+        "augment_version": AUGMENT_VERSION,
     })
 
 
@@ -558,6 +562,9 @@ def _restore(r: dict, head: nn.Module, opt, sched, gen, aug) -> dict:
         state["best_acc"] = float(r.get("best_acc", -1.0))  # absent from older resume files
         return state
     except (KeyError, TypeError, ValueError, RuntimeError, AttributeError) as e:
+        if isinstance(r.get("head"), dict) and "norms.0.weight" in r["head"]:
+            raise RecordingError(f"{RESUME}: an F-RNN saved before its input scale replaced "
+                                 "batch normalisation: train it again") from None
         first = " ".join(str(e).split())[:120]
         raise RecordingError(f"{RESUME}: the saved state does not fit this run "
                              f"({type(e).__name__}: {first})") from None
