@@ -39,6 +39,8 @@ def main() -> None:
     ap.add_argument("--batch", type=int, default=8, help="the other batch size (default 8)")
     ap.add_argument("--rounds", type=int, default=15, help="alternating rounds (default 15)")
     a = ap.parse_args()
+    if a.batch < 1 or a.rounds < 1:
+        ap.error("--batch and --rounds must be at least 1")
     mixed, pure = (ort.InferenceSession(a.model, session_options(1),
                                         providers=["CPUExecutionProvider"]) for _ in range(2))
     one, other = feeds(pure, 1), feeds(pure, a.batch)
