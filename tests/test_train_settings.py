@@ -199,3 +199,34 @@ def test_selection_by_loss_or_by_accuracy_with_the_loss_as_tie_break():
     assert _kept("accuracy", curves, patience=1) == 4
     with pytest.raises(ConfigError, match="select must be one of loss, accuracy"):
         TrainConfig(select="f1")
+
+
+@pytest.mark.parametrize("select", ["accuracy", "loss"])
+def test_the_training_loop_keeps_the_epoch_its_rule_names(dataset, tmp_path, monkeypatch, select):
+    """A real run (not a replay of the rule): the kept epoch has the best validation figure
+    of every epoch run (accuracy: the best accuracy, and the lowest loss, within 1e-4, among
+    the epochs that reach it; loss: the lowest loss within 1e-4), and the run stopped either
+    at ``epochs`` or ``patience`` epochs after it."""
+    from tactile.training import train as train_mod
+
+    seen = {}
+    real = train_mod._write_run
+
+    def spy(out, cfg, model, metrics, history, *a, **k):
+        seen["history"], seen["metrics"] = history, metrics
+        return real(out, cfg, model, metrics, history, *a, **k)
+
+    monkeypatch.setattr(train_mod, "_write_run", spy)
+    cfg = TrainConfig(**{**TINY, "epochs": 12, "patience": 2, "epoch_windows": 128,
+                         "select": select, "threads": 1})
+    train(dataset, tmp_path / "r", cfg, progress=False)
+    h, m = seen["history"], seen["metrics"]
+    acc, loss, best = h["val_acc"], h["val_loss"], h["best_epoch"]
+    assert m["best_epoch"] == best and m["epochs_run"] == len(acc) == len(loss)
+    assert m["val_accuracy"] == acc[best]
+    if select == "accuracy":
+        assert acc[best] >= max(acc) - 1e-9
+        assert loss[best] <= min(v for a, v in zip(acc, loss) if a >= acc[best] - 1e-9) + 1e-4
+    else:
+        assert loss[best] <= min(loss) + 1e-4  # improvements of 1e-4 or less do not count
+    assert len(acc) in (cfg.epochs, best + 1 + cfg.patience), (len(acc), best)
