@@ -218,16 +218,23 @@ def _residual(d: np.ndarray, x: np.ndarray, code: np.ndarray) -> float:
     return float(np.linalg.norm(x.astype(np.float64) - d.astype(np.float64).T @ code))
 
 
-def near_tie(d: np.ndarray, x: np.ndarray, first: list[int], second: list[int]) -> bool:
-    """True when two OMP runs of image ``x`` with selection orders ``first`` and ``second``
-    (-1 after a stop) parted at a near-tie: their picks' float64 residual correlations, after
-    the atoms both picked before, within :data:`TIE` of the largest or within
-    :data:`RESOLUTION_FACTOR` x float32's resolution of that step's correlations
-    (:func:`~tactile.training.sparse_check.divergence`)."""
+def parting(d: np.ndarray, x: np.ndarray, first: list[int], second: list[int]
+            ) -> tuple[float, float]:
+    """Where two OMP runs of image ``x`` with selection orders ``first`` and ``second`` (-1
+    after a stop) parted: ``(gap, tolerance)``, their picks' float64 residual correlations'
+    gap after the atoms both picked before (:func:`~tactile.training.sparse_check.divergence`)
+    and the near-tie tolerance, :data:`TIE` of the largest or :data:`RESOLUTION_FACTOR` x
+    float32's resolution of that step's correlations, whichever is larger."""
     from tactile.training.sparse_check import divergence
 
     gap, resolution = divergence(d, x, first, second)
-    return abs(gap) < max(TIE, RESOLUTION_FACTOR * resolution)
+    return gap, max(TIE, RESOLUTION_FACTOR * resolution)
+
+
+def near_tie(d: np.ndarray, x: np.ndarray, first: list[int], second: list[int]) -> bool:
+    """True when two OMP runs parted at a near-tie (:func:`parting`: |gap| < tolerance)."""
+    gap, tolerance = parting(d, x, first, second)
+    return abs(gap) < tolerance
 
 
 def judge(ref: np.ndarray, got: np.ndarray, d: np.ndarray, x: np.ndarray, n: int,

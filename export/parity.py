@@ -31,15 +31,16 @@ import torch
 from torch import nn
 
 from tactile.errors import ModelContractError
-from tactile.export.codes import AGREEMENT, RTOL, TIE, code_parity, coders, table_rows
-from tactile.export.ties import (
-    FLOAT32,
-    MAX_EXCUSED,
-    NEAR_TIE,
+from tactile.export.codes import (
+    AGREEMENT,
     RESOLUTION_FACTOR,
-    Examined,
-    Explainer,
+    RTOL,
+    TIE,
+    code_parity,
+    coders,
+    table_rows,
 )
+from tactile.export.ties import FLOAT32, MAX_EXCUSED, NEAR_TIE, Examined, Explainer
 from tactile.export.windows import CARRY_STEPS, Probe, random_windows, simulated
 
 ATOL = 1e-4

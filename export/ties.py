@@ -28,8 +28,9 @@ is excused when the coders' float32 rounding explains it, and only then:
   :func:`tactile.export.codes.float32_bound`, the bound the code parity uses), or other atoms
   at a near-tie: at the step where the two OMP runs parted, the float64 residual correlations
   of their two picks (after the atoms both picked before) within
-  :data:`tactile.export.codes.TIE` of the largest or :data:`RESOLUTION_FACTOR` x float32's
-  resolution of the step (:func:`tactile.training.sparse_check.divergence`) (:func:`judge_rows`);
+  :data:`tactile.export.codes.TIE` of the largest or
+  :data:`~tactile.export.codes.RESOLUTION_FACTOR` x float32's resolution of the step
+  (:func:`tactile.export.codes.parting`) (:func:`judge_rows`);
 * PyTorch's model given the graph's codes gives the graph's probabilities within ``ATOL``
   (:meth:`Explainer.substituted`): the head is right, the codes make the difference.
 
@@ -52,17 +53,15 @@ import torch
 from torch import nn
 
 from tactile.export.codes import (
-    RESOLUTION_FACTOR,
-    TIE,
     CoderNotFound,
     CoderTap,
     find_coders,
     float32_apart,
     graph_order,
+    parting,
     picks,
     tapped,
 )
-from tactile.training.sparse_check import divergence
 
 IMAGE_RTOL = 1e-4
 """A row codes the same image when max |x_graph - x_torch| <= this x ||x_torch|| (the BioTac's
@@ -180,10 +179,10 @@ def judge_rows(d: np.ndarray, x_t: np.ndarray, c_t: np.ndarray, order_t: np.ndar
     (:func:`~tactile.export.codes.float32_apart`). A row whose non-zero atoms differ is a
     near-tie when the two runs parted at a step where their picks' float64 residual
     correlations differ by less than :data:`~tactile.export.codes.TIE` of the largest, or less
-    than :data:`RESOLUTION_FACTOR` x float32's resolution of that step's correlations when that
-    is coarser (:func:`~tactile.training.sparse_check.divergence` on PyTorch's image). Without
-    the graph's order (``order_g`` None: its coder does not pick one atom per non-zero) no flip
-    is a near-tie."""
+    than :data:`~tactile.export.codes.RESOLUTION_FACTOR` x float32's resolution of that
+    step's correlations when that is coarser (:func:`~tactile.export.codes.parting` on
+    PyTorch's image). Without the graph's order (``order_g`` None: its coder does not pick
+    one atom per non-zero) no flip is a near-tie."""
     img = np.abs(x_g.astype(np.float64) - x_t).max(1)
     same_image = img <= IMAGE_RTOL * np.linalg.norm(x_t.astype(np.float64), axis=1)
     differ = ((c_t != 0) != (c_g != 0)).any(1)
@@ -200,8 +199,7 @@ def judge_rows(d: np.ndarray, x_t: np.ndarray, c_t: np.ndarray, order_t: np.ndar
     for i in flipped:
         if not same_image[i]:
             continue
-        gap, resolution = divergence(d, x_t[i], order_t[i].tolist(), order_g[i].tolist())
-        tolerance = max(TIE, RESOLUTION_FACTOR * resolution)
+        gap, tolerance = parting(d, x_t[i], order_t[i].tolist(), order_g[i].tolist())
         if abs(gap) < tolerance:
             out.ties += 1
             out.max_gap = max(out.max_gap, abs(gap))
