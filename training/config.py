@@ -155,8 +155,8 @@ class TrainConfig:
     stalls for ``patience // 4`` epochs, ``cosine``: down to ``lr / 100`` over ``epochs``),
     ``label_smoothing`` of the training targets, ``ema`` (the decay per step of an exponential
     moving average of the weights, which is what is validated and kept; 0: off) and ``refit``:
-    ``on`` trains again from scratch on training + validation windows for the best epoch count,
-    ``auto`` (default) does so with ``split='time'`` only, where the validation block is the
+    ``on`` (default) trains again from scratch on training + validation windows for the best
+    epoch count, ``auto`` does so with ``split='time'`` only, where the validation block is the
     recording just before the test block; ``off`` never.
 
     Model: ``lstm`` (``layers`` x ``hidden``, ``dropout``; with ``front='spectral'`` it runs over
@@ -220,7 +220,7 @@ class TrainConfig:
     schedule: str = "constant"
     label_smoothing: float = 0.0
     ema: float = 0.0
-    refit: str = "auto"
+    refit: str = "on"
     augment_gain: float = 0.3
     augment_offset: float = 0.0
     split: str = "user"
