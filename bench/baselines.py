@@ -3,6 +3,7 @@ and seed; prints one markdown table (mean and spread over the seeds) for docs/re
 
     python bench/baselines.py --out runs/baselines                  # 4 datasets x seeds 0, 1, 2
     python bench/baselines.py --out runs/baselines --only small --seeds 0
+    python bench/baselines.py --out runs/nested --nested   # refit off / on, validation as test
 
 Datasets (``--only``, repeatable):
 
@@ -18,6 +19,13 @@ Datasets (``--only``, repeatable):
   the seed); ``hop=50`` (windows do not overlap) to keep 88-channel windows in memory. Needs the
   ``[biotac]`` extra (h5py); skipped, saying why, without it or the files.
 
+``--nested`` judges ``refit`` without test data: per dataset and seed the validation takes (with
+``split=time`` the validation block of every take) stand in for the test, an inner validation is
+drawn from the training takes as the bench draws validation (the last ``val_fraction`` of the
+training block), and the defaults train with ``refit=off`` and ``refit=on`` on that (runs and
+their data folders in ``OUT/nested/``). The folders these runs read hold no test take (links to
+the training and validation takes; with ``split=time`` copies cut before the test block).
+
 The baseline: per window and channel the mean, the log standard deviation and the log energy of
 the mean-free, Hann-tapered window in :data:`N_BANDS` equal bands from 0 Hz to the Nyquist
 frequency; standardised on the training windows; scikit-learn's multinomial
@@ -32,7 +40,9 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import re
 import resource
+import shutil
 import subprocess
 import sys
 import time
@@ -40,13 +50,14 @@ from pathlib import Path
 
 import numpy as np
 
+from tactile.device.decoder import Gap
 from tactile.device.hapmat import import_hapmat
-from tactile.device.recording import Take, load_dataset
+from tactile.device.recording import Take, TakeWriter, load_dataset
 from tactile.device.sim_cli import make_dataset
 from tactile.device.simulator import TEXTURES
 from tactile.training import train as train_module
 from tactile.training.config import TrainConfig
-from tactile.training.data import channel_index, classes_of, split_windows
+from tactile.training.data import channel_index, classes_of, split_takes, split_windows
 
 SHARED = Path(__file__).resolve().parents[2] / "shared" / "datasets"
 HAPMAT = SHARED / "hapmat" / "hapmat_stick_imu.npz"
@@ -242,12 +253,15 @@ def selection_rules(path: Path, patience: int) -> dict:
 
 def run_dataset(name: str, data: Path, takes: list[Take], out: Path, seeds: tuple[int, ...],
                 base: TrainConfig, curves: bool = False, label: str = "defaults",
-                baselines: Path | None = None) -> dict:
+                baselines: Path | None = None, reinit: int = 0) -> dict:
     """The defaults (``base``) and the baseline on every seed. A run whose folder already holds
-    metrics is read, not trained again (so does a baseline's ``baseline.json``)."""
+    metrics is read, not trained again (so does a baseline's ``baseline.json``). ``reinit``:
+    each seed's split trained with seed ``seed + reinit`` (:func:`same_split`)."""
     ours, base_runs = [], []
     for seed in seeds:
         cfg = base.replace(seed=seed, **SETTINGS[name])
+        if reinit:
+            cfg = same_split(takes, cfg, seed + reinit)
         run = out / f"{name}-seed{seed}"
         if (run / "metrics.json").exists():
             m = json.loads((run / "metrics.json").read_text())
@@ -279,6 +293,150 @@ def run_dataset(name: str, data: Path, takes: list[Take], out: Path, seeds: tupl
         ours.append(m)
         base_runs.append(b)
     return {"ours": ours, "baseline": base_runs}
+
+
+def _literal(name: str) -> str:
+    """A ``name:`` selector value that matches exactly ``name`` (shell patterns escaped, never
+    read as a range of numbers)."""
+    if "," in name:
+        raise ValueError(f"take {name!r}: a comma cannot be named in a selector")
+    out = "".join(f"[{c}]" if c in "[]*?" else c for c in name)
+    if re.fullmatch(r"-?\d+--?\d+", name):  # "3-5" would be the range 3..5
+        out = f"[{out[0]}]{out[1:]}"
+    return out
+
+
+# keys a take's JSON gets from its writer (the rest is copied to a cut copy of the take)
+_WRITTEN = ("format", "version", "label", "started_utc", "source", "device", "columns", "samples",
+            "first_seq", "last_seq", "gaps", "decoder", "complete")
+
+
+def _write_head(take: Take, rows: int, folder: Path) -> None:
+    """A copy of ``take``'s first ``rows`` rows (its gaps among them) in ``folder``."""
+    extra = {k: v for k, v in take.meta.items() if k not in _WRITTEN}
+    src = take.meta.get("source", "")
+    with TakeWriter(folder, take.label, take.info, src, name=take.path.stem, extra=extra) as w:
+        gaps = {g["row"]: g for g in take.meta.get("gaps", []) if g.get("row") is not None}
+        for a, b in take.segments():
+            if a >= rows:
+                break
+            if a in gaps and a > 0:
+                g = gaps[a]
+                w.gap(Gap(int(g["seq"]), int(g["missing"]), g["reason"]))
+            b = min(b, rows)
+            w.write(int(take.seq[a]), int(take.t_us[a]), take.raw[a:b])
+
+
+def same_split(takes: list[Take], cfg: TrainConfig, seed: int) -> TrainConfig:
+    """``cfg`` with another ``seed`` (the initial weights, the epochs' windows, the
+    augmentation) and the same split: its test and validation takes named (``split=time`` does
+    not depend on the seed)."""
+    if cfg.split == "time":
+        return cfg.replace(seed=seed)
+    split = split_takes(takes, cfg)
+
+    def names(part: dict) -> str:
+        return "name:" + ",".join(_literal(takes[i].path.stem) for i in part)
+
+    return cfg.replace(seed=seed, test=names(split.test), val=names(split.val))
+
+
+def nested_data(takes: list[Take], cfg: TrainConfig, folder: Path) -> TrainConfig:
+    """The nested split of ``cfg``'s: writes into ``folder`` (once; a folder that is there is
+    whole) a dataset without ``cfg``'s test data, and returns the config whose test split is
+    ``cfg``'s validation split and whose validation is drawn from ``cfg``'s training split.
+
+    ``split=user``/``take``: links to the training and validation takes; the validation takes
+    are named as the test (``test = "name:..."``) and the validation is drawn from the rest as
+    ``split_takes`` draws it (``val_fraction`` of the users or takes, at least one).
+    ``split=time``: each take cut before its test block; ``test_fraction = val_fraction``
+    makes the test block the old validation block, and the last ``val_fraction`` of the rest
+    validates."""
+    split = split_takes(takes, cfg)
+    if cfg.split == "time":
+        ncfg = cfg.replace(test_fraction=cfg.val_fraction)
+    else:
+        stems = [takes[i].path.stem for i in split.val]
+        ncfg = cfg.replace(test="name:" + ",".join(map(_literal, stems)), val="")
+    if folder.exists():
+        return ncfg
+    part = folder.with_name(folder.name + ".partial")
+    if part.exists():
+        shutil.rmtree(part)
+    part.mkdir(parents=True)
+    for i, t in enumerate(takes):
+        if cfg.split == "time":
+            _write_head(t, split.val[i][1], part)
+        elif i in split.train or i in split.val:
+            for f in (t.path, t.path.with_suffix(".json")):
+                (part / f.name).symlink_to(f.resolve())
+    part.rename(folder)
+    return ncfg
+
+
+def run_nested(name: str, takes: list[Take], out: Path, seeds: tuple[int, ...],
+               base: TrainConfig) -> list[dict]:
+    """Per seed: the defaults with ``refit=off`` and ``refit=on`` (and the baseline without and
+    with its refit) on the nested split (:func:`nested_data`), scored on its test split, the
+    outer validation data. Runs already in ``out`` are read, not trained again."""
+    rows = []
+    for seed in seeds:
+        cfg = base.replace(seed=seed, **SETTINGS[name])
+        ncfg = nested_data(takes, cfg, out / f"data-{name}-seed{seed}")
+        data = out / f"data-{name}-seed{seed}"
+        row = {"dataset": name, "seed": seed}
+        for refit in ("off", "on"):
+            rcfg = ncfg.replace(refit=refit)
+            run = out / f"{name}-seed{seed}-refit-{refit}"
+            if (run / "metrics.json").exists():
+                m = json.loads((run / "metrics.json").read_text())
+            else:
+                t0, c0 = time.perf_counter(), _cpu()
+                m = train_module.train(data, run, rcfg, progress=False)
+                m["wall_seconds"], m["cpu_seconds"] = time.perf_counter() - t0, _cpu() - c0
+                (run / "metrics.json").write_text(json.dumps(m, indent=1) + "\n")
+            bfile = out / "baseline" / f"{name}-seed{seed}-refit-{refit}.json"
+            if bfile.exists():
+                b = json.loads(bfile.read_text())
+            else:
+                b = band_logistic(load_dataset(data), rcfg)
+                bfile.parent.mkdir(parents=True, exist_ok=True)
+                bfile.write_text(json.dumps(b, indent=1) + "\n")
+            row[refit], row[f"baseline_{refit}"] = m, b
+        print(f"<!-- nested {name} seed {seed}: proxy test refit off {row['off']['accuracy']:.3f}"
+              f", on {row['on']['accuracy']:.3f} (inner val {row['off']['val_accuracy']:.3f}, "
+              f"best epoch {row['off']['best_epoch'] + 1}, CPU {row['off']['cpu_seconds']:.0f} / "
+              f"{row['on']['cpu_seconds']:.0f} s; {row['off']['split']}); baseline off "
+              f"{row['baseline_off']['accuracy']:.3f}, on {row['baseline_on']['accuracy']:.3f} -->",
+              flush=True)
+        rows.append(row)
+    return rows
+
+
+def nested_table(rows: list[dict]) -> str:
+    """Per dataset and seed the proxy-test accuracy with refit off and on, and per dataset the
+    mean and spread of the paired differences."""
+    lines = ["| dataset | seed | windows inner train/val, proxy test | inner validation | "
+             "proxy test, refit off | refit on | on - off | baseline off / on |",
+             "|---|---|---|---|---|---|---|---|"]
+    for r in rows:
+        w = r["off"]["split_windows"]
+        lines.append(
+            f"| {r['dataset']} | {r['seed']} | {w['train']}/{w['val']}, {w['test']} | "
+            f"{r['off']['val_accuracy']:.3f} | {r['off']['accuracy']:.3f} | "
+            f"{r['on']['accuracy']:.3f} | {r['on']['accuracy'] - r['off']['accuracy']:+.3f} | "
+            f"{r['baseline_off']['accuracy']:.3f} / {r['baseline_on']['accuracy']:.3f} |")
+    lines += ["", "| dataset | refit off (mean) | refit on (mean) | on - off: mean +/- sd "
+              "(seeds) | baseline on - off |", "|---|---|---|---|---|"]
+    for name in dict.fromkeys(r["dataset"] for r in rows):
+        rs = [r for r in rows if r["dataset"] == name]
+        off = np.array([r["off"]["accuracy"] for r in rs])
+        on = np.array([r["on"]["accuracy"] for r in rs])
+        boff = np.array([r["baseline_off"]["accuracy"] for r in rs])
+        bon = np.array([r["baseline_on"]["accuracy"] for r in rs])
+        lines.append(f"| {name} | {off.mean():.3f} | {on.mean():.3f} | {(on - off).mean():+.3f} "
+                     f"+/- {(on - off).std():.3f} | {(bon - boff).mean():+.3f} |")
+    return "\n".join(lines)
 
 
 def _each(runs: list[dict]) -> str:
@@ -336,6 +494,16 @@ def main(argv: list[str] | None = None) -> int:
                    help="keep each run's validation probabilities per epoch (val-curves.npz) "
                         "and judge the selection rules (select=loss, accuracy) on held-out "
                         "halves of the validation takes")
+    p.add_argument("--nested", action="store_true",
+                   help="judge refit without test data: the validation takes as the test, an "
+                        "inner validation drawn from the training takes, the defaults with "
+                        "refit=off and refit=on (runs in OUT/nested/); prints their accuracy "
+                        "on the validation takes per dataset and seed")
+    p.add_argument("--reinit", type=int, default=0, metavar="K",
+                   help="with --candidate: each candidate also trained with seed + K on each "
+                        "seed's split (its test and validation takes named), runs in "
+                        "OUT/NAME-reinitK/: how far the figures move with the initial weights, "
+                        "the epochs' windows and the augmentation alone")
     args = p.parse_args(argv)
     seeds = tuple(int(s) for s in args.seeds.split(",") if s.strip())
     base = train_module.parse_sets(args.set, TrainConfig(threads=1))
@@ -346,6 +514,11 @@ def main(argv: list[str] | None = None) -> int:
             print(f"<!-- {name}: skipped, {got} -->", flush=True)
             continue
         data[name] = got
+    if args.nested:
+        rows = [r for name, (_, takes) in data.items()
+                for r in run_nested(name, takes, args.out / "nested", seeds, base)]
+        print(nested_table(rows))
+        return 0
     if args.candidate:
         grid = {}
         for label, *sets in args.candidate:
@@ -353,6 +526,12 @@ def main(argv: list[str] | None = None) -> int:
             grid[label] = {name: run_dataset(name, *got, args.out / label, seeds, cfg,
                                              args.curves, label, args.out / "baseline")
                            for name, got in data.items()}
+            if args.reinit:  # the same candidate and splits, other initial weights
+                grid[f"{label}, seed + {args.reinit}"] = {
+                    name: run_dataset(name, *got, args.out / f"{label}-reinit{args.reinit}",
+                                      seeds, cfg, args.curves, f"{label} reinit",
+                                      args.out / "baseline", args.reinit)
+                    for name, got in data.items()}
         print(grid_table(grid, seeds))
         return 0
     results = {name: run_dataset(name, *got, args.out, seeds, base, args.curves)

@@ -54,3 +54,122 @@ def test_rules_are_scored_on_the_half_they_did_not_pick_on(tmp_path):
     # on either half the loss keeps epoch 0 (0.5 on the other half), the accuracy epoch 1 (1.0)
     assert r["loss"] == {"held_out": 0.5, "epoch": 1, "val_accuracy": 0.5}
     assert r["accuracy"] == {"held_out": 1.0, "epoch": 2, "val_accuracy": 1.0}
+
+
+def _names(takes, part) -> set[str]:
+    return {takes[i].path.stem for i in part}
+
+
+def test_nested_split_by_user_never_holds_a_test_take(tmp_path):
+    from tactile.device.recording import load_dataset
+    from tactile.device.sim_cli import make_dataset
+    from tactile.training.config import TrainConfig
+    from tactile.training.data import split_takes
+
+    b = _bench()
+    make_dataset(tmp_path / "d", 8, ("paper", "mouse_pad"), 2.0, seed=0)
+    takes = load_dataset(tmp_path / "d")
+    for seed in (0, 1):
+        cfg = TrainConfig(seed=seed)
+        outer = split_takes(takes, cfg)
+        ncfg = b.nested_data(takes, cfg, tmp_path / f"nested{seed}")
+        inner_takes = load_dataset(tmp_path / f"nested{seed}")
+        inner = split_takes(inner_takes, ncfg)
+        folder = {t.path.stem for t in inner_takes}
+        # the folder: the outer training and validation takes, no test take
+        assert folder == _names(takes, outer.train) | _names(takes, outer.val)
+        assert not folder & _names(takes, outer.test) and len(outer.test) == 2 * 2
+        # its test is the outer validation; its validation and training the outer training
+        assert _names(inner_takes, inner.test) == _names(takes, outer.val)
+        assert _names(inner_takes, inner.val) | _names(inner_takes, inner.train) == \
+            _names(takes, outer.train)
+        assert not _names(inner_takes, inner.val) & _names(inner_takes, inner.train)
+        # drawn in whole users as the bench draws validation: 1 of the 5 training users here
+        users = {t.meta["user"] for i, t in enumerate(inner_takes) if i in inner.val}
+        assert len(users) == 1 and len(inner.val) == 2
+
+
+def test_nested_split_in_time_cuts_the_takes_before_their_test_block(tmp_path):
+    from tactile.device.recording import load_dataset
+    from tactile.device.sim_cli import make_dataset
+    from tactile.training.config import TrainConfig
+    from tactile.training.data import split_takes
+
+    b = _bench()
+    make_dataset(tmp_path / "d", 1, ("paper", "mouse_pad"), 3.1, seed=0)
+    takes = load_dataset(tmp_path / "d")
+    cfg = TrainConfig(split="time")
+    outer = split_takes(takes, cfg)
+    ncfg = b.nested_data(takes, cfg, tmp_path / "nested")
+    cut = load_dataset(tmp_path / "nested")
+    inner = split_takes(cut, ncfg)
+    for i, (t, c) in enumerate(zip(takes, cut, strict=True)):
+        assert c.path.stem == t.path.stem and c.meta["user"] == t.meta["user"]
+        end = outer.val[i][1]  # the test block's first row: not in the copy
+        assert len(c.seq) == end == outer.test[i][0]
+        np.testing.assert_array_equal(c.values(), t.values()[:end])
+        np.testing.assert_array_equal(c.seq, t.seq[:end])
+        assert inner.test[i] == outer.val[i]  # the proxy test: the outer validation block
+        assert inner.train[i][0] == 0 and inner.train[i][1] == inner.val[i][0]
+        assert inner.val[i][1] == outer.val[i][0]  # the inner validation ends where it began
+        assert inner.val[i][0] == round(outer.val[i][0] * (1 - cfg.val_fraction))
+
+
+def test_nested_runs_read_no_test_take(tmp_path, monkeypatch):
+    from tactile.device import recording
+    from tactile.device.sim_cli import make_dataset
+    from tactile.training.config import TrainConfig
+    from tactile.training.data import split_takes
+
+    b = _bench()
+    make_dataset(tmp_path / "d", 6, ("paper", "mouse_pad"), 2.0, seed=0)
+    takes = recording.load_dataset(tmp_path / "d")
+    base = TrainConfig(threads=1, epochs=2, patience=1, hidden=4, layers=1, epoch_windows=64)
+    test = {takes[i].path.stem for i in split_takes(takes, base).test}
+    read = []
+    real = recording.read_take
+
+    def spy(path):
+        read.append(recording.Path(path).stem)
+        return real(path)
+
+    monkeypatch.setattr(recording, "read_take", spy)
+    rows = b.run_nested("small", takes, tmp_path / "out", (0,), base)
+    assert read and not set(read) & test
+    r = rows[0]
+    assert r["off"]["refit_epochs"] == 0 and r["on"]["refit_epochs"] == r["on"]["best_epoch"] + 1
+    # the same first phase: same split, same inner validation figure
+    assert r["off"]["val_accuracy"] == r["on"]["val_accuracy"]
+    assert r["off"]["split_windows"] == r["on"]["split_windows"]
+    assert "| small | 0 |" in b.nested_table(rows)
+
+
+def test_literal_selector_names_only_that_take():
+    from tactile.training.data import _matches
+
+    b = _bench()
+    for name in ("a[1]*", "3-5", "x?y", "paper-user000"):
+        pattern = b._literal(name)
+        assert _matches(name, pattern)
+        for other in ("a1", "a[1]x", "4", "xzy", "3-50", "paper-user0001"):
+            assert not _matches(other, pattern) or other == name
+
+
+def test_same_split_with_another_seed(tmp_path):
+    from tactile.device.recording import load_dataset
+    from tactile.device.sim_cli import make_dataset
+    from tactile.training.config import TrainConfig
+    from tactile.training.data import split_takes
+
+    b = _bench()
+    make_dataset(tmp_path / "d", 8, ("paper", "mouse_pad"), 1.0, seed=0)
+    takes = load_dataset(tmp_path / "d")
+    for cfg in (TrainConfig(seed=2), TrainConfig(seed=2, test="user:5")):
+        again = b.same_split(takes, cfg, 1002)
+        first, second = split_takes(takes, cfg), split_takes(takes, again)
+        assert again.seed == 1002 and (first.train, first.val, first.test) == (
+            second.train, second.val, second.test)
+        # the seed alone would have drawn another split
+        other = split_takes(takes, cfg.replace(seed=1002))
+        assert (other.val, other.test) != (first.val, first.test)
+    assert b.same_split(takes, TrainConfig(split="time"), 7).seed == 7

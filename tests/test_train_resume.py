@@ -174,11 +174,27 @@ def test_an_unhandled_ctrl_c_in_a_torch_command_is_one_line_and_130(capsys):
 
 
 def test_sigint_after_the_last_epoch_still_saves_the_finished_run(dataset, tmp_path):
-    cfg = TrainConfig(**{**SMALL, "epochs": 2, "patience": 2})
+    # without a refit, fit epoch 2 is the last
+    cfg = TrainConfig(**{**SMALL, "epochs": 2, "patience": 2, "refit": "off"})
     m = train(dataset, tmp_path / "r", cfg, progress=False, on_epoch=sigint_after("fit", 2))
     assert m["interrupted"] is False and m["epochs_run"] == 2 and m["shifted"]["mean"] >= 0
     assert (tmp_path / "r" / "checkpoint.pt").is_file()
     assert not (tmp_path / "r" / RESUME).exists()
+    # with the default refit the last epoch is the refit's last
+    cfg = cfg.replace(refit="on")
+    full = train(dataset, tmp_path / "full", cfg, progress=False)
+    last = full["refit_epochs"]
+    seen = []
+    hook = sigint_after("refit", last)
+
+    def on_epoch(p: str, e: int) -> None:
+        seen.append((p, e))
+        hook(p, e)
+
+    m = train(dataset, tmp_path / "r2", cfg, progress=False, on_epoch=on_epoch)
+    assert seen[-1] == ("refit", last) and last >= 1  # SIGINT came after the very last epoch
+    assert m["interrupted"] is False and m["refit_epochs"] == last
+    assert m["accuracy"] == full["accuracy"] and not (tmp_path / "r2" / RESUME).exists()
 
 
 def test_a_resume_state_that_does_not_fit_is_one_line(dataset, tmp_path, capsys):

@@ -230,3 +230,46 @@ def test_the_training_loop_keeps_the_epoch_its_rule_names(dataset, tmp_path, mon
     else:
         assert loss[best] <= min(loss) + 1e-4  # improvements of 1e-4 or less do not count
     assert len(acc) in (cfg.epochs, best + 1 + cfg.patience), (len(acc), best)
+
+
+def test_augment_offset_moves_only_the_uncentred_channels():
+    from tactile.training.model import TextureModel
+    from tactile.training.train import _augment_offset, _offset_scale
+
+    def model(offset, center):
+        cfg = TrainConfig(augment_offset=offset, emd_channels=("c",))
+        return TextureModel(cfg, 2, torch.zeros(3), torch.ones(3), [2], center)
+
+    m = model(0.5, [0])  # channel 0 centred, 1 and 2 not, then the EMD features of channel 2
+    n_f = m.pre.n_features
+    scale = _offset_scale(m, n_f)
+    assert n_f > 3 and scale.tolist() == [0.0, 0.5, 0.5] + [0.0] * (n_f - 3)
+    assert _offset_scale(model(0.0, [0]), n_f) is None  # off
+    assert _offset_scale(model(0.5, [0, 1, 2]), n_f) is None  # every channel centred
+
+    f = torch.randn(400, 2, 7, n_f)
+    d = _augment_offset(f, scale, torch.Generator().manual_seed(0)) - f
+    assert torch.allclose(d, d[:, :, :1].expand_as(d), atol=1e-6)  # one offset per window
+    assert torch.equal(d[..., scale == 0], torch.zeros_like(d[..., scale == 0]))
+    moved = d[:, :, 0, 1:3].flatten()
+    assert moved.abs().max() <= 0.5
+    # uniform in +/- 0.5: mean 0, standard deviation 0.5 / sqrt(3) = 0.289 (1,600 draws)
+    assert abs(moved.mean().item()) < 0.03 and abs(moved.std().item() - 0.289) < 0.02
+
+
+def test_augment_offset_in_training_and_its_bounds(dataset, tmp_path):
+    def weights(name, **kw):
+        train(dataset, tmp_path / name, TrainConfig(**TINY, threads=1, **kw), progress=False)
+        return torch.load(tmp_path / name / "checkpoint.pt", weights_only=True)["state_dict"]
+
+    plain = weights("plain")
+    moved = weights("moved", augment_offset=1.0)
+    assert any(not torch.equal(plain[k], moved[k]) for k in plain)
+    # with every channel centred no offset reaches the model: the run is the run without
+    a = weights("a", center=("*",))
+    b = weights("b", center=("*",), augment_offset=1.0)
+    assert all(torch.equal(a[k], b[k]) for k in a)
+    for bad in ("-0.1", "11"):
+        with pytest.raises(ConfigError, match=rf"augment_offset must be in \[0, 10\].*"
+                                              rf"augment_offset={bad}"):
+            parse_sets([f"augment_offset={bad}"], TrainConfig())

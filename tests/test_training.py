@@ -58,7 +58,9 @@ def test_config_rejects_unknown_keys_and_bad_values(tmp_path):
         TrainConfig(ema=-0.1)
     with pytest.raises(ConfigError, match="refit must be one of auto, on, off"):
         TrainConfig(refit="yes")
-    assert TrainConfig(split="time").refits and not TrainConfig(split="user").refits
+    assert TrainConfig().refit == "on" and TrainConfig(split="user").refits  # the default
+    assert TrainConfig(split="time", refit="auto").refits
+    assert not TrainConfig(split="user", refit="auto").refits
     assert TrainConfig(refit="on").refits and not TrainConfig(split="time", refit="off").refits
     toml = tmp_path / "c.toml"
     toml.write_text('hidden = 16\nemd_channels = ["accel_z"]\n')
@@ -237,7 +239,7 @@ def test_concat_keeps_runs_apart(dataset):
 
 def test_refit_trains_on_train_and_validation_for_the_best_epoch_count(dataset, tmp_path,
                                                                         monkeypatch):
-    """With a time split (refit='auto'), a second training on train + validation windows."""
+    """With a time split and refit='auto', a second training on train + validation windows."""
     import tactile.training.train as tr
 
     seen = []
@@ -249,7 +251,7 @@ def test_refit_trains_on_train_and_validation_for_the_best_epoch_count(dataset, 
 
     monkeypatch.setattr(tr, "_train", spy)
     cfg = TrainConfig(epochs=3, hidden=8, layers=1, threads=1, split="time",
-                      label_smoothing=0.1, schedule="cosine", ema=0.9)  # refit: auto
+                      label_smoothing=0.1, schedule="cosine", ema=0.9, refit="auto")
     m = train(dataset, tmp_path / "refit", cfg, progress=False)
     (n_train, epochs, no_val), (n_both, refit_epochs, refit_no_val) = seen
     assert epochs == 3 and not no_val

@@ -140,7 +140,10 @@ class TrainConfig:
     of each of ``emd_channels`` (``emd_sifts`` sifts per IMF), as extra inputs at every step.
 
     Training multiplies each window's channels by random gains in ``1 +/- augment_gain`` (0: off),
-    so that the model does not key on one user's signal levels; an epoch is ``epoch_windows``
+    so that the model does not key on one user's signal levels, and adds to each window's
+    uncentred channels random offsets in ``+/- augment_offset`` (in units of the channel's
+    standard deviation; 0: off), so that it leans less on absolute levels that drift between
+    sessions (granular models ignore it); an epoch is ``epoch_windows``
     training windows drawn at random without replacement (0 or more than there are: all of
     them; with ``state='carry'`` runs of ``carry_steps`` windows), and training stops when the
     validation figure ``select`` names has not improved for ``patience`` epochs (at most
@@ -152,8 +155,8 @@ class TrainConfig:
     stalls for ``patience // 4`` epochs, ``cosine``: down to ``lr / 100`` over ``epochs``),
     ``label_smoothing`` of the training targets, ``ema`` (the decay per step of an exponential
     moving average of the weights, which is what is validated and kept; 0: off) and ``refit``:
-    ``on`` trains again from scratch on training + validation windows for the best epoch count,
-    ``auto`` (default) does so with ``split='time'`` only, where the validation block is the
+    ``on`` (default) trains again from scratch on training + validation windows for the best
+    epoch count, ``auto`` does so with ``split='time'`` only, where the validation block is the
     recording just before the test block; ``off`` never.
 
     Model: ``lstm`` (``layers`` x ``hidden``, ``dropout``; with ``front='spectral'`` it runs over
@@ -217,8 +220,9 @@ class TrainConfig:
     schedule: str = "constant"
     label_smoothing: float = 0.0
     ema: float = 0.0
-    refit: str = "auto"
+    refit: str = "on"
     augment_gain: float = 0.3
+    augment_offset: float = 0.0
     split: str = "user"
     test_fraction: float = 0.3
     val_fraction: float = 0.2
@@ -266,6 +270,8 @@ class TrainConfig:
             (self.threads >= 0, "threads must be >= 0 (0: automatic)", ("threads",)),
             (self.device in DEVICES, f"device must be one of {', '.join(DEVICES)}", ("device",)),
             (0 <= self.augment_gain < 1, "augment_gain must be in [0, 1)", ("augment_gain",)),
+            (0 <= self.augment_offset <= 10, "augment_offset must be in [0, 10] (standard "
+             "deviations; 0: off)", ("augment_offset",)),
         ]
         for ok, msg, fields in checks:
             if not ok:
