@@ -263,14 +263,12 @@ def run_dataset(name: str, data: Path, takes: list[Take], out: Path, seeds: tupl
         if reinit:
             cfg = same_split(takes, cfg, seed + reinit)
         run = out / f"{name}-seed{seed}"
-        if (run / "metrics.json").exists():
-            m = json.loads((run / "metrics.json").read_text())
-        else:
+        m = finished(run)
+        if m is None:
             t0, c0 = time.perf_counter(), _cpu()
             with ValidationRecorder() as rec:
                 m = train_module.train(data, run, cfg, progress=False)
-            m["wall_seconds"], m["cpu_seconds"] = time.perf_counter() - t0, _cpu() - c0
-            (run / "metrics.json").write_text(json.dumps(m, indent=1) + "\n")
+            m = _timed(run, m, t0, c0)
             if curves:
                 rec.save(run / "val-curves.npz")
         if curves and (run / "val-curves.npz").exists():
@@ -293,6 +291,26 @@ def run_dataset(name: str, data: Path, takes: list[Take], out: Path, seeds: tupl
         ours.append(m)
         base_runs.append(b)
     return {"ours": ours, "baseline": base_runs}
+
+
+def finished(run: Path) -> dict | None:
+    """The metrics of a run this script finished (its ``metrics.json`` with the script's CPU
+    and wall times, not interrupted), else None: a run stopped half-way (Ctrl-C, or the script
+    ended between the training and its times) is trained again."""
+    try:
+        m = json.loads((run / "metrics.json").read_text())
+    except (OSError, ValueError):
+        return None
+    return m if "cpu_seconds" in m and not m.get("interrupted") else None
+
+
+def _timed(run: Path, m: dict, t0: float, c0: float) -> dict:
+    """A finished training's metrics with its times, written back; Ctrl-C ends the script."""
+    if m.get("interrupted"):
+        raise KeyboardInterrupt
+    m["wall_seconds"], m["cpu_seconds"] = time.perf_counter() - t0, _cpu() - c0
+    (run / "metrics.json").write_text(json.dumps(m, indent=1) + "\n")
+    return m
 
 
 def _literal(name: str) -> str:
@@ -388,13 +406,10 @@ def run_nested(name: str, takes: list[Take], out: Path, seeds: tuple[int, ...],
         for refit in ("off", "on"):
             rcfg = ncfg.replace(refit=refit)
             run = out / f"{name}-seed{seed}-refit-{refit}"
-            if (run / "metrics.json").exists():
-                m = json.loads((run / "metrics.json").read_text())
-            else:
+            m = finished(run)
+            if m is None:
                 t0, c0 = time.perf_counter(), _cpu()
-                m = train_module.train(data, run, rcfg, progress=False)
-                m["wall_seconds"], m["cpu_seconds"] = time.perf_counter() - t0, _cpu() - c0
-                (run / "metrics.json").write_text(json.dumps(m, indent=1) + "\n")
+                m = _timed(run, train_module.train(data, run, rcfg, progress=False), t0, c0)
             bfile = out / "baseline" / f"{name}-seed{seed}-refit-{refit}.json"
             if bfile.exists():
                 b = json.loads(bfile.read_text())
@@ -554,4 +569,9 @@ def main(argv: list[str] | None = None) -> int:
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    try:
+        sys.exit(main())
+    except KeyboardInterrupt:
+        print("interrupted: finished runs are kept, the others train again next time",
+              file=sys.stderr)
+        sys.exit(130)

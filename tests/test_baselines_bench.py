@@ -4,9 +4,11 @@ held-out halves of the validation takes, on curves made by hand."""
 from __future__ import annotations
 
 import importlib.util
+import json
 import sys
 
 import numpy as np
+import pytest
 from conftest import REPO
 
 
@@ -173,3 +175,24 @@ def test_same_split_with_another_seed(tmp_path):
         other = split_takes(takes, cfg.replace(seed=1002))
         assert (other.val, other.test) != (first.val, first.test)
     assert b.same_split(takes, TrainConfig(split="time"), 7).seed == 7
+
+
+def test_only_runs_the_script_finished_are_reused(tmp_path):
+    """A run folder counts as done only with the script's times in its metrics and no
+    interruption: train()'s own metrics.json (written also after Ctrl-C) does not."""
+    baselines = _bench()
+    run = tmp_path / "small-seed0"
+    run.mkdir()
+    assert baselines.finished(run) is None  # nothing there
+    (run / "metrics.json").write_text(json.dumps({"accuracy": 0.5}))
+    assert baselines.finished(run) is None  # train() wrote it, the script did not finish
+    (run / "metrics.json").write_text(json.dumps({"accuracy": 0.5, "interrupted": True,
+                                                  "cpu_seconds": 3.0}))
+    assert baselines.finished(run) is None
+    (run / "metrics.json").write_text("{half")
+    assert baselines.finished(run) is None
+    with pytest.raises(KeyboardInterrupt):
+        baselines._timed(run, {"accuracy": 0.5, "interrupted": True}, 0.0, 0.0)
+    m = baselines._timed(run, {"accuracy": 0.5}, 0.0, 0.0)
+    assert m["cpu_seconds"] >= 0 and baselines.finished(run) == json.loads(
+        (run / "metrics.json").read_text())
