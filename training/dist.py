@@ -10,6 +10,7 @@ method is the identity. Backend: NCCL on GPUs, gloo on CPUs; tensors that live o
 
 from __future__ import annotations
 
+import gc
 import math
 import os
 from dataclasses import dataclass, field
@@ -61,8 +62,14 @@ class Dist:
             td.init_process_group(backend="gloo")
 
     def finish(self) -> None:
+        """Leave the process group together: the DDP wrappers freed first (their reducers
+        hold the group, and reference cycles keep them until a collection: a group still alive
+        when the interpreter exits can abort the process in gloo's threads), then a barrier,
+        so that no process tears the group down while another still talks on it."""
         self._wrapped.clear()
         if self.world > 1 and td.is_initialized():
+            gc.collect()
+            td.barrier(group=self._cpu_group)
             td.destroy_process_group()
 
     # --- collectives on CPU tensors (identity for one process) ---------------------------------
