@@ -41,6 +41,7 @@ from onnx import TensorProto, helper
 from torch import nn
 
 from tactile.errors import ModelContractError
+from tactile.training.sparse import EPS as FLOAT32_EPS
 from tactile.training.sparse import SparseCoder
 
 AGREEMENT = 0.99
@@ -57,7 +58,6 @@ step's correlations (:func:`~tactile.training.sparse_check.divergence`), if that
 resolution (median 0.51; ``tests/test_sparse.py``), and a flip's gap holds two runs' errors."""
 MAX_ROWS = 8192
 """At most this many rows (a seeded sample) per coder go to scikit-learn."""
-FLOAT32_EPS = float(np.finfo(np.float32).eps)
 
 
 class CoderNotFound(ModelContractError):
@@ -150,6 +150,22 @@ def graph_order(picks: np.ndarray, codes: np.ndarray) -> np.ndarray:
     codes.picks`), -1 after a row stopped (its picks beyond its non-zeros are masked)."""
     live = (codes != 0).sum(1)
     return np.where(np.arange(picks.shape[1])[None, :] < live[:, None], picks, -1)
+
+
+def tap_session(graph: onnx.ModelProto, taps: list[CoderTap]):
+    """onnxruntime on the :func:`tapped` copy of ``graph`` for ``taps``, with each coder's
+    picks when every coder has one ``ArgMax`` per non-zero: ``(session, picks, names)``,
+    ``picks`` per coder its :func:`picks` (None otherwise) and ``names`` the added outputs in
+    order (per coder its images and codes, then every coder's picks)."""
+    from tactile.export.parity import session
+
+    try:
+        steps = [picks(t) for t in taps]
+    except CoderNotFound:
+        steps = None
+    sess = session(tapped(graph, taps, orders=steps is not None).SerializeToString())
+    names = [v for t in taps for v in (t.x, t.codes)] + [v for p in steps or [] for v in p]
+    return sess, steps, names
 
 
 def sklearn_codes(dictionary: np.ndarray, n_nonzero: int, x: np.ndarray) -> np.ndarray:
@@ -291,18 +307,11 @@ def code_parity(model: nn.Module, graph: onnx.ModelProto, windows: np.ndarray,
     against scikit-learn's on the same images (:func:`judge`). One dict per coder: ``coder``
     (module path), ``name`` (its modality, when the model has a ``layout``), ``atoms``,
     ``features``, ``nonzero`` and :func:`judge`'s figures."""
-    from tactile.export.parity import session
-
     taps = find_coders(model, graph)
     if not taps:
         return []
-    try:  # each coder's picks, unless a coder of the graph has another number of steps
-        steps = [picks(t) for t in taps]
-    except CoderNotFound:
-        steps = None
-    sess = session(tapped(graph, taps, orders=steps is not None).SerializeToString())
+    sess, steps, names = tap_session(graph, taps)
     layers, hidden = model.state_shape
-    names = [v for t in taps for v in (t.x, t.codes)] + [v for p in steps or [] for v in p]
     got: dict[str, list[np.ndarray]] = {v: [] for v in names}
     for i in range(0, len(windows), 256):
         xb = np.ascontiguousarray(windows[i : i + 256], np.float32)

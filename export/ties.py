@@ -53,14 +53,12 @@ import torch
 from torch import nn
 
 from tactile.export.codes import (
-    CoderNotFound,
     CoderTap,
     find_coders,
     float32_apart,
     graph_order,
     parting,
-    picks,
-    tapped,
+    tap_session,
 )
 
 IMAGE_RTOL = 1e-4
@@ -212,20 +210,12 @@ class Explainer:
     windows whose probabilities differ, for a model with coders."""
 
     def __init__(self, model: nn.Module, graph: bytes | str | onnx.ModelProto) -> None:
-        from tactile.export.parity import session
-
         if not isinstance(graph, onnx.ModelProto):
             graph = (onnx.load_from_string(graph) if isinstance(graph, bytes)
                      else onnx.load(graph))
         self.taps: list[CoderTap] = find_coders(model, graph)
-        try:  # each coder's picks, unless a coder of the graph has another number of steps
-            self.picks = [picks(t) for t in self.taps]
-        except CoderNotFound:
-            self.picks = None
-        self.sess = session(tapped(graph, self.taps, orders=self.picks is not None)
-                            .SerializeToString())
-        self.names = (["probs", "h_out", "c_out"] + [v for t in self.taps for v in (t.x, t.codes)]
-                      + [v for p in self.picks or [] for v in p])
+        self.sess, self.picks, tapped_names = tap_session(graph, self.taps)
+        self.names = ["probs", "h_out", "c_out"] + tapped_names
         self.coders = [t.coder for t in self.taps]
         self.model = model
         self.state_shape = model.state_shape  # (layers, hidden)

@@ -138,13 +138,10 @@ def test_codes_on_the_same_atoms_are_held_to_float32_accuracy():
     assert moved.image_off == same.sum() and moved.kind is None
 
 
-def test_the_gap_is_measured_where_the_two_runs_parted():
-    """Two OMP runs that part at a near-tie and then pick the other's atom later differ in one
-    atom only, at the end; the decision to judge is the step where they parted. Built in
-    float64: atoms 0 and 1 are mirror images across the window's plane, so they tie for the
-    first step."""
-    from tactile.training.sparse_check import divergence_gap, tie_gap
-
+def _mirror_tie() -> tuple[np.ndarray, np.ndarray]:
+    """Float64 atoms (40, 30) and a window x (30,) where atoms 0 and 1 are mirror images across
+    x's plane (d0 mirrored along a direction orthogonal to x): the same correlation with x, so
+    they tie exactly for OMP's first step."""
     rng = np.random.default_rng(3)
     d = rng.standard_normal((40, 30))
     x = rng.standard_normal(30)
@@ -152,8 +149,19 @@ def test_the_gap_is_measured_where_the_two_runs_parted():
     d[0] = u + 0.3 * d[0] / np.linalg.norm(d[0])
     w = d[1] - (d[1] @ u) * u  # a direction orthogonal to x
     w /= np.linalg.norm(w)
-    d[1] = d[0] - 2 * (d[0] @ w) * w  # d0 mirrored across x's plane: the same correlation
+    d[1] = d[0] - 2 * (d[0] @ w) * w
     d /= np.linalg.norm(d, axis=1, keepdims=True)
+    return d, x
+
+
+def test_the_gap_is_measured_where_the_two_runs_parted():
+    """Two OMP runs that part at a near-tie and then pick the other's atom later differ in one
+    atom only, at the end; the decision to judge is the step where they parted. Built in
+    float64: atoms 0 and 1 are mirror images across the window's plane, so they tie for the
+    first step."""
+    from tactile.training.sparse_check import divergence_gap, tie_gap
+
+    d, x = _mirror_tie()
     corr = np.abs(d @ x)
     assert abs(corr[0] - corr[1]) < 1e-12 * corr[0]  # the first step is an exact tie
     assert sorted(np.argsort(corr)[-2:]) == [0, 1]
@@ -189,15 +197,7 @@ def test_code_parity_judges_a_disagreement_where_the_runs_parted():
     from tactile.export.codes import judge, sklearn_codes
     from tactile.training.sparse_check import sklearn_order, tie_gap
 
-    rng = np.random.default_rng(3)
-    d = rng.standard_normal((40, 30))
-    x = rng.standard_normal(30)
-    u = x / np.linalg.norm(x)
-    d[0] = u + 0.3 * d[0] / np.linalg.norm(d[0])
-    w = d[1] - (d[1] @ u) * u
-    w /= np.linalg.norm(w)
-    d[1] = d[0] - 2 * (d[0] @ w) * w
-    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    d, x = _mirror_tie()
     d, x = d.astype(np.float32), x.astype(np.float32)
     n = 4
     ref = sklearn_codes(d, n, x[None])

@@ -16,6 +16,8 @@ import warnings
 import numpy as np
 from sklearn.linear_model import orthogonal_mp_gram
 
+from tactile.training.sparse import EPS as FLOAT32_EPS  # float32's epsilon
+
 
 def sklearn_order(d: np.ndarray, x: np.ndarray, n: int) -> list[int]:
     """The atoms scikit-learn's OMP picks for window ``x`` (features,) with dictionary ``d``
@@ -57,7 +59,6 @@ def tie_gap(d: np.ndarray, x: np.ndarray, order: list[int], other: set[int]) -> 
     return float("inf")
 
 
-FLOAT32_EPS = float(np.finfo(np.float32).eps)
 
 
 def divergence(d: np.ndarray, x: np.ndarray, first: list[int], second: list[int]
