@@ -234,7 +234,7 @@ def test_the_training_loop_keeps_the_epoch_its_rule_names(dataset, tmp_path, mon
 
 def test_augment_offset_moves_only_the_uncentred_channels():
     from tactile.training.model import TextureModel
-    from tactile.training.train import _augment_offset, _offset_scale
+    from tactile.training.train import _augment_offset
 
     def model(offset, center):
         cfg = TrainConfig(augment_offset=offset, emd_channels=("c",))
@@ -242,10 +242,10 @@ def test_augment_offset_moves_only_the_uncentred_channels():
 
     m = model(0.5, [0])  # channel 0 centred, 1 and 2 not, then the EMD features of channel 2
     n_f = m.pre.n_features
-    scale = _offset_scale(m, n_f)
+    scale = m.offset_scale()
     assert n_f > 3 and scale.tolist() == [0.0, 0.5, 0.5] + [0.0] * (n_f - 3)
-    assert _offset_scale(model(0.0, [0]), n_f) is None  # off
-    assert _offset_scale(model(0.5, [0, 1, 2]), n_f) is None  # every channel centred
+    assert model(0.0, [0]).offset_scale() is None  # off
+    assert model(0.5, [0, 1, 2]).offset_scale() is None  # every channel centred
 
     f = torch.randn(400, 2, 7, n_f)
     d = _augment_offset(f, scale, torch.Generator().manual_seed(0)) - f

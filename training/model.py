@@ -191,6 +191,12 @@ class Classifier(nn.Module):
         shape = (*f.shape[:2], 1, f.shape[-1])
         return f * (1 + amount * (2 * torch.rand(shape, generator=gen) - 1)).to(f.device)
 
+    def offset_scale(self) -> Tensor | None:
+        """(F,) the half-widths of training's random offsets (``augment_offset``) on the
+        features ``pre`` computes; None when no feature takes one (here: the granular models,
+        whose features are images or codes, not channel levels)."""
+        return None
+
     def forward(self, x: Tensor, h: Tensor, c: Tensor) -> tuple[Tensor, Tensor, Tensor]:
         logits, h, c = self.logits(x, h, c)
         return torch.softmax(logits, dim=1), h, c
@@ -221,6 +227,17 @@ class TextureModel(Classifier):
         if isinstance(self.head, LSTMHead):
             return self.head.layers, self.head.hidden
         return 1, 1
+
+    def offset_scale(self) -> Tensor | None:
+        """``augment_offset`` on the normalised channels whose level the model sees, 0 on the
+        centred ones (their window mean is removed before the model, so no offset reaches it
+        at test) and on the EMD features (oscillations about zero); None when nothing moves
+        (off, or every channel centred)."""
+        if not self.cfg.augment_offset:
+            return None
+        scale = torch.zeros(self.pre.n_features)
+        scale[: self.pre.n_channels] = self.cfg.augment_offset * (1 - self.pre.center_mask)
+        return scale if bool(scale.any()) else None
 
 
 

@@ -74,7 +74,7 @@ from tactile.training.evaluate import (
 )
 from tactile.training.granular import learn_dictionaries, pooled_stats
 from tactile.training.modality import literal_signals, resolve, resolve_signals, signals_of_takes
-from tactile.training.model import Preprocess, TextureModel, build_model
+from tactile.training.model import TextureModel, build_model
 from tactile.training.sampling import epoch_order
 
 AUGMENT_VERSION = 2
@@ -396,7 +396,7 @@ def _train(model: TextureModel, w: Windows, f_all: torch.Tensor, n_epochs: int, 
     gen = torch.Generator().manual_seed(cfg.seed)  # the epoch's order: alike on every process
     aug = torch.Generator().manual_seed(cfg.seed + 7919 * dist.rank)  # gains: one per process
     batch = math.ceil(cfg.batch_size / dist.world)  # per process: the global batch stays
-    offset = _offset_scale(model, f_all.shape[-1])
+    offset = model.offset_scale()  # (F,) or None
     phase = "fit" if val is not None else "refit"
     s = {"epoch": 0, "best": math.inf, "best_acc": -1.0, "best_state": None, "stale": 0,
          "history": {"train_loss": [], "val_loss": [], "val_acc": [], "best_epoch": 0},
@@ -465,25 +465,11 @@ def _train(model: TextureModel, w: Windows, f_all: torch.Tensor, n_epochs: int, 
 
 def _augment_offset(f: torch.Tensor, offset: torch.Tensor, gen: torch.Generator) -> torch.Tensor:
     """A batch's features (B, S, T, F) plus, per window and feature, a random offset uniform in
-    ``+/- offset`` ((F,) half-widths, :func:`_offset_scale`), constant over the window's T steps.
-    Drawn from ``gen`` on the CPU after the gains (without offsets the draws are those of
-    earlier versions)."""
+    ``+/- offset`` ((F,) half-widths, the model's ``offset_scale``), constant over the
+    window's T steps. Drawn from ``gen`` on the CPU after the gains (without offsets the draws
+    are those of earlier versions)."""
     shape = (*f.shape[:2], 1, f.shape[-1])  # (B, S, 1, F)
     return f + (offset * (2 * torch.rand(shape, generator=gen) - 1)).to(f.device)
-
-
-def _offset_scale(model: TextureModel, n_features: int) -> torch.Tensor | None:
-    """(F,) the half-width of the random offsets ``augment_offset`` adds to each feature:
-    ``augment_offset`` on the normalised channels whose level the model sees, 0 on the centred
-    ones (their window mean is removed before the model, so no offset reaches it at test) and
-    on EMD features (oscillations about zero); None when nothing is moved (off, or a granular
-    model, whose features are images or codes rather than channels)."""
-    pre = model.pre
-    if not model.cfg.augment_offset or not isinstance(pre, Preprocess):
-        return None
-    scale = torch.zeros(n_features)
-    scale[: pre.n_channels] = model.cfg.augment_offset * (1 - pre.center_mask)
-    return scale if bool(scale.any()) else None
 
 
 def _validate(model, val, val_loss_fn, sched, ema, s: dict, epoch: int, bar,
