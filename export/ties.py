@@ -7,9 +7,9 @@ atoms, 17 non-zeros) on 20 of 70,100 rows of the 1,402 test windows. Such a row'
 holds another atom and other coefficients, and its window's probabilities move by up to a few
 hundredths, far beyond :data:`tactile.export.parity.ATOL`, although both sides computed what
 they should. And where both pick the same atoms, their coefficients differ by float32's
-rounding, which on an ill-conditioned atom set is large (up to 1.7e-4 of the code's norm on
-loud BioTac vibration windows, cond(D_S) ~100) and which a head's batch normalisation may
-multiply (up to x125 in the BioTac SF-RNNs) beyond ``ATOL`` on a window or two in a thousand.
+rounding, which on an ill-conditioned atom set is large (up to 1.6e-4 of the code's norm on
+loud BioTac vibration windows) and which a head's batch normalisation may multiply beyond
+``ATOL`` on a window or two in a thousand.
 
 So for a model with sparse coders a window whose probabilities differ by more than ``ATOL``
 is excused when the coders' float32 rounding explains it, and only then:
