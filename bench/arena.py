@@ -14,19 +14,10 @@ from __future__ import annotations
 import argparse
 import time
 
-import numpy as np
 import onnxruntime as ort
-from batch_mix import feeds
+from batch_mix import alternate, feeds, per_call
 
 from tactile.runtime.model import session_options
-
-
-def per_window(sess: ort.InferenceSession, feed: dict, batch: int) -> float:
-    calls = max(1, -(-20 // batch))
-    t0 = time.process_time()
-    for _ in range(calls):
-        sess.run(None, feed)
-    return (time.process_time() - t0) / (calls * batch)
 
 
 def main() -> None:
@@ -45,13 +36,14 @@ def main() -> None:
     arena = ort.InferenceSession(a.model, with_arena, providers=["CPUExecutionProvider"])
     for b in batches:
         feed = feeds(plain, b)
+        calls = max(1, -(-20 // b))  # at least 20 windows a round
+
+        def per_window(sess: ort.InferenceSession, feed=feed, b=b, calls=calls) -> float:
+            return per_call(sess, feed, calls, time.process_time) / b
+
         for s in (plain, arena):
-            per_window(s, feed, b)  # warm up
-        t_plain, t_arena = [], []
-        for _ in range(a.rounds):
-            t_plain.append(per_window(plain, feed, b))
-            t_arena.append(per_window(arena, feed, b))
-        p, r = float(np.median(t_plain)), float(np.median(t_arena))
+            per_window(s)  # warm up
+        p, r = alternate(a.rounds, lambda: per_window(plain), lambda: per_window(arena))
         print(f"batch {b}: no arena {1e3 * p:.3f} ms a window, arena {1e3 * r:.3f} ms; "
               f"no arena / arena {p / r:.3f}", flush=True)
 

@@ -26,11 +26,23 @@ def feeds(sess: ort.InferenceSession, batch: int) -> dict[str, np.ndarray]:
             .astype(np.float32) for i in sess.get_inputs()}
 
 
-def per_call(sess: ort.InferenceSession, feed: dict, calls: int = 50) -> float:
-    t0 = time.perf_counter()
+def per_call(sess: ort.InferenceSession, feed: dict, calls: int = 50,
+             clock=time.perf_counter) -> float:
+    """Seconds a call (by ``clock``) over ``calls`` calls of ``sess`` on ``feed``."""
+    t0 = clock()
     for _ in range(calls):
         sess.run(None, feed)
-    return (time.perf_counter() - t0) / calls
+    return (clock() - t0) / calls
+
+
+def alternate(rounds: int, *timers) -> list[float]:
+    """The median of each timer (a function returning a time) over ``rounds`` rounds that call
+    the timers in turn, so that a change in the machine's load reaches them all alike."""
+    times = [[] for _ in timers]
+    for _ in range(rounds):
+        for t, timer in zip(times, timers, strict=True):
+            t.append(timer())
+    return [float(np.median(t)) for t in times]
 
 
 def main() -> None:
@@ -47,11 +59,7 @@ def main() -> None:
     for s in (mixed, pure):
         per_call(s, one, 20)
     per_call(mixed, other, 20)
-    t_mixed, t_pure = [], []
-    for _ in range(a.rounds):
-        t_mixed.append(per_call(mixed, one))
-        t_pure.append(per_call(pure, one))
-    m, p = float(np.median(t_mixed)), float(np.median(t_pure))
+    m, p = alternate(a.rounds, lambda: per_call(mixed, one), lambda: per_call(pure, one))
     print(f"batch 1 after batch {a.batch}: {1e3 * m:.3f} ms a call; batch 1 only: "
           f"{1e3 * p:.3f} ms; ratio {m / p:.3f}")
 
