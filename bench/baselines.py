@@ -5,6 +5,9 @@ and seed; prints one markdown table (mean and spread over the seeds) for docs/re
     python bench/baselines.py --out runs/baselines --only small --seeds 0
     python bench/baselines.py --out runs/nested --nested   # refit off / on, validation as test
 
+Exit status: 0 when the table is printed, 2 when every dataset asked for is skipped (each says
+why), 130 on Ctrl-C (finished runs are kept).
+
 Datasets (``--only``, repeatable):
 
 * ``small``: ``tactile-sim --dataset D --takes 6`` (7 textures x 6 simulated users x 60 s), the
@@ -529,6 +532,9 @@ def main(argv: list[str] | None = None) -> int:
             print(f"<!-- {name}: skipped, {got} -->", flush=True)
             continue
         data[name] = got
+    if not data:
+        print("baselines.py: every dataset was skipped (above): nothing to run", file=sys.stderr)
+        return 2
     if args.nested:
         rows = [r for name, (_, takes) in data.items()
                 for r in run_nested(name, takes, args.out / "nested", seeds, base)]

@@ -196,3 +196,14 @@ def test_only_runs_the_script_finished_are_reused(tmp_path):
     m = baselines._timed(run, {"accuracy": 0.5}, 0.0, 0.0)
     assert m["cpu_seconds"] >= 0 and baselines.finished(run) == json.loads(
         (run / "metrics.json").read_text())
+
+
+def test_nothing_to_run_is_exit_2_not_an_empty_table(tmp_path, monkeypatch, capsys):
+    """With every dataset asked for skipped, the script says so and exits 2 (it printed an
+    empty table and exited 0)."""
+    baselines = _bench()
+    monkeypatch.setattr(baselines, "HAPMAT", tmp_path / "absent.npz")
+    assert baselines.main(["--out", str(tmp_path / "out"), "--only", "hapmat"]) == 2
+    out, err = capsys.readouterr()
+    assert "hapmat: skipped, no absent.npz beside the repository" in out
+    assert "|" not in out and err.strip().endswith("nothing to run")
