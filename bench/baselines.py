@@ -19,8 +19,9 @@ Datasets (``--only``, repeatable):
   ``--cache``, outside the repository), then trained on that folder: the importer's 88 plain
   channels at 100 Hz, one take per trial, split by trial: the fifth repetition of every object
   and pressure tests (``test = "repetition:5"``), one of the other four validates (drawn from
-  the seed); ``hop=50`` (windows do not overlap) to keep 88-channel windows in memory. Needs the
-  ``[biotac]`` extra (h5py); skipped, saying why, without it or the files.
+  the seed); ``hop=50`` (windows do not overlap): a run takes about 100-160 s of CPU, where
+  the default hop (``--set hop=10``: 5x the windows) takes 2-3x that and about 4 GB of memory.
+  Needs the ``[biotac]`` extra (h5py); skipped, saying why, without it or the files.
 
 ``--nested`` judges ``refit`` without test data: per dataset and seed the validation takes (with
 ``split=time`` the validation block of every take) stand in for the test, an inner validation is
@@ -73,6 +74,16 @@ CS = (0.01, 0.1, 1.0, 10.0)
 SETTINGS = {"small": {}, "readme": {"hop": 25}, "hapmat": {"split": "time"},
             "biotac": {"hop": 50, "test": "repetition:5"}}
 CACHE = Path(os.environ.get("XDG_CACHE_HOME", Path.home() / ".cache")) / "tactile-bench"
+
+
+def dataset_settings(name: str, given: frozenset[str] = frozenset()) -> dict:
+    """The data settings of dataset ``name`` (:data:`SETTINGS`) but those the command line
+    gives itself (``given``: keys of ``--set`` or a candidate's settings, which win)."""
+    return {k: v for k, v in SETTINGS[name].items() if k not in given}
+
+
+def _keys(pairs: list[str]) -> frozenset[str]:
+    return frozenset(p.partition("=")[0] for p in pairs)
 
 
 def window_features(x: np.ndarray, rate: float, n_bands: int = N_BANDS) -> np.ndarray:
@@ -256,13 +267,15 @@ def selection_rules(path: Path, patience: int) -> dict:
 
 def run_dataset(name: str, data: Path, takes: list[Take], out: Path, seeds: tuple[int, ...],
                 base: TrainConfig, curves: bool = False, label: str = "defaults",
-                baselines: Path | None = None, reinit: int = 0) -> dict:
+                baselines: Path | None = None, reinit: int = 0,
+                given: frozenset[str] = frozenset()) -> dict:
     """The defaults (``base``) and the baseline on every seed. A run whose folder already holds
     metrics is read, not trained again (so does a baseline's ``baseline.json``). ``reinit``:
-    each seed's split trained with seed ``seed + reinit`` (:func:`same_split`)."""
+    each seed's split trained with seed ``seed + reinit`` (:func:`same_split`). ``given``: the
+    settings the command line gave (:func:`dataset_settings`)."""
     ours, base_runs = [], []
     for seed in seeds:
-        cfg = base.replace(seed=seed, **SETTINGS[name])
+        cfg = base.replace(seed=seed, **dataset_settings(name, given))
         if reinit:
             cfg = same_split(takes, cfg, seed + reinit)
         run = out / f"{name}-seed{seed}"
@@ -396,13 +409,13 @@ def nested_data(takes: list[Take], cfg: TrainConfig, folder: Path) -> TrainConfi
 
 
 def run_nested(name: str, takes: list[Take], out: Path, seeds: tuple[int, ...],
-               base: TrainConfig) -> list[dict]:
+               base: TrainConfig, given: frozenset[str] = frozenset()) -> list[dict]:
     """Per seed: the defaults with ``refit=off`` and ``refit=on`` (and the baseline without and
     with its refit) on the nested split (:func:`nested_data`), scored on its test split, the
     outer validation data. Runs already in ``out`` are read, not trained again."""
     rows = []
     for seed in seeds:
-        cfg = base.replace(seed=seed, **SETTINGS[name])
+        cfg = base.replace(seed=seed, **dataset_settings(name, given))
         ncfg = nested_data(takes, cfg, out / f"data-{name}-seed{seed}")
         data = out / f"data-{name}-seed{seed}"
         row = {"dataset": name, "seed": seed}
@@ -502,7 +515,9 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--cache", type=Path, default=CACHE,
                    help=f"folder for the imported BioTac takes (default {CACHE})")
     p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
-                   help="change a default for every run (as tactile-train --set)")
+                   help="change a setting for every run (as tactile-train --set; it wins "
+                        "over a dataset's own, such as BioTac's hop=50). Finished runs and "
+                        "baselines in OUT are reused: give other settings another OUT")
     p.add_argument("--candidate", action="append", nargs="+", metavar=("NAME", "KEY=VALUE"),
                    help="a grid of candidate defaults instead of the table: NAME and its "
                         "settings (repeatable; runs in OUT/NAME/, the baseline's in "
@@ -537,25 +552,29 @@ def main(argv: list[str] | None = None) -> int:
         return 2
     if args.nested:
         rows = [r for name, (_, takes) in data.items()
-                for r in run_nested(name, takes, args.out / "nested", seeds, base)]
+                for r in run_nested(name, takes, args.out / "nested", seeds, base,
+                                    _keys(args.set))]
         print(nested_table(rows))
         return 0
     if args.candidate:
         grid = {}
         for label, *sets in args.candidate:
             cfg = train_module.parse_sets(sets, base)
+            given = _keys(args.set) | _keys(sets)
             grid[label] = {name: run_dataset(name, *got, args.out / label, seeds, cfg,
-                                             args.curves, label, args.out / "baseline")
+                                             args.curves, label, args.out / "baseline",
+                                             given=given)
                            for name, got in data.items()}
             if args.reinit:  # the same candidate and splits, other initial weights
                 grid[f"{label}, seed + {args.reinit}"] = {
                     name: run_dataset(name, *got, args.out / f"{label}-reinit{args.reinit}",
                                       seeds, cfg, args.curves, f"{label} reinit",
-                                      args.out / "baseline", args.reinit)
+                                      args.out / "baseline", args.reinit, given)
                     for name, got in data.items()}
         print(grid_table(grid, seeds))
         return 0
-    results = {name: run_dataset(name, *got, args.out, seeds, base, args.curves)
+    results = {name: run_dataset(name, *got, args.out, seeds, base, args.curves,
+                                 given=_keys(args.set))
                for name, got in data.items()}
     print(f"\n| dataset | windows train/val/test | defaults: test accuracy (seed "
           f"{', '.join(map(str, seeds))}) | mean +/- sd | baseline: test accuracy | "

@@ -207,3 +207,13 @@ def test_nothing_to_run_is_exit_2_not_an_empty_table(tmp_path, monkeypatch, caps
     out, err = capsys.readouterr()
     assert "hapmat: skipped, no absent.npz beside the repository" in out
     assert "|" not in out and err.strip().endswith("nothing to run")
+
+
+def test_the_command_lines_settings_win_over_a_datasets_own():
+    """--set hop=10 (or a candidate's hop) reaches BioTac's runs, whose own data settings
+    say hop=50; the settings the command line does not give stay."""
+    b = _bench()
+    assert b.dataset_settings("biotac") == {"hop": 50, "test": "repetition:5"}
+    assert b.dataset_settings("biotac", b._keys(["hop=10", "refit=off"])) == {
+        "test": "repetition:5"}
+    assert b.dataset_settings("hapmat", b._keys(["hop=10"])) == {"split": "time"}
