@@ -6,7 +6,9 @@ and seed; prints one markdown table (mean and spread over the seeds) for docs/re
     python bench/baselines.py --out runs/nested --nested   # refit off / on, validation as test
 
 Exit status: 0 when the table is printed, 2 when every dataset asked for is skipped (each says
-why), 130 on Ctrl-C (finished runs are kept).
+why) or when a run or baseline in OUT was made with other settings (it says which; finished
+runs and baselines are reused, so other settings need another OUT), 130 on Ctrl-C (finished
+runs are kept).
 
 Datasets (``--only``, repeatable):
 
@@ -269,8 +271,9 @@ def run_dataset(name: str, data: Path, takes: list[Take], out: Path, seeds: tupl
                 base: TrainConfig, curves: bool = False, label: str = "defaults",
                 baselines: Path | None = None, reinit: int = 0,
                 given: frozenset[str] = frozenset()) -> dict:
-    """The defaults (``base``) and the baseline on every seed. A run whose folder already holds
-    metrics is read, not trained again (so does a baseline's ``baseline.json``). ``reinit``:
+    """The defaults (``base``) and the baseline on every seed. A run this script finished in
+    its folder is read, not trained again (so is a stored baseline); one made with other
+    settings is a :class:`StaleRun` (:func:`finished`, :func:`cached_baseline`). ``reinit``:
     each seed's split trained with seed ``seed + reinit`` (:func:`same_split`). ``given``: the
     settings the command line gave (:func:`dataset_settings`)."""
     ours, base_runs = [], []
@@ -279,24 +282,19 @@ def run_dataset(name: str, data: Path, takes: list[Take], out: Path, seeds: tupl
         if reinit:
             cfg = same_split(takes, cfg, seed + reinit)
         run = out / f"{name}-seed{seed}"
-        m = finished(run)
+        m = finished(run, cfg)
         if m is None:
             t0, c0 = time.perf_counter(), _cpu()
             with ValidationRecorder() as rec:
                 m = train_module.train(data, run, cfg, progress=False)
-            m = _timed(run, m, t0, c0)
+            m = _timed(run, m, t0, c0, cfg)
             if curves:
                 rec.save(run / "val-curves.npz")
         if curves and (run / "val-curves.npz").exists():
             # the rules with the default patience (a recording run may wait longer)
             m["rules"] = selection_rules(run / "val-curves.npz", TrainConfig.patience)
-        bfile = (baselines or out / "baseline") / f"{name}-seed{seed}.json"
-        if bfile.exists():
-            b = json.loads(bfile.read_text())
-        else:
-            b = band_logistic(takes, cfg)
-            bfile.parent.mkdir(parents=True, exist_ok=True)
-            bfile.write_text(json.dumps(b, indent=1) + "\n")
+        b = cached_baseline((baselines or out / "baseline") / f"{name}-seed{seed}.json", cfg,
+                            lambda c=cfg: band_logistic(takes, c))
         rules = "".join(f"; select={r}: held-out val {v['held_out']:.3f}, epoch {v['epoch']}, "
                         f"val {v['val_accuracy']:.3f}" for r, v in m.get("rules", {}).items())
         print(f"<!-- {name} seed {seed}: {label} {m['accuracy']:.3f} (val "
@@ -309,24 +307,74 @@ def run_dataset(name: str, data: Path, takes: list[Take], out: Path, seeds: tupl
     return {"ours": ours, "baseline": base_runs}
 
 
-def finished(run: Path) -> dict | None:
+class StaleRun(Exception):
+    """A run or baseline in OUT made with other settings than this call's."""
+
+
+# the settings a baseline depends on (its windows, its split, whether it refits)
+DATA_KEYS = ("window", "hop", "channels", "split", "test", "val", "test_fraction",
+             "val_fraction", "seed")
+
+
+def _settings(cfg: TrainConfig) -> dict:
+    return json.loads(json.dumps(cfg.to_dict()))
+
+
+def _data_settings(cfg: TrainConfig) -> dict:
+    d = _settings(cfg)
+    return {**{k: d[k] for k in DATA_KEYS}, "refits": cfg.refits}
+
+
+def _check_same(path: Path, kept: dict | None, want: dict) -> None:
+    """StaleRun when ``kept`` (the settings stored with a result; None: stored before settings
+    were) differs from ``want``."""
+    if kept is None or kept == want:
+        return
+    diff = ", ".join(f"{k} {kept.get(k)!r} -> {want.get(k)!r}"
+                     for k in sorted(set(kept) | set(want)) if kept.get(k) != want.get(k))
+    raise StaleRun(f"{path}: made with other settings ({diff}): give another --out")
+
+
+def finished(run: Path, cfg: TrainConfig | None = None) -> dict | None:
     """The metrics of a run this script finished (its ``metrics.json`` with the script's CPU
     and wall times, not interrupted), else None: a run stopped half-way (Ctrl-C, or the script
-    ended between the training and its times) is trained again."""
+    ended between the training and its times) is trained again. A finished run made with other
+    settings than ``cfg`` is a :class:`StaleRun`."""
     try:
         m = json.loads((run / "metrics.json").read_text())
     except (OSError, ValueError):
         return None
-    return m if "cpu_seconds" in m and not m.get("interrupted") else None
+    if "cpu_seconds" not in m or m.get("interrupted"):
+        return None
+    if cfg is not None:
+        _check_same(run, m.get("bench_settings"), _settings(cfg))
+    return m
 
 
-def _timed(run: Path, m: dict, t0: float, c0: float) -> dict:
-    """A finished training's metrics with its times, written back; Ctrl-C ends the script."""
+def _timed(run: Path, m: dict, t0: float, c0: float, cfg: TrainConfig | None = None) -> dict:
+    """A finished training's metrics with its times (and ``cfg``'s settings), written back;
+    Ctrl-C ends the script."""
     if m.get("interrupted"):
         raise KeyboardInterrupt
     m["wall_seconds"], m["cpu_seconds"] = time.perf_counter() - t0, _cpu() - c0
+    if cfg is not None:
+        m["bench_settings"] = _settings(cfg)
     (run / "metrics.json").write_text(json.dumps(m, indent=1) + "\n")
     return m
+
+
+def cached_baseline(bfile: Path, cfg: TrainConfig, compute) -> dict:
+    """The baseline stored in ``bfile``, else ``compute()`` stored there with the settings it
+    depends on; one stored with other such settings is a :class:`StaleRun`."""
+    want = _data_settings(cfg)
+    if bfile.exists():
+        b = json.loads(bfile.read_text())
+        _check_same(bfile, b.get("settings"), want)
+        return b
+    b = {**compute(), "settings": want}
+    bfile.parent.mkdir(parents=True, exist_ok=True)
+    bfile.write_text(json.dumps(b, indent=1) + "\n")
+    return b
 
 
 def _literal(name: str) -> str:
@@ -422,17 +470,14 @@ def run_nested(name: str, takes: list[Take], out: Path, seeds: tuple[int, ...],
         for refit in ("off", "on"):
             rcfg = ncfg.replace(refit=refit)
             run = out / f"{name}-seed{seed}-refit-{refit}"
-            m = finished(run)
+            m = finished(run, rcfg)
             if m is None:
                 t0, c0 = time.perf_counter(), _cpu()
-                m = _timed(run, train_module.train(data, run, rcfg, progress=False), t0, c0)
+                m = _timed(run, train_module.train(data, run, rcfg, progress=False), t0, c0,
+                           rcfg)
             bfile = out / "baseline" / f"{name}-seed{seed}-refit-{refit}.json"
-            if bfile.exists():
-                b = json.loads(bfile.read_text())
-            else:
-                b = band_logistic(load_dataset(data), rcfg)
-                bfile.parent.mkdir(parents=True, exist_ok=True)
-                bfile.write_text(json.dumps(b, indent=1) + "\n")
+            b = cached_baseline(bfile, rcfg,
+                                lambda c=rcfg, d=data: band_logistic(load_dataset(d), c))
             row[refit], row[f"baseline_{refit}"] = m, b
         print(f"<!-- nested {name} seed {seed}: proxy test refit off {row['off']['accuracy']:.3f}"
               f", on {row['on']['accuracy']:.3f} (inner val {row['off']['val_accuracy']:.3f}, "
@@ -517,7 +562,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
                    help="change a setting for every run (as tactile-train --set; it wins "
                         "over a dataset's own, such as BioTac's hop=50). Finished runs and "
-                        "baselines in OUT are reused: give other settings another OUT")
+                        "baselines in OUT are reused; one made with other settings stops the "
+                        "script (exit 2): give other settings another OUT")
     p.add_argument("--candidate", action="append", nargs="+", metavar=("NAME", "KEY=VALUE"),
                    help="a grid of candidate defaults instead of the table: NAME and its "
                         "settings (repeatable; runs in OUT/NAME/, the baseline's in "
@@ -600,3 +646,6 @@ if __name__ == "__main__":
         print("interrupted: finished runs are kept, the others train again next time",
               file=sys.stderr)
         sys.exit(130)
+    except StaleRun as e:
+        print(f"baselines.py: {e}", file=sys.stderr)
+        sys.exit(2)

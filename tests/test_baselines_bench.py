@@ -217,3 +217,36 @@ def test_the_command_lines_settings_win_over_a_datasets_own():
     assert b.dataset_settings("biotac", b._keys(["hop=10", "refit=off"])) == {
         "test": "repetition:5"}
     assert b.dataset_settings("hapmat", b._keys(["hop=10"])) == {"split": "time"}
+
+
+def test_a_run_or_baseline_made_with_other_settings_is_refused_not_reused(tmp_path):
+    """Reused results are keyed by folder name: with other settings in the same OUT the
+    script stops, naming what differs, instead of printing the old runs' figures."""
+    from tactile.training.config import TrainConfig
+
+    b = _bench()
+    run = tmp_path / "biotac-seed0"
+    run.mkdir()
+    cfg = TrainConfig(hop=50, seed=0)
+    b._timed(run, {"accuracy": 0.5}, 0.0, 0.0, cfg)
+    assert b.finished(run, cfg)["accuracy"] == 0.5
+    with pytest.raises(b.StaleRun, match=r"hop 50 -> 10"):
+        b.finished(run, cfg.replace(hop=10))
+    (run / "metrics.json").write_text(json.dumps({"accuracy": 0.4, "cpu_seconds": 1.0}))
+    assert b.finished(run, cfg.replace(hop=10))["accuracy"] == 0.4  # stored before settings
+
+    calls = []
+
+    def compute():
+        calls.append(1)
+        return {"accuracy": 0.7}
+
+    bfile = tmp_path / "baseline" / "biotac-seed0.json"
+    assert b.cached_baseline(bfile, cfg, compute)["accuracy"] == 0.7
+    # the model's settings do not matter to the baseline; its windows and refit do
+    assert b.cached_baseline(bfile, cfg.replace(hidden=32), compute)["accuracy"] == 0.7
+    assert len(calls) == 1
+    with pytest.raises(b.StaleRun, match=r"refits True -> False"):
+        b.cached_baseline(bfile, cfg.replace(refit="off"), compute)
+    with pytest.raises(b.StaleRun, match=r"hop 50 -> 10"):
+        b.cached_baseline(bfile, cfg.replace(hop=10), compute)
