@@ -512,6 +512,31 @@ def test_an_f_rnn_saved_before_the_input_scale_is_refused_in_one_line(runs, tmp_
     assert "\n" not in str(e.value)
 
 
+def test_an_f_rnn_resume_state_from_before_the_input_scale_is_refused(toy, tmp_path):
+    """The resume path's check of the same old F-RNN head: one line, not a key dump."""
+    import signal
+
+    from tactile.training.checkpoint import RESUME, load_resume
+
+    def stop_after_first(phase, epoch):
+        if (phase, epoch) == ("fit", 1):
+            signal.raise_signal(signal.SIGINT)
+
+    run = tmp_path / "r"
+    cfg = _cfg("f_rnn", epochs=3)
+    assert train(toy, run, cfg, progress=False, on_epoch=stop_after_first)["interrupted"]
+    saved = torch.load(run / RESUME, weights_only=True)
+    head = saved["state"]["head"]
+    scale = head.pop("scale")
+    head["norms.0.weight"], head["norms.0.bias"] = torch.ones_like(scale), 0 * scale
+    torch.save(saved, run / RESUME)
+    r = load_resume(run)
+    with pytest.raises(RecordingError, match="an F-RNN saved before its input scale replaced "
+                       "batch normalisation: train it again") as e:
+        train(toy, run, TrainConfig.from_dict(r["config"]), progress=False, resume=r["state"])
+    assert "\n" not in str(e.value)
+
+
 def test_a_granular_resume_state_from_before_per_modality_gains_is_refused(toy, tmp_path):
     """Granular models now draw one gain per window and modality: a resume state without the
     augmentation's version, with gains on, cannot continue the run it started; without gains

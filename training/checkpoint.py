@@ -20,6 +20,13 @@ CHECKPOINT_VERSION = 1
 RESUME = "resume.pt"
 RESUME_FORMAT = "tactile-resume"
 RESUME_VERSION = 1
+OLD_F_RNN = "an F-RNN saved before its input scale replaced batch normalisation: train it again"
+
+
+def old_f_rnn(state: object, prefix: str = "") -> bool:
+    """Whether ``state`` (a state dict; an F-RNN head's keys under ``prefix``) still holds the
+    batch normalisations the F-RNN's input scale replaced (:data:`OLD_F_RNN`)."""
+    return isinstance(state, dict) and f"{prefix}norms.0.weight" in state
 
 
 def _read(path: Path, what: str, hint: str) -> dict:
@@ -132,10 +139,8 @@ def load_checkpoint(run_dir: Path):
     try:
         model.load_state_dict(ck["state_dict"])
     except RuntimeError as e:  # missing, unexpected or wrongly shaped weights
-        if cfg.model == "f_rnn" and "head.norms.0.weight" in ck["state_dict"]:
-            raise RecordingError(f"{path}: an F-RNN saved before its input scale replaced batch "
-                                 "normalisation: train it again (its exported .onnx still "
-                                 "runs)") from None
+        if cfg.model == "f_rnn" and old_f_rnn(ck["state_dict"], "head."):
+            raise RecordingError(f"{path}: {OLD_F_RNN} (its exported .onnx still runs)") from None
         first = " ".join(str(e).split())[:160]
         raise RecordingError(f"{path}: checkpoint key 'state_dict' does not fit its config "
                              f"({first})") from None

@@ -59,8 +59,6 @@ def tie_gap(d: np.ndarray, x: np.ndarray, order: list[int], other: set[int]) -> 
     return float("inf")
 
 
-
-
 def divergence(d: np.ndarray, x: np.ndarray, first: list[int], second: list[int]
                ) -> tuple[float, float]:
     """Where two OMP runs parted: their selection orders ``first`` and ``second`` (-1: the run

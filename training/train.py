@@ -42,9 +42,11 @@ from tactile.training.checkpoint import (
     CHECKPOINT,
     CHECKPOINT_FORMAT,
     CHECKPOINT_VERSION,
+    OLD_F_RNN,
     RESUME,
     load_checkpoint,
     load_resume,
+    old_f_rnn,
     save_resume,
 )
 from tactile.training.config import (
@@ -574,9 +576,8 @@ def _restore(r: dict, head: nn.Module, opt, sched, gen, aug) -> dict:
         state["best_acc"] = float(r.get("best_acc", -1.0))  # absent from older resume files
         return state
     except (KeyError, TypeError, ValueError, RuntimeError, AttributeError) as e:
-        if isinstance(r.get("head"), dict) and "norms.0.weight" in r["head"]:
-            raise RecordingError(f"{RESUME}: an F-RNN saved before its input scale replaced "
-                                 "batch normalisation: train it again") from None
+        if old_f_rnn(r.get("head")):
+            raise RecordingError(f"{RESUME}: {OLD_F_RNN}") from None
         first = " ".join(str(e).split())[:120]
         raise RecordingError(f"{RESUME}: the saved state does not fit this run "
                              f"({type(e).__name__}: {first})") from None
