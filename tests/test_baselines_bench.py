@@ -209,14 +209,36 @@ def test_nothing_to_run_is_exit_2_not_an_empty_table(tmp_path, monkeypatch, caps
     assert "|" not in out and err.strip().endswith("nothing to run")
 
 
-def test_the_command_lines_settings_win_over_a_datasets_own():
+def test_the_command_lines_settings_win_over_a_datasets_own(tmp_path, monkeypatch):
     """--set hop=10 (or a candidate's hop) reaches BioTac's runs, whose own data settings
-    say hop=50; the settings the command line does not give stay."""
+    say hop=50; the settings the command line does not give stay. Checked on the config the
+    training and the baseline of a run_dataset call receive (both stand-ins here)."""
+    from tactile.training.config import TrainConfig
+
     b = _bench()
     assert b.dataset_settings("biotac") == {"hop": 50, "test": "repetition:5"}
     assert b.dataset_settings("biotac", b._keys(["hop=10", "refit=off"])) == {
         "test": "repetition:5"}
     assert b.dataset_settings("hapmat", b._keys(["hop=10"])) == {"split": "time"}
+    got = []
+
+    def fake_train(data, run, cfg, progress=True):
+        got.append(("train", cfg.hop, cfg.test))
+        run.mkdir(parents=True, exist_ok=True)
+        return {"accuracy": 0.5, "val_accuracy": 0.5, "best_epoch": 0}
+
+    def fake_baseline(takes, cfg):
+        got.append(("baseline", cfg.hop, cfg.test))
+        return {"accuracy": 0.5, "val_accuracy": 0.5, "C": 1.0, "cpu_seconds": 0.0}
+
+    monkeypatch.setattr(b.train_module, "train", fake_train)
+    monkeypatch.setattr(b, "band_logistic", fake_baseline)
+    base = b.train_module.parse_sets(["hop=10"], TrainConfig(threads=1))
+    b.run_dataset("biotac", tmp_path / "d", [], tmp_path / "given", (0,), base,
+                  given=b._keys(["hop=10"]))
+    b.run_dataset("biotac", tmp_path / "d", [], tmp_path / "own", (0,), base)
+    assert got == [("train", 10, "repetition:5"), ("baseline", 10, "repetition:5"),
+                   ("train", 50, "repetition:5"), ("baseline", 50, "repetition:5")]
 
 
 def test_a_run_or_baseline_made_with_other_settings_is_refused_not_reused(tmp_path):
