@@ -91,3 +91,24 @@ def test_the_good_checkpoint_loads(good, tmp_path):
     torch.save(ck, tmp_path / "checkpoint.pt")
     model, loaded = load_checkpoint(tmp_path)
     assert loaded["classes"] == ck["classes"] and not model.training
+
+
+def test_a_checkpoint_saved_before_the_wide_path_loads_without_it(tmp_path):
+    """Configs saved before ``wide`` existed describe a model without it (the new default,
+    on, would not fit their weights); one saved with it keeps it."""
+    data = tmp_path / "sim"
+    make_dataset(data, takes=4, textures=("non_contact", "paper"), seconds=6, seed=1)
+    for wide in (False, True):
+        run = tmp_path / f"run-{wide}"
+        train(data, run, TrainConfig(epochs=1, hidden=4, layers=1, threads=1, wide=wide),
+              progress=False)
+        ck = torch.load(run / "checkpoint.pt", weights_only=True)
+        assert any(k.startswith("head.wide.") for k in ck["state_dict"]) == wide
+        del ck["config"]["wide"]
+        torch.save(ck, run / "checkpoint.pt")
+        if wide:  # its weights do not fit a model without the path: one line, no traceback
+            with pytest.raises(RecordingError, match="'state_dict' does not fit its config"):
+                load_checkpoint(run)
+        else:
+            model, _ = load_checkpoint(run)
+            assert model.head.wide is None and not model.cfg.wide

@@ -225,3 +225,17 @@ def test_a_state_saved_before_select_existed_keeps_stopping_on_the_loss(dataset,
     del saved["config"]["select"]
     torch.save(saved, run / RESUME)
     assert TrainConfig.from_dict(load_resume(run)["config"]).select == "loss"
+
+
+def test_a_state_saved_before_the_wide_path_goes_on_without_it(dataset, tmp_path):
+    run = tmp_path / "r"
+    cfg = TrainConfig(**{**SMALL, "epochs": 3, "patience": 3, "wide": False})
+    assert train(dataset, run, cfg, progress=False, on_epoch=sigint_after("fit", 1))[
+        "interrupted"]
+    saved = torch.load(run / RESUME, weights_only=True)
+    del saved["config"]["wide"]
+    torch.save(saved, run / RESUME)
+    assert TrainConfig.from_dict(load_resume(run)["config"]).wide is False
+    assert train_main(["--resume", str(run), "--quiet"]) == 0
+    model, ck = load_checkpoint(run)
+    assert model.head.wide is None and ck["config"]["wide"] is False

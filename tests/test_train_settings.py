@@ -103,6 +103,15 @@ def test_config_errors_name_only_the_settings_involved():
     assert str(e.value) == "dropout must be in [0, 1) (got dropout=2.0)"
 
 
+
+def test_a_switch_is_set_by_on_off_true_false_1_0():
+    for value, want in (("on", True), ("True", True), ("1", True),
+                        ("off", False), ("false", False), ("0", False)):
+        assert parse_sets([f"wide={value}"], TrainConfig()).wide is want
+    with pytest.raises(ConfigError) as e:
+        parse_sets(["wide=yes"], TrainConfig())
+    assert str(e.value) == "--set wide='yes': not a valid bool"
+
 def test_a_log_file_gets_a_plain_line_per_epoch(dataset, tmp_path, capsys):
     sets = [f"--set={k}={v}" for k, v in TINY.items()]
     assert train_main([str(dataset), "--out", str(tmp_path / "r"), *sets]) == 0

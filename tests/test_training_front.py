@@ -8,7 +8,7 @@ import torch
 
 from tactile.errors import ConfigError
 from tactile.training.config import TrainConfig
-from tactile.training.model import SpectralFront
+from tactile.training.model import LSTMHead, SpectralFront
 from tactile.training.sampling import epoch_order
 
 
@@ -76,3 +76,27 @@ def test_front_settings_are_checked():
         TrainConfig(frame=60)
     with pytest.raises(ConfigError, match="epoch_windows"):
         TrainConfig(epoch_windows=-1)
+
+
+@pytest.mark.parametrize("front", ["spectral", "none"])
+def test_the_wide_path_adds_a_linear_map_of_the_mean_lstm_input(front):
+    """logits = the LSTM's last output through ``out`` + ``wide`` on the mean over steps of
+    what the LSTM reads (the front's frames, or the samples with front='none'); numpy
+    reference for the frames and the linear map."""
+    rng = np.random.default_rng(2)
+    x = rng.normal(size=(3, 50, 4))
+    torch.manual_seed(0)
+    head = LSTMHead(4, 5, hidden=6, layers=2, dropout=0.4, front=front, wide=True).eval()
+    h = torch.zeros(2, 3, 6)
+    with torch.no_grad():
+        got, _, _ = head(torch.tensor(x, dtype=torch.float32), h, h.clone())
+        w, b = head.wide.weight.double().numpy(), head.wide.bias.double().numpy()
+        head.wide.weight.zero_(), head.wide.bias.zero_()
+        deep, _, _ = head(torch.tensor(x, dtype=torch.float32), h, h.clone())
+    steps = (reference_frames(x, 20, 10) / np.sqrt(1 + head.front.norm.eps)
+             if front == "spectral" else x)
+    want = deep.double().numpy() + steps.mean(axis=1) @ w.T + b
+    np.testing.assert_allclose(got.double().numpy(), want, rtol=1e-4, atol=1e-4)
+    assert w.shape == (5, steps.shape[2]) and np.abs(steps.mean(axis=1) @ w.T).max() > 0.01
+    assert LSTMHead(4, 5, 6, 2, 0.4, front=front).wide is None  # wide=False: no such weights
+    assert TrainConfig().wide and not TrainConfig(wide=False).wide

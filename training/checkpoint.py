@@ -79,7 +79,8 @@ def check_checkpoint(ck: dict, path: Path) -> TrainConfig:
     if not isinstance(ck.get("config"), dict):
         raise bad("config", "a table of settings")
     try:
-        cfg = TrainConfig.from_dict({"front": "none", **ck["config"]})  # before fronts: none
+        # saved before fronts: none; before the wide path: without it
+        cfg = TrainConfig.from_dict({"front": "none", "wide": False, **ck["config"]})
     except TactileError as e:
         raise RecordingError(f"{path}: checkpoint key 'config': {e}") from None
     if not _names(ck.get("classes"), at_least=2):
@@ -174,6 +175,7 @@ def load_resume(run_dir: Path) -> dict:
     # a state saved before ``select`` existed stopped on the validation loss: it continues so
     # (the newer default, accuracy, would change the run half-way)
     r["config"].setdefault("select", "loss")
+    r["config"].setdefault("wide", False)  # saved before the wide path: a model without it
     if (r["config"].get("modalities") and r["config"].get("augment_gain", 0.3)
             and isinstance(r.get("state"), dict) and "augment_version" not in r["state"]):
         raise RecordingError(f"{path}: saved before granular models drew one gain per window "

@@ -161,7 +161,9 @@ class TrainConfig:
 
     Model: ``lstm`` (``layers`` x ``hidden``, ``dropout``; with ``front='spectral'`` it runs over
     frames of ``frame`` samples every ``frame_hop``: the log power of each DFT bin and the mean
-    of each feature, batch-normalised; ``none``: over the samples, as the pen paper) or
+    of each feature, batch-normalised; ``none``: over the samples, as the pen paper; ``wide``
+    (default on): a linear map of the mean over the window of what the LSTM reads is added to
+    its logits, a direct path for the window's spectrum and levels) or
     ``linear`` (a linear classifier on the log energies of the IMFs, the granular-media paper's
     baseline; needs ``emd_channels``).
     The granular-media paper's models (``docs/granular.md``) work on ``modalities``, one
@@ -208,6 +210,7 @@ class TrainConfig:
     layers: int = 2
     hidden: int = 64
     dropout: float = 0.4
+    wide: bool = True
     state: str = "window"
     carry_steps: int = 8
     epochs: int = 150

@@ -120,11 +120,12 @@ class LSTMHead(nn.Module):
     """(B, T, F) features + state (L, B, H) x 2 -> logits (B, classes) after the last step.
 
     With ``front='spectral'`` the LSTM runs over the :class:`SpectralFront`'s frames (dropout on
-    its input too), else over the samples.
+    its input too), else over the samples. With ``wide``, a linear map of the mean over the
+    steps of what the LSTM reads (before its input dropout) is added to the logits.
     """
 
     def __init__(self, n_in: int, n_classes: int, hidden: int, layers: int, dropout: float,
-                 front: str = "none", frame: int = 20, frame_hop: int = 10):
+                 front: str = "none", frame: int = 20, frame_hop: int = 10, wide: bool = False):
         super().__init__()
         self.layers, self.hidden = layers, hidden
         self.front = SpectralFront(n_in, frame, frame_hop) if front == "spectral" else None
@@ -135,12 +136,18 @@ class LSTMHead(nn.Module):
         )
         self.drop = nn.Dropout(dropout)
         self.out = nn.Linear(hidden, n_classes)
+        self.wide = nn.Linear(n_lstm, n_classes) if wide else None
 
     def forward(self, f: Tensor, h: Tensor, c: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+        x = f
         if self.front is not None:
-            f = self.in_drop(self.front(f))  # (B, T', F')
-        y, (h, c) = self.lstm(f, (h, c))  # y: (B, T, H)
-        return self.out(self.drop(y[:, -1])), h, c
+            f = self.front(f)  # (B, T', F')
+            x = self.in_drop(f)
+        y, (h, c) = self.lstm(x, (h, c))  # y: (B, T, H)
+        logits = self.out(self.drop(y[:, -1]))
+        if self.wide is not None:
+            logits = logits + self.wide(f.mean(dim=1))
+        return logits, h, c
 
 
 class LinearHead(nn.Module):
@@ -217,7 +224,7 @@ class TextureModel(Classifier):
         self.pre = Preprocess(mean, std, emd_index, cfg.emd_imfs, cfg.emd_sifts, center_index)
         if cfg.model == "lstm":
             self.head = LSTMHead(self.pre.n_features, n_classes, cfg.hidden, cfg.layers,
-                                 cfg.dropout, cfg.front, cfg.frame, cfg.frame_hop)
+                                 cfg.dropout, cfg.front, cfg.frame, cfg.frame_hop, cfg.wide)
         else:
             self.head = LinearHead(self.pre.n_channels, self.pre.n_emd, n_classes)
 

@@ -723,13 +723,16 @@ def parse_sets(pairs: list[str], base: TrainConfig) -> TrainConfig:
         try:
             if isinstance(current, tuple):
                 d[key] = [v for v in value.split(",") if v]
+            elif isinstance(current, bool):
+                d[key] = {"true": True, "on": True, "1": True,
+                          "false": False, "off": False, "0": False}[value.lower()]
             elif isinstance(current, int):
                 d[key] = int(value)
             elif isinstance(current, float):
                 d[key] = float(value)
             else:
                 d[key] = value
-        except ValueError:
+        except (ValueError, KeyError):
             raise ConfigError(f"--set {key}={value!r}: not a valid {type(current).__name__}") \
                 from None
     return TrainConfig.from_dict(d)
