@@ -1,0 +1,42 @@
+"""bench/compare_models.py: two files side by side, and one line (exit 2) for files it cannot
+compare."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+onnx = pytest.importorskip("onnx")
+from onnx import TensorProto, helper  # noqa: E402
+
+ROOT = Path(__file__).resolve().parents[1]
+SHIPPED = ROOT / "models" / "pen-exp2.onnx"
+
+
+def compare(*args: str):
+    return subprocess.run([sys.executable, str(ROOT / "bench" / "compare_models.py"), *args],
+                          capture_output=True, text=True, timeout=300)
+
+
+def test_a_file_against_itself_is_near_one():
+    r = compare(str(SHIPPED), str(SHIPPED), "--rounds", "3")
+    assert r.returncode == 0, r.stderr
+    ratio = float(r.stdout.split("B / A")[1])
+    assert 0.5 < ratio < 2.0  # the same graph: only the machine's noise between rounds
+
+
+def test_files_it_cannot_compare_are_one_line(tmp_path):
+    other = tmp_path / "other.onnx"
+    x = helper.make_tensor_value_info("y", TensorProto.FLOAT, [1, 3])
+    out = helper.make_tensor_value_info("z", TensorProto.FLOAT, [1, 3])
+    graph = helper.make_graph([helper.make_node("Identity", ["y"], ["z"])], "g", [x], [out])
+    onnx.save(helper.make_model(graph, opset_imports=[helper.make_opsetid("", 18)]), other)
+    for args, says in (((str(SHIPPED), str(other)), "take different inputs"),
+                       ((str(tmp_path / "none.onnx"), str(SHIPPED)), "none.onnx"),
+                       ((str(SHIPPED), str(SHIPPED), "--rounds", "0"), "--rounds")):
+        r = compare(*args)
+        assert r.returncode == 2 and says in r.stderr and "Traceback" not in r.stderr, r.stderr
+        assert r.stdout == ""
