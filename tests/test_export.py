@@ -381,6 +381,10 @@ def test_int8_is_smaller_and_mostly_agrees(dataset, root, capsys):
     t = report["int8"]
     assert q.stat().st_size < 0.5 * f32.stat().st_size
     assert t["label_agreement"] >= INT8_AGREEMENT
+    # the learned weights become int8; the spectral front's fixed DFT basis stays float32 (in
+    # int8 it moved the weak bins' log power enough to change 12% of a trained model's labels)
+    ops = {n.op_type for n in onnx.load(q).graph.node}
+    assert {"DynamicQuantizeLSTM", "MatMulInteger", "Conv"} <= ops and "ConvInteger" not in ops
     assert t["latency_int8"]["p50_ms"] > 0
     _, c = load_contract(q)
     assert c.quantization == "int8-dynamic" and c.parity["criterion"] == "int8"
