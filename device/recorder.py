@@ -110,8 +110,8 @@ class Recorder:
         n, self.early_samples = self.early_samples, 0
         self.early.clear()
         self.result.unrecorded += n
-        _say(f"{n} sample(s) that came before any device header are not recorded: {why}",
-             progress=True)
+        _say(f"tactile-record: {n} sample(s) that came before any device header are not "
+             f"recorded: {why}", progress=True)
 
     def _put(self, ev: Samples | Gap) -> int:
         room = self.max_samples - self.result.samples
@@ -127,8 +127,9 @@ class Recorder:
             # column can hold them; the take says that many samples are missing there
             self.unfit += len(raw)
             if self.unfit == len(raw):
-                _say(f"{len(raw)} sample(s) of {raw.shape[-1]} channels do not fit the "
-                     f"header's {width}: left out, recorded as a 'rejected' gap", progress=True)
+                _say(f"tactile-record: {len(raw)} sample(s) of {raw.shape[-1]} channels do not "
+                     f"fit the header's {width}: left out, recorded as a 'rejected' gap",
+                     progress=True)
             self.writer.gap(Gap(ev.seq + len(raw), len(raw), "rejected"))
             return 0
         self.writer.write(ev.seq, ev.t_us, raw)
@@ -185,7 +186,7 @@ def record(
         stop["flag"] = True
         rec.result.stopped_by = rec.result.stopped_by or early
     settings = LinkSettings(port, baud, auto=auto, stall_timeout=stall_timeout, poll=0.1)
-    conn = Connection(settings, decoder, stop, lambda m: _say(m, progress))
+    conn = Connection(settings, decoder, stop, lambda m: _say(f"tactile-record: {m}", progress))
     try:
         if not stop["flag"]:
             conn.open()

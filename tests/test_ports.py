@@ -275,7 +275,7 @@ def test_the_recorder_keeps_the_bytes_that_came_with_a_disconnect(tmp_path, reap
     try:
         conn, _ = srv.accept()
         with conn:  # sent once it says it opened the port: its socket:// open is over
-            assert proc.stderr.readline() == f"opened {url}\n"
+            assert proc.stderr.readline() == f"tactile-record: opened {url}\n"
             conn.sendall(PenLink(LinkConfig(texture="paper", seed=2)).produce(300))
         out, err = proc.communicate(timeout=60)
     finally:

@@ -243,10 +243,10 @@ def test_one_stall_message_per_silence(tmp_path, capsys):
     res = record("sim://?texture=paper&seed=3&speed=max&stall=0.5:4", "paper", tmp_path,
                  seconds=3.0, stall_timeout=0.3)
     err = capsys.readouterr().err
-    starts = [ln for ln in err.splitlines() if ln.startswith("no data for")]
-    ends = [ln for ln in err.splitlines() if ln.startswith("data again after")]
+    starts = [ln for ln in err.splitlines() if ln.startswith("tactile-record: no data for")]
+    ends = [ln for ln in err.splitlines() if ln.startswith("tactile-record: data again after")]
     assert len(starts) == 1 and len(ends) == 1, err
-    assert float(ends[0].split()[4]) >= 3.7, ends  # the silence lasted 4 s (wall time)
+    assert float(ends[0].split()[5]) >= 3.7, ends  # the silence lasted 4 s (wall time)
     take = read_take(res.takes[0])
     assert res.stats["gaps"] == 1 and res.stats["samples_lost"] == 400
     assert len(take.seq) == 300
@@ -273,11 +273,11 @@ def test_ctrl_c_before_any_data_is_a_stop_not_a_device_error(tmp_path, reap):
         stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True))
     for _ in range(20):  # progress lines, then the stall message after 2 s without data
         line = proc.stderr.readline()
-        if not line or line.startswith("no data for"):
+        if not line or line.startswith("tactile-record: no data for"):
             break
     proc.send_signal(signal.SIGINT)
     out, err = proc.communicate(timeout=20)
-    assert line.startswith("no data for"), line
+    assert line.startswith("tactile-record: no data for"), line
     assert proc.returncode == 0 and out == "", err
     assert err.splitlines()[-1] == "tactile-record: stopped by SIGINT before any data", err
     assert not list(tmp_path.glob("**/*.csv"))
@@ -773,7 +773,7 @@ def test_a_pen_that_never_sends_its_header_ends_with_a_count_of_what_was_not_rec
     try:
         conn, _ = srv.accept()
         with conn:
-            assert proc.stderr.readline() == f"opened {url}\n"  # its socket:// open is over
+            assert proc.stderr.readline() == f"tactile-record: opened {url}\n"  # its socket:// open is over
             conn.sendall(data)
             for line in proc.stderr:  # progress lines, each second
                 if "no device header yet: 1000 samples held" in line:

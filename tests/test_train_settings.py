@@ -110,7 +110,7 @@ def test_a_switch_is_set_by_on_off_true_false_1_0():
         assert parse_sets([f"wide={value}"], TrainConfig()).wide is want
     with pytest.raises(ConfigError) as e:
         parse_sets(["wide=yes"], TrainConfig())
-    assert str(e.value) == "--set wide='yes': not a valid bool"
+    assert str(e.value) == "--set wide='yes': not on/off, true/false or 1/0"
 
 def test_a_log_file_gets_a_plain_line_per_epoch(dataset, tmp_path, capsys):
     sets = [f"--set={k}={v}" for k, v in TINY.items()]

@@ -733,8 +733,9 @@ def parse_sets(pairs: list[str], base: TrainConfig) -> TrainConfig:
             else:
                 d[key] = value
         except (ValueError, KeyError):
-            raise ConfigError(f"--set {key}={value!r}: not a valid {type(current).__name__}") \
-                from None
+            kind = ("on/off, true/false or 1/0" if isinstance(current, bool)
+                    else f"a valid {type(current).__name__}")
+            raise ConfigError(f"--set {key}={value!r}: not {kind}") from None
     return TrainConfig.from_dict(d)
 
 
