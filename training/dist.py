@@ -106,6 +106,18 @@ class Dist:
             out.append(t.numpy())
         return tuple(out)
 
+    def sync_buffers(self, module: nn.Module) -> None:
+        """Rank 0's buffers of ``module`` (batch norm's running statistics) on every process.
+        DDP sends them at the start of each training step, so after the last step every
+        process holds statistics updated by its own share of the batch: evaluated so, the
+        processes would judge different models and could stop on different epochs."""
+        if self.world == 1:
+            return
+        for buf in module.buffers():
+            t = buf.detach().cpu().clone()
+            td.broadcast(t, src=0, group=self._cpu_group)
+            buf.data.copy_(t.to(buf.device))
+
     def slice(self, n: int) -> tuple[int, int]:
         """This process's contiguous share [lo, hi) of ``n`` rows (for :meth:`gather`)."""
         per = math.ceil(n / self.world)
