@@ -772,8 +772,8 @@ def test_a_pen_that_never_sends_its_header_ends_with_a_count_of_what_was_not_rec
          "--out", str(tmp_path)], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True))
     try:
         conn, _ = srv.accept()
-        with conn:
-            assert proc.stderr.readline() == f"tactile-record: opened {url}\n"  # its socket:// open is over
+        with conn:  # its socket:// open is over once it says so
+            assert proc.stderr.readline() == f"tactile-record: opened {url}\n"
             conn.sendall(data)
             for line in proc.stderr:  # progress lines, each second
                 if "no device header yet: 1000 samples held" in line:
