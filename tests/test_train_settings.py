@@ -282,3 +282,16 @@ def test_augment_offset_in_training_and_its_bounds(dataset, tmp_path):
         with pytest.raises(ConfigError, match=rf"augment_offset must be in \[0, 10\].*"
                                               rf"augment_offset={bad}"):
             parse_sets([f"augment_offset={bad}"], TrainConfig())
+
+
+def test_data_that_does_not_fit_is_the_only_line(dataset, tmp_path, capsys):
+    """The run's threads line comes once the data is known to fit: a bad input prints its
+    one-line error and nothing before it (exit 1)."""
+    one = tmp_path / "one"
+    make_dataset(one, takes=2, textures=("paper",), seconds=2, seed=1)
+    for args in ([str(tmp_path / "nope")], [str(one)],
+                 [str(dataset), "--set", "emd_channels=accel_q"],
+                 [str(dataset), "--set", "channels=accel_x,acel_z"]):
+        assert train_main([*args, "--out", str(tmp_path / "r")]) == 1, args
+        err = capsys.readouterr().err
+        assert err.startswith("tactile-train: error: ") and err.count("\n") == 1, (args, err)

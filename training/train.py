@@ -182,10 +182,6 @@ def train(data: Path, out: Path, cfg: TrainConfig, progress: bool = True, *,
     threads = apply_threads(resolve_threads(cfg.threads, dist.local_world))
     device = dist.device(resolve_device(cfg.device))
     dist.start(device)
-    job = f"; {dist.world} processes in all (rank 0 writes)" if dist.world > 1 else ""
-    log.info(f"threads {threads} per process ({'set' if cfg.threads else 'automatic'}; "
-             f"{usable_cpus()} usable CPUs, {dist.local_world} process(es) here); device "
-             f"{device}{job}")
     _seed(cfg.seed)
     takes = load_dataset(data)
     classes = classes_of(takes)
@@ -195,6 +191,11 @@ def train(data: Path, out: Path, cfg: TrainConfig, progress: bool = True, *,
     missing = [c for c in cfg.emd_channels if c not in channels]
     if missing:
         raise ConfigError(f"emd_channels {missing} not among the input channels {list(channels)}")
+    # said once the data is known to fit: a bad input's error is then the only line
+    job = f"; {dist.world} processes in all (rank 0 writes)" if dist.world > 1 else ""
+    log.info(f"threads {threads} per process ({'set' if cfg.threads else 'automatic'}; "
+             f"{usable_cpus()} usable CPUs, {dist.local_world} process(es) here); device "
+             f"{device}{job}")
     signals = ()
     if cfg.modalities:  # the high-rate signals as exact names, then the layout (fail early)
         signals = (resolve_signals(cfg.signals, channels) if cfg.signals
