@@ -20,6 +20,9 @@ CHECKPOINT_VERSION = 1
 RESUME = "resume.pt"
 RESUME_FORMAT = "tactile-resume"
 RESUME_VERSION = 1
+# what a saved config without these keys meant (they came later, or their default changed):
+# the model before front ends, without the wide path, stopped on the validation loss
+SAVED_BEFORE = {"front": "none", "wide": False, "select": "loss"}
 OLD_F_RNN = "an F-RNN saved before its input scale replaced batch normalisation: train it again"
 
 
@@ -79,8 +82,7 @@ def check_checkpoint(ck: dict, path: Path) -> TrainConfig:
     if not isinstance(ck.get("config"), dict):
         raise bad("config", "a table of settings")
     try:
-        # saved before fronts: none; before the wide path: without it
-        cfg = TrainConfig.from_dict({"front": "none", "wide": False, **ck["config"]})
+        cfg = TrainConfig.from_dict({**SAVED_BEFORE, **ck["config"]})
     except TactileError as e:
         raise RecordingError(f"{path}: checkpoint key 'config': {e}") from None
     if not _names(ck.get("classes"), at_least=2):
@@ -172,10 +174,9 @@ def load_resume(run_dir: Path) -> dict:
     for key, kind in (("config", dict), ("data", str), ("state", dict)):
         if not isinstance(r.get(key), kind):
             raise RecordingError(f"{path}: key {key!r}: must be a {kind.__name__}")
-    # a state saved before ``select`` existed stopped on the validation loss: it continues so
-    # (the newer default, accuracy, would change the run half-way)
-    r["config"].setdefault("select", "loss")
-    r["config"].setdefault("wide", False)  # saved before the wide path: a model without it
+    # a state saved before a key existed continues as it started (the newer default would
+    # change the run half-way)
+    r["config"] = {**SAVED_BEFORE, **r["config"]}
     if (r["config"].get("modalities") and r["config"].get("augment_gain", 0.3)
             and isinstance(r.get("state"), dict) and "augment_version" not in r["state"]):
         raise RecordingError(f"{path}: saved before granular models drew one gain per window "

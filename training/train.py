@@ -477,14 +477,13 @@ def _augment_offset(f: torch.Tensor, offset: torch.Tensor, gen: torch.Generator)
 
 
 def _validate(model, val, val_loss_fn, sched, ema, s: dict, epoch: int, bar,
-              line: str, dist: Dist | None = None) -> tuple[bool, str]:
+              line: str, dist: Dist) -> tuple[bool, str]:
     """One epoch's validation: the loss and accuracy (of the averaged weights with ``ema``),
     the schedule's step, the best weights so far; returns (stop early?, the epoch's line).
     Under torchrun every process validates rank 0's model and takes rank 0's figures, so that
     all of them keep the same best epoch and stop together."""
     head, cfg, history = model.head, model.cfg, s["history"]
-    if dist is not None:
-        dist.sync_buffers(head)
+    dist.sync_buffers(head)
     if ema is not None:  # validate (and keep) the averaged weights
         live = {k: v.clone() for k, v in head.state_dict().items()}
         head.load_state_dict(ema)
@@ -492,8 +491,7 @@ def _validate(model, val, val_loss_fn, sched, ema, s: dict, epoch: int, bar,
     val_loss = float(val_loss_fn(torch.log(torch.from_numpy(probs) + 1e-9),
                                  torch.from_numpy(val[0].y).long()))
     val_acc = float((probs.argmax(1) == val[0].y).mean())
-    if dist is not None:
-        val_loss, val_acc = (float(v) for v in dist.broadcast(np.array([val_loss, val_acc]))[0])
+    val_loss, val_acc = (float(v) for v in dist.broadcast(np.array([val_loss, val_acc]))[0])
     history["val_loss"].append(val_loss)
     history["val_acc"].append(val_acc)
     bar.set_postfix(loss=f"{history['train_loss'][-1]:.3f}", val_loss=f"{val_loss:.3f}",
