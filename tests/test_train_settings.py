@@ -130,6 +130,11 @@ def test_center_patterns_say_what_they_matched(capsys):
     err = capsys.readouterr().err
     assert err.startswith("warning: center patterns accel_*, gyro_* match none of the channels "
                           "pdc, pac_0, electrode_0: no channel is centred")
+    many = tuple(f"ele_{i:02d}" for i in range(19))  # a long list is shortened to one line
+    _log_center(log, many, ("accel_*",), [])
+    assert capsys.readouterr().err.startswith("warning: center patterns accel_* match none of the "
+                                              "channels ele_00, ele_01, ele_02, ele_03, ele_04, "
+                                              "ele_05, ... (19 in all): no channel is centred")
     _log_center(Log(progress=False), channels, ("accel_*",), [])  # warnings even when quiet
     assert "warning" in capsys.readouterr().err
     _log_center(log, channels, ("pac_*", "e*"), centered(channels, ("pac_*", "e*")))

@@ -134,7 +134,7 @@ def select(takes: list[Take], spec: str, key: str = "test") -> set[int]:
     if not chosen:
         seen = sorted({str(v) for v in have if v is not None})
         raise ConfigError(f"{key}={spec!r}: matches no take ({field} values: "
-                          f"{_names(seen, 8)})")
+                          f"{name_list(seen, 8)})")
     return chosen
 
 
@@ -151,7 +151,7 @@ def _matches(value, pattern: str) -> bool:
     return fnmatch.fnmatchcase(str(value), pattern)
 
 
-def _names(names: list[str], most: int = 12) -> str:
+def name_list(names: list[str], most: int = 12) -> str:
     """``a, b, c`` or, past ``most`` names, the first ones and how many there are in all."""
     if len(names) <= most:
         return ", ".join(names)
@@ -187,7 +187,7 @@ def split_takes(takes: list[Take], cfg: TrainConfig) -> Split:
     named_val = select(takes, cfg.val, "val") if cfg.val else None
     if named_test is not None and named_val is not None and named_test & named_val:
         both = sorted(takes[i].path.stem for i in named_test & named_val)
-        raise ConfigError(f"test={cfg.test!r} and val={cfg.val!r} both take {_names(both, 4)}")
+        raise ConfigError(f"test={cfg.test!r} and val={cfg.val!r} both take {name_list(both, 4)}")
     # the random draw, in whole groups, among the takes no selector named
     free = every - (named_test or set()) - (named_val or set())
     ids = rng.permutation(np.unique(groups[sorted(free)])) if free else np.array([], int)
@@ -210,8 +210,8 @@ def split_takes(takes: list[Take], cfg: TrainConfig) -> Split:
 
     unit = "user" if cfg.split == "user" and all("user" in t.meta for t in takes) else "take"
     description = (
-        f"{cfg.split}: test {cfg.test + ' = ' if cfg.test else ''}{_names(names(test))}; "
-        f"validation {cfg.val + ' = ' if cfg.val else ''}{_names(names(val))}; "
+        f"{cfg.split}: test {cfg.test + ' = ' if cfg.test else ''}{name_list(names(test))}; "
+        f"validation {cfg.val + ' = ' if cfg.val else ''}{name_list(names(val))}; "
         f"train the other {len(names(train))} {unit}s")
     return Split({i: whole[i] for i in sorted(train)}, {i: whole[i] for i in sorted(val)},
                  {i: whole[i] for i in sorted(test)}, description)

@@ -62,6 +62,7 @@ from tactile.training.data import (
     channel_stats,
     classes_of,
     concat,
+    name_list,
     split_windows,
 )
 from tactile.training.dist import Dist
@@ -297,8 +298,8 @@ def _log_center(log: Log, channels: tuple[str, ...], patterns: tuple[str, ...],
         log.info("center: none (no patterns)")
     elif not index:
         log.warn(f"center patterns {', '.join(patterns)} match none of the channels "
-                 f"{', '.join(channels)}: no channel is centred (set center=... to choose some, "
-                 "or center= for none)")
+                 f"{name_list(list(channels), 8)}: no channel is centred (set center=... to "
+                 "choose some, or center= for none)")
     else:
         log.info(f"center ({', '.join(patterns)}): {', '.join(channels[i] for i in index)}")
 
