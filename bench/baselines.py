@@ -581,7 +581,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--reinit", type=int, default=0, metavar="K",
                    help="with --candidate: each candidate also trained with seed + K on each "
                         "seed's split (its test and validation takes named), runs in "
-                        "OUT/NAME-reinitK/: how far the figures move with the initial weights, "
+                        "OUT/NAME-reinitK/ (baselines in OUT/baseline-reinitK/): how far the "
+                        "figures move with the initial weights, "
                         "the epochs' windows and the augmentation alone")
     args = p.parse_args(argv)
     seeds = tuple(int(s) for s in args.seeds.split(",") if s.strip())
@@ -615,7 +616,8 @@ def main(argv: list[str] | None = None) -> int:
                 grid[f"{label}, seed + {args.reinit}"] = {
                     name: run_dataset(name, *got, args.out / f"{label}-reinit{args.reinit}",
                                       seeds, cfg, args.curves, f"{label} reinit",
-                                      args.out / "baseline", args.reinit, given)
+                                      args.out / f"baseline-reinit{args.reinit}", args.reinit,
+                                      given)
                     for name, got in data.items()}
         print(grid_table(grid, seeds))
         return 0

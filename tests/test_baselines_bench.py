@@ -272,3 +272,36 @@ def test_a_run_or_baseline_made_with_other_settings_is_refused_not_reused(tmp_pa
         b.cached_baseline(bfile, cfg.replace(refit="off"), compute)
     with pytest.raises(b.StaleRun, match=r"hop 50 -> 10"):
         b.cached_baseline(bfile, cfg.replace(hop=10), compute)
+
+
+def test_a_grid_with_reinit_keeps_each_splits_baseline_apart(tmp_path, monkeypatch, capsys):
+    """--reinit trains each candidate again with seed + K on the seed's split, named: its
+    baseline has other settings (seed, named takes) and is kept in its own folder. Sharing
+    the seed's baseline file stopped the grid (exit 2) at the first reinit run."""
+    from tactile.device.recording import load_dataset
+    from tactile.device.sim_cli import make_dataset
+
+    b = _bench()
+    make_dataset(tmp_path / "d", 8, ("paper", "mouse_pad"), 1.0, seed=0)
+    takes = load_dataset(tmp_path / "d")
+    monkeypatch.setattr(b, "prepare", lambda name, out, cache: (tmp_path / "d", takes))
+    seeds = []
+
+    def fake_train(data, run, cfg, progress=True):
+        seeds.append(cfg.seed)
+        run.mkdir(parents=True, exist_ok=True)
+        return {"accuracy": 0.5, "val_accuracy": 0.5, "best_epoch": 0}
+
+    monkeypatch.setattr(b.train_module, "train", fake_train)
+    monkeypatch.setattr(b, "band_logistic", lambda takes, cfg: {
+        "accuracy": 0.4, "val_accuracy": 0.4, "C": 1.0, "cpu_seconds": 0.0})
+    out = tmp_path / "out"
+    assert b.main(["--out", str(out), "--only", "small", "--seeds", "0,1",
+                   "--candidate", "x", "--reinit", "1000"]) == 0
+    assert seeds == [0, 1, 1000, 1001]
+    kept = {p.parent.name + "/" + p.name: json.loads(p.read_text())["settings"]["seed"]
+            for p in out.glob("baseline*/*.json")}
+    assert kept == {"baseline/small-seed0.json": 0, "baseline/small-seed1.json": 1,
+                    "baseline-reinit1000/small-seed0.json": 1000,
+                    "baseline-reinit1000/small-seed1.json": 1001}
+    assert "x, seed + 1000" in capsys.readouterr().out
