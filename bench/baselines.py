@@ -18,11 +18,13 @@ Datasets (``--only``, repeatable):
 * ``hapmat``: the HapMat stick IMU (``tactile-import-hapmat``), ``split=time``.
 * ``biotac``: the BioTac BOLT recordings (5 objects, 74 trials, two fingers) as a user gets them:
   ``tactile-import-biotac ../shared/datasets/biotac-bolt/*.h5 --out CACHE`` (done once, into
-  ``--cache``, outside the repository), then trained on that folder: the importer's 88 plain
-  channels at 100 Hz, one take per trial, split by trial: the fifth repetition of every object
-  and pressure tests (``test = "repetition:5"``), one of the other four validates (drawn from
-  the seed); ``hop=50`` (windows do not overlap): a run takes about 100-160 s of CPU, where
-  the default hop (``--set hop=10``: 5x the windows) takes 2-3x that and about 4 GB of memory.
+  ``--cache``, outside the repository), then trained on that folder: pressure, vibration and
+  electrodes as plain channels at 100 Hz (:data:`BIOTAC_CHANNELS`, 84 of the importer's 88:
+  not the two temperatures of each finger), one take per trial, split by trial: the fifth
+  repetition of every object and pressure tests (``test = "repetition:5"``), one of the other
+  four validates (drawn from the seed); ``hop=50`` (windows do not overlap): a run takes about
+  100-330 s of CPU, where the default hop (``--set hop=10``: 5x the windows) takes 2-3x that
+  and about 4 GB of memory.
   Needs the ``[biotac]`` extra (h5py); skipped, saying why, without it or the files.
 
 ``--nested`` judges ``refit`` without test data: per dataset and seed the validation takes (with
@@ -72,9 +74,13 @@ README_TEXTURES = ("non_contact", "paper", "nonwoven_cloth", "plastic_folder", "
 DATASETS = ("small", "readme", "hapmat", "biotac")
 N_BANDS = 5
 CS = (0.01, 0.1, 1.0, 10.0)
+# BioTac's vibration, pressure and electrode channels (per finger 22 + 1 + 19, in the
+# importer's order), without the two temperatures
+BIOTAC_CHANNELS = tuple(f"f{k}_{name}" for k in (0, 1) for name in (
+    *(f"pac_{i:02d}" for i in range(22)), "pdc", *(f"ele_{i:02d}" for i in range(19))))
 # the data settings of each dataset (everything else: the defaults)
 SETTINGS = {"small": {}, "readme": {"hop": 25}, "hapmat": {"split": "time"},
-            "biotac": {"hop": 50, "test": "repetition:5"}}
+            "biotac": {"hop": 50, "test": "repetition:5", "channels": BIOTAC_CHANNELS}}
 CACHE = Path(os.environ.get("XDG_CACHE_HOME", Path.home() / ".cache")) / "tactile-bench"
 
 

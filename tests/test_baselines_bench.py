@@ -216,8 +216,9 @@ def test_the_command_lines_settings_win_over_a_datasets_own(tmp_path, monkeypatc
     from tactile.training.config import TrainConfig
 
     b = _bench()
-    assert b.dataset_settings("biotac") == {"hop": 50, "test": "repetition:5"}
-    assert b.dataset_settings("biotac", b._keys(["hop=10", "refit=off"])) == {
+    assert b.dataset_settings("biotac") == {"hop": 50, "test": "repetition:5",
+                                            "channels": b.BIOTAC_CHANNELS}
+    assert b.dataset_settings("biotac", b._keys(["hop=10", "refit=off", "channels=f0_pdc"])) == {
         "test": "repetition:5"}
     assert b.dataset_settings("hapmat", b._keys(["hop=10"])) == {"split": "time"}
     got = []
@@ -305,3 +306,15 @@ def test_a_grid_with_reinit_keeps_each_splits_baseline_apart(tmp_path, monkeypat
                     "baseline-reinit1000/small-seed0.json": 1000,
                     "baseline-reinit1000/small-seed1.json": 1001}
     assert "x, seed + 1000" in capsys.readouterr().out
+
+
+def test_biotac_channels_are_vibration_pressure_and_electrodes():
+    """The bench's BioTac channels are the issue's plain channels, pressure + vibration +
+    electrodes, in the importer's order: every channel of both fingers but the temperatures."""
+    pytest.importorskip("h5py", reason="the [biotac] extra (h5py) is not installed")
+    from tactile.device.biotac import channels
+
+    b = _bench()
+    every = [c.name for c in channels()]
+    assert len(every) == 88 and len(b.BIOTAC_CHANNELS) == 84
+    assert list(b.BIOTAC_CHANNELS) == [n for n in every if not n.endswith(("_tac", "_tdc"))]
