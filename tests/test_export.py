@@ -46,13 +46,16 @@ torch.set_num_threads(1)
 
 SMALL_EMD = {"emd_imfs": 2, "emd_sifts": 3, "emd_channels": ("accel_z",)}
 GRID = {  # name -> TrainConfig overrides: EMD on/off, layers 1/2, hidden 8/16, both state
-    # modes, window 50/30, and the linear head
+    # modes, window 50/30, the linear head and ensembles of two
     "lstm1": {"layers": 1},
     "lstm2-emd": {"layers": 2, **SMALL_EMD},
     "lstm1-h16-w30": {"layers": 1, "hidden": 16, "window": 30, "hop": 10},
     "carry1": {"layers": 1, "state": "carry", "hop": 50, "carry_steps": 2},
     "carry2-emd": {"layers": 2, "state": "carry", "hop": 50, "carry_steps": 2, **SMALL_EMD},
     "linear-emd": {"model": "linear", **SMALL_EMD},
+    "ensemble2": {"layers": 1, "ensemble": 2},
+    "carry2-ensemble2": {"layers": 2, "state": "carry", "hop": 50, "carry_steps": 2,
+                         "ensemble": 2},
 }
 BASE = {"epochs": 1, "hidden": 8, "threads": 1, "seed": 3}
 

@@ -100,8 +100,8 @@ def test_a_checkpoint_saved_before_the_wide_path_loads_without_it(tmp_path):
     make_dataset(data, takes=4, textures=("non_contact", "paper"), seconds=6, seed=1)
     for wide in (False, True):
         run = tmp_path / f"run-{wide}"
-        train(data, run, TrainConfig(epochs=1, hidden=4, layers=1, threads=1, wide=wide),
-              progress=False)
+        train(data, run, TrainConfig(epochs=1, hidden=4, layers=1, threads=1, wide=wide,
+                                     ensemble=1), progress=False)
         ck = torch.load(run / "checkpoint.pt", weights_only=True)
         assert any(k.startswith("head.wide.") for k in ck["state_dict"]) == wide
         del ck["config"]["wide"]
@@ -112,3 +112,27 @@ def test_a_checkpoint_saved_before_the_wide_path_loads_without_it(tmp_path):
         else:
             model, _ = load_checkpoint(run)
             assert model.head.wide is None and not model.cfg.wide
+
+
+def test_a_checkpoint_saved_before_ensembles_loads_as_one_model(tmp_path):
+    """Configs saved before ``ensemble`` existed describe one model (the default, 2, would
+    not fit their weights); a two-member checkpoint without the key is one line, and with it
+    loads as two members."""
+    data = tmp_path / "sim"
+    make_dataset(data, takes=4, textures=("non_contact", "paper"), seconds=6, seed=1)
+    for members in (1, 2):
+        run = tmp_path / f"run-{members}"
+        train(data, run, TrainConfig(epochs=1, hidden=4, layers=1, threads=1,
+                                     ensemble=members), progress=False)
+        ck = torch.load(run / "checkpoint.pt", weights_only=True)
+        assert any(k.startswith("head.members.1.") for k in ck["state_dict"]) == (members == 2)
+        model, _ = load_checkpoint(run)
+        assert model.state_shape == (members, 4)
+        del ck["config"]["ensemble"]
+        torch.save(ck, run / "checkpoint.pt")
+        if members == 2:
+            with pytest.raises(RecordingError, match="'state_dict' does not fit its config"):
+                load_checkpoint(run)
+        else:
+            model, _ = load_checkpoint(run)
+            assert model.cfg.ensemble == 1 and model.state_shape == (1, 4)

@@ -227,15 +227,18 @@ def test_a_state_saved_before_select_existed_keeps_stopping_on_the_loss(dataset,
     assert TrainConfig.from_dict(load_resume(run)["config"]).select == "loss"
 
 
-def test_a_state_saved_before_the_wide_path_goes_on_without_it(dataset, tmp_path):
+def test_a_state_saved_before_the_wide_path_and_ensembles_goes_on_as_one_plain_model(
+        dataset, tmp_path):
     run = tmp_path / "r"
-    cfg = TrainConfig(**{**SMALL, "epochs": 3, "patience": 3, "wide": False})
+    cfg = TrainConfig(**{**SMALL, "epochs": 3, "patience": 3, "wide": False, "ensemble": 1})
     assert train(dataset, run, cfg, progress=False, on_epoch=sigint_after("fit", 1))[
         "interrupted"]
     saved = torch.load(run / RESUME, weights_only=True)
-    del saved["config"]["wide"]
+    del saved["config"]["wide"], saved["config"]["ensemble"]
     torch.save(saved, run / RESUME)
-    assert TrainConfig.from_dict(load_resume(run)["config"]).wide is False
+    old = TrainConfig.from_dict(load_resume(run)["config"])
+    assert old.wide is False and old.ensemble == 1
     assert train_main(["--resume", str(run), "--quiet"]) == 0
     model, ck = load_checkpoint(run)
     assert model.head.wide is None and ck["config"]["wide"] is False
+    assert ck["config"]["ensemble"] == 1 and model.state_shape == (2, 12)

@@ -8,7 +8,7 @@ import torch
 
 from tactile.errors import ConfigError
 from tactile.training.config import TrainConfig
-from tactile.training.model import LSTMHead, SpectralFront
+from tactile.training.model import Ensemble, LSTMHead, SpectralFront, member_loss
 from tactile.training.sampling import epoch_order
 
 
@@ -100,3 +100,37 @@ def test_the_wide_path_adds_a_linear_map_of_the_mean_lstm_input(front):
     assert w.shape == (5, steps.shape[2]) and np.abs(steps.mean(axis=1) @ w.T).max() > 0.01
     assert LSTMHead(4, 5, 6, 2, 0.4, front=front).wide is None  # wide=False: no such weights
     assert TrainConfig().wide and not TrainConfig(wide=False).wide
+
+
+def test_an_ensemble_averages_its_members_probabilities_and_stacks_their_states():
+    """Eval: softmax of the ensemble's logits = the mean of the members' softmax, each member
+    run alone on its own share of the state (its layers of the stacked h, c), and the states
+    it returns stacked in member order. Training: each member's logits, (B, members, classes);
+    the loss is the sum of each member's own loss."""
+    torch.manual_seed(0)
+    members = [LSTMHead(4, 5, hidden=6, layers=2, dropout=0.4, front="spectral", wide=True)
+               for _ in range(3)]
+    ens = Ensemble(members).eval()
+    assert (ens.layers, ens.hidden) == (6, 6)
+    x = torch.randn(3, 50, 4)
+    h, c = torch.randn(6, 3, 6), torch.randn(6, 3, 6)
+    with torch.no_grad():
+        logits, h_out, c_out = ens(x, h, c)
+        alone = [m(x, h[2 * k : 2 * k + 2], c[2 * k : 2 * k + 2]) for k, m in enumerate(members)]
+    want = np.mean([torch.softmax(a[0], 1).numpy() for a in alone], axis=0)
+    np.testing.assert_allclose(torch.softmax(logits, 1).numpy(), want, rtol=1e-5, atol=1e-6)
+    np.testing.assert_array_equal(h_out.numpy(), torch.cat([a[1] for a in alone]).numpy())
+    np.testing.assert_array_equal(c_out.numpy(), torch.cat([a[2] for a in alone]).numpy())
+    assert np.abs(want - torch.softmax(alone[0][0], 1).numpy()).max() > 1e-3  # members differ
+
+    ens.train()
+    torch.manual_seed(1)
+    per_member, _, _ = ens(x, h, c)
+    assert per_member.shape == (3, 3, 5)
+    y = torch.tensor([0, 3, 4])
+    ce = torch.nn.CrossEntropyLoss()
+    want_loss = sum(float(ce(per_member[:, k], y)) for k in range(3))
+    assert float(member_loss(ce, per_member, y)) == pytest.approx(want_loss, rel=1e-6)
+    assert float(member_loss(ce, per_member[:, 0], y)) == pytest.approx(
+        float(ce(per_member[:, 0], y)), rel=1e-6)  # one model: its own loss
+    assert TrainConfig().ensemble == 1 and TrainConfig(ensemble=2).ensemble == 2

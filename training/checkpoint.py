@@ -21,8 +21,9 @@ RESUME = "resume.pt"
 RESUME_FORMAT = "tactile-resume"
 RESUME_VERSION = 1
 # what a saved config without these keys meant (they came later, or their default changed):
-# the model before front ends, without the wide path, stopped on the validation loss
-SAVED_BEFORE = {"front": "none", "wide": False, "select": "loss"}
+# the model before front ends, without the wide path, one model (no ensemble), stopped on the
+# validation loss
+SAVED_BEFORE = {"front": "none", "wide": False, "select": "loss", "ensemble": 1}
 OLD_F_RNN = "an F-RNN saved before its input scale replaced batch normalisation: train it again"
 
 

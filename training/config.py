@@ -163,7 +163,10 @@ class TrainConfig:
     frames of ``frame`` samples every ``frame_hop``: the log power of each DFT bin and the mean
     of each feature, batch-normalised; ``none``: over the samples, as the pen paper; ``wide``
     (default on): a linear map of the mean over the window of what the LSTM reads is added to
-    its logits, a direct path for the window's spectrum and levels) or
+    its logits, a direct path for the window's spectrum and levels; ``ensemble`` (default 1):
+    that many such models, each from its own initial weights, trained side by side on the same
+    batches, each on its own loss, whose probabilities are averaged: what is validated, kept
+    and exported) or
     ``linear`` (a linear classifier on the log energies of the IMFs, the granular-media paper's
     baseline; needs ``emd_channels``).
     The granular-media paper's models (``docs/granular.md``) work on ``modalities``, one
@@ -211,6 +214,7 @@ class TrainConfig:
     hidden: int = 64
     dropout: float = 0.4
     wide: bool = True
+    ensemble: int = 1
     state: str = "window"
     carry_steps: int = 8
     epochs: int = 150
@@ -261,6 +265,7 @@ class TrainConfig:
             (self.layers >= 1 and self.hidden >= 1, "layers and hidden must be >= 1",
              ("layers", "hidden")),
             (0 <= self.dropout < 1, "dropout must be in [0, 1)", ("dropout",)),
+            (self.ensemble >= 1, "ensemble must be >= 1 (1: one model)", ("ensemble",)),
             (self.epochs >= 1 and self.batch_size >= 1, "epochs and batch_size must be >= 1",
              ("epochs", "batch_size")),
             (self.lr > 0 and self.weight_decay >= 0, "lr must be > 0, weight_decay >= 0",

@@ -49,7 +49,7 @@ def predict(
     def zero(n: int) -> tuple[torch.Tensor, torch.Tensor]:
         return tuple(t.to(dev) for t in model.zero_state(n))
 
-    out = np.zeros((len(w), model.head.out.out_features), np.float32)
+    out = np.zeros((len(w), model.n_classes), np.float32)
     if model.cfg.state == "window":
         for i in range(0, len(w), batch):
             f = feats[i : i + batch].to(dev)

@@ -439,7 +439,7 @@ class GranularModel(Classifier):
     def __init__(self, cfg: TrainConfig, n_classes: int, layout: tuple[ModalityLayout, ...],
                  mean: Tensor, std: Tensor) -> None:
         super().__init__()
-        self.cfg, self.layout = cfg, tuple(layout)
+        self.cfg, self.layout, self.n_classes = cfg, tuple(layout), n_classes
         self.pre = GranularPre(layout, mean, std, cfg.window, cfg.emd_sifts, MODES[cfg.model])
         n = self.pre.n_features
         if cfg.model == "sf_rnn":

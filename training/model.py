@@ -150,6 +150,49 @@ class LSTMHead(nn.Module):
         return logits, h, c
 
 
+class Ensemble(nn.Module):
+    """``members`` heads of one kind (each an :class:`LSTMHead` of ``layers`` x ``hidden``) as
+    one head. Their states are stacked on the layer axis: h, c (members * layers, B, hidden).
+
+    In eval mode the logits are the log of the members' mean probabilities (the classifier's
+    softmax then gives that mean); in training mode each member's own logits, (B, members,
+    classes), so that each member is trained on its own loss (:func:`member_loss`).
+    """
+
+    def __init__(self, members: list[nn.Module]) -> None:
+        super().__init__()
+        self.members = nn.ModuleList(members)
+        self.layers = sum(m.layers for m in members)
+        self.hidden = members[0].hidden
+
+    def forward(self, f: Tensor, h: Tensor, c: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+        outs, hs, cs = [], [], []
+        start = 0
+        for m in self.members:
+            n = m.layers
+            logits, hk, ck = m(f, h[start : start + n], c[start : start + n])
+            outs.append(logits)
+            hs.append(hk)
+            cs.append(ck)
+            start += n
+        stacked = torch.stack(outs, 1)  # (B, members, classes)
+        if not self.training:
+            log_p = torch.log_softmax(stacked, dim=2)
+            stacked = torch.logsumexp(log_p, dim=1) - math.log(len(self.members))
+        return stacked, torch.cat(hs), torch.cat(cs)
+
+
+def member_loss(loss_fn, logits: Tensor, y: Tensor) -> Tensor:
+    """The training loss of ``logits`` (..., classes) or an ensemble's (..., members,
+    classes) against labels ``y`` (...): with members, the sum of each member's mean loss
+    (each member's gradient is what it would get alone)."""
+    if logits.dim() == y.dim() + 1:
+        return loss_fn(logits.flatten(0, -2), y.flatten())
+    members = logits.shape[-2]
+    y = y.unsqueeze(-1).expand(*y.shape, members)
+    return loss_fn(logits.flatten(0, -2), y.flatten()) * members
+
+
 class LinearHead(nn.Module):
     """Baseline: logits from the log mean energy of each IMF over the window (B, Ce*K).
 
@@ -169,11 +212,12 @@ class LinearHead(nn.Module):
 
 class Classifier(nn.Module):
     """What every model shares: ``pre`` (window -> features), ``head`` (features + state ->
-    logits + state) and ``state_shape`` (set by the subclass); the zero state, the logits and
-    ``forward(x, h, c) -> (probabilities (B, classes), h, c)``."""
+    logits + state), ``n_classes`` and ``state_shape`` (set by the subclass); the zero state,
+    the logits and ``forward(x, h, c) -> (probabilities (B, classes), h, c)``."""
 
     pre: nn.Module
     head: nn.Module
+    n_classes: int
 
     @property
     def state_shape(self) -> tuple[int, int]:
@@ -220,18 +264,21 @@ class TextureModel(Classifier):
     def __init__(self, cfg: TrainConfig, n_classes: int, mean: Tensor, std: Tensor,
                  emd_index: list[int], center_index: list[int] | None = None):
         super().__init__()
-        self.cfg = cfg
+        self.cfg, self.n_classes = cfg, n_classes
         self.pre = Preprocess(mean, std, emd_index, cfg.emd_imfs, cfg.emd_sifts, center_index)
         if cfg.model == "lstm":
-            self.head = LSTMHead(self.pre.n_features, n_classes, cfg.hidden, cfg.layers,
-                                 cfg.dropout, cfg.front, cfg.frame, cfg.frame_hop, cfg.wide)
+            heads = [LSTMHead(self.pre.n_features, n_classes, cfg.hidden, cfg.layers,
+                              cfg.dropout, cfg.front, cfg.frame, cfg.frame_hop, cfg.wide)
+                     for _ in range(cfg.ensemble)]
+            self.head = heads[0] if cfg.ensemble == 1 else Ensemble(heads)
         else:
             self.head = LinearHead(self.pre.n_channels, self.pre.n_emd, n_classes)
 
     @property
     def state_shape(self) -> tuple[int, int]:
-        """(layers, hidden) of the state tensors; (1, 1) for the linear head."""
-        if isinstance(self.head, LSTMHead):
+        """(layers, hidden) of the state tensors (an ensemble's members' layers stacked);
+        (1, 1) for the linear head."""
+        if isinstance(self.head, (LSTMHead, Ensemble)):
             return self.head.layers, self.head.hidden
         return 1, 1
 

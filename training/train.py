@@ -77,7 +77,7 @@ from tactile.training.evaluate import (
 )
 from tactile.training.granular import learn_dictionaries, pooled_stats
 from tactile.training.modality import literal_signals, resolve, resolve_signals, signals_of_takes
-from tactile.training.model import TextureModel, build_model
+from tactile.training.model import TextureModel, build_model, member_loss
 from tactile.training.sampling import epoch_order
 
 AUGMENT_VERSION = 2
@@ -149,7 +149,8 @@ class Context:
 
 class Unroll(nn.Module):
     """The head over S consecutive windows, its state carried from each to the next:
-    (B, S, T, F) features + state (L, B, H) x 2 -> logits (B, S, classes). One forward pass
+    (B, S, T, F) features + state (L, B, H) x 2 -> logits (B, S, classes) (an ensemble in
+    training mode: (B, S, members, classes)). One forward pass
     per batch, so that DistributedDataParallel sees one forward per backward."""
 
     def __init__(self, head: nn.Module) -> None:
@@ -428,8 +429,9 @@ def _train(model: TextureModel, w: Windows, f_all: torch.Tensor, n_epochs: int, 
             if offset is not None:  # then random offsets per window on the uncentred channels
                 f = _augment_offset(f, offset, aug)
             h, c = (t.to(dev) for t in model.zero_state(len(rows)))
-            logits = step(f, h, c)  # (B, S, classes): the loss of every window, state carried
-            loss = loss_fn(logits.flatten(0, 1), y_train[rows].flatten().to(dev))
+            # (B, S, classes), an ensemble's (B, S, members, classes): every window's loss
+            logits = step(f, h, c)
+            loss = member_loss(loss_fn, logits, y_train[rows].to(dev))
             opt.zero_grad()
             loss.backward()
             nn.utils.clip_grad_norm_(head.parameters(), 5.0)
