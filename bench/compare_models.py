@@ -6,8 +6,9 @@ Both files run with the runtime's options (``session_options(1)``: one thread, s
 spinning, no arena) on the same random window, in alternating rounds of 50 calls (so that a
 change in the machine's load reaches both alike); prints the median CPU time of this process
 per window of each and B / A. What an option of the model (``wide``, a hidden size, EMD
-features) costs on the board: export one run with it and one without, and compare them here.
-The two files must take the same inputs.
+features, an ensemble) costs on the board: export one run with it and one without, and
+compare them here. The two files must take the same window ``x``; their other inputs (the
+state) may differ in shape, as an ensemble's does, and each gets its own.
 """
 
 from __future__ import annotations
@@ -36,15 +37,17 @@ def main() -> int:
     except Exception as e:  # noqa: BLE001 - onnxruntime raises its own types: one line
         print(f"compare_models.py: {' '.join(str(e).split())[:200]}", file=sys.stderr)
         return 2
-    shapes = [[i.name, i.shape] for i in a.get_inputs()]
-    if shapes != [[i.name, i.shape] for i in b.get_inputs()]:
-        print(f"compare_models.py: {args.a} and {args.b} take different inputs", file=sys.stderr)
+    inputs = [{i.name: i.shape for i in s.get_inputs()} for s in (a, b)]
+    if inputs[0].keys() != inputs[1].keys() or inputs[0].get("x") != inputs[1].get("x"):
+        print(f"compare_models.py: {args.a} and {args.b} take different inputs (the same "
+              "window x and input names are needed)", file=sys.stderr)
         return 2
-    feed = feeds(a, 1)
-    for s in (a, b):
-        per_call(s, feed, 20)  # warm up
-    ta, tb = alternate(args.rounds, lambda: per_call(a, feed, 50, time.process_time),
-                       lambda: per_call(b, feed, 50, time.process_time))
+    feed_a, feed_b = feeds(a, 1), feeds(b, 1)
+    feed_b["x"] = feed_a["x"]  # the same window; each file its own state
+    per_call(a, feed_a, 20)  # warm up
+    per_call(b, feed_b, 20)
+    ta, tb = alternate(args.rounds, lambda: per_call(a, feed_a, 50, time.process_time),
+                       lambda: per_call(b, feed_b, 50, time.process_time))
     print(f"A {args.a}: {1e3 * ta:.3f} ms a window; B {args.b}: {1e3 * tb:.3f} ms; "
           f"B / A {tb / ta:.3f}")
     return 0

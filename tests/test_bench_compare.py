@@ -40,3 +40,26 @@ def test_files_it_cannot_compare_are_one_line(tmp_path):
         r = compare(*args)
         assert r.returncode == 2 and says in r.stderr and "Traceback" not in r.stderr, r.stderr
         assert r.stdout == ""
+
+
+def _graph(path: Path, x_shape: list, h_shape: list) -> str:
+    """A graph of inputs x and h (h's shape: a state's) whose output is x's sum."""
+    x = helper.make_tensor_value_info("x", TensorProto.FLOAT, x_shape)
+    h = helper.make_tensor_value_info("h", TensorProto.FLOAT, h_shape)
+    out = helper.make_tensor_value_info("p", TensorProto.FLOAT, None)
+    node = helper.make_node("ReduceSum", ["x"], ["p"], keepdims=0)
+    graph = helper.make_graph([node], "g", [x, h], [out])
+    onnx.save(helper.make_model(graph, opset_imports=[helper.make_opsetid("", 18)]), path)
+    return str(path)
+
+
+def test_states_of_other_shapes_compare_windows_must_match(tmp_path):
+    """An ensemble's state is larger than one model's: each file gets its own; the window x
+    must be the same."""
+    one = _graph(tmp_path / "one.onnx", ["batch", 50, 8], [2, "batch", 64])
+    two = _graph(tmp_path / "two.onnx", ["batch", 50, 8], [4, "batch", 64])
+    r = compare(one, two, "--rounds", "2")
+    assert r.returncode == 0 and "B / A" in r.stdout, r.stderr
+    other = _graph(tmp_path / "w30.onnx", ["batch", 30, 8], [2, "batch", 64])
+    r = compare(one, other)
+    assert r.returncode == 2 and "take different inputs" in r.stderr and r.stdout == ""

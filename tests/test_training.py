@@ -49,6 +49,8 @@ def test_config_rejects_unknown_keys_and_bad_values(tmp_path):
     with pytest.raises(ConfigError, match=r"ensemble must be >= 1 \(1: one model\) \(got "
                        r"ensemble=0\)"):
         TrainConfig(ensemble=0)
+    with pytest.raises(ConfigError, match=r"ensemble=2 needs model='lstm' \(got model='linear'"):
+        TrainConfig(ensemble=2, model="linear", emd_channels=("accel_z",))
     with pytest.raises(ConfigError, match="hop == window"):
         TrainConfig(state="carry", hop=25)
     with pytest.raises(ConfigError, match="emd_channels"):

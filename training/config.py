@@ -301,6 +301,9 @@ class TrainConfig:
             )
         if self.state == "carry" and self.model != "lstm":
             raise ConfigError("state='carry' needs model='lstm'")
+        if self.ensemble > 1 and self.model != "lstm":
+            raise ConfigError(f"ensemble={self.ensemble} needs model='lstm' (got "
+                              f"model={self.model!r})")
         if self.model == "linear" and not (self.emd_channels or self.modalities):
             raise ConfigError("model='linear' classifies EMD features: give emd_channels or "
                               "[modalities.NAME] tables")
