@@ -184,8 +184,9 @@ class Ensemble(nn.Module):
 
 def member_loss(loss_fn, logits: Tensor, y: Tensor) -> Tensor:
     """The training loss of ``logits`` (..., classes) or an ensemble's (..., members,
-    classes) against labels ``y`` (...): with members, the sum of each member's mean loss
-    (each member's gradient is what it would get alone)."""
+    classes) against labels ``y`` (...): with members, the sum of each member's mean loss, so
+    that each member's weights get the gradient of its own loss (training's norm clipping
+    still takes all members' gradients together)."""
     if logits.dim() == y.dim() + 1:
         return loss_fn(logits.flatten(0, -2), y.flatten())
     members = logits.shape[-2]
