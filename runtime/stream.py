@@ -32,7 +32,7 @@ class Label:
     label: str
     probability: float
     probabilities: dict[str, float]
-    latency_ms: float  # compute time of this window (preprocessing + model)
+    latency_ms: float  # wall time of this window's model call (preprocessing + model)
     smoothed: str | None = None  # label after the optional smoother
 
     def to_dict(self) -> dict:
