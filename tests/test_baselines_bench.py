@@ -255,6 +255,17 @@ def test_a_run_or_baseline_made_with_other_settings_is_refused_not_reused(tmp_pa
     assert b.finished(run, cfg)["accuracy"] == 0.5
     with pytest.raises(b.StaleRun, match=r"hop 50 -> 10"):
         b.finished(run, cfg.replace(hop=10))
+    # stored before the ensemble key: one model, as now; before the wide key: not the default
+    m = json.loads((run / "metrics.json").read_text())
+    del m["bench_settings"]["ensemble"]
+    (run / "metrics.json").write_text(json.dumps(m))
+    assert b.finished(run, cfg)["accuracy"] == 0.5
+    with pytest.raises(b.StaleRun, match=r"ensemble 1 -> 2"):
+        b.finished(run, cfg.replace(ensemble=2))
+    del m["bench_settings"]["wide"]
+    (run / "metrics.json").write_text(json.dumps(m))
+    with pytest.raises(b.StaleRun, match=r"wide False -> True"):
+        b.finished(run, cfg)
     (run / "metrics.json").write_text(json.dumps({"accuracy": 0.4, "cpu_seconds": 1.0}))
     assert b.finished(run, cfg.replace(hop=10))["accuracy"] == 0.4  # stored before settings
 
@@ -262,13 +273,18 @@ def test_a_run_or_baseline_made_with_other_settings_is_refused_not_reused(tmp_pa
 
     def compute():
         calls.append(1)
-        return {"accuracy": 0.7}
+        return {"accuracy": 0.7, "take_accuracy": 0.8}
 
     bfile = tmp_path / "baseline" / "biotac-seed0.json"
     assert b.cached_baseline(bfile, cfg, compute)["accuracy"] == 0.7
     # the model's settings do not matter to the baseline; its windows and refit do
     assert b.cached_baseline(bfile, cfg.replace(hidden=32), compute)["accuracy"] == 0.7
     assert len(calls) == 1
+    # stored before the vote per take was: computed again (the table prints it)
+    kept = json.loads(bfile.read_text())
+    del kept["take_accuracy"]
+    bfile.write_text(json.dumps(kept))
+    assert b.cached_baseline(bfile, cfg, compute)["take_accuracy"] == 0.8 and len(calls) == 2
     with pytest.raises(b.StaleRun, match=r"refits True -> False"):
         b.cached_baseline(bfile, cfg.replace(refit="off"), compute)
     with pytest.raises(b.StaleRun, match=r"hop 50 -> 10"):
@@ -318,3 +334,37 @@ def test_biotac_channels_are_vibration_pressure_and_electrodes():
     every = [c.name for c in channels()]
     assert len(every) == 88 and len(b.BIOTAC_CHANNELS) == 84
     assert list(b.BIOTAC_CHANNELS) == [n for n in every if not n.endswith(("_tac", "_tdc"))]
+
+
+def test_the_baselines_vote_per_take_is_the_models_rule(tmp_path, monkeypatch):
+    """The baseline's majority vote per take, beside its window accuracy, is tactile-eval's
+    per_take on the test windows and the baseline's probabilities (columns in class order:
+    their argmax gives the window accuracy it reports); each take's vote is the most common
+    window label there, counted here by hand."""
+    pytest.importorskip("sklearn", reason="the [train] extra (scikit-learn) is not installed")
+    from tactile.device.recording import load_dataset
+    from tactile.device.sim_cli import make_dataset
+    from tactile.training.config import TrainConfig
+
+    b = _bench()
+    make_dataset(tmp_path / "d", 6, ("paper", "non_contact", "mouse_pad"), 6.0, seed=0)
+    takes = load_dataset(tmp_path / "d")
+    seen = {}
+    real = b.per_take
+
+    def spy(w, probs, names):
+        seen.update(w=w, probs=probs, names=names, out=real(w, probs, names))
+        return seen["out"]
+
+    monkeypatch.setattr(b, "per_take", spy)
+    r = b.band_logistic(takes, TrainConfig(seed=1, threads=1))
+    w, probs = seen["w"], seen["probs"]
+    assert seen["names"] == [t.path.stem for t in takes]
+    np.testing.assert_allclose(probs.sum(1), 1.0, atol=1e-9)
+    assert r["accuracy"] == pytest.approx(float((probs.argmax(1) == w.y).mean()))
+    right = []
+    for t in np.unique(w.take):
+        counts = np.bincount(probs[w.take == t].argmax(1), minlength=probs.shape[1])
+        assert seen["out"]["per_take"][takes[t].path.stem]["vote"] == counts.argmax()
+        right.append(counts.argmax() == w.y[w.take == t][0])
+    assert r["take_accuracy"] == pytest.approx(np.mean(right)) and len(right) >= 3
