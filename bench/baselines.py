@@ -5,10 +5,10 @@ and seed; prints one markdown table (mean and spread over the seeds) for docs/re
     python bench/baselines.py --out runs/baselines --only small --seeds 0
     python bench/baselines.py --out runs/nested --nested   # refit off / on, validation as test
 
-Exit status: 0 when the table is printed, 2 when every dataset asked for is skipped (each says
-why) or when a run or baseline in OUT was made with other settings (it says which; finished
-runs and baselines are reused, so other settings need another OUT), 130 on Ctrl-C (finished
-runs are kept).
+Exit status: 0 when the table is printed, 1 for a bad argument or setting (one line, before
+any dataset is made), 2 when every dataset asked for is skipped (each says why) or when a run
+or baseline in OUT was made with other settings (it says which; finished runs and baselines
+are reused, so other settings need another OUT), 130 on Ctrl-C (finished runs are kept).
 
 Datasets (``--only``, repeatable):
 
@@ -46,7 +46,6 @@ majority vote per test take (``tactile-eval``'s ``per_take``), what trial-based 
 
 from __future__ import annotations
 
-import argparse
 import json
 import os
 import re
@@ -59,11 +58,13 @@ from pathlib import Path
 
 import numpy as np
 
+from tactile.cli import Parser
 from tactile.device.decoder import Gap
 from tactile.device.hapmat import import_hapmat
 from tactile.device.recording import Take, TakeWriter, load_dataset
 from tactile.device.sim_cli import make_dataset
 from tactile.device.simulator import TEXTURES
+from tactile.errors import ConfigError
 from tactile.training import train as train_module
 from tactile.training.checkpoint import SAVED_BEFORE
 from tactile.training.config import TrainConfig
@@ -185,7 +186,7 @@ def prepare(name: str, out: Path, cache: Path = CACHE) -> tuple[Path, list[Take]
         make_dataset(data, 24, README_TEXTURES, 60.0, seed=0)
     elif name == "hapmat" and not data.exists():
         if not HAPMAT.exists():
-            return f"no {HAPMAT.name} beside the repository"
+            return f"no {HAPMAT.name} in {HAPMAT.parent}"
         import_hapmat(HAPMAT, data)
     elif name == "biotac":
         try:
@@ -193,7 +194,7 @@ def prepare(name: str, out: Path, cache: Path = CACHE) -> tuple[Path, list[Take]
         except ImportError:
             return "h5py is not installed (pip install '.[biotac]')"
         if not list(BIOTAC.glob("*.h5")):
-            return "no BioTac .h5 files beside the repository"
+            return f"no BioTac .h5 files in {BIOTAC}"
         data = import_biotac_cached(cache)
     return data, load_dataset(data)
 
@@ -569,7 +570,7 @@ def grid_table(grid: dict, seeds: tuple[int, ...]) -> str:
 
 
 def main(argv: list[str] | None = None) -> int:
-    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    p = Parser(prog="baselines.py", description=__doc__.split("\n\n")[0])
     p.add_argument("--out", type=Path, required=True, help="folder for datasets and runs")
     p.add_argument("--only", choices=DATASETS, action="append", help="one dataset (repeatable)")
     p.add_argument("--seeds", default="0,1,2", help="comma-separated seeds (default 0,1,2)")
@@ -601,8 +602,18 @@ def main(argv: list[str] | None = None) -> int:
                         "figures move with the initial weights, "
                         "the epochs' windows and the augmentation alone")
     args = p.parse_args(argv)
-    seeds = tuple(int(s) for s in args.seeds.split(",") if s.strip())
-    base = train_module.parse_sets(args.set, TrainConfig(threads=1))
+    try:
+        seeds = tuple(int(s) for s in args.seeds.split(",") if s.strip())
+    except ValueError:
+        p.error(f"--seeds {args.seeds!r}: not comma-separated whole numbers")
+    if not seeds:
+        p.error("--seeds: give at least one seed")
+    try:  # every setting checked before any dataset is made or imported
+        base = train_module.parse_sets(args.set, TrainConfig(threads=1))
+        candidates = [(label, train_module.parse_sets(sets, base), sets)
+                      for label, *sets in args.candidate or []]
+    except ConfigError as e:
+        p.error(str(e))
     data = {}
     for name in args.only or DATASETS:
         got = prepare(name, args.out, args.cache)
@@ -611,7 +622,8 @@ def main(argv: list[str] | None = None) -> int:
             continue
         data[name] = got
     if not data:
-        print("baselines.py: every dataset was skipped (above): nothing to run", file=sys.stderr)
+        print("baselines.py: every dataset was skipped (the lines above, on stdout): nothing "
+              "to run", file=sys.stderr)
         return 2
     if args.nested:
         rows = [r for name, (_, takes) in data.items()
@@ -621,8 +633,7 @@ def main(argv: list[str] | None = None) -> int:
         return 0
     if args.candidate:
         grid = {}
-        for label, *sets in args.candidate:
-            cfg = train_module.parse_sets(sets, base)
+        for label, cfg, sets in candidates:
             given = _keys(args.set) | _keys(sets)
             grid[label] = {name: run_dataset(name, *got, args.out / label, seeds, cfg,
                                              args.curves, label, args.out / "baseline",

@@ -17,6 +17,7 @@ and runs one window through it; ``--run`` and ``--data`` need the extra.
 from __future__ import annotations
 
 import argparse
+import json
 import sys
 from pathlib import Path
 from typing import TYPE_CHECKING
@@ -90,7 +91,7 @@ def describe(path: Path, c: ModelContract, opset: int | None = OPSET) -> str:
         f"  classes   {', '.join(c.classes)}",
         f"  channels  {', '.join(f'{n} [{u}]' for n, u in zip(c.channels, c.units))}",
         f"  window    {c.window} samples, hop {c.hop}, {c.sample_rate_hz:g} Hz; "
-        f"state {c.state_mode}, {c.model} ({c.state_layers} x {c.state_hidden})",
+        f"state {c.state_mode}, {c.model} ({_state_text(c)})",
         *_granular_lines(c, emd),
         f"  exported  parity {'passed' if c.parity.get('passed') else 'FAILED'} "
         f"(max |dp| {c.parity.get('max_abs_prob_diff')}{_excused(c.parity)})",
@@ -135,6 +136,18 @@ def _granular_lines(c: ModelContract, emd) -> list[str]:
 def _fmt(value) -> str:
     """A recorded figure for people: four decimals if it is a number."""
     return f"{value:.4f}" if isinstance(value, float) else str(value)
+
+
+def _state_text(c: ModelContract) -> str:
+    """``layers x hidden``, or for an ensemble (its training config says how many members)
+    ``N members x (layers x hidden)``."""
+    try:
+        members = int(json.loads(c.extra.get("training_config", "{}")).get("ensemble", 1))
+    except (ValueError, TypeError, AttributeError):
+        members = 1
+    if members > 1 and c.state_layers % members == 0:
+        return f"{members} members x ({c.state_layers // members} x {c.state_hidden})"
+    return f"{c.state_layers} x {c.state_hidden}"
 
 
 def _recorded(c: ModelContract) -> str:

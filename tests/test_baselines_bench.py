@@ -205,7 +205,7 @@ def test_nothing_to_run_is_exit_2_not_an_empty_table(tmp_path, monkeypatch, caps
     monkeypatch.setattr(baselines, "HAPMAT", tmp_path / "absent.npz")
     assert baselines.main(["--out", str(tmp_path / "out"), "--only", "hapmat"]) == 2
     out, err = capsys.readouterr()
-    assert "hapmat: skipped, no absent.npz beside the repository" in out
+    assert f"hapmat: skipped, no absent.npz in {tmp_path} -->" in out
     assert "|" not in out and err.strip().endswith("nothing to run")
 
 
@@ -368,3 +368,19 @@ def test_the_baselines_vote_per_take_is_the_models_rule(tmp_path, monkeypatch):
         assert seen["out"]["per_take"][takes[t].path.stem]["vote"] == counts.argmax()
         right.append(counts.argmax() == w.y[w.take == t][0])
     assert r["take_accuracy"] == pytest.approx(np.mean(right)) and len(right) >= 3
+
+
+def test_bad_arguments_are_one_line_before_any_dataset_is_made(tmp_path, monkeypatch, capsys):
+    """--seeds that are not numbers, a bad --set or a candidate's bad setting: one line on
+    stderr, exit 1, and no dataset prepared (a wrong setting must not wait for an import)."""
+    b = _bench()
+    monkeypatch.setattr(b, "prepare", lambda *a: pytest.fail("prepared a dataset"))
+    for args, says in ((["--seeds", "x"], "--seeds 'x': not comma-separated whole numbers"),
+                       (["--seeds", ","], "--seeds: give at least one seed"),
+                       (["--set", "ensemble=0"], "ensemble must be >= 1"),
+                       (["--candidate", "c", "hop=0"], "hop must be >= 1")):
+        with pytest.raises(SystemExit) as e:
+            b.main(["--out", str(tmp_path / "o"), "--only", "small", *args])
+        err = capsys.readouterr().err
+        assert e.value.code == 1 and err.count("\n") == 1 and says in err, err
+        assert "Traceback" not in err

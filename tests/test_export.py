@@ -609,3 +609,17 @@ def test_parity_windows_are_a_stratified_seeded_sample(block):
         assert (np.diff(idx[r]) == 1).all() and len({i // 30 for i in idx[r]}) == 1
     assert np.array_equal(stratified(p, 256, block).x, q.x)
     assert np.array_equal(p.y[idx], q.y) and np.array_equal(p.take[idx], q.take)
+
+
+def test_check_describes_an_ensemble_by_its_members(dataset, root):
+    """tactile-check's window line: an ensemble's state rows are its members' layers, said
+    as members x (layers x hidden), not as one deeper LSTM."""
+    from tactile.contract import ModelContract
+    from tactile.export.check import describe
+
+    for name, want in (("ensemble2", "lstm (2 members x (1 x 8))"),
+                       ("carry2-ensemble2", "lstm (2 members x (2 x 8))"),
+                       ("lstm1", "lstm (1 x 8)")):
+        _, out, _, _, _ = _build(name, GRID[name], dataset, root)
+        meta = {p.key: p.value for p in onnx.load(out).metadata_props}
+        assert want in describe(out, ModelContract.from_metadata(meta), None)

@@ -84,6 +84,12 @@ def test_not_a_dict_and_not_a_checkpoint(tmp_path):
     path.write_bytes(b"not a zip")
     with pytest.raises(RecordingError, match="not a readable checkpoint"):
         load_checkpoint(path)
+    torch.save({"config": object()}, path)  # a pickled object: refused, never unpickled
+    with pytest.raises(RecordingError) as e:
+        load_checkpoint(path)
+    assert str(e.value) == (f"{path}: not a readable checkpoint (it holds objects other than "
+                            "tensors and plain data, which are not loaded)")
+    assert "weights_only" not in str(e.value)
 
 
 def test_the_good_checkpoint_loads(good, tmp_path):

@@ -300,3 +300,17 @@ def test_data_that_does_not_fit_is_the_only_line(dataset, tmp_path, capsys):
         assert train_main([*args, "--out", str(tmp_path / "r")]) == 1, args
         err = capsys.readouterr().err
         assert err.startswith("tactile-train: error: ") and err.count("\n") == 1, (args, err)
+
+
+def test_an_ensembles_train_loss_is_its_members_mean(dataset, tmp_path, capsys):
+    """The printed (and plotted) train loss of ensemble=2 is the members' mean, on the scale
+    of one model's (their sum trains them: each member gets its own loss's gradient). Two
+    models from other initial weights differ a little; the sum would be twice the size."""
+    losses = {}
+    for n in (1, 2):
+        sets = [f"--set={k}={v}" for k, v in {**TINY, "ensemble": n}.items()]
+        assert train_main([str(dataset), "--out", str(tmp_path / f"r{n}"), *sets]) == 0
+        first = next(ln for ln in capsys.readouterr().err.splitlines()
+                     if ln.startswith("fit epoch 1/"))
+        losses[n] = float(re.search(r"train loss ([0-9.]+)", first).group(1))
+    assert 0.75 < losses[2] / losses[1] < 1.33, losses

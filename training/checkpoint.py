@@ -39,8 +39,10 @@ def _read(path: Path, what: str, hint: str) -> dict:
     try:
         ck = torch.load(path, weights_only=True, map_location="cpu")
     except Exception as e:  # noqa: BLE001  (any unpickling failure means "not a checkpoint")
-        raise RecordingError(f"{path}: not a readable {what} ({str(e).splitlines()[0]})") \
-            from None
+        why = (str(e).splitlines() or [type(e).__name__])[0]
+        if "weights only load failed" in why.lower():  # not torch's advice to unpickle it
+            why = "it holds objects other than tensors and plain data, which are not loaded"
+        raise RecordingError(f"{path}: not a readable {what} ({why})") from None
     if not isinstance(ck, dict):
         raise RecordingError(f"{path}: not a tactile {what} (a {type(ck).__name__})")
     return ck

@@ -358,7 +358,8 @@ def _fit(model: TextureModel, parts: dict, feats: dict, ctx: Context,
         epochs = history["best_epoch"] + 1
         ctx.fit_history, ctx.fit_best = history, copy.deepcopy(model.head.state_dict())
         if resume is None or resume["phase"] == "fit":
-            ctx.log.info(f"refit on training + validation windows for {epochs} epochs")
+            ctx.log.info(f"refit on training + validation windows for {epochs} epoch"
+                         f"{'s' if epochs != 1 else ''}")
             torch.manual_seed(cfg.seed)
             for m in model.head.modules():
                 if m is not model.head and hasattr(m, "reset_parameters"):
@@ -441,7 +442,7 @@ def _train(model: TextureModel, w: Windows, f_all: torch.Tensor, n_epochs: int, 
                     for k, v in head.state_dict().items():
                         if v.is_floating_point():  # not a step counter (batch norm's)
                             ema[k].mul_(cfg.ema).add_(v, alpha=1 - cfg.ema)
-            total += float(loss.detach()) * len(rows)
+            total += float(loss.detach()) / cfg.ensemble * len(rows)  # members' mean
             count += len(rows)
         total, count = dist.sum(total, count)
         history["train_loss"].append(total / count)
