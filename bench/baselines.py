@@ -23,8 +23,8 @@ Datasets (``--only``, repeatable):
   not the two temperatures of each finger), one take per trial, split by trial: the fifth
   repetition of every object and pressure tests (``test = "repetition:5"``), one of the other
   four validates (drawn from the seed); ``hop=50`` (windows do not overlap): a run takes about
-  100-330 s of CPU, where the default hop (``--set hop=10``: 5x the windows) takes 2-3x that
-  and about 4 GB of memory.
+  120-330 s of CPU; the default hop (``--set hop=10``: 5x the windows) took 185-285 s a run
+  without the refit, against about 150 s at ``hop=50``, and about 4 GB of memory.
   Needs the ``[biotac]`` extra (h5py); skipped, saying why, without it or the files.
 
 ``--nested`` judges ``refit`` without test data: per dataset and seed the validation takes (with
