@@ -126,7 +126,8 @@ def test_ctrl_c_in_the_command_exits_130_without_a_traceback_and_resume_finishes
     assert json.loads((run / "metrics.json").read_text())["interrupted"] is True
     # the folder holds a run: a new training refuses it, --resume continues it
     assert train_main([str(dataset), "--out", str(run), "--quiet"]) == 1
-    assert "holds a run already" in capsys.readouterr().err
+    assert f"holds a run already (checkpoint.pt): choose another --out or add --force to " \
+        f"overwrite it, or --resume {run} to continue it" in capsys.readouterr().err
     assert train_main(["--resume", str(run), "--set", "hidden=3"]) == 1
     assert "own settings" in capsys.readouterr().err
     assert train_main(["--resume", str(run), "--quiet"]) == 0
@@ -157,7 +158,9 @@ def test_force_overwrites_a_run(dataset, tmp_path, capsys):
     first = (run / "checkpoint.pt").read_bytes()
     again = [str(dataset), "--out", str(run), "--quiet", *sets, "--set", "seed=5"]
     assert train_main(again) == 1
-    assert "holds a run already (checkpoint.pt)" in capsys.readouterr().err
+    err = capsys.readouterr().err  # finished: no resume to offer
+    assert "holds a run already (checkpoint.pt)" in err and "--resume" not in err
+    assert "(it finished: nothing to resume)" in err
     assert (run / "checkpoint.pt").read_bytes() == first  # untouched
     assert train_main([*again, "--force"]) == 0
     assert torch.load(run / "checkpoint.pt", weights_only=True)["config"]["seed"] == 5

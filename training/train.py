@@ -768,8 +768,10 @@ def _main(args: argparse.Namespace) -> int:
         data, out = args.data, args.out
         held = [f for f in RUN_FILES if (out / f).exists()]
         if held and not args.force:
-            raise ConfigError(f"{out}: holds a run already ({held[0]}): choose another --out, "
-                              f"add --force to overwrite it, or --resume {out} to continue it")
+            more = (f", or --resume {out} to continue it" if (out / RESUME).exists()
+                    else " (it finished: nothing to resume)")
+            raise ConfigError(f"{out}: holds a run already ({held[0]}): choose another --out "
+                              f"or add --force to overwrite it{more}")
         if args.force:
             (out / RESUME).unlink(missing_ok=True)
     try:
