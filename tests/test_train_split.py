@@ -41,7 +41,7 @@ def test_named_test_users_and_trials(takes):
     assert {takes[i].meta["user"] for i in s.test} == {"alice", "bob"}
     assert len(test) == 4 and not (test & train or test & val or train & val)
     assert val and train and len(train | val | test) == len(takes)
-    assert "test user:alice,bob = alice, bob;" in s.description
+    assert "test users alice, bob (user:alice,bob);" in s.description
     s = split_takes(takes, TrainConfig(test="trial:41-44", val="trial:45,46", seed=1))
     assert sorted(takes[i].meta["trial"] for i in s.test) == [41, 42, 43, 44]
     assert sorted(takes[i].meta["trial"] for i in s.val) == [45, 46]
@@ -64,9 +64,9 @@ def test_only_the_validation_named_the_test_drawn(takes):
 def test_the_split_line_names_users_not_indices(takes):
     s = split_takes(takes, TrainConfig(seed=0))
     tested = sorted({takes[i].meta["user"] for i in s.test})
-    assert f"test {', '.join(tested)};" in s.description
+    assert f"test users {', '.join(tested)};" in s.description
     s = split_takes(takes, TrainConfig(test="user:trial12"))
-    assert "test user:trial12 = trial12;" in s.description and "[" not in s.description
+    assert "test users trial12 (user:trial12);" in s.description and "[" not in s.description
 
 
 @pytest.mark.parametrize("spec,message", [

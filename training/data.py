@@ -209,9 +209,12 @@ def split_takes(takes: list[Take], cfg: TrainConfig) -> Split:
         return sorted({group_names[groups[i]] for i in part})
 
     unit = "user" if cfg.split == "user" and all("user" in t.meta for t in takes) else "take"
+    def named(spec: str) -> str:
+        return f" ({spec})" if spec else ""
+
     description = (
-        f"{cfg.split}: test {cfg.test + ' = ' if cfg.test else ''}{name_list(names(test))}; "
-        f"validation {cfg.val + ' = ' if cfg.val else ''}{name_list(names(val))}; "
+        f"{cfg.split}: test {unit}s {name_list(names(test))}{named(cfg.test)}; "
+        f"validation {unit}s {name_list(names(val))}{named(cfg.val)}; "
         f"train the other {len(names(train))} {unit}s")
     return Split({i: whole[i] for i in sorted(train)}, {i: whole[i] for i in sorted(val)},
                  {i: whole[i] for i in sorted(test)}, description)
