@@ -166,15 +166,9 @@ class Ensemble(nn.Module):
         self.hidden = members[0].hidden
 
     def forward(self, f: Tensor, h: Tensor, c: Tensor) -> tuple[Tensor, Tensor, Tensor]:
-        outs, hs, cs = [], [], []
-        start = 0
-        for m in self.members:
-            n = m.layers
-            logits, hk, ck = m(f, h[start : start + n], c[start : start + n])
-            outs.append(logits)
-            hs.append(hk)
-            cs.append(ck)
-            start += n
+        sizes = [m.layers for m in self.members]
+        outs, hs, cs = zip(*(m(f, hk, ck) for m, hk, ck in
+                             zip(self.members, h.split(sizes), c.split(sizes), strict=True)))
         stacked = torch.stack(outs, 1)  # (B, members, classes)
         if not self.training:
             log_p = torch.log_softmax(stacked, dim=2)
