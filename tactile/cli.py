@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import functools
 import importlib
 import math
 import os
@@ -107,97 +108,98 @@ def float_in(low: float, high: float = math.inf, low_open: bool = True,
 _EXTRA_OF = {"torch": "train", "onnx": "train", "onnxscript": "train", "tqdm": "train",
              "matplotlib": "train", "sklearn": "train", "h5py": "biotac"}
 
-
-def _with_extra(module: str, prog: str) -> Callable[[], int]:
-    """An entry point that imports ``module`` only when run, so that a command whose
-    dependencies are not installed (the board installs the runtime's only) says which extra
-    it needs instead of showing an import traceback."""
-
-    def main() -> int:
-        try:
-            mod = importlib.import_module(module)
-        except ModuleNotFoundError as e:
-            top = (e.name or "").split(".")[0]
-            if top not in _EXTRA_OF:
-                raise
-            extra = _EXTRA_OF[top]
-            print(f"{prog}: error: needs the [{extra}] extra (no module named {top!r}): "
-                  f"pip install 'tactile-pen[{extra}]'", file=sys.stderr)
-            return EXIT_USAGE
-        return mod.main()
-
-    return main
-
-
-_start = {"guarded": False, "signal": None}  # see _guarded_start() and started()
+_start = {"guarded": False, "signal": None}  # see command(guarded=True) and started()
 
 
 def started() -> str | None:
     """Called by a long-running command just before it installs its own SIGINT/SIGTERM
     handlers. Returns the name of a signal that arrived while it was starting under
-    :func:`_guarded_start` (the command then stops at once, cleanly), else None. From here on
-    the start-up handlers ignore signals: one that still reaches them (after a library call
+    ``command(guarded=True)`` (the command then stops at once, cleanly), else None. From here
+    on the start-up handlers ignore signals: one that still reaches them (after a library call
     put the previous handlers back, while the summary is printed) finds the command finishing
     anyway."""
     _start["guarded"] = False
     return _start["signal"]
 
 
-def _guarded_start(module: str) -> Callable[[], int]:
-    """An entry point for the long-running commands (``tactile-run``, ``tactile-record``): a SIGINT
-    or SIGTERM that arrives while the command starts (importing numpy and onnxruntime,
-    loading the model: 0.1-0.2 s on the development VM) is remembered, and the command
-    stops cleanly as soon as it has started (:func:`started`), instead of dying with a
-    ``KeyboardInterrupt`` traceback (SIGINT) or without a word (SIGTERM). The handlers only
-    take note: an exception raised from a handler while a C extension initialises becomes
-    onnxruntime's ``ImportError: initialization failed``. A second signal while starting
-    ends the process at once, by that signal (a start stuck on a slow disk can still be
-    interrupted)."""
+def _guard_start() -> None:
+    """Install the start-up handlers of ``command(guarded=True)``: a SIGINT or SIGTERM that
+    arrives while the command starts (importing numpy and onnxruntime, loading the model:
+    0.1-0.2 s on the development VM) is remembered, and the command stops cleanly as soon as
+    it has started (:func:`started`), instead of dying with a ``KeyboardInterrupt`` traceback
+    (SIGINT) or without a word (SIGTERM). The handlers only take note: an exception raised
+    from a handler while a C extension initialises becomes onnxruntime's ``ImportError:
+    initialization failed``. A second signal while starting ends the process at once, by that
+    signal (a start stuck on a slow disk can still be interrupted)."""
 
-    def main() -> int:
-        def note(signum, frame):
-            if not _start["guarded"]:
-                return
-            if _start["signal"] is None:
-                _start["signal"] = signal.Signals(signum).name
-            else:  # a second one: the start is stuck, or the user insists: die by it at once
-                signal.signal(signum, signal.SIG_DFL)
-                os.kill(os.getpid(), signum)
+    def note(signum, frame):
+        if not _start["guarded"]:
+            return
+        if _start["signal"] is None:
+            _start["signal"] = signal.Signals(signum).name
+        else:  # a second one: the start is stuck, or the user insists: die by it at once
+            signal.signal(signum, signal.SIG_DFL)
+            os.kill(os.getpid(), signum)
 
-        _start["guarded"] = True
-        for sig in (signal.SIGINT, signal.SIGTERM):
-            signal.signal(sig, note)
-        return importlib.import_module(module).main()
-
-    return main
+    _start["guarded"] = True
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        signal.signal(sig, note)
 
 
-run_main = _guarded_start("tactile.runtime.cli")
-record_main = _guarded_start("tactile.device.recorder")
-monitor_main = _guarded_start("tactile.runtime.monitor")
+def command(prog: str, *, guarded: bool = False, interruptible: bool = False
+            ) -> Callable[[Callable[..., int]], Callable[..., int]]:
+    """Decorate a command's ``main(argv=None)``, the function ``pyproject.toml`` names.
+
+    A command module imports only the standard library and this module at its top; its
+    ``main`` imports the library it drives. So a command whose optional dependencies are not
+    installed (a board installs the runtime's only) says in one line which extra it needs
+    instead of showing an import traceback. ``guarded``: the long-running commands
+    (``tactile-run``, ``tactile-record``, ``tactile-monitor``) note a signal that arrives while
+    they start (:func:`_guard_start`). ``interruptible``: a Ctrl-C that the command does not
+    handle itself (while torch imports, say) ends it with one line and exit 130, the shell's
+    code for SIGINT, not a traceback."""
+
+    def wrap(main: Callable[..., int]) -> Callable[..., int]:
+        @functools.wraps(main)
+        def entry(argv: list[str] | None = None) -> int:
+            if guarded:
+                _guard_start()
+            try:
+                return main(argv)
+            except ModuleNotFoundError as e:
+                top = (e.name or "").split(".")[0]
+                if top not in _EXTRA_OF:
+                    raise
+                extra = _EXTRA_OF[top]
+                print(f"{prog}: error: needs the [{extra}] extra (no module named {top!r}): "
+                      f"pip install 'tactile-pen[{extra}]'", file=sys.stderr)
+                return EXIT_USAGE
+            except KeyboardInterrupt:
+                if not interruptible:
+                    raise
+                print(f"{prog}: interrupted", file=sys.stderr)
+                return 130
+
+        return entry
+
+    return wrap
 
 
-def _interruptible(entry: Callable[[], int], prog: str) -> Callable[[], int]:
-    """A Ctrl-C that the command does not handle itself (while torch imports, say) ends it
-    with one line and exit 130, the shell's code for SIGINT, not a traceback."""
-
-    def main() -> int:
-        try:
-            return entry()
-        except KeyboardInterrupt:
-            print(f"{prog}: interrupted", file=sys.stderr)
-            return 130
-
-    return main
+def _module_main(module: str) -> Callable[[list[str] | None], int]:
+    """Transitional: a command whose module has not moved to ``<stage>/commands/`` yet."""
+    return lambda argv=None: importlib.import_module(module).main(argv)
 
 
-train_main = _interruptible(_with_extra("tactile.training.train", "tactile-train"),
-                            "tactile-train")
-eval_main = _interruptible(_with_extra("tactile.training.evaluate", "tactile-eval"),
-                           "tactile-eval")
-export_main = _with_extra("tactile.export.cli", "tactile-export")
-plot_main = _with_extra("tactile.training.plot", "tactile-plot")
-import_biotac_main = _with_extra("tactile.device.biotac", "tactile-import-biotac")
+run_main = command("tactile-run", guarded=True)(_module_main("tactile.runtime.cli"))
+record_main = command("tactile-record", guarded=True)(_module_main("tactile.device.recorder"))
+monitor_main = command("tactile-monitor", guarded=True)(_module_main("tactile.runtime.monitor"))
+train_main = command("tactile-train", interruptible=True)(
+    _module_main("tactile.training.train"))
+eval_main = command("tactile-eval", interruptible=True)(
+    _module_main("tactile.training.evaluate"))
+export_main = command("tactile-export")(_module_main("tactile.export.cli"))
+plot_main = command("tactile-plot")(_module_main("tactile.training.plot"))
+import_biotac_main = command("tactile-import-biotac")(_module_main("tactile.device.biotac"))
 
 
 def add_debug(parser: argparse.ArgumentParser) -> None:

@@ -167,12 +167,13 @@ def test_force_overwrites_a_run(dataset, tmp_path, capsys):
 
 
 def test_an_unhandled_ctrl_c_in_a_torch_command_is_one_line_and_130(capsys):
-    from tactile.cli import _interruptible
+    from tactile.cli import command
 
-    def starting() -> int:
+    @command("tactile-train", interruptible=True)
+    def starting(argv=None) -> int:
         raise KeyboardInterrupt  # as SIGINT does while torch imports
 
-    assert _interruptible(starting, "tactile-train")() == EXIT_INTERRUPTED
+    assert starting() == EXIT_INTERRUPTED
     assert capsys.readouterr().err == "tactile-train: interrupted\n"
 
 
