@@ -25,7 +25,7 @@ from __future__ import annotations
 
 import math
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
 
 import serial
@@ -197,6 +197,18 @@ class Connection:
             self.lost = Lost(self.port, str(lost))
             events.append(self.lost)
         return Chunk(data, events)
+
+    def chunks(self) -> Iterator[Chunk]:
+        """The read loop: one :meth:`read` after another, each :class:`Chunk` yielded in order,
+        until ``stop["flag"]`` is set or the deadline passes (both checked before each read), or
+        the pen did not come back in time (:meth:`read` gave None). The caller may also leave
+        the loop itself (``break``, or stop iterating): the port stays open until
+        :meth:`close`. Raises what :meth:`read` raises."""
+        while not self.stop["flag"] and time.monotonic() < self.deadline:
+            chunk = self.read()
+            if chunk is None:
+                return
+            yield chunk
 
     def silent_for(self, now: float | None = None) -> float | None:
         """Seconds of the current silence once it is a stall, else None."""

@@ -191,10 +191,7 @@ def record(
         if not stop["flag"]:
             conn.open()
         last_report = time.monotonic()
-        while not stop["flag"]:
-            chunk = conn.read()
-            if chunk is None:  # stopped while the pen was away
-                break
+        for chunk in conn.chunks():  # until stopped, even while the pen is away
             rec.handle(chunk.events, decoder)
             now = time.monotonic()
             if progress and now - last_report >= 1.0:
