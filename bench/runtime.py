@@ -147,8 +147,8 @@ def sustained_rate(model_path: Path, seconds: float = 60.0) -> float:
     """Samples per second the whole path keeps up with: bytes -> decoder -> stream -> model."""
     from tactile.device.decoder import StreamDecoder
     from tactile.device.simlink import LinkConfig, PenLink
-    from tactile.runtime.cli import Printer, Runner, Summary
     from tactile.runtime.model import Model
+    from tactile.runtime.runner import Printer, Runner, Summary
     from tactile.runtime.stream import Stream
 
     link = PenLink(LinkConfig(texture="paper", seed=1))
@@ -168,8 +168,8 @@ def sustained_rate(model_path: Path, seconds: float = 60.0) -> float:
 
 def process_figures(model_path: Path) -> tuple[float, float]:
     """(resident MB of a tactile-run process after 5 s, seconds from launch to first label)."""
-    cmd = [sys.executable, "-m", "tactile.runtime.cli", "--model", str(model_path), "--port",
-           "sim://?texture=paper&seed=2", "--seconds", "5"]
+    cmd = [sys.executable, "-m", "tactile.runtime.commands.run", "--model", str(model_path),
+           "--port", "sim://?texture=paper&seed=2", "--seconds", "5"]
     t0 = time.perf_counter()
     proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     line = proc.stdout.readline()

@@ -17,9 +17,9 @@ import urllib.request
 from pathlib import Path
 
 from tactile.device.decoder import StreamDecoder
-from tactile.runtime.cli import Printer, Runner, Summary
+from tactile.runtime.live import serve_runner
 from tactile.runtime.model import Model
-from tactile.runtime.serve import serve_runner
+from tactile.runtime.runner import Printer, Runner, Summary
 from tactile.runtime.stream import Stream
 
 MODEL = Path(__file__).resolve().parents[1] / "models" / "pen-exp2.onnx"

@@ -2,7 +2,7 @@
 
     python bench/soak.py --seconds 3600        # an hour of pen data, at the link's full speed
 
-Runs the real command (``python -m tactile.runtime.cli``) on a ``sim://`` port at
+Runs the real command (``python -m tactile.runtime.commands.run``) on a ``sim://`` port at
 ``speed=max`` whose pen is hit by garbage bytes, bit flips, dropped frames, stalls and unplugs
 (many of each), and compares what it prints with the ground truth of the same link, replayed
 here (:class:`~tactile.device.simlink.PenLink` with ``trace=True`` gives the fate of every
@@ -146,8 +146,9 @@ def main(argv: list[str] | None = None) -> int:
     ref, classes = reference(args.model, args.texture, args.seed, n, runs)
     t_truth = time.perf_counter() - t0
 
-    cmd = [sys.executable, "-m", "tactile.runtime.cli", "--model", str(args.model), "--port",
-           url, "--stall-timeout", f"{min(0.2, args.stall_s / 2):g}", "--status-every", "3600"]
+    cmd = [sys.executable, "-m", "tactile.runtime.commands.run", "--model", str(args.model),
+           "--port", url, "--stall-timeout", f"{min(0.2, args.stall_s / 2):g}",
+           "--status-every", "3600"]
     env = {**os.environ, "OMP_NUM_THREADS": "1"}
     t1 = time.perf_counter()
     proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,

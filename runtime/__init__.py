@@ -2,20 +2,39 @@
 
 ``labels(port, model)`` (:func:`tactile.runtime.pen.labels`) yields one label per window;
 ``to_units(info, raw)`` (:func:`tactile.runtime.units.to_units`) converts counts to units.
-Both are imported on first use, so that ``import tactile.runtime.stream`` stays light.
+:class:`~tactile.runtime.model.Model` (the exported model, stateless) and
+:class:`~tactile.runtime.stream.Stream` (one pen's windows and state) are the pieces
+``tactile-run`` is made of; :class:`~tactile.runtime.runner.Runner` drives them from a pen's
+decoded events (:func:`~tactile.runtime.runner.read_pen`, the serial loop;
+:func:`~tactile.runtime.runner.replay`, a recorded take); :class:`~tactile.runtime.live.Live`
+is the live web page. Each name is imported on first use, so that
+``import tactile.runtime.stream`` stays light. The command lines are in
+:mod:`tactile.runtime.commands`.
 """
+
+import importlib
+
+_HOME = {
+    "labels": "pen",
+    "to_units": "units",
+    "Model": "model",
+    "Label": "stream",
+    "Smoother": "stream",
+    "Stream": "stream",
+    "Printer": "runner",
+    "Runner": "runner",
+    "Summary": "runner",
+    "check_device": "runner",
+    "read_pen": "runner",
+    "replay": "runner",
+    "Live": "live",
+}
 
 
 def __getattr__(name: str):
-    if name == "labels":
-        from tactile.runtime.pen import labels
-
-        return labels
-    if name == "to_units":
-        from tactile.runtime.units import to_units
-
-        return to_units
+    if name in _HOME:
+        return getattr(importlib.import_module(f"tactile.runtime.{_HOME[name]}"), name)
     raise AttributeError(f"module 'tactile.runtime' has no attribute {name!r}")
 
 
-__all__ = ["labels", "to_units"]
+__all__ = list(_HOME)

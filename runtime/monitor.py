@@ -1,26 +1,19 @@
-"""``tactile-monitor``: is my pen alive and sane? Live values, no model needed.
+"""What ``tactile-monitor`` shows of a pen (no model needed): is it alive and sane?
 
-    tactile-monitor                                   # the one likely pen attached
-    tactile-monitor --port /dev/ttyACM0 --seconds 5   # a table refreshed in place, then a verdict
-    tactile-monitor --port /dev/ttyACM0 --raw         # the bytes, in hex, as they arrive
-    tactile-monitor --port /dev/ttyACM0 --serve 0.0.0.0:8000   # and a live page for a phone
-
-It prints the pen's header (device, rate, channels with units), then one line per channel (the
-last value in units, min/max/RMS over the last second of samples) and a line of link figures
-(frames, CRC errors, malformed frames, gaps, samples lost, restarts, reconnects, the rate
-actually received). In a terminal the block is redrawn in place; otherwise (a pipe, a log file)
-it is printed again every ``--every`` seconds, with no escape codes. At the end a line on stderr
-says whether the pen was alive (data at its declared rate within :data:`RATE_TOLERANCE`, from the
-first bytes to the end; otherwise ``too slow`` or ``too fast``) and sane (no channel flat or
-pinned at its limit, no errors). Exit codes: 0 data came (whatever the verdict), 1 bad arguments,
-2 the port cannot be opened, or no data (no decodable samples) came.
+:class:`Watch` turns decoder events into the figures shown: per channel the last value in units
+and min/max/RMS over the last second of samples, and the rate received. :func:`block` lays them
+out with the link's figures (frames, CRC errors, malformed frames, gaps, samples lost, restarts,
+reconnects); :class:`Screen` redraws them in place on a terminal and prints them afresh, plain,
+elsewhere. :func:`watch_loop` and :func:`raw_loop` read a
+:class:`~tactile.device.connection.Connection` (decoded, or the bytes in hex as
+:func:`hexdump` shows them); :func:`verdict` is the last line: alive (data at its declared rate
+within :data:`RATE_TOLERANCE`, from the first bytes to the end; otherwise ``too slow`` or ``too
+fast``) and sane (no channel flat or pinned at its limit, no errors).
 """
 
 from __future__ import annotations
 
-import argparse
 import math
-import signal
 import sys
 import time
 from collections import deque
@@ -29,12 +22,9 @@ from dataclasses import dataclass, field
 import numpy as np
 
 import tactile.device  # noqa: F401  (registers sim://)
-from tactile.cli import Parser, add_debug, add_port_options, float_in, run, started
-from tactile.device.connection import Connection, LinkSettings, Reconnected, Stall
+from tactile.device.connection import Connection, Reconnected, Stall
 from tactile.device.decoder import Gap, Header, Samples, StreamDecoder
 from tactile.device.info import DeviceInfo
-from tactile.device.portlist import find_port
-from tactile.errors import ConfigError, DeviceError
 from tactile.runtime.units import to_units
 
 INT16 = (-32768, 32767)
@@ -164,39 +154,36 @@ def hexdump(offset: int, data: bytes) -> str:
     return "\n".join(out)
 
 
-def _say(msg: str) -> None:
+def say(msg: str) -> None:
+    """A diagnostic line on stderr, as ``tactile-monitor`` writes them."""
     print(f"tactile-monitor: {msg}", file=sys.stderr, flush=True)
 
 
-def raw_loop(conn: Connection, stop: dict, deadline: float) -> int:
-    """``--raw``: every byte, in hex, as it arrives; returns the number of bytes. (The bytes
-    are decoded too, unseen: a reconnection needs the pen's header to know it.)"""
+def raw_loop(conn: Connection) -> int:
+    """``--raw``: every byte, in hex, as it arrives, until the connection's stop or deadline;
+    returns the number of bytes. (The bytes are decoded too, unseen: a reconnection needs the
+    pen's header to know it.)"""
     n = 0
-    while not stop["flag"] and time.monotonic() < deadline:
-        chunk = conn.read()
-        if chunk is None:
-            break
+    for chunk in conn.chunks():
         if chunk.data:
             print(hexdump(n, chunk.data), flush=True)
             n += len(chunk.data)
     return n
 
 
-def watch_loop(args: argparse.Namespace, conn: Connection, stop: dict, deadline: float, live
-               ) -> Watch:
-    """Decode, show the block every ``--every`` s (and at the end), feed the live page."""
+def watch_loop(conn: Connection, every: float, live=None) -> Watch:
+    """Decode until the connection's stop or deadline, show the block every ``every`` s (and at
+    the end), feed the live page (a :class:`~tactile.runtime.live.Live`, if given)."""
     watch, decoder, screen = Watch(), conn.decoder, Screen()
     if live is not None:
         live.status = lambda: {**_link_status(decoder), "reconnects": watch.reconnects,
                                "stalls": watch.stalls}
     start = last_show = time.monotonic()
-    while True:
-        done = stop["flag"] or time.monotonic() >= deadline
-        chunk = None if done else conn.read()
+    for chunk in conn.chunks():
         now = time.monotonic()
-        if chunk is not None and chunk.data:
+        if chunk.data:
             watch.first_data = watch.first_data or now
-        for ev in chunk.events if chunk is not None else ():
+        for ev in chunk.events:
             if isinstance(ev, Header) and (watch.info is None or ev.changed):
                 screen.text(header_text(ev.info, conn.port))
             elif isinstance(ev, Reconnected):
@@ -205,14 +192,17 @@ def watch_loop(args: argparse.Namespace, conn: Connection, stop: dict, deadline:
                 watch.stalls += 1
             if live is not None:
                 _publish(live, ev)
-        if chunk is not None:
-            watch.handle(chunk.events)
-        if chunk is None or now - last_show >= args.every:
+        watch.handle(chunk.events)
+        if now - last_show >= every:
             last_show = now
-            rate = watch.rate_hz(now, decoder.stats.samples)
-            screen.show(block(watch, decoder, rate, conn.silent_for(now)), now - start)
-        if chunk is None:
-            return watch
+            _show(screen, watch, conn, now, start)
+    _show(screen, watch, conn, time.monotonic(), start)  # the last figures
+    return watch
+
+
+def _show(screen: Screen, watch: Watch, conn: Connection, now: float, start: float) -> None:
+    rate = watch.rate_hz(now, conn.decoder.stats.samples)
+    screen.show(block(watch, conn.decoder, rate, conn.silent_for(now)), now - start)
 
 
 def _publish(live, ev) -> None:
@@ -228,7 +218,7 @@ def _publish(live, ev) -> None:
 
 
 def _link_status(decoder: StreamDecoder) -> dict:
-    from tactile.runtime.serve import link_status
+    from tactile.runtime.live import link_status
 
     return link_status(decoder.stats)
 
@@ -257,76 +247,3 @@ def verdict(watch: Watch, decoder: StreamDecoder, end: float) -> str:
                 f"{RATE_TOLERANCE:.0%} off")
     return (f"{head}: {st.samples} samples in {seconds:.1f} s ({rate})"
             + ("; " + "; ".join(notes) if notes else ""))
-
-
-def build_parser() -> argparse.ArgumentParser:
-    p = Parser(
-        prog="tactile-monitor",
-        description="Show a pen's header and live values (no model needed): per channel the "
-        "last value in units and min/max/RMS over the last second, and the link's figures.",
-        epilog="exit codes: 0 data came, 1 bad arguments, 2 port cannot be opened, no pen "
-        "found, or no data came",
-    )
-    p.add_argument("--port", help="device path or pyserial URL (sim://, socket://, ...); "
-                   "default: the one likely pen attached (tactile-ports lists them)")
-    p.add_argument("--raw", action="store_true",
-                   help="show the bytes as they arrive, in hex (as hexdump -C), not decoded")
-    p.add_argument("--every", type=float_in(0.0), default=None,
-                   help="refresh period, s (default 0.5 in a terminal, 1 otherwise)")
-    p.add_argument("--csv-rate", type=float_in(0.0), default=100.0,
-                   help="rate of a CSV-line device, Hz (it declares none)")
-    add_port_options(p, "the channels and link")
-    add_debug(p)
-    return p
-
-
-def _main(args: argparse.Namespace) -> int:
-    if args.every is None:
-        args.every = 0.5 if sys.stdout.isatty() else 1.0
-    if args.raw and args.serve:
-        raise ConfigError("--raw shows the bytes only, --serve needs decoded samples: give one")
-    stop = {"flag": False}
-    for s in (signal.SIGINT, signal.SIGTERM):
-        signal.signal(s, lambda *_: stop.__setitem__("flag", True))
-    early = started()  # after our handlers are in place: no signal falls between the two
-    if early:
-        _say(f"stopped by {early} while starting")
-        return 0
-    auto = args.port is None  # found by auto-detection: after an unplug, look again
-    port = args.port = args.port or find_port()
-    live = None
-    if args.serve:
-        from tactile.runtime.serve import Live, parse_address
-
-        live = Live(*parse_address(args.serve), status=dict, say=_say, labels=False)
-    begin = time.monotonic()
-    deadline = begin + args.seconds
-    settings = LinkSettings(port, args.baud, auto=auto, stall_timeout=args.stall_timeout)
-    decoder = StreamDecoder(csv_rate_hz=args.csv_rate)
-    try:
-        with Connection(settings, decoder, stop, _say, deadline) as conn:
-            conn.open()
-            if args.raw:
-                if raw_loop(conn, stop, deadline) == 0:
-                    raise DeviceError(f"no data from {port} in {time.monotonic() - begin:.1f} s")
-                return 0
-            watch = watch_loop(args, conn, stop, deadline, live)
-            end = time.monotonic()  # before closing the page, which may wait for its viewers
-    finally:
-        if live is not None:
-            live.close()
-    took = end - begin
-    if decoder.stats.samples == 0:
-        st = decoder.stats
-        raise DeviceError(f"no samples from {port} in {took:.1f} s ({st.bytes_in} bytes read; "
-                          f"{st.bytes_discarded} not decodable)")
-    _say(verdict(watch, decoder, end))
-    return 0
-
-
-def main(argv: list[str] | None = None) -> int:
-    return run("tactile-monitor", _main, build_parser().parse_args(argv))
-
-
-if __name__ == "__main__":
-    sys.exit(main())

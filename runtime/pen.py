@@ -10,13 +10,13 @@ from collections.abc import Callable, Iterator
 import tactile.device  # noqa: F401  (registers sim://)
 from tactile.device.connection import Connection, LinkSettings
 from tactile.device.decoder import StreamDecoder
-from tactile.runtime.cli import Runner, Summary
 from tactile.runtime.model import Model
+from tactile.runtime.runner import Runner, Summary
 from tactile.runtime.stream import Label, Smoother, Stream
 
 
 class _Collect:
-    """The printer interface of :class:`~tactile.runtime.cli.Runner`, collecting labels."""
+    """The printer interface of :class:`~tactile.runtime.runner.Runner`, collecting labels."""
 
     def __init__(self, on_event: Callable[[str, dict], None] | None) -> None:
         self.labels: list[Label] = []
@@ -79,10 +79,7 @@ def labels(
     settings = LinkSettings(port, baud, reconnect=reconnect, stall_timeout=stall_timeout)
     with Connection(settings, decoder, say=say, deadline=deadline) as conn:
         conn.open()
-        while time.monotonic() < deadline:
-            chunk = conn.read()
-            if chunk is None:  # the pen did not come back in time
-                return
+        for chunk in conn.chunks():  # until the deadline, or the pen did not come back in time
             runner.handle(chunk.events)
             yield from out.labels
             out.labels.clear()

@@ -79,8 +79,10 @@ def start_and_signal(entry: str, args: list[str], sig: int) -> tuple[int, str, s
     moment it handles SIGTERM (Python itself handles only SIGINT, so that is when the entry
     point's start-up handlers are in place, before its imports: the signal lands while it
     imports numpy and onnxruntime), and return (exit code, stdout, stderr). Linux only: it
-    reads the caught-signal mask in ``/proc/<pid>/status``."""
-    code = f"import sys; from tactile.cli import {entry}; sys.exit({entry}())"
+    reads the caught-signal mask in ``/proc/<pid>/status``. ``entry`` may also name its module:
+    ``<module>:<function>``."""
+    module, _, name = entry.rpartition(":")
+    code = f"import sys; from {module or 'tactile.cli'} import {name}; sys.exit({name}())"
     proc = subprocess.Popen([sys.executable, "-c", code, *args], stdout=subprocess.PIPE,
                             stderr=subprocess.PIPE, text=True)
     status = Path(f"/proc/{proc.pid}/status")

@@ -158,7 +158,7 @@ def poll(get, ok, what: str, limit: float = 120.0):
 def test_the_page_shows_stdouts_last_label_the_samples_a_gap_and_a_reconnect(
         chromium, tmp_path, reap):
     proc = reap(subprocess.Popen(
-        [sys.executable, "-m", "tactile.runtime.cli", "--model", str(MODEL), "--port", PEN,
+        [sys.executable, "-m", "tactile.runtime.commands.run", "--model", str(MODEL), "--port", PEN,
          "--serve", "127.0.0.1:0"],
         stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True), 300)
     out, err = Lines(proc.stdout), Lines(proc.stderr)

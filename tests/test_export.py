@@ -475,7 +475,7 @@ def test_outputs_wider_than_declared_are_refused_at_load(tmp_path, capsys, lie):
     output and its real width, before any data is read (no port is opened: sim:// would
     stream forever). A fixed batch of 1 is what the runtime runs: tactile-check and
     Model.classify at batch 2 refuse it."""
-    from tactile.runtime.cli import main as run_main
+    from tactile.runtime.commands.run import main as run_main
     from tactile.runtime.model import Model
 
     kwargs, message = LIES[lie]

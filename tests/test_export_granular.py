@@ -27,7 +27,7 @@ from tactile.export.check import load_contract
 from tactile.export.check import main as check_main
 from tactile.export.cli import export_run
 from tactile.export.parity import ATOL
-from tactile.runtime.cli import main as run_main
+from tactile.runtime.commands.run import main as run_main
 from tactile.runtime.model import Model
 from tactile.training.config import TrainConfig
 from tactile.training.train import load_checkpoint, train

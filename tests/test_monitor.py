@@ -22,6 +22,7 @@ from tactile.device.info import ChannelSpec, DeviceInfo, pen_info
 from tactile.device.protocol import encode_header, encode_samples
 from tactile.device.simulator import PenSimulator
 from tactile.runtime import monitor
+from tactile.runtime.commands.monitor import main as monitor_main
 
 PEN = "sim://?texture=paper&seed=1&speed=max&seconds=2"  # 200 samples, as fast as read
 
@@ -55,7 +56,7 @@ def read_all(monkeypatch, url: str) -> int:
         return chunk
 
     monkeypatch.setattr(Connection, "read", counted)
-    return monitor.main(["--port", url, "--seconds", "600"])
+    return monitor_main(["--port", url, "--seconds", "600"])
 
 
 def test_figures_are_over_the_last_second_in_units(capsys, monkeypatch):
@@ -116,19 +117,19 @@ def test_the_verdict_says_alive_only_at_about_the_declared_rate():
 
 
 def test_no_data_is_exit_2_and_bad_options_exit_1(capsys):
-    assert monitor.main(["--port", "loop://", "--seconds", "0.3"]) == 2
+    assert monitor_main(["--port", "loop://", "--seconds", "0.3"]) == 2
     assert re.search(r"error: no samples from loop:// in \d+\.\d s \(0 bytes read; 0 not "
                      r"decodable\)", capsys.readouterr().err)
-    assert monitor.main(["--port", "sim://?nonsense=1", "--seconds", "0.3"]) == 2
+    assert monitor_main(["--port", "sim://?nonsense=1", "--seconds", "0.3"]) == 2
     assert "nonsense" in capsys.readouterr().err
-    assert monitor.main(["--port", PEN, "--raw", "--serve", "0"]) == 1
+    assert monitor_main(["--port", PEN, "--raw", "--serve", "0"]) == 1
     with pytest.raises(SystemExit) as e:
-        monitor.main(["--port", PEN, "--seconds", "-1"])
+        monitor_main(["--port", PEN, "--seconds", "-1"])
     assert e.value.code == 1
 
 
 def test_raw_shows_the_links_bytes_in_hex(capsys):
-    assert monitor.main(["--port", PEN, "--raw", "--seconds", "1"]) == 0
+    assert monitor_main(["--port", PEN, "--raw", "--seconds", "1"]) == 0
     out = capsys.readouterr().out
     shown = bytearray()
     for n, line in enumerate(out.splitlines()):
@@ -175,7 +176,7 @@ def test_flat_and_saturated_channels_are_named():
 
 def test_the_monitor_serves_the_live_page(reap):
     proc = reap(subprocess.Popen(
-        [sys.executable, "-m", "tactile.runtime.monitor", "--port",
+        [sys.executable, "-m", "tactile.runtime.commands.monitor", "--port",
          "sim://?texture=paper&seed=1&seconds=3", "--serve", "127.0.0.1:0", "--seconds", "4"],
         stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True), 120)
     url = page_url(proc.stderr)

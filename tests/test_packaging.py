@@ -11,10 +11,11 @@ from conftest import REPO
 
 def test_runtime_and_device_import_without_torch():
     code = (
-        "import sys, tactile.runtime, tactile.runtime.cli, tactile.runtime.model, "
+        "import sys, tactile.runtime, tactile.runtime.runner, tactile.runtime.model, "
         "tactile.runtime.stream, tactile.contract, tactile.device, tactile.device.decoder, "
         "tactile.device.recorder, tactile.device.simlink, tactile.device.portlist, "
-        "tactile.runtime.serve, tactile.runtime.monitor, tactile.runtime.pen\n"
+        "tactile.runtime.live, tactile.runtime.monitor, tactile.runtime.pen, "
+        "tactile.runtime.commands.run, tactile.runtime.commands.monitor\n"
         "bad = sorted(m for m in sys.modules if m.split('.')[0] in ('torch', 'onnx', 'PyEMD'))\n"
         "print(','.join(bad))\n"
     )
@@ -65,7 +66,7 @@ def test_the_built_wheel_requires_no_torch(tmp_path):
     assert {"numpy", "onnxruntime", "pyserial"} <= closure
     assert not closure & {"torch", "onnx", "onnxscript", "pyemd", "emd-signal", "scipy"}, closure
     # the wheel carries every stage and the protocol spec, not only what the editable install sees
-    for module in ("tactile/runtime/cli.py", "tactile/training/emd/module.py",
+    for module in ("tactile/runtime/commands/run.py", "tactile/training/emd/module.py",
                    "tactile/export/cli.py", "tactile/device/PROTOCOL.md", "tactile/contract.py",
                    "tactile/runtime/web/index.html", "tactile/runtime/web/app.js",
                    "tactile/runtime/web/style.css"):

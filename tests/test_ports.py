@@ -98,12 +98,13 @@ def test_a_port_is_opened_by_one_program_and_the_holder_is_named(tmp_path):
     finally:
         first.close()
     runner = subprocess.Popen(
-        [sys.executable, "-m", "tactile.runtime.cli", "--model", str(SHIPPED), "--port", name],
+        [sys.executable, "-m", "tactile.runtime.commands.run", "--model", str(SHIPPED),
+         "--port", name],
         stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     try:
         line = runner.stderr.readline()
         assert line.startswith(f"tactile-run: opened {name}"), line
-        proc = subprocess.run([sys.executable, "-m", "tactile.runtime.cli", "--model",
+        proc = subprocess.run([sys.executable, "-m", "tactile.runtime.commands.run", "--model",
                                str(SHIPPED), "--port", name, "--wait"],
                               capture_output=True, text=True, timeout=60)
     finally:
@@ -148,8 +149,8 @@ def test_after_an_unplug_only_the_same_pen_is_taken_back(reap):
     that arrived with the disconnect are all labelled (11 windows)."""
     srv, url = listening()
     proc = reap(subprocess.Popen(
-        [sys.executable, "-m", "tactile.runtime.cli", "--model", str(SHIPPED), "--port", url,
-         "--stall-timeout", "600", "--status-every", "600"],
+        [sys.executable, "-m", "tactile.runtime.commands.run", "--model", str(SHIPPED),
+         "--port", url, "--stall-timeout", "600", "--status-every", "600"],
         stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True), 120)
     role = {"now": "other"}
     done = threading.Event()
@@ -368,8 +369,8 @@ def test_the_monitor_takes_back_the_same_pen_only(reap):
     never shows), its link line counts one reconnection, and the samples go on after it."""
     dev = InTurn()
     proc = reap(subprocess.Popen(
-        [sys.executable, "-m", "tactile.runtime.monitor", "--port", dev.url, "--every", "0.1",
-         "--stall-timeout", "600"],
+        [sys.executable, "-m", "tactile.runtime.commands.monitor", "--port", dev.url,
+         "--every", "0.1", "--stall-timeout", "600"],
         stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True), 120)
     out, since = [], None
     try:

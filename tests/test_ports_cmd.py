@@ -51,9 +51,9 @@ def test_the_listing_marks_what_find_port_would_take(attached, capsys):
     assert err == "tactile-ports: one likely pen: /dev/ttyACM0 (taken when --port is " \
                   "omitted)\n"
     assert portlist.find_port() == "/dev/ttyACM0"
-    from tactile.runtime import cli
+    from tactile.runtime import runner
 
-    assert cli.find_port is portlist.find_port  # tactile-run's rule is this one
+    assert runner.find_port is portlist.find_port  # tactile-run's rule is this one
     assert portlist.main([]) == 0
     out, _ = capsys.readouterr()
     assert out.splitlines() == [
@@ -94,9 +94,9 @@ def test_labels_in_one_call_are_tactile_runs_labels():
     from tactile.runtime import labels
 
     url = "sim://?texture=paper&seed=3&speed=max&seconds=6&drop=0.01"
-    proc = subprocess.Popen([sys.executable, "-m", "tactile.runtime.cli", "--model", str(MODEL),
-                             "--port", url], stdout=subprocess.PIPE, stderr=subprocess.DEVNULL,
-                            text=True)
+    proc = subprocess.Popen([sys.executable, "-m", "tactile.runtime.commands.run", "--model",
+                             str(MODEL), "--port", url], stdout=subprocess.PIPE,
+                            stderr=subprocess.DEVNULL, text=True)
     timer = threading.Timer(120, proc.kill)  # a stuck run fails the test instead of hanging it
     timer.start()
     printed = []

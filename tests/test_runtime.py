@@ -150,7 +150,7 @@ def remember(run_dir: Path) -> None:
 
 
 def run_cli(args, timeout=60):
-    proc = subprocess.run([sys.executable, "-m", "tactile.runtime.cli", *args],
+    proc = subprocess.run([sys.executable, "-m", "tactile.runtime.commands.run", *args],
                           capture_output=True, text=True, timeout=timeout)
     return proc.returncode, proc.stdout, proc.stderr
 
@@ -160,7 +160,7 @@ def run_until(args: list[str], enough, sig: int = signal.SIGINT, seconds: float 
     """Start tactile-run, read its stdout lines until ``enough(lines)`` says so, then send
     ``sig`` and return (exit code, stdout, stderr). Event-driven: no sleep, no --seconds; a run
     that never gets there is killed after ``seconds`` and the test fails."""
-    proc = subprocess.Popen([sys.executable, "-m", "tactile.runtime.cli", *args],
+    proc = subprocess.Popen([sys.executable, "-m", "tactile.runtime.commands.run", *args],
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     killer = threading.Timer(seconds, proc.kill)
     killer.start()
@@ -354,7 +354,7 @@ def test_replay_stops_at_seconds(models, tmp_path, capsys):
     """--seconds ends a replay too, where the clock says, with a line saying where."""
     import io
 
-    from tactile.runtime.cli import Printer, Runner, Summary, replay
+    from tactile.runtime.runner import Printer, Runner, Summary, replay
 
     _, onnx_path = models["window"]
     (take,) = make_dataset(tmp_path, takes=1, textures=("paper",), seconds=60, seed=6)
@@ -539,8 +539,8 @@ def test_wait_for_a_port_that_is_not_there_yet(reap):
         code, _, err = run_cli(["--model", str(SHIPPED), "--port", url])
         assert code == 2 and len(err.strip().splitlines()) == 1 and "cannot open" in err
         proc = reap(subprocess.Popen(
-            [sys.executable, "-m", "tactile.runtime.cli", "--model", str(SHIPPED), "--port",
-             url, "--wait", "--seconds", "20"],
+            [sys.executable, "-m", "tactile.runtime.commands.run", "--model", str(SHIPPED),
+             "--port", url, "--wait", "--seconds", "20"],
             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True))
         early = stderr_until(proc, "waiting for it")
         srv.listen()
@@ -571,8 +571,8 @@ def test_a_pen_without_header_is_reported_in_the_status_line(reap):
     raw = PenSimulator("paper", seed=3).read(1000)
     srv, url = listening()
     proc = reap(subprocess.Popen(
-        [sys.executable, "-m", "tactile.runtime.cli", "--model", str(SHIPPED), "--port", url,
-         "--status-every", "0.2", "--stall-timeout", "600"],
+        [sys.executable, "-m", "tactile.runtime.commands.run", "--model", str(SHIPPED),
+         "--port", url, "--status-every", "0.2", "--stall-timeout", "600"],
         stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True))
     try:
         conn, _ = srv.accept()
@@ -605,23 +605,23 @@ def test_with_no_port_it_takes_the_one_likely_pen_or_lists_the_candidates(monkey
     from serial.tools import list_ports
 
     from tactile.errors import DeviceError
-    from tactile.runtime import cli
+    from tactile.runtime import runner
 
     attached: list[_FakePort] = []
     monkeypatch.setattr(list_ports, "comports", lambda: list(attached))
     with pytest.raises(DeviceError, match=r"no likely pen found; give --port \(serial devices: "
                        r"none\)"):
-        cli.find_port()
-    assert cli.find_port(wait=True) is None  # --wait looks again instead
+        runner.find_port()
+    assert runner.find_port(wait=True) is None  # --wait looks again instead
     attached.append(_FakePort("/dev/ttyS0", description="16550A UART"))  # not a USB device
     with pytest.raises(DeviceError, match=r"no likely pen found.*/dev/ttyS0 \(16550A UART\)"):
-        cli.find_port()
+        runner.find_port()
     attached.append(_FakePort("/dev/ttyACM0", vid=0x2341, description="pen"))
-    assert cli.find_port() == "/dev/ttyACM0" == cli.find_port(wait=True)
+    assert runner.find_port() == "/dev/ttyACM0" == runner.find_port(wait=True)
     attached.append(_FakePort("/dev/ttyUSB0", vid=0x0403, description="FT232R"))
     for wait in (False, True):  # two pens: waiting would not tell them apart
         with pytest.raises(DeviceError, match="more than one likely pen.*ttyACM0.*ttyUSB0"):
-            cli.find_port(wait=wait)
+            runner.find_port(wait=wait)
 
 
 def test_wait_without_a_port_waits_for_the_one_likely_pen(monkeypatch, capsys):
@@ -629,7 +629,8 @@ def test_wait_without_a_port_waits_for_the_one_likely_pen(monkeypatch, capsys):
     device's place): labels from its first window on, one waiting line, exit 0."""
     from serial.tools import list_ports
 
-    from tactile.runtime import cli
+    from tactile.runtime import runner
+    from tactile.runtime.commands import run
 
     looks = []
     pen = _FakePort("sim://?texture=paper&seed=1&speed=max&seconds=2", vid=0x2341)
@@ -640,7 +641,7 @@ def test_wait_without_a_port_waits_for_the_one_likely_pen(monkeypatch, capsys):
 
     handlers = {}  # tactile-run's own SIGINT handler, called once the 7 windows are out
     printed = []
-    label = cli.Printer.label
+    label = runner.Printer.label
 
     def counting(self, lab):
         label(self, lab)
@@ -649,10 +650,10 @@ def test_wait_without_a_port_waits_for_the_one_likely_pen(monkeypatch, capsys):
             handlers[signal.SIGINT]()
 
     monkeypatch.setattr(list_ports, "comports", comports)
-    monkeypatch.setattr(cli, "PEN_POLL_S", 0.01)
-    monkeypatch.setattr(cli.Printer, "label", counting)
+    monkeypatch.setattr(runner, "PEN_POLL_S", 0.01)
+    monkeypatch.setattr(runner.Printer, "label", counting)
     monkeypatch.setattr(signal, "signal", lambda s, h: handlers.__setitem__(s, h))
-    code = cli.main(["--model", str(SHIPPED), "--wait"])
+    code = run.main(["--model", str(SHIPPED), "--wait"])
     out, err = capsys.readouterr()
     assert code == 0, err
     assert len(looks) == 4 and err.count("no likely pen attached; waiting for one") == 1, err
@@ -663,11 +664,11 @@ def test_wait_without_a_port_waits_for_the_one_likely_pen(monkeypatch, capsys):
 def test_wait_without_a_port_ends_with_seconds(monkeypatch, capsys):
     from serial.tools import list_ports
 
-    from tactile.runtime import cli
+    from tactile.runtime.commands import run
 
     monkeypatch.setattr(list_ports, "comports", lambda: [])
     monkeypatch.setattr(signal, "signal", lambda *a: None)
-    code = cli.main(["--model", str(SHIPPED), "--wait", "--seconds", "0.4"])
+    code = run.main(["--model", str(SHIPPED), "--wait", "--seconds", "0.4"])
     out, err = capsys.readouterr()
     assert code == 0 and out == "", err
     lines = err.splitlines()
@@ -684,7 +685,8 @@ def test_a_signal_while_starting_stops_cleanly(sig):
     soon as it has started, with the summary and exit 0, not a traceback (a KeyboardInterrupt,
     or onnxruntime's "initialization failed" when it lands in its import) or a silent death."""
     code, out, err = start_and_signal(
-        "run_main", ["--model", str(SHIPPED), "--port", "sim://?texture=paper&seed=1"], sig)
+        "tactile.runtime.commands.run:main",
+        ["--model", str(SHIPPED), "--port", "sim://?texture=paper&seed=1"], sig)
     assert code == 0 and out == "", err
     lines = err.splitlines()
     assert lines[0] == f"tactile-run: stopped by {signal.Signals(sig).name} while starting", err
@@ -694,7 +696,7 @@ def test_a_signal_while_starting_stops_cleanly(sig):
 def test_a_closed_stdout_stops_quietly(reap):
     """`tactile-run ... | head -1`: no traceback, no error line, exit 0."""
     proc = reap(subprocess.Popen(
-        [sys.executable, "-m", "tactile.runtime.cli", "--model", str(SHIPPED), "--port",
+        [sys.executable, "-m", "tactile.runtime.commands.run", "--model", str(SHIPPED), "--port",
          "sim://?texture=paper&seed=1&speed=max&seconds=3600"],
         stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True))
     first = proc.stdout.readline()  # an hour of pen: only the broken pipe can end the run
@@ -741,7 +743,7 @@ def test_csv_device_is_read_in_units_and_labels_as_the_binary_one():
 
 def test_device_units_must_be_the_models():
     from tactile.device.info import ChannelSpec, DeviceInfo
-    from tactile.runtime.cli import check_device
+    from tactile.runtime.runner import check_device
 
     model = Model(SHIPPED)
     c = model.contract
@@ -776,7 +778,7 @@ def test_csv_output_gives_events_their_own_column():
 def test_one_silence_is_one_stall(reap):
     """loop:// never sends: one stall event, then status lines that say how long it lasts."""
     proc = reap(subprocess.Popen(
-        [sys.executable, "-m", "tactile.runtime.cli", "--model", str(SHIPPED), "--port",
+        [sys.executable, "-m", "tactile.runtime.commands.run", "--model", str(SHIPPED), "--port",
          "loop://", "--stall-timeout", "0.3", "--status-every", "0.3"],
         stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True))
     first = proc.stdout.readline()
@@ -809,7 +811,7 @@ def test_replay_refuses_an_empty_take_and_says_when_the_last_row_is_cut(models, 
 def test_sigint_stops_a_replay(tmp_path, reap):
     (take,) = make_dataset(tmp_path, takes=1, textures=("paper",), seconds=3600, seed=1)
     proc = reap(subprocess.Popen(
-        [sys.executable, "-m", "tactile.runtime.cli", "--model", str(SHIPPED), "--replay",
+        [sys.executable, "-m", "tactile.runtime.commands.run", "--model", str(SHIPPED), "--replay",
          str(take)], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True))
     proc.stdout.readline()
     proc.send_signal(signal.SIGINT)
@@ -831,7 +833,7 @@ def test_the_library_example_in_the_docs_runs(monkeypatch):
 
 def test_a_stop_while_the_pen_is_unplugged_is_clean(reap):
     proc = reap(subprocess.Popen(
-        [sys.executable, "-m", "tactile.runtime.cli", "--model", str(SHIPPED), "--port",
+        [sys.executable, "-m", "tactile.runtime.commands.run", "--model", str(SHIPPED), "--port",
          "sim://?texture=paper&seed=2&speed=2&unplug=1:30", "--status-every", "0.5"],
         stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True))
     early = stderr_until(proc, "waiting for the pen")  # unplugged, and waiting for it
@@ -847,7 +849,7 @@ def test_csv_event_rows_keep_their_columns_whatever_the_text():
     import csv
     import io
 
-    from tactile.runtime.cli import Printer
+    from tactile.runtime.runner import Printer
 
     buf = io.StringIO()
     printer = Printer("csv", ("a", "b"), buf)

@@ -1,4 +1,4 @@
-"""The live page's server (runtime/serve.py): endpoints, what /events carries, viewers that do
+"""The live page's server (runtime/live.py): endpoints, what /events carries, viewers that do
 not read, and tactile-run's labels on stdout while one such viewer is attached."""
 
 from __future__ import annotations
@@ -20,7 +20,7 @@ from conftest import REPO, page_url, pen_stream
 from tactile.device.decoder import Header, Samples
 from tactile.device.info import pen_info
 from tactile.errors import ConfigError
-from tactile.runtime.serve import QUEUE, Live, parse_address
+from tactile.runtime.live import QUEUE, Live, parse_address
 from tactile.runtime.stream import Label
 
 MODEL = REPO / "models" / "pen-exp2.onnx"
@@ -253,7 +253,7 @@ def test_tactile_run_labels_go_on_while_a_viewer_never_reads(reap):
     reads is attached: stdout still gets every window's label, and the server counts drops."""
     pen = socket.create_server(("127.0.0.1", 0))
     proc = reap(subprocess.Popen(
-        [sys.executable, "-m", "tactile.runtime.cli", "--model", str(MODEL),
+        [sys.executable, "-m", "tactile.runtime.commands.run", "--model", str(MODEL),
          "--port", f"socket://127.0.0.1:{pen.getsockname()[1]}", "--serve", "127.0.0.1:0",
          "--status-every", "1000"],
         stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True), 180)
@@ -298,9 +298,9 @@ def test_tactile_run_labels_go_on_while_a_viewer_never_reads(reap):
 def test_tactile_run_closes_the_page_when_the_port_fails(capsys):
     """A port error ends tactile-run with exit 2: the page still gets its end, and stderr its
     last 'live page:' line."""
-    from tactile.runtime import cli
+    from tactile.runtime.commands import run
 
-    code = cli.main(["--model", str(MODEL), "--port", "/dev/tactile-no-such-port",
+    code = run.main(["--model", str(MODEL), "--port", "/dev/tactile-no-such-port",
                      "--serve", "127.0.0.1:0"])
     err = capsys.readouterr().err
     assert code == 2 and "/dev/tactile-no-such-port" in err

@@ -1,24 +1,19 @@
-"""``tactile-run``: read the pen, print one label per window, keep going.
+"""The runner: decoder events -> stream -> labels, and the loops that feed it (``tactile-run``).
 
-    tactile-run --model model.onnx --port /dev/ttyACM0
-    tactile-run --model model.onnx --port "sim://?texture=paper&seed=3"
-    tactile-run --model model.onnx --replay data/paper-....csv      # offline, as fast as it can
-
-Labels and events (gaps, stalls, reconnects) go to stdout (JSON Lines by default; ``--format
-text|csv``), diagnostics to stderr: a status line every few seconds, a line for each stall and
-reconnection, and a summary at the end. Exit codes:
-0 stopped cleanly (SIGINT/SIGTERM, end of replay or of ``--seconds``), 1 bad arguments, 2 port
-cannot be opened or no pen found, 3 the model or the device does not honour the contract.
+:class:`Runner` takes a pen's decoded events in order (headers, samples, gaps, and the link's
+stalls and reconnections), checks the device against the model's contract
+(:func:`check_device`), classifies each window and hands labels and events to a
+:class:`Printer` (stdout) and a :class:`Summary` (counters). Two loops feed it:
+:func:`read_pen`, the serial loop over a :class:`~tactile.device.connection.Connection` (it
+reconnects to the same pen only), and :func:`replay`, a recorded take as fast as it can.
+Diagnostics (:func:`say`) go to stderr, prefixed ``tactile-run:``.
 """
 
 from __future__ import annotations
 
-import argparse
 import csv
 import json
 import math
-import os
-import signal
 import sys
 import time
 from collections import Counter
@@ -27,7 +22,6 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 import tactile.device  # noqa: F401  (registers sim://)
-from tactile.cli import Parser, add_debug, add_port_options, float_in, int_in, run, started
 from tactile.device.connection import Connection, LinkSettings, Reconnected, Stall
 from tactile.device.decoder import Gap, Header, Samples, StreamDecoder
 from tactile.device.info import DeviceInfo
@@ -35,15 +29,14 @@ from tactile.device.portlist import find_port
 from tactile.device.ports import keep_trying
 from tactile.errors import ModelContractError, RecordingError
 from tactile.runtime.model import Model
-from tactile.runtime.stream import Label, Smoother, Stream
+from tactile.runtime.stream import Label, Stream
 from tactile.runtime.units import to_units
-
-FORMATS = ("jsonl", "text", "csv")
-CPUS = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1
 
 
 @dataclass
 class Summary:
+    """A run's counters, for the summary line on stderr (:meth:`to_dict`) and the live page."""
+
     windows: int = 0
     labels: Counter = field(default_factory=Counter)
     gaps: int = 0
@@ -120,8 +113,8 @@ def check_device(model: Model, info: DeviceInfo) -> None:
         )
     got_units = tuple(ch.unit for ch in info.channels)
     if info.device == "csv" and not any(got_units):  # a CSV device: no units, no rate
-        _say(f"CSV device: its values are taken in the model's units "
-             f"{list(model.contract.units)}, at the model's {model.contract.sample_rate_hz:g} Hz")
+        say(f"CSV device: its values are taken in the model's units "
+            f"{list(model.contract.units)}, at the model's {model.contract.sample_rate_hz:g} Hz")
     elif got_units != model.contract.units:
         raise ModelContractError(
             f"device units {list(got_units)} do not match the model's "
@@ -191,34 +184,29 @@ def wait_for_pen(stop: dict, deadline: float, status_every: float) -> str | None
     port = find_port(wait=True)
     if port is not None:
         return port
-    _say("no likely pen attached; waiting for one")
-    port = keep_trying(lambda: find_port(wait=True), stop, _say, "a likely pen", deadline,
+    say("no likely pen attached; waiting for one")
+    port = keep_trying(lambda: find_port(wait=True), stop, say, "a likely pen", deadline,
                        status_every, (PEN_POLL_S, PEN_POLL_S))
     if port is None and not stop["flag"]:
-        _say(f"no pen attached after {time.monotonic() - start:.1f} s (--seconds); stopping")
+        say(f"no pen attached after {time.monotonic() - start:.1f} s (--seconds); stopping")
     return port
 
 
-def serve(args: argparse.Namespace, runner: Runner, decoder: StreamDecoder,
-          stop: dict) -> None:
+def read_pen(runner: Runner, decoder: StreamDecoder, settings: LinkSettings, stop: dict,
+             deadline: float = math.inf) -> None:
     """The serial loop: read, decode, classify, through a
-    :class:`~tactile.device.connection.Connection` (it reconnects to the same pen only)."""
-    summary = runner.summary
-    deadline = summary.started + args.seconds
-    settings = LinkSettings(args.port, args.baud, auto=getattr(args, "auto", False),
-                            wait=args.wait, stall_timeout=args.stall_timeout,
-                            status_every=args.status_every)
-    with Connection(settings, decoder, stop, _say, deadline) as conn:
+    :class:`~tactile.device.connection.Connection` (it reconnects to the same pen only), until
+    ``stop["flag"]`` is set (by a signal handler), ``deadline`` (``time.monotonic()``, from
+    ``--seconds``) passes or the pen does not come back in time. A status line goes to stderr
+    every ``settings.status_every`` s."""
+    with Connection(settings, decoder, stop, say, deadline) as conn:
         if not conn.open():
             return
         last_status = time.monotonic()
-        while not stop["flag"] and time.monotonic() < deadline:
-            chunk = conn.read()
-            if chunk is None:  # stopped, or out of time, while the pen was away
-                break
+        for chunk in conn.chunks():
             runner.handle(chunk.events)
             now = time.monotonic()
-            if now - last_status >= args.status_every:
+            if now - last_status >= settings.status_every:
                 last_status = now
                 _status(runner, decoder, conn.silent_for(now))
 
@@ -229,10 +217,10 @@ def _status(runner: Runner, decoder: StreamDecoder, silent: float | None) -> Non
     notes = f"  no data for {silent:.0f} s" if silent is not None else ""
     if runner.info is None and summary.before_header:
         notes += f"  no device header yet: {summary.before_header} samples left unclassified"
-    _say(f"windows {summary.windows}  gaps {st.gaps} (lost {st.samples_lost})  "
-         f"crc {st.crc_errors}  malformed {st.malformed}  "
-         f"rejected {st.csv_rejected}  discarded {st.bytes_discarded} B  "
-         f"reconnects {summary.reconnects}{notes}")
+    say(f"windows {summary.windows}  gaps {st.gaps} (lost {st.samples_lost})  "
+        f"crc {st.crc_errors}  malformed {st.malformed}  "
+        f"rejected {st.csv_rejected}  discarded {st.bytes_discarded} B  "
+        f"reconnects {summary.reconnects}{notes}")
 
 
 def replay(path: Path, runner: Runner, stop: dict, deadline: float = math.inf,
@@ -246,8 +234,8 @@ def replay(path: Path, runner: Runner, stop: dict, deadline: float = math.inf,
     if len(take.seq) == 0:
         raise RecordingError(f"{path}: the take holds no samples")
     if take.truncated:
-        _say(f"{path}: its last row was cut short (the recording stopped mid-write); "
-             "it is left out")
+        say(f"{path}: its last row was cut short (the recording stopped mid-write); "
+            "it is left out")
     runner.handle([Header(take.info)])
     for a, b in take.segments():
         if stop["flag"]:
@@ -259,100 +247,17 @@ def replay(path: Path, runner: Runner, stop: dict, deadline: float = math.inf,
             if stop["flag"]:
                 return
             if clock() >= deadline:
-                _say(f"--seconds: stopped before seq {int(take.seq[i])} ({i} of the "
-                     f"{len(take.seq)} samples of {path} done)")
+                say(f"--seconds: stopped before seq {int(take.seq[i])} ({i} of the "
+                    f"{len(take.seq)} samples of {path} done)")
                 return
             j = min(i + 256, b)
             runner.handle([Samples(int(take.seq[i]), int(take.t_us[i]), take.raw[i:j])])
 
 
-def _say(msg: str) -> None:
+def say(msg: str) -> None:
+    """A diagnostic line on stderr, as ``tactile-run`` writes them."""
     print(f"tactile-run: {msg}", file=sys.stderr, flush=True)
 
 
-def build_parser() -> argparse.ArgumentParser:
-    p = Parser(
-        prog="tactile-run",
-        description="Read the pen, print one label per window (stdout), keep going.",
-        epilog="exit codes: 0 stopped cleanly, 1 bad arguments, 2 port cannot be opened or no "
-        "pen found, 3 model or device does not honour the contract",
-    )
-    p.add_argument("--model", required=True, type=Path, help="the .onnx file from tactile-export")
-    src = p.add_mutually_exclusive_group()
-    src.add_argument("--port", help="device path or pyserial URL (sim://, socket://, ...); "
-                     "default: the one likely pen attached")
-    src.add_argument("--replay", type=Path, metavar="TAKE", help="a recorded take (.csv)")
-    p.add_argument("--wait", action="store_true",
-                   help="if the port is absent at start, wait for it (as after an unplug) "
-                   "instead of exiting with code 2; without --port, wait until one likely pen "
-                   "is attached; for a service started before the pen is plugged in")
-    p.add_argument("--hop", type=int_in(1),
-                   help="samples between windows (default: the model's)")
-    p.add_argument("--format", choices=FORMATS, default="jsonl",
-                   help="jsonl (default): one JSON object per window or event; csv: a header, "
-                   "one row per window or event; text: for people")
-    p.add_argument("--smooth", type=int_in(1), default=1, metavar="K",
-                   help="also report the label averaged over the last K windows")
-    p.add_argument("--hysteresis", type=float_in(0.0, 1.0, low_open=False, high_open=True),
-                   default=0.0, metavar="MARGIN",
-                   help="the smoothed label changes only when beaten by MARGIN")
-    p.add_argument("--threads", type=int_in(1, CPUS), default=1,
-                   help=f"onnxruntime threads, at most the {CPUS} cores (default 1)")
-    p.add_argument("--status-every", type=float_in(0.0), default=5.0,
-                   help="status line period, s")
-    add_port_options(p, "the channels, labels and link")
-    add_debug(p)
-    return p
-
-
-def _main(args: argparse.Namespace) -> int:
-    model = Model(args.model, threads=args.threads)
-    c = model.contract
-    hop = c.hop if args.hop is None else args.hop
-    smoother = Smoother(args.smooth, args.hysteresis) if args.smooth > 1 or args.hysteresis \
-        else None
-    stream = Stream.for_model(model, hop, smoother)
-    summary = Summary()
-    runner = Runner(model, stream, Printer(args.format, c.classes), summary)
-    decoder = StreamDecoder(csv_rate_hz=c.sample_rate_hz)
-    live = None
-    if args.serve:
-        from tactile.runtime.serve import serve_runner
-
-        live = serve_runner(args.serve, runner, decoder, _say)
-    try:
-        _read(args, runner, decoder, summary)
-    finally:  # the page gets its end, stderr its last line, whatever stopped the run
-        if live is not None:
-            live.close()
-    print("tactile-run: summary " + json.dumps(summary.to_dict(decoder.stats.as_dict())),
-          file=sys.stderr, flush=True)
-    return 0
-
-
-def _read(args: argparse.Namespace, runner: Runner, decoder: StreamDecoder, summary: Summary
-          ) -> None:
-    """Until stopped: the replay, or the pen (found, or waited for, first)."""
-    stop = {"flag": False}
-    for s in (signal.SIGINT, signal.SIGTERM):
-        signal.signal(s, lambda *_: stop.__setitem__("flag", True))
-    early = started()  # after our handlers are in place: no signal falls between the two
-    if early:
-        _say(f"stopped by {early} while starting")
-    elif args.replay:
-        replay(args.replay, runner, stop, summary.started + args.seconds)
-    else:
-        args.auto = args.port is None  # found by auto-detection: after an unplug, look again
-        if args.port is None:
-            args.port = wait_for_pen(stop, summary.started + args.seconds, args.status_every) \
-                if args.wait else find_port()
-        if args.port is not None:  # None: stopped while waiting for a pen
-            serve(args, runner, decoder, stop)
-
-
-def main(argv: list[str] | None = None) -> int:
-    return run("tactile-run", _main, build_parser().parse_args(argv))
-
-
-if __name__ == "__main__":
-    sys.exit(main())
+__all__ = ["PEN_POLL_S", "Printer", "Runner", "Summary", "check_device", "read_pen", "replay",
+           "say", "wait_for_pen"]

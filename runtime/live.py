@@ -422,7 +422,7 @@ class Tee:
 
 def serve_runner(address: str, runner, decoder, say: Callable[[str], None]) -> Live:
     """``tactile-run --serve``: a :class:`Live` fed by ``runner``
-    (:class:`~tactile.runtime.cli.Runner`): its printer is teed, its decoder events tapped, and
+    (:class:`~tactile.runtime.runner.Runner`): its printer is teed, its decoder events tapped, and
     the status reads its summary and ``decoder``'s counters."""
     summary = runner.summary
 

@@ -1,0 +1,101 @@
+"""``tactile-monitor``: is my pen alive and sane? Live values, no model needed.
+
+    tactile-monitor                                   # the one likely pen attached
+    tactile-monitor --port /dev/ttyACM0 --seconds 5   # a table refreshed in place, then a verdict
+    tactile-monitor --port /dev/ttyACM0 --raw         # the bytes, in hex, as they arrive
+    tactile-monitor --port /dev/ttyACM0 --serve 0.0.0.0:8000   # and a live page for a phone
+
+It prints the pen's header (device, rate, channels with units), then one line per channel (the
+last value in units, min/max/RMS over the last second of samples) and a line of link figures
+(frames, CRC errors, malformed frames, gaps, samples lost, restarts, reconnects, the rate
+actually received). In a terminal the block is redrawn in place; otherwise (a pipe, a log file)
+it is printed again every ``--every`` seconds, with no escape codes. At the end a line on stderr
+says whether the pen was alive (data at its declared rate within 10%,
+:data:`~tactile.runtime.monitor.RATE_TOLERANCE`, from the first bytes to the end; otherwise ``too
+slow`` or ``too fast``) and sane (no channel flat or pinned at its limit, no errors). Exit codes:
+0 data came (whatever the verdict), 1 bad arguments, 2 the port cannot be opened, or no data
+(no decodable samples) came.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import time
+
+from tactile.cli import Parser, add_debug, add_port_options, command, float_in, run
+
+
+def build_parser() -> argparse.ArgumentParser:
+    p = Parser(
+        prog="tactile-monitor",
+        description="Show a pen's header and live values (no model needed): per channel the "
+        "last value in units and min/max/RMS over the last second, and the link's figures.",
+        epilog="exit codes: 0 data came, 1 bad arguments, 2 port cannot be opened, no pen "
+        "found, or no data came",
+    )
+    p.add_argument("--port", help="device path or pyserial URL (sim://, socket://, ...); "
+                   "default: the one likely pen attached (tactile-ports lists them)")
+    p.add_argument("--raw", action="store_true",
+                   help="show the bytes as they arrive, in hex (as hexdump -C), not decoded")
+    p.add_argument("--every", type=float_in(0.0), default=None,
+                   help="refresh period, s (default 0.5 in a terminal, 1 otherwise)")
+    p.add_argument("--csv-rate", type=float_in(0.0), default=100.0,
+                   help="rate of a CSV-line device, Hz (it declares none)")
+    add_port_options(p, "the channels and link")
+    add_debug(p)
+    return p
+
+
+def _monitor(args: argparse.Namespace) -> int:
+    from tactile.device.connection import Connection, LinkSettings
+    from tactile.device.decoder import StreamDecoder
+    from tactile.device.portlist import find_port
+    from tactile.errors import ConfigError, DeviceError
+    from tactile.runtime.monitor import raw_loop, say, verdict, watch_loop
+    from tactile.runtime.stop import stop_on_signals
+
+    every = args.every if args.every is not None else 0.5 if sys.stdout.isatty() else 1.0
+    if args.raw and args.serve:
+        raise ConfigError("--raw shows the bytes only, --serve needs decoded samples: give one")
+    stop = stop_on_signals(say)
+    if stop is None:  # a signal while starting
+        return 0
+    auto = args.port is None  # found by auto-detection: after an unplug, look again
+    port = args.port or find_port()
+    live = None
+    if args.serve:
+        from tactile.runtime.live import Live, parse_address
+
+        live = Live(*parse_address(args.serve), status=dict, say=say, labels=False)
+    begin = time.monotonic()
+    settings = LinkSettings(port, args.baud, auto=auto, stall_timeout=args.stall_timeout)
+    decoder = StreamDecoder(csv_rate_hz=args.csv_rate)
+    try:
+        with Connection(settings, decoder, stop, say, begin + args.seconds) as conn:
+            conn.open()
+            if args.raw:
+                if raw_loop(conn) == 0:
+                    raise DeviceError(f"no data from {port} in {time.monotonic() - begin:.1f} s")
+                return 0
+            watch = watch_loop(conn, every, live)
+            end = time.monotonic()  # before closing the page, which may wait for its viewers
+    finally:
+        if live is not None:
+            live.close()
+    if decoder.stats.samples == 0:
+        st = decoder.stats
+        raise DeviceError(f"no samples from {port} in {end - begin:.1f} s ({st.bytes_in} bytes "
+                          f"read; {st.bytes_discarded} not decodable)")
+    say(verdict(watch, decoder, end))
+    return 0
+
+
+@command("tactile-monitor", guarded=True)
+def main(argv: list[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    return run("tactile-monitor", _monitor, args)
+
+
+if __name__ == "__main__":
+    sys.exit(main())

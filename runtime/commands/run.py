@@ -1,0 +1,130 @@
+"""``tactile-run``: read the pen, print one label per window, keep going.
+
+    tactile-run --model model.onnx --port /dev/ttyACM0
+    tactile-run --model model.onnx --port "sim://?texture=paper&seed=3"
+    tactile-run --model model.onnx --replay data/paper-....csv      # offline, as fast as it can
+
+Labels and events (gaps, stalls, reconnects) go to stdout (JSON Lines by default; ``--format
+text|csv``), diagnostics to stderr: a status line every few seconds, a line for each stall and
+reconnection, and a summary at the end. Exit codes:
+0 stopped cleanly (SIGINT/SIGTERM, end of replay or of ``--seconds``), 1 bad arguments, 2 port
+cannot be opened or no pen found, 3 the model or the device does not honour the contract.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import sys
+from pathlib import Path
+from typing import TYPE_CHECKING
+
+from tactile.cli import Parser, add_debug, add_port_options, command, float_in, int_in, run
+
+if TYPE_CHECKING:  # the library is imported when the command runs, after its arguments
+    from tactile.device.decoder import StreamDecoder
+    from tactile.runtime.runner import Runner
+
+FORMATS = ("jsonl", "text", "csv")
+CPUS = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1
+
+
+def build_parser() -> argparse.ArgumentParser:
+    p = Parser(
+        prog="tactile-run",
+        description="Read the pen, print one label per window (stdout), keep going.",
+        epilog="exit codes: 0 stopped cleanly, 1 bad arguments, 2 port cannot be opened or no "
+        "pen found, 3 model or device does not honour the contract",
+    )
+    p.add_argument("--model", required=True, type=Path, help="the .onnx file from tactile-export")
+    src = p.add_mutually_exclusive_group()
+    src.add_argument("--port", help="device path or pyserial URL (sim://, socket://, ...); "
+                     "default: the one likely pen attached")
+    src.add_argument("--replay", type=Path, metavar="TAKE", help="a recorded take (.csv)")
+    p.add_argument("--wait", action="store_true",
+                   help="if the port is absent at start, wait for it (as after an unplug) "
+                   "instead of exiting with code 2; without --port, wait until one likely pen "
+                   "is attached; for a service started before the pen is plugged in")
+    p.add_argument("--hop", type=int_in(1),
+                   help="samples between windows (default: the model's)")
+    p.add_argument("--format", choices=FORMATS, default="jsonl",
+                   help="jsonl (default): one JSON object per window or event; csv: a header, "
+                   "one row per window or event; text: for people")
+    p.add_argument("--smooth", type=int_in(1), default=1, metavar="K",
+                   help="also report the label averaged over the last K windows")
+    p.add_argument("--hysteresis", type=float_in(0.0, 1.0, low_open=False, high_open=True),
+                   default=0.0, metavar="MARGIN",
+                   help="the smoothed label changes only when beaten by MARGIN")
+    p.add_argument("--threads", type=int_in(1, CPUS), default=1,
+                   help=f"onnxruntime threads, at most the {CPUS} cores (default 1)")
+    p.add_argument("--status-every", type=float_in(0.0), default=5.0,
+                   help="status line period, s")
+    add_port_options(p, "the channels, labels and link")
+    add_debug(p)
+    return p
+
+
+def _run(args: argparse.Namespace) -> int:
+    from tactile.device.decoder import StreamDecoder
+    from tactile.runtime.model import Model
+    from tactile.runtime.runner import Printer, Runner, Summary, say
+    from tactile.runtime.stream import Smoother, Stream
+
+    model = Model(args.model, threads=args.threads)
+    c = model.contract
+    hop = c.hop if args.hop is None else args.hop
+    smoother = Smoother(args.smooth, args.hysteresis) if args.smooth > 1 or args.hysteresis \
+        else None
+    stream = Stream.for_model(model, hop, smoother)
+    summary = Summary()
+    runner = Runner(model, stream, Printer(args.format, c.classes), summary)
+    decoder = StreamDecoder(csv_rate_hz=c.sample_rate_hz)
+    live = None
+    if args.serve:
+        from tactile.runtime.live import serve_runner
+
+        live = serve_runner(args.serve, runner, decoder, say)
+    try:
+        _read(args, runner, decoder, summary.started + args.seconds)
+    finally:  # the page gets its end, stderr its last line, whatever stopped the run
+        if live is not None:
+            live.close()
+    print("tactile-run: summary " + json.dumps(summary.to_dict(decoder.stats.as_dict())),
+          file=sys.stderr, flush=True)
+    return 0
+
+
+def _read(args: argparse.Namespace, runner: Runner, decoder: StreamDecoder, deadline: float
+          ) -> None:
+    """Until stopped or ``deadline`` (monotonic s): the replay, or the pen (found, or waited
+    for, first)."""
+    from tactile.device.connection import LinkSettings
+    from tactile.device.portlist import find_port
+    from tactile.runtime.runner import read_pen, replay, say, wait_for_pen
+    from tactile.runtime.stop import stop_on_signals
+
+    stop = stop_on_signals(say)
+    if stop is None:  # a signal while starting
+        return
+    if args.replay:
+        replay(args.replay, runner, stop, deadline)
+        return
+    auto = args.port is None  # found by auto-detection: after an unplug, look again
+    port = args.port
+    if port is None:
+        port = wait_for_pen(stop, deadline, args.status_every) if args.wait else find_port()
+    if port is not None:  # None: stopped while waiting for a pen
+        settings = LinkSettings(port, args.baud, auto=auto, wait=args.wait,
+                                stall_timeout=args.stall_timeout, status_every=args.status_every)
+        read_pen(runner, decoder, settings, stop, deadline)
+
+
+@command("tactile-run", guarded=True)
+def main(argv: list[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    return run("tactile-run", _run, args)
+
+
+if __name__ == "__main__":
+    sys.exit(main())
