@@ -176,6 +176,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--smooth", help="ma:N or ema:TAU (s); with --p-min, --hold: no calibration")
     p.add_argument("--p-min", type=float, default=None)
     p.add_argument("--hold", type=int, default=None)
+    p.add_argument("--max-uncertain", type=float, default=None,
+                   help="calibration: at most this share of windows uncertain (default: no cap)")
     p.add_argument("--table", action="store_true", help="print every calibration setting")
     args = p.parse_args(argv)
     model = Model(args.model)
@@ -211,7 +213,7 @@ def main(argv: list[str] | None = None) -> int:
         print(f"setting (given): {settings.describe()}")
     elif val_streams:
         t0 = time.perf_counter()
-        cal = calibrate(val_streams)
+        cal = calibrate(val_streams, max_uncertain=args.max_uncertain)
         settings = cal.settings
         f = cal.figures
         print(f"setting (calibrated on {len(val_streams)} validation users' streams, "

@@ -66,31 +66,42 @@ def _key(s: SmoothingSettings, f: dict) -> tuple:
 
 
 def calibrate(streams: list[WindowStream], grid: tuple[SmoothingSettings, ...] | None = None,
-              max_false_per_min: float = MAX_FALSE_PER_MIN) -> Calibration:
+              max_false_per_min: float = MAX_FALSE_PER_MIN,
+              max_uncertain: float | None = None) -> Calibration:
     """Pick post-processing settings on validation ``streams`` (each replayed from a reset).
 
     Among the settings of ``grid`` (default :func:`default_grid`) with at most
     ``max_false_per_min`` false changes per minute (:mod:`~tactile.runtime.stream_metrics`), the
     one with the highest stable-label accuracy; ties go to the shortest median change latency,
     then to the simplest setting (moving average before exponential, smaller n or tau, smaller
-    hold, smaller p_min). If none meets the limit: the one with the fewest false changes per
+    hold, smaller p_min). If none meets the limits: the one with the fewest false changes per
     minute (ties broken the same way), and ``figures["met_limit"]`` is False.
+
+    ``max_uncertain`` (a share 0..1; None: no limit) also bounds the share of windows left
+    uncertain: the stable-label accuracy is measured over the stable windows only, so without
+    it the rule favours the setting that leaves the most windows uncertain (the highest p_min
+    and hold) whenever that setting is at all more accurate.
     """
+    if max_uncertain is not None and not 0.0 <= max_uncertain <= 1.0:
+        raise ConfigError(f"max_uncertain {max_uncertain!r}: a share from 0 to 1, or None")
     grid = default_grid() if grid is None else tuple(grid)
     if not grid or not all(isinstance(s, SmoothingSettings) for s in grid):
         raise ConfigError("grid: one or more SmoothingSettings")
     if not streams:
         raise ConfigError("calibrate: no validation streams")
     table = tuple((s, figures(streams, [smoothed_track(st, s) for st in streams])) for s in grid)
-    ok = [(s, f) for s, f in table if f["false_per_min"] <= max_false_per_min]
+    ok = [(s, f) for s, f in table if f["false_per_min"] <= max_false_per_min
+          and (max_uncertain is None or f["uncertain"] <= max_uncertain)]
     if ok:
         best, fig = min(ok, key=lambda sf: _key(*sf))
     else:
         best, fig = min(table, key=lambda sf: (sf[1]["false_per_min"], _key(*sf)))
+    cap = "" if max_uncertain is None else f" and at most {max_uncertain:g} windows uncertain"
     seen = {
         "rule": f"highest stable accuracy with at most {max_false_per_min:g} false changes a "
-                "minute, then the shortest median latency, then the simplest setting",
+                f"minute{cap}, then the shortest median latency, then the simplest setting",
         "max_false_per_min": max_false_per_min,
+        "max_uncertain": max_uncertain,
         "met_limit": bool(ok),
         "grid": len(grid),
         "streams": len(streams),
