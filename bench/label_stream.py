@@ -163,6 +163,37 @@ def targets(fig: dict) -> list[tuple[str, bool | None, str]]:
     return out
 
 
+def choose_setting(args: argparse.Namespace, given: bool,
+                   val_streams: list[WindowStream]) -> SmoothingSettings:
+    """The setting given by the options, else the calibrated one (printed with what the
+    calibration saw), else the raw stream's."""
+    if given:
+        settings = make_settings(args.smooth or "ma:1", args.p_min or 0.0, args.hold or 1)
+        print(f"setting (given): {settings.describe()}")
+    elif val_streams:
+        t0 = time.perf_counter()
+        cal = calibrate(val_streams, max_uncertain=args.max_uncertain)
+        settings = cal.settings
+        f = cal.figures
+        print(f"setting (calibrated on {len(val_streams)} validation users' streams, "
+              f"{len(cal.table)} settings, {time.perf_counter() - t0:.0f} s): "
+              f"{settings.describe()}; on validation: stable accuracy "
+              f"{f['smoothed']['stable_accuracy']:.4f} (raw accuracy {f['raw']['accuracy']:.4f}), "
+              f"{f['smoothed']['uncertain'] * 100:.1f} % uncertain, "
+              f"{f['smoothed']['false_per_min']:.3f} false changes/min (raw "
+              f"{f['raw']['false_per_min']:.2f}), latency median "
+              f"{_fmt(f['smoothed']['latency_median_s'])} s; limit met: {f['met_limit']}")
+        if args.table:
+            for s, fs in cal.table:
+                print(f"  {s.describe():28s} stable acc {_fmt(fs['stable_accuracy'])} "
+                      f"uncertain {_fmt(fs['uncertain'])} false/min {_fmt(fs['false_per_min'])} "
+                      f"latency {_fmt(fs['latency_median_s'])}/{_fmt(fs['latency_p95_s'])} s")
+    else:
+        settings = SmoothingSettings()
+        print("setting: none given and no validation users: ma:1 p_min=0 hold=1 (the raw stream)")
+    return settings
+
+
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("--model", type=Path, default=Path("models/pen-exp2.onnx"))
@@ -208,29 +239,7 @@ def main(argv: list[str] | None = None) -> int:
         print(f"model run over the streams in {time.perf_counter() - t0:.0f} s", file=sys.stderr)
     print(f"model: {args.model} (hop {c.hop} samples = {c.hop / c.sample_rate_hz:g} s); "
           f"streams: {len(test_users)} test users, pieces of {args.dwell:g} s")
-    if given:
-        settings = make_settings(args.smooth or "ma:1", args.p_min or 0.0, args.hold or 1)
-        print(f"setting (given): {settings.describe()}")
-    elif val_streams:
-        t0 = time.perf_counter()
-        cal = calibrate(val_streams, max_uncertain=args.max_uncertain)
-        settings = cal.settings
-        f = cal.figures
-        print(f"setting (calibrated on {len(val_streams)} validation users' streams, "
-              f"{len(cal.table)} settings, {time.perf_counter() - t0:.0f} s): "
-              f"{settings.describe()}; on validation: stable accuracy "
-              f"{f['smoothed']['stable_accuracy']:.4f} (raw accuracy {f['raw']['accuracy']:.4f}), "
-              f"{f['smoothed']['false_per_min']:.3f} false changes/min (raw "
-              f"{f['raw']['false_per_min']:.2f}), latency median "
-              f"{_fmt(f['smoothed']['latency_median_s'])} s; limit met: {f['met_limit']}")
-        if args.table:
-            for s, fs in cal.table:
-                print(f"  {s.describe():28s} stable acc {_fmt(fs['stable_accuracy'])} "
-                      f"uncertain {_fmt(fs['uncertain'])} false/min {_fmt(fs['false_per_min'])} "
-                      f"latency {_fmt(fs['latency_median_s'])}/{_fmt(fs['latency_p95_s'])} s")
-    else:
-        settings = SmoothingSettings()
-        print("setting: none given and no validation users: ma:1 p_min=0 hold=1 (the raw stream)")
+    settings = choose_setting(args, given, val_streams)
     fig = compare(test_streams, settings)
     print(f"test streams: {len(test_streams)}, {fig['raw']['windows']} windows, "
           f"{fig['raw']['minutes']:.1f} min")

@@ -87,8 +87,8 @@ def calibrate(streams: list[WindowStream], grid: tuple[SmoothingSettings, ...] |
     grid = default_grid() if grid is None else tuple(grid)
     if not grid or not all(isinstance(s, SmoothingSettings) for s in grid):
         raise ConfigError("grid: one or more SmoothingSettings")
-    if not streams:
-        raise ConfigError("calibrate: no validation streams")
+    if not streams or sum(st.minutes for st in streams) <= 0:
+        raise ConfigError("calibrate: no validation streams, or none longer than one window")
     table = tuple((s, figures(streams, [smoothed_track(st, s) for st in streams])) for s in grid)
     ok = [(s, f) for s, f in table if f["false_per_min"] <= max_false_per_min
           and (max_uncertain is None or f["uncertain"] <= max_uncertain)]

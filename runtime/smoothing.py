@@ -55,12 +55,13 @@ class SmoothingSettings:
     """How one stream's probabilities are averaged and when a label counts as stable.
 
     Give one averaging: ``n`` (a moving average) or ``tau`` (an exponential one), not both;
-    ``SmoothingSettings()`` is the raw stream (n 1, p_min 0, hold 1: every window's argmax is
-    stable). Checked when built: a bad value is a one-line :class:`ConfigError`.
+    neither means n 1. ``SmoothingSettings()`` is the raw stream (n 1, p_min 0, hold 1: every
+    window's argmax is stable). Checked when built: a bad value is a one-line
+    :class:`ConfigError`.
     """
 
     # windows in the moving average of the class probabilities (1: no averaging); None with tau
-    n: int | None = 1
+    n: int | None = None
     # time constant of an exponential average, s (weight 1 - exp(-dt / tau) for a window dt s
     # after the previous one); None for the moving average
     tau: float | None = None
@@ -70,7 +71,9 @@ class SmoothingSettings:
     hold: int = 1
 
     def __post_init__(self) -> None:
-        if (self.n is None) == (self.tau is None):
+        if self.n is None and self.tau is None:
+            object.__setattr__(self, "n", 1)  # frozen: set once, here
+        if self.n is not None and self.tau is not None:
             raise ConfigError(f"smoothing n={self.n}, tau={self.tau}: give one of n (a moving "
                               "average over n windows) or tau (an exponential one, s)")
         if self.n is not None and not (_is_int(self.n) and self.n >= 1):

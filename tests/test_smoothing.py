@@ -44,7 +44,7 @@ def run(post: PostProcessor, rows: list, hop: float = 0.25) -> list:
 @pytest.mark.parametrize("kwargs, names", [
     ({"n": 0}, "n 0"), ({"n": 2.5}, "n 2.5"), ({"n": True}, "n True"),
     ({"n": None, "tau": 0.0}, "tau 0.0"), ({"n": None, "tau": float("inf")}, "tau inf"),
-    ({"n": 3, "tau": 1.0}, "n=3, tau=1.0"), ({"n": None}, "n=None, tau=None"),
+    ({"n": 3, "tau": 1.0}, "n=3, tau=1.0"), ({"tau": 0.5, "n": 1}, "n=1, tau=0.5"),
     ({"p_min": 1.5}, "p_min 1.5"), ({"p_min": -0.1}, "p_min -0.1"),
     ({"p_min": float("nan")}, "p_min nan"), ({"hold": 0}, "hold 0"), ({"hold": 2.0}, "hold 2.0"),
 ])
@@ -56,6 +56,8 @@ def test_bad_settings_are_one_line_config_errors(kwargs, names):
 
 def test_settings_strings():
     assert SmoothingSettings().describe() == "ma:1 p_min=0 hold=1"
+    assert SmoothingSettings() == SmoothingSettings(n=1)
+    assert SmoothingSettings(tau=0.5).smooth == "ema:0.5"
     assert make_settings("ema:0.75", 0.6, 2) == SmoothingSettings(None, 0.75, 0.6, 2)
     assert make_settings("ma:5", 0.6, 2).describe() == "ma:5 p_min=0.6 hold=2"
     for bad in ("ma", "ma:x", "median:3", "ema:", "5"):
