@@ -387,3 +387,21 @@ def test_default_grid():
     assert len(grid) == 54 and len(set(grid)) == 54
     assert {s.smooth for s in grid} == {"ma:1", "ma:3", "ma:5", "ma:8", "ema:0.5", "ema:1.0"}
     assert {s.p_min for s in grid} == {0.5, 0.6, 0.7} and {s.hold for s in grid} == {1, 2, 3}
+
+
+def test_calibration_prefers_correct_labels_to_uncertain_ones():
+    # a throughout: p(a) 0.8 in even windows, 0.65 in odd ones, and b ahead (0.55) in window 100
+    p_a = [0.45 if i == 100 else 0.8 if i % 2 == 0 else 0.65 for i in range(240)]
+    stream = WindowStream(np.arange(240) * 0.25, [0] * 240, two_class(p_a), AB)
+    cautious = SmoothingSettings(n=1, p_min=0.7, hold=1)
+    loose = SmoothingSettings(n=1, p_min=0.5, hold=1)
+    cal = calibrate([stream], (cautious, loose), max_false_per_min=2.0)
+    by = dict(cal.table)
+    # cautious: the 119 even windows other than 100 are stable and right, the rest uncertain
+    assert by[cautious]["stable_accuracy"] == 1.0 and by[cautious]["false_changes"] == 0
+    assert by[cautious]["accuracy"] == pytest.approx(119 / 240)
+    # loose: every window stable, window 100 wrong: a -> b -> a, two false changes in the minute
+    assert by[loose]["stable_accuracy"] == pytest.approx(239 / 240)
+    assert by[loose]["false_changes"] == 2
+    # the more accurate stable labels leave half the windows uncertain: the other one wins
+    assert cal.settings == loose
