@@ -13,6 +13,7 @@ import torch
 
 from tactile.errors import RecordingError, TactileError
 from tactile.training.config import TrainConfig
+from tactile.training.models import build_model
 
 CHECKPOINT = "checkpoint.pt"
 CHECKPOINT_FORMAT = "tactile-checkpoint"
@@ -128,8 +129,6 @@ def load_checkpoint(run_dir: Path):
     """Rebuild the model of a run from its checkpoint (data only: weights_only=True); returns
     (model in eval mode, the checkpoint dict). Every key is checked first
     (:func:`check_checkpoint`)."""
-    from tactile.training.model import build_model
-
     path = Path(run_dir)
     path = path / CHECKPOINT if path.is_dir() else path
     ck = _read(path, "checkpoint", "train a run with tactile-train first")

@@ -77,7 +77,8 @@ from tactile.training.evaluate import (
 )
 from tactile.training.granular import learn_dictionaries, pooled_stats
 from tactile.training.modality import literal_signals, resolve, resolve_signals, signals_of_takes
-from tactile.training.model import TextureModel, build_model, member_loss
+from tactile.training.model import TextureModel, member_loss
+from tactile.training.models import build_model
 from tactile.training.sampling import epoch_order
 
 AUGMENT_VERSION = 2
