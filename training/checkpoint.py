@@ -16,6 +16,7 @@ import numpy as np
 import torch
 
 import tactile
+from tactile.device.recording import Take
 from tactile.errors import RecordingError, TactileError
 from tactile.training.config import TrainConfig
 from tactile.training.models import build_model
@@ -65,7 +66,8 @@ def plain(obj):
 
 
 def save_checkpoint(path: Path, cfg: TrainConfig, model: torch.nn.Module, metrics: dict, *,
-                    classes: tuple[str, ...], takes, test: dict, norm: Norm) -> None:
+                    classes: tuple[str, ...], takes: list[Take],
+                    test: dict[int, tuple[int, int]], norm: Norm) -> None:
     """Write the checkpoint ``path``: the weights of ``model``, the resolved ``cfg`` (whose
     ``channels`` are the model's inputs, in order), ``classes``, the channels' units and the
     sample rate (of ``takes``, the dataset's takes), ``norm``, the test split's rows (``test``:

@@ -17,10 +17,12 @@ from pathlib import Path
 import torch
 from tqdm import tqdm
 
+from tactile.device.recording import Take
 from tactile.errors import ConfigError, RecordingError
 from tactile.training.checkpoint import Norm
 from tactile.training.config import TrainConfig
 from tactile.training.data import (
+    Split,
     Windows,
     channel_index,
     channel_stats,
@@ -32,9 +34,10 @@ from tactile.training.dist import Dist
 from tactile.training.granular import learn_dictionaries, pooled_stats
 from tactile.training.log import Log
 from tactile.training.modality import literal_signals, resolve, resolve_signals, signals_of_takes
+from tactile.training.model import Classifier
 
 
-@dataclass
+@dataclass(frozen=True)
 class Prepared:
     """A dataset ready to train on: ``cfg`` resolved (its ``channels`` the model's inputs, in
     order; the high-rate ``signals`` as exact names), the ``takes`` and ``classes``, the
@@ -42,15 +45,15 @@ class Prepared:
     ``train``, ``val``, ``test`` -> :class:`Windows`) and the normalisation (``norm``)."""
 
     cfg: TrainConfig
-    takes: list
+    takes: list[Take]
     classes: tuple[str, ...]
-    split: object
+    split: Split
     parts: dict[str, Windows]
     norm: Norm
 
 
-def check_inputs(data: Path, takes: list, cfg: TrainConfig) -> tuple[tuple[str, ...],
-                                                                    tuple[str, ...]]:
+def check_inputs(data: Path, takes: list[Take],
+                 cfg: TrainConfig) -> tuple[tuple[str, ...], tuple[str, ...]]:
     """The classes and the input channels of ``takes`` (the dataset ``data``); at least two
     classes, and ``emd_channels`` among the inputs, else one line naming what is wrong."""
     classes = classes_of(takes)
@@ -63,8 +66,8 @@ def check_inputs(data: Path, takes: list, cfg: TrainConfig) -> tuple[tuple[str, 
     return classes, channels
 
 
-def prepare(takes: list, classes: tuple[str, ...], channels: tuple[str, ...], cfg: TrainConfig,
-            log: Log, dist: Dist) -> Prepared:
+def prepare(takes: list[Take], classes: tuple[str, ...], channels: tuple[str, ...],
+            cfg: TrainConfig, log: Log, dist: Dist) -> Prepared:
     """Resolve the modalities (if any), split and cut the windows, fit the normalisation on
     the training windows (rank 0's, shared: every process normalises alike)."""
     signals = ()
@@ -111,7 +114,7 @@ def log_center(log: Log, channels: tuple[str, ...], patterns: tuple[str, ...],
         log.info(f"center ({', '.join(patterns)}): {', '.join(channels[i] for i in index)}")
 
 
-def features(model, parts: dict[str, Windows], seed: int, log: Log,
+def features(model: Classifier, parts: dict[str, Windows], seed: int, log: Log,
              dist: Dist) -> dict[str, torch.Tensor]:
     """Every part's features (N, S, F) by ``model.pre``, once. A granular model's
     preprocessing that ``needs_dictionaries`` goes in three steps: the data images, the

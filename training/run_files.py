@@ -17,10 +17,11 @@ import torch
 from tactile.training.checkpoint import CHECKPOINT, plain, save_checkpoint
 from tactile.training.config import TrainConfig
 from tactile.training.evaluate import per_take, predict, shifted, summary, table
+from tactile.training.model import Classifier
 from tactile.training.prepare import Prepared
 
 
-def test_metrics(model, prep: Prepared, feats: torch.Tensor) -> dict:
+def test_metrics(model: Classifier, prep: Prepared, feats: torch.Tensor) -> dict:
     """Window and per-take figures on the test split (``feats``: its windows' features)."""
     probs = predict(model, prep.parts["test"], feats=feats)
     metrics = summary(prep.parts["test"].y, probs, prep.classes)
@@ -28,8 +29,8 @@ def test_metrics(model, prep: Prepared, feats: torch.Tensor) -> dict:
     return metrics
 
 
-def run_metrics(model, prep: Prepared, feats: torch.Tensor, history: dict, extra: dict, *,
-                robustness: bool) -> dict:
+def run_metrics(model: Classifier, prep: Prepared, feats: torch.Tensor, history: dict,
+                extra: dict, *, robustness: bool) -> dict:
     """The run's figures, in the order metrics.json lists them: the test split's
     (:func:`test_metrics`), with ``robustness`` the shifted windows' accuracy (``shifted``),
     then what every run says (classes, channels, the split, its window counts, the best epoch
@@ -51,7 +52,7 @@ def run_metrics(model, prep: Prepared, feats: torch.Tensor, history: dict, extra
     return metrics
 
 
-def write_run(out: Path, cfg: TrainConfig, model, metrics: dict, history: dict,
+def write_run(out: Path, cfg: TrainConfig, model: Classifier, metrics: dict, history: dict,
               prep: Prepared) -> None:
     """Write RUN/ (``out``): the checkpoint of ``model`` and ``cfg``, metrics.json,
     confusion.txt and the two pictures (:func:`plots`)."""

@@ -42,6 +42,7 @@ from tactile.training.config import (
 from tactile.training.dist import Dist
 from tactile.training.log import Log, Stop
 from tactile.training.loop import Context, Interrupted, fit
+from tactile.training.model import Classifier
 from tactile.training.models import build_model
 from tactile.training.prepare import Prepared, check_inputs, features, prepare
 from tactile.training.run_files import run_metrics, write_run
@@ -111,7 +112,7 @@ def train(data: Path, out: Path, cfg: TrainConfig, progress: bool = True, *,
     return metrics
 
 
-def _save_interrupted(out: Path, data: Path, model, ctx: Context, prep: Prepared,
+def _save_interrupted(out: Path, data: Path, model: Classifier, ctx: Context, prep: Prepared,
                       feats: dict) -> dict:
     """After SIGINT: RUN/resume.pt (the state after the last finished epoch), and the best
     weights so far as an ordinary run (checkpoint, test metrics marked ``interrupted``)."""
