@@ -65,11 +65,13 @@ from tactile.device.recording import Take, TakeWriter, load_dataset
 from tactile.device.sim_cli import make_dataset
 from tactile.device.simulator import TEXTURES
 from tactile.errors import ConfigError
+from tactile.training import loop
 from tactile.training import train as train_module
 from tactile.training.checkpoint import SAVED_BEFORE
 from tactile.training.config import TrainConfig
 from tactile.training.data import channel_index, classes_of, split_takes, split_windows
 from tactile.training.evaluate import per_take
+from tactile.training.overrides import parse_sets
 
 SHARED = Path(__file__).resolve().parents[2] / "shared" / "datasets"
 HAPMAT = SHARED / "hapmat" / "hapmat_stick_imu.npz"
@@ -201,7 +203,7 @@ def prepare(name: str, out: Path, cache: Path = CACHE) -> tuple[Path, list[Take]
 
 class ValidationRecorder:
     """Inside ``with``: keeps the probabilities of every epoch's validation (what
-    :func:`tactile.training.train._validate` predicts), to judge selection rules afterwards
+    :func:`tactile.training.loop.validate` predicts), to judge selection rules afterwards
     (:func:`selection_rules`). The first windows predicted are the validation split's; later
     calls on the same windows are later epochs; any other windows (the test split) are not
     kept."""
@@ -210,7 +212,7 @@ class ValidationRecorder:
         self.val, self.probs = None, []
 
     def __enter__(self) -> ValidationRecorder:
-        self._predict = train_module.predict
+        self._predict = loop.predict
 
         def predict(model, w, *a, **kw):
             probs = self._predict(model, w, *a, **kw)
@@ -220,11 +222,11 @@ class ValidationRecorder:
                 self.probs.append(probs)
             return probs
 
-        train_module.predict = predict
+        loop.predict = predict
         return self
 
     def __exit__(self, *exc) -> None:
-        train_module.predict = self._predict
+        loop.predict = self._predict
 
     def save(self, path: Path) -> None:
         w = self.val
@@ -246,11 +248,11 @@ RULES = ("loss", "accuracy")
 def pick_epoch(rule: str, acc: np.ndarray, loss: np.ndarray, patience: int) -> int:
     """The epoch (0-based) that ``select=rule`` with ``patience`` keeps, given the curves
     (the run stops ``patience`` epochs after the last improvement, or at the curves' end);
-    the same comparisons as :func:`tactile.training.train._improves`."""
+    the same comparisons as :func:`tactile.training.loop.improves`."""
     s = {"best": np.inf, "best_acc": -1.0}
     best, stale = 0, 0
     for e in range(len(acc)):
-        if train_module._improves(rule, float(acc[e]), float(loss[e]), s):
+        if loop.improves(rule, float(acc[e]), float(loss[e]), s["best"], s["best_acc"]):
             s["best"], s["best_acc"], best, stale = float(loss[e]), float(acc[e]), e, 0
         else:
             stale += 1
@@ -609,8 +611,8 @@ def main(argv: list[str] | None = None) -> int:
     if not seeds:
         p.error("--seeds: give at least one seed")
     try:  # every setting checked before any dataset is made or imported
-        base = train_module.parse_sets(args.set, TrainConfig(threads=1))
-        candidates = [(label, train_module.parse_sets(sets, base), sets)
+        base = parse_sets(args.set, TrainConfig(threads=1))
+        candidates = [(label, parse_sets(sets, base), sets)
                       for label, *sets in args.candidate or []]
     except ConfigError as e:
         p.error(str(e))

@@ -179,7 +179,7 @@ class Job:
         """The run's TrainConfig: the config file, ``--set``, the seed and the threads (what
         ``tactile-train DATA --config FILE --set seed=S --set threads=T`` trains)."""
         from tactile.training.config import TrainConfig
-        from tactile.training.train import parse_sets
+        from tactile.training.overrides import parse_sets
 
         return parse_sets([*self.sets, f"seed={self.seed}", f"threads={threads}"],
                           TrainConfig.from_toml(self.config))

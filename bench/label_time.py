@@ -135,7 +135,7 @@ def paper_biotac_file(fingers: str, out: Path) -> Path:
     from tactile.export.graph import build_graph
     from tactile.export.metadata import attach, contract_for
     from tactile.training.config import TrainConfig
-    from tactile.training.model import build_model
+    from tactile.training.models import build_model
 
     sizes = (("vibration", "pac", 8, 22, 200), ("pressure", "pdc", 5, 5, 100),
              ("electrodes", "ele_*", 0, 5, 100))

@@ -65,7 +65,7 @@ def reference_classifier(run: Path):
     import torch
     from PyEMD import EMD
 
-    from tactile.training.train import load_checkpoint
+    from tactile.training.checkpoint import load_checkpoint
 
     torch.set_num_threads(1)
     model, ck = load_checkpoint(run)

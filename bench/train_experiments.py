@@ -27,7 +27,8 @@ from tactile.device.recording import load_dataset
 from tactile.device.sim_cli import make_dataset
 from tactile.training.config import TrainConfig
 from tactile.training.data import channel_index, classes_of, split_windows
-from tactile.training.train import parse_sets, train
+from tactile.training.overrides import parse_sets
+from tactile.training.train import train
 
 HAPMAT = (Path(__file__).resolve().parents[2] / "shared" / "datasets" / "hapmat"
           / "hapmat_stick_imu.npz")

@@ -190,13 +190,7 @@ def _module_main(module: str) -> Callable[[list[str] | None], int]:
     return lambda argv=None: importlib.import_module(module).main(argv)
 
 
-run_main = command("tactile-run", guarded=True)(_module_main("tactile.runtime.cli"))
 record_main = command("tactile-record", guarded=True)(_module_main("tactile.device.recorder"))
-monitor_main = command("tactile-monitor", guarded=True)(_module_main("tactile.runtime.monitor"))
-train_main = command("tactile-train", interruptible=True)(
-    _module_main("tactile.training.train"))
-eval_main = command("tactile-eval", interruptible=True)(
-    _module_main("tactile.training.evaluate"))
 export_main = command("tactile-export")(_module_main("tactile.export.cli"))
 plot_main = command("tactile-plot")(_module_main("tactile.training.plot"))
 import_biotac_main = command("tactile-import-biotac")(_module_main("tactile.device.biotac"))

@@ -234,7 +234,7 @@ def test_the_command_lines_settings_win_over_a_datasets_own(tmp_path, monkeypatc
 
     monkeypatch.setattr(b.train_module, "train", fake_train)
     monkeypatch.setattr(b, "band_logistic", fake_baseline)
-    base = b.train_module.parse_sets(["hop=10"], TrainConfig(threads=1))
+    base = b.parse_sets(["hop=10"], TrainConfig(threads=1))
     b.run_dataset("biotac", tmp_path / "d", [], tmp_path / "given", (0,), base,
                   given=b._keys(["hop=10"]))
     b.run_dataset("biotac", tmp_path / "d", [], tmp_path / "own", (0,), base)

@@ -244,8 +244,8 @@ def test_without_h5py_the_command_names_its_extra():
 def test_tactile_train_cuts_windows_from_88_channel_takes(tmp_path, capsys):
     """Two objects x three repetitions; split by user (= repetition): one each for train,
     validation and test. One epoch of a tiny LSTM: the point is that 88 channels go through."""
-    from tactile.training.train import load_checkpoint
-    from tactile.training.train import main as train_main
+    from tactile.training.checkpoint import load_checkpoint
+    from tactile.training.commands.train import main as train_main
 
     for obj in ("cork", "glass_bottle"):
         write_h5(tmp_path / f"{obj}.h5",

@@ -39,8 +39,9 @@ from tactile.export.cli import main as export_main
 from tactile.export.graph import split_forward
 from tactile.export.parity import ATOL, INT8_AGREEMENT, MARGIN, MIN_CARRY, session
 from tactile.export.windows import simulated
+from tactile.training.checkpoint import load_checkpoint
 from tactile.training.config import TrainConfig
-from tactile.training.train import load_checkpoint, train
+from tactile.training.train import train
 
 torch.set_num_threads(1)
 
@@ -544,7 +545,7 @@ def test_test_takes_are_recognised_by_content(dataset, tmp_path):
 
 def test_check_data_says_what_it_measured(dataset, root, tmp_path, capsys):
     from tactile.device.recording import load_dataset
-    from tactile.training.train import CHECKPOINT
+    from tactile.training.checkpoint import CHECKPOINT
 
     src, _, _, _, _ = _build("lstm1", GRID["lstm1"], dataset, root)
     run = tmp_path / "run"

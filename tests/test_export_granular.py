@@ -29,8 +29,9 @@ from tactile.export.cli import export_run
 from tactile.export.parity import ATOL
 from tactile.runtime.commands.run import main as run_main
 from tactile.runtime.model import Model
+from tactile.training.checkpoint import load_checkpoint
 from tactile.training.config import TrainConfig
-from tactile.training.train import load_checkpoint, train
+from tactile.training.train import train
 
 torch.set_num_threads(1)
 

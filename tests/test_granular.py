@@ -23,12 +23,13 @@ from tactile.errors import ConfigError, RecordingError
 from tactile.training import granular
 from tactile.training import train as train_mod
 from tactile.training.checkpoint import load_checkpoint
+from tactile.training.commands.train import main as train_main
 from tactile.training.config import Modality, TrainConfig
 from tactile.training.data import classes_of, split_windows
 from tactile.training.evaluate import evaluate_run, predict
 from tactile.training.granular import GranularPre, pooled_stats, sample_rows
 from tactile.training.modality import resolve, resolve_signals, signals_of_takes
-from tactile.training.train import main as train_main
+from tactile.training.resume import AUGMENT_VERSION
 from tactile.training.train import train
 
 BIOTAC_TOML = """
@@ -110,7 +111,7 @@ def test_bad_tables_are_one_line_errors_naming_the_value(change, message):
 
 
 def test_set_does_not_reach_the_tables():
-    from tactile.training.train import parse_sets
+    from tactile.training.overrides import parse_sets
 
     for key in ("signals", "modalities"):
         with pytest.raises(ConfigError, match=f"--set {key}: a table .* give it in the --config"):
@@ -451,20 +452,20 @@ def runs(toy, tmp_path_factory):
     """Each model trained on the toy set, with the model object as it was saved."""
     out = {}
     saved = {}
-    real = train_mod._write_run
+    real = train_mod.write_run
 
     def spy(run_dir, cfg, model, *args, **kwargs):
         saved[cfg.model] = model
         return real(run_dir, cfg, model, *args, **kwargs)
 
-    train_mod._write_run = spy
+    train_mod.write_run = spy
     try:
         for model in ("sf_rnn", "f_rnn", "sparse_linear", "linear"):
             run = tmp_path_factory.mktemp(model)
             metrics = train(toy, run, _cfg(model), progress=False)
             out[model] = (run, metrics, saved[model])
     finally:
-        train_mod._write_run = real
+        train_mod.write_run = real
     return out
 
 
@@ -552,7 +553,7 @@ def test_a_granular_resume_state_from_before_per_modality_gains_is_refused(toy, 
     run = tmp_path / "r"
     cfg = _cfg("sparse_linear", epochs=3, augment_gain=0.3)
     assert train(toy, run, cfg, progress=False, on_epoch=stop_after_first)["interrupted"]
-    assert load_resume(run)["state"]["augment_version"] == train_mod.AUGMENT_VERSION
+    assert load_resume(run)["state"]["augment_version"] == AUGMENT_VERSION
     saved = torch.load(run / RESUME, weights_only=True)
     del saved["state"]["augment_version"]
     torch.save(saved, run / RESUME)
@@ -636,7 +637,7 @@ def test_two_processes_share_rank_0s_dictionaries(toy, tmp_path):
     env = {**os.environ, "GLOO_SOCKET_IFNAME": "lo", "OMP_NUM_THREADS": "1"}
     cmd = [sys.executable, "-m", "torch.distributed.run", "--nproc-per-node", "2",
            "--master-addr", "127.0.0.1", "--master-port", str(free_port()),
-           "-m", "tactile.training.train", str(toy), "--out", str(tmp_path / "run"),
+           "-m", "tactile.training.commands.train", str(toy), "--out", str(tmp_path / "run"),
            "--config", str(toml), "--quiet"]
     proc = subprocess.run(cmd, capture_output=True, text=True, env=env, timeout=900)
     assert proc.returncode == 0, proc.stderr[-3000:]

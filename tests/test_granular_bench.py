@@ -152,7 +152,7 @@ def test_every_config_parses_and_builds_a_model_on_matching_data(path):
     from tactile.device.biotac import channels as biotac_channels
     from tactile.device.info import PEN_CHANNELS
     from tactile.training.config import TrainConfig
-    from tactile.training.model import build_model
+    from tactile.training.models import build_model
 
     cfg = TrainConfig.from_toml(path)
     prefix, model = path.stem.rsplit("-", 1)

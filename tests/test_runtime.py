@@ -24,8 +24,9 @@ from tactile.device.simulator import PenSimulator
 from tactile.errors import ConfigError, ModelContractError
 from tactile.runtime.model import Model
 from tactile.runtime.stream import Smoother, Stream
+from tactile.training.checkpoint import load_checkpoint
 from tactile.training.config import TrainConfig
-from tactile.training.train import load_checkpoint, train
+from tactile.training.train import train
 
 TEXTURES = ("paper", "desk", "non_contact")
 

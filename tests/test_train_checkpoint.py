@@ -9,8 +9,8 @@ import torch
 from tactile.device.sim_cli import make_dataset
 from tactile.errors import RecordingError
 from tactile.training.checkpoint import load_checkpoint
+from tactile.training.commands.eval import main as eval_main
 from tactile.training.config import TrainConfig
-from tactile.training.evaluate import main as eval_main
 from tactile.training.train import train
 
 

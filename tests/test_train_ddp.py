@@ -39,7 +39,7 @@ def test_two_processes_learn_and_their_checkpoint_exports(tmp_path):
     env = {**os.environ, "GLOO_SOCKET_IFNAME": "lo", "OMP_NUM_THREADS": "1"}
     cmd = [sys.executable, "-m", "torch.distributed.run", "--nproc-per-node", "2",
            "--master-addr", "127.0.0.1", "--master-port", str(free_port()),
-           "-m", "tactile.training.train", str(data), "--out", str(run),
+           "-m", "tactile.training.commands.train", str(data), "--out", str(run),
            *(f"--set={k}={v}" for k, v in SETS.items())]
     proc = subprocess.run(cmd, capture_output=True, text=True, env=env, timeout=900)
     assert proc.returncode == 0, proc.stderr[-3000:]
@@ -111,7 +111,7 @@ def test_two_processes_agree_on_the_refit_length(tmp_path):
     env = {**os.environ, "GLOO_SOCKET_IFNAME": "lo", "OMP_NUM_THREADS": "1"}
     cmd = [sys.executable, "-m", "torch.distributed.run", "--nproc-per-node", "2",
            "--master-addr", "127.0.0.1", "--master-port", str(free_port()),
-           "-m", "tactile.training.train", str(data), "--out", str(run), "--quiet",
+           "-m", "tactile.training.commands.train", str(data), "--out", str(run), "--quiet",
            "--set=epochs=40", "--set=patience=50"]
     proc = subprocess.run(cmd, capture_output=True, text=True, env=env, timeout=300)
     assert proc.returncode == 0, proc.stderr[-3000:]

@@ -17,9 +17,11 @@ import torch
 
 from tactile.device.sim_cli import make_dataset
 from tactile.training.checkpoint import RESUME, load_checkpoint, load_resume
+from tactile.training.commands.train import EXIT_INTERRUPTED
+from tactile.training.commands.train import main as train_main
 from tactile.training.config import TrainConfig
-from tactile.training.train import EXIT_INTERRUPTED, Stop, train
-from tactile.training.train import main as train_main
+from tactile.training.log import Stop
+from tactile.training.train import train
 
 SMALL = dict(epochs=5, hidden=12, layers=2, batch_size=64, lr=1e-2, patience=5, seed=4,
              threads=1)
@@ -114,10 +116,11 @@ def test_ctrl_c_in_the_command_exits_130_without_a_traceback_and_resume_finishes
     sets = [f"--set={k}={v}" for k, v in {**SMALL, "epochs": 3}.items()]
     code = ("import functools, signal, sys\n"
             "import tactile.training.train as t\n"
+            "from tactile.training.commands.train import main\n"
             "def hook(phase, epoch):\n"
             "    if epoch == 1: signal.raise_signal(signal.SIGINT)\n"
             "t.train = functools.partial(t.train, on_epoch=hook)\n"
-            "sys.exit(t.main(sys.argv[1:]))\n")
+            "sys.exit(main(sys.argv[1:]))\n")
     proc = subprocess.run([sys.executable, "-c", code, str(dataset), "--out", str(run), *sets],
                           capture_output=True, text=True, timeout=600)
     assert proc.returncode == EXIT_INTERRUPTED, proc.stderr
@@ -146,7 +149,7 @@ def test_sigint_before_the_first_epoch_saves_nothing(dataset, tmp_path, monkeypa
         raise KeyboardInterrupt  # as SIGINT does while the takes load or EMD runs
 
     monkeypatch.setattr(t, "load_dataset", interrupted)
-    assert t.main([str(dataset), "--out", str(tmp_path / "r")]) == EXIT_INTERRUPTED
+    assert train_main([str(dataset), "--out", str(tmp_path / "r")]) == EXIT_INTERRUPTED
     assert "nothing saved" in capsys.readouterr().err
     assert not (tmp_path / "r").exists()
 

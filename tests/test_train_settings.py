@@ -11,6 +11,8 @@ import torch
 
 from tactile.device.sim_cli import make_dataset
 from tactile.errors import ConfigError
+from tactile.training.commands.eval import main as eval_main
+from tactile.training.commands.train import main as train_main
 from tactile.training.config import (
     MAX_AUTO_THREADS,
     TrainConfig,
@@ -19,10 +21,13 @@ from tactile.training.config import (
     resolve_threads,
 )
 from tactile.training.data import Windows
-from tactile.training.evaluate import main as eval_main
 from tactile.training.evaluate import per_take, shifted_line
-from tactile.training.train import Log, _log_center, _plots, centered, parse_sets, train
-from tactile.training.train import main as train_main
+from tactile.training.log import Log
+from tactile.training.overrides import parse_sets
+from tactile.training.prepare import centered
+from tactile.training.prepare import log_center as _log_center
+from tactile.training.run_files import plots as _plots
+from tactile.training.train import train
 
 TINY = dict(epochs=2, hidden=6, layers=1, batch_size=64, patience=2, seed=2)
 
@@ -188,11 +193,11 @@ def test_eval_help_reads_as_a_sentence(capsys):
 
 def _kept(select: str, curves: list[tuple[float, float]], patience: int = 3) -> int:
     """The epoch (0-based) ``_validate``'s rule keeps over (accuracy, loss) per epoch."""
-    from tactile.training.train import _improves
+    from tactile.training.loop import improves as _improves
 
     s, best, stale = {"best": float("inf"), "best_acc": -1.0}, 0, 0
     for e, (acc, loss) in enumerate(curves):
-        if _improves(select, acc, loss, s):
+        if _improves(select, acc, loss, s["best"], s["best_acc"]):
             s["best"], s["best_acc"], best, stale = loss, acc, e, 0
         else:
             stale += 1
@@ -224,13 +229,13 @@ def test_the_training_loop_keeps_the_epoch_its_rule_names(dataset, tmp_path, mon
     from tactile.training import train as train_mod
 
     seen = {}
-    real = train_mod._write_run
+    real = train_mod.write_run
 
     def spy(out, cfg, model, metrics, history, *a, **k):
         seen["history"], seen["metrics"] = history, metrics
         return real(out, cfg, model, metrics, history, *a, **k)
 
-    monkeypatch.setattr(train_mod, "_write_run", spy)
+    monkeypatch.setattr(train_mod, "write_run", spy)
     cfg = TrainConfig(**{**TINY, "epochs": 12, "patience": 2, "epoch_windows": 128,
                          "select": select, "threads": 1})
     train(dataset, tmp_path / "r", cfg, progress=False)
@@ -247,8 +252,8 @@ def test_the_training_loop_keeps_the_epoch_its_rule_names(dataset, tmp_path, mon
 
 
 def test_augment_offset_moves_only_the_uncentred_channels():
+    from tactile.training.loop import augment_offset as _augment_offset
     from tactile.training.model import TextureModel
-    from tactile.training.train import _augment_offset
 
     def model(offset, center):
         cfg = TrainConfig(augment_offset=offset, emd_channels=("c",))

@@ -12,7 +12,7 @@ from tactile.device.sim_cli import make_dataset
 from tactile.errors import ConfigError
 from tactile.training.config import TrainConfig
 from tactile.training.data import split_takes
-from tactile.training.train import parse_sets
+from tactile.training.overrides import parse_sets
 
 USERS = ["alice", "bob", "carol", "dave", "erin", "trial12"]
 

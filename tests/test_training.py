@@ -13,12 +13,14 @@ from tactile.device.info import pen_info
 from tactile.device.recording import TakeWriter, load_dataset, read_take
 from tactile.device.sim_cli import make_dataset
 from tactile.errors import ConfigError, RecordingError
+from tactile.training.checkpoint import load_checkpoint
+from tactile.training.commands.eval import main as eval_main
+from tactile.training.commands.train import main as train_main
 from tactile.training.config import TrainConfig
 from tactile.training.data import channel_stats, classes_of, concat, cut, split_takes
-from tactile.training.evaluate import main as eval_main
 from tactile.training.evaluate import predict
-from tactile.training.train import load_checkpoint, parse_sets, train
-from tactile.training.train import main as train_main
+from tactile.training.overrides import parse_sets
+from tactile.training.train import train
 
 EASY = ("non_contact", "paper", "nonwoven_cloth")
 
@@ -217,7 +219,7 @@ def test_cli_errors(dataset, tmp_path, capsys):
 
 def test_center_removes_the_window_mean_of_matching_channels_only():
     from tactile.training.model import Preprocess
-    from tactile.training.train import centered
+    from tactile.training.prepare import centered
 
     names = ("pressure_0", "accel_x", "gyro_z", "ch0")
     assert centered(names, ("accel_*", "gyro_*")) == [1, 2]
@@ -245,16 +247,16 @@ def test_concat_keeps_runs_apart(dataset):
 def test_refit_trains_on_train_and_validation_for_the_best_epoch_count(dataset, tmp_path,
                                                                         monkeypatch):
     """With a time split and refit='auto', a second training on train + validation windows."""
-    import tactile.training.train as tr
+    import tactile.training.loop as tr
 
     seen = []
-    real = tr._train
+    real = tr.train_head
 
     def spy(model, w, f_all, n_epochs, ctx, val=None, resume=None):
         seen.append((len(w), n_epochs, val is None))
         return real(model, w, f_all, n_epochs, ctx, val, resume)
 
-    monkeypatch.setattr(tr, "_train", spy)
+    monkeypatch.setattr(tr, "train_head", spy)
     cfg = TrainConfig(epochs=3, hidden=8, layers=1, threads=1, split="time",
                       label_smoothing=0.1, schedule="cosine", ema=0.9, refit="auto")
     m = train(dataset, tmp_path / "refit", cfg, progress=False)

@@ -1,18 +1,25 @@
 """The run's files as data: the checkpoint (training -> export) and the resume state.
 
-Both are read with ``torch.load(weights_only=True)`` (a checkpoint is data, never code) and
-then checked key by key, because a file can come from anywhere: a wrong key gives one line
-naming the file and the key (:class:`RecordingError`, exit 1), never a traceback.
+:func:`save_checkpoint` writes the checkpoint and :func:`load_checkpoint` reads it back;
+:func:`save_resume` and :func:`load_resume` do the same for the resume state. Both are read
+with ``torch.load(weights_only=True)`` (a checkpoint is data, never code) and then checked key
+by key, because a file can come from anywhere: a wrong key gives one line naming the file and
+the key (:class:`RecordingError`, exit 1), never a traceback.
 """
 
 from __future__ import annotations
 
+from dataclasses import dataclass
 from pathlib import Path
 
+import numpy as np
 import torch
 
+import tactile
+from tactile.device.recording import Take
 from tactile.errors import RecordingError, TactileError
 from tactile.training.config import TrainConfig
+from tactile.training.models import build_model
 
 CHECKPOINT = "checkpoint.pt"
 CHECKPOINT_FORMAT = "tactile-checkpoint"
@@ -20,6 +27,7 @@ CHECKPOINT_VERSION = 1
 RESUME = "resume.pt"
 RESUME_FORMAT = "tactile-resume"
 RESUME_VERSION = 1
+RUN_FILES = (CHECKPOINT, RESUME, "metrics.json")  # a folder holding one of these is a run
 # what a saved config without these keys meant (they came later, or their default changed):
 # the model before front ends, without the wide path, one model (no ensemble), stopped on the
 # validation loss
@@ -31,6 +39,60 @@ def old_f_rnn(state: object, prefix: str = "") -> bool:
     """Whether ``state`` (a state dict; an F-RNN head's keys under ``prefix``) still holds the
     batch normalisations the F-RNN's input scale replaced (:data:`OLD_F_RNN`)."""
     return isinstance(state, dict) and f"{prefix}norms.0.weight" in state
+
+
+@dataclass(frozen=True)
+class Norm:
+    """The normalisation a model is built with and its checkpoint keeps: ``mean``, ``std``
+    (C,) float32 in the channels' units, from the training windows; ``emd_index`` the channels
+    whose IMFs are features and ``center_index`` those whose window mean is removed (indices
+    into the C channels; both empty for the granular models)."""
+
+    mean: np.ndarray
+    std: np.ndarray
+    emd_index: list[int]
+    center_index: list[int]
+
+
+def plain(obj):
+    """JSON- and weights_only-safe copy (numpy scalars to Python)."""
+    if isinstance(obj, dict):
+        return {str(k): plain(v) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return [plain(v) for v in obj]
+    if isinstance(obj, np.generic):
+        return obj.item()
+    return obj
+
+
+def save_checkpoint(path: Path, cfg: TrainConfig, model: torch.nn.Module, metrics: dict, *,
+                    classes: tuple[str, ...], takes: list[Take],
+                    test: dict[int, tuple[int, int]], norm: Norm) -> None:
+    """Write the checkpoint ``path``: the weights of ``model``, the resolved ``cfg`` (whose
+    ``channels`` are the model's inputs, in order), ``classes``, the channels' units and the
+    sample rate (of ``takes``, the dataset's takes), ``norm``, the test split's rows (``test``:
+    take index -> (first, end) rows) with each test take's fingerprint, and ``metrics``."""
+    channels = cfg.channels
+    names = [t.path.name for t in takes]
+    ck = {
+        "format": CHECKPOINT_FORMAT,
+        "version": CHECKPOINT_VERSION,
+        "package_version": tactile.__version__,
+        "config": cfg.to_dict(),
+        "classes": list(classes),
+        "channels": list(channels),
+        "units": [takes[0].info.channels[takes[0].channels.index(c)].unit for c in channels],
+        "sample_rate_hz": takes[0].info.sample_rate_hz,
+        "mean": norm.mean.tolist(),
+        "std": norm.std.tolist(),
+        "emd_index": norm.emd_index,
+        "center_index": norm.center_index,
+        "test_rows": {names[i]: list(r) for i, r in test.items()},
+        "test_fingerprints": {names[i]: takes[i].fingerprint() for i in test},
+        "metrics": plain(metrics),
+        "state_dict": model.state_dict(),
+    }
+    torch.save(ck, path)
 
 
 def _read(path: Path, what: str, hint: str) -> dict:
@@ -128,8 +190,6 @@ def load_checkpoint(run_dir: Path):
     """Rebuild the model of a run from its checkpoint (data only: weights_only=True); returns
     (model in eval mode, the checkpoint dict). Every key is checked first
     (:func:`check_checkpoint`)."""
-    from tactile.training.model import build_model
-
     path = Path(run_dir)
     path = path / CHECKPOINT if path.is_dir() else path
     ck = _read(path, "checkpoint", "train a run with tactile-train first")
@@ -194,5 +254,5 @@ def load_resume(run_dir: Path) -> dict:
     return r
 
 
-__all__ = ["CHECKPOINT", "RESUME", "load_checkpoint", "check_checkpoint", "save_resume",
-           "load_resume"]
+__all__ = ["CHECKPOINT", "RESUME", "RUN_FILES", "Norm", "save_checkpoint", "load_checkpoint",
+           "check_checkpoint", "save_resume", "load_resume", "plain"]

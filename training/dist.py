@@ -1,7 +1,7 @@
 """Data-parallel training with PyTorch's own engine, or one process: the same calls.
 
-``torchrun --nproc-per-node N [--nnodes M ...] -m tactile.training.train DATA --out RUN`` starts
-N processes per node; torchrun sets ``RANK``, ``WORLD_SIZE``, ``LOCAL_RANK``,
+``torchrun --nproc-per-node N [--nnodes M ...] -m tactile.training.commands.train DATA --out
+RUN`` starts N processes per node; torchrun sets ``RANK``, ``WORLD_SIZE``, ``LOCAL_RANK``,
 ``LOCAL_WORLD_SIZE`` and the rendezvous address, and :class:`Dist` reads them (as
 pytorch/examples' ``multigpu_torchrun.py`` does). Without them it is one process and every
 method is the identity. Backend: NCCL on GPUs, gloo on CPUs; tensors that live on the CPU

@@ -1,28 +1,24 @@
 """Evaluate a trained run on a dataset: window and per-take accuracy, confusion, robustness.
 
-    tactile-eval RUN/ DATA [--json] [--threads N]
-
-prints accuracy over windows, the majority vote per take (the label most of a take's windows
-got, against the take's label: what trial-based datasets report), per-class recall and the
-row-normalised confusion table laid out as the pen paper's Tables 1 and 2 ("label of input
-data" rows, "estimated class" columns), then the granular-media paper's robustness check: the
-same windows shifted in time by up to +/-0.2 s. If DATA holds the run's test takes, only their
-test rows are evaluated; otherwise all of DATA. Torch uses the run's ``threads`` setting.
+:func:`evaluate_run` (the figures ``tactile-eval RUN/ DATA`` prints) measures the accuracy over
+windows, the majority vote per take (the label most of a take's windows got, against the
+take's label: what trial-based datasets report), per-class recall and the row-normalised
+confusion table laid out as the pen paper's Tables 1 and 2 ("label of input data" rows,
+"estimated class" columns), then the granular-media paper's robustness check: the same windows
+shifted in time by up to +/-0.2 s. If DATA holds the run's test takes, only their test rows are
+evaluated; otherwise all of DATA. Torch uses the run's ``threads`` setting.
 """
 
 from __future__ import annotations
 
-import argparse
-import json
-import sys
 from pathlib import Path
 
 import numpy as np
 import torch
 
-from tactile.cli import Parser, add_debug, int_in, run
 from tactile.device.recording import load_dataset
-from tactile.errors import ConfigError, RecordingError
+from tactile.errors import RecordingError
+from tactile.training.checkpoint import load_checkpoint
 from tactile.training.config import apply_threads, resolve_threads
 from tactile.training.data import Windows, cut, find_test_split
 from tactile.training.model import TextureModel
@@ -56,7 +52,7 @@ def predict(
             logits = model.head(f, *zero(len(f)))[0]
             out[i : i + batch] = torch.softmax(logits, dim=1).cpu().numpy()
         return out
-    for rows in _runs(w):  # carry: one run at a time, window after window
+    for rows in runs(w):  # carry: one run at a time, window after window
         h, c = zero(1)
         for r in rows:
             logits, h, c = model.head(feats[r : r + 1].to(dev), h, c)
@@ -68,7 +64,7 @@ def _features(model: TextureModel, x: torch.Tensor, batch: int = 512) -> torch.T
     return torch.cat([model.pre(x[i : i + batch]) for i in range(0, len(x), batch)])
 
 
-def _runs(w: Windows) -> list[np.ndarray]:
+def runs(w: Windows) -> list[np.ndarray]:
     """Row indices of each gap-free run, ordered by window start."""
     order = np.lexsort((w.start, w.run))
     bounds = np.flatnonzero(np.diff(w.run[order])) + 1
@@ -150,8 +146,6 @@ def shifted(model: TextureModel, takes, classes, channels, rows, window: int, ho
 def evaluate_run(run_dir: Path, data: Path, threads: int | None = None) -> dict:
     """The figures of ``run_dir``'s model on ``data`` (see the module's text). ``threads``:
     torch threads (default: the run's ``threads`` setting, resolved on this machine)."""
-    from tactile.training.checkpoint import load_checkpoint
-
     model, ck = load_checkpoint(run_dir)
     cfg = model.cfg
     s_threads = apply_threads(threads or resolve_threads(cfg.threads))
@@ -175,34 +169,5 @@ def evaluate_run(run_dir: Path, data: Path, threads: int | None = None) -> dict:
     return s
 
 
-def _main(args: argparse.Namespace) -> int:
-    s = evaluate_run(args.run, args.data, args.threads)
-    if args.json:
-        print(json.dumps(s))
-        return 0
-    classes = tuple(s["classes"])
-    print(f"evaluated on {s['scope']}")
-    print(table(s, classes))
-    print(f"per take (majority vote): {s['take_accuracy']:.3f} over {s['takes']} takes")
-    print("recall: " + ", ".join(f"{c} {v:.3f}" for c, v in s["recall"].items()))
-    print(shifted_line(s["shifted"]))
-    return 0
-
-
-def main(argv: list[str] | None = None) -> int:
-    p = Parser(prog="tactile-eval", description=__doc__.split("\n\n")[0])
-    p.add_argument("run", type=Path, help="run folder written by tactile-train")
-    p.add_argument("data", type=Path, help="dataset folder")
-    p.add_argument("--json", action="store_true", help="the figures as one JSON object")
-    p.add_argument("--threads", type=int_in(1), metavar="N",
-                   help="torch threads (default: the run's threads setting)")
-    add_debug(p)
-    return run("tactile-eval", _main, p.parse_args(argv))
-
-
-if __name__ == "__main__":
-    sys.exit(main())
-
-
-__all__ = ["predict", "summary", "per_take", "shifted_line", "table", "evaluate_run", "main",
-           "ConfigError"]
+__all__ = ["predict", "summary", "per_take", "shifted", "shifted_line", "table", "evaluate_run",
+           "runs", "confusion", "SHIFTS_S"]

@@ -287,20 +287,3 @@ class TextureModel(Classifier):
         scale = torch.zeros(self.pre.n_features)
         scale[: self.pre.n_channels] = self.cfg.augment_offset * (1 - self.pre.center_mask)
         return scale if bool(scale.any()) else None
-
-
-
-def build_model(cfg: TrainConfig, n_classes: int, mean: Tensor, std: Tensor, *,
-                channels: tuple[str, ...] = (), rate_hz: float = 100.0,
-                emd_index: list[int] | None = None,
-                center_index: list[int] | None = None) -> nn.Module:
-    """The model ``cfg`` describes, untrained: a :class:`TextureModel` (the pen's models), or
-    with ``cfg.modalities`` a :class:`~tactile.training.granular.GranularModel` whose
-    modalities are resolved against ``channels`` (x's last axis, in order) at ``rate_hz``
-    (``cfg.signals`` names the high-rate signals). ``mean``, ``std``: (C,) normalisation."""
-    if cfg.modalities:
-        from tactile.training.granular import GranularModel
-        from tactile.training.modality import resolve
-
-        return GranularModel(cfg, n_classes, resolve(cfg, tuple(channels), rate_hz), mean, std)
-    return TextureModel(cfg, n_classes, mean, std, list(emd_index or []), center_index)

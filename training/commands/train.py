@@ -1,0 +1,100 @@
+"""Train a classifier on a dataset folder and write an evaluated run: tactile-train DATA --out RUN.
+
+The run's folder and the steps are those of :func:`tactile.training.train.train`; ``--resume
+RUN`` continues a run that Ctrl-C stopped (exit 130), with its own settings. Under ``torchrun
+... -m tactile.training.commands.train`` the same command trains data-parallel.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+
+from tactile.cli import Parser, add_debug, command, run
+
+EXIT_INTERRUPTED = 130  # the shell's code for a command ended by SIGINT
+
+
+def build_parser() -> argparse.ArgumentParser:
+    p = Parser(prog="tactile-train", description=__doc__.split("\n\n")[0])
+    p.add_argument("data", type=Path, nargs="?",
+                   help="dataset folder (takes: .csv + .json); with --resume, default: the "
+                        "run's own")
+    p.add_argument("--out", type=Path, help="run folder to write (must not hold a run)")
+    p.add_argument("--config", type=Path, help="TOML file of settings (see TrainConfig)")
+    p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
+                   help="override one setting, e.g. --set hidden=32 --set emd_channels=accel_z")
+    p.add_argument("--resume", type=Path, metavar="RUN",
+                   help="continue the run that Ctrl-C stopped, with its own settings")
+    p.add_argument("--force", action="store_true", help="overwrite the run in --out")
+    p.add_argument("--quiet", action="store_true", help="no progress output")
+    add_debug(p)
+    return p
+
+
+def _settings(args: argparse.Namespace):
+    """(config, dataset folder, run folder, resume state or None) of the command line; the
+    run folder is checked first (a run in it is refused unless ``--force``)."""
+    from tactile.errors import ConfigError
+    from tactile.training.checkpoint import RESUME, RUN_FILES, load_resume
+    from tactile.training.config import TrainConfig
+    from tactile.training.overrides import parse_sets
+
+    if args.resume is not None:
+        if args.set or args.config or args.force:
+            raise ConfigError("--resume continues a run with its own settings: drop "
+                              "--set/--config/--force")
+        if args.out is not None and args.out.resolve() != args.resume.resolve():
+            raise ConfigError(f"--resume writes into its run folder {args.resume}: drop --out")
+        resume = load_resume(args.resume)
+        data = args.data if args.data is not None else Path(resume["data"])
+        return TrainConfig.from_dict(resume["config"]), data, args.resume, resume["state"]
+    if args.data is None or args.out is None:
+        raise ConfigError("give DATA and --out RUN (or --resume RUN)")
+    cfg = TrainConfig.from_toml(args.config) if args.config else TrainConfig()
+    cfg = parse_sets(args.set, cfg)
+    out = args.out
+    held = [f for f in RUN_FILES if (out / f).exists()]
+    if held and not args.force:
+        more = (f", or --resume {out} to continue it" if (out / RESUME).exists()
+                else " (it finished: nothing to resume)")
+        raise ConfigError(f"{out}: holds a run already ({held[0]}): choose another --out "
+                          f"or add --force to overwrite it{more}")
+    if args.force:
+        (out / RESUME).unlink(missing_ok=True)
+    return cfg, args.data, out, None
+
+
+def _train(args: argparse.Namespace) -> int:
+    from tactile.training.evaluate import shifted_line, table
+    from tactile.training.train import train
+
+    cfg, data, out, resume = _settings(args)
+    try:
+        m = train(data, out, cfg, progress=not args.quiet, resume=resume)
+    except KeyboardInterrupt:  # before the first epoch (loading, EMD features): nothing to keep
+        print("tactile-train: interrupted before training started: nothing saved",
+              file=sys.stderr)
+        return EXIT_INTERRUPTED
+    if m.get("interrupted"):
+        return EXIT_INTERRUPTED
+    if "accuracy" not in m:  # not rank 0 of a torchrun job: rank 0 prints
+        return 0
+    print(table(m, tuple(m["classes"]), f"test split ({m['split']})"))
+    print(f"per take (majority vote): {m['take_accuracy']:.3f} over {m['takes']} takes")
+    print(shifted_line(m["shifted"]))
+    print(f"trained in {m['train_seconds']} s; run in {out}")
+    return 0
+
+
+@command("tactile-train", interruptible=True)
+def main(argv: list[str] | None = None) -> int:
+    return run("tactile-train", _train, build_parser().parse_args(argv))
+
+
+if __name__ == "__main__":  # torchrun ... -m tactile.training.commands.train
+    sys.exit(main())
+
+
+__all__ = ["build_parser", "main", "EXIT_INTERRUPTED"]

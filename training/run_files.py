@@ -1,0 +1,106 @@
+"""A finished (or interrupted) run's folder: the checkpoint, the figures and the pictures.
+
+    checkpoint.pt     weights + resolved config + classes, channels, rate, normalisation,
+                      test rows and metrics (:func:`tactile.training.checkpoint.save_checkpoint`)
+    metrics.json      the figures (:func:`run_metrics`); confusion.txt the paper-style table;
+    curves.png, confusion.png
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from tactile.training.checkpoint import CHECKPOINT, plain, save_checkpoint
+from tactile.training.config import TrainConfig
+from tactile.training.evaluate import per_take, predict, shifted, summary, table
+from tactile.training.model import Classifier
+from tactile.training.prepare import Prepared
+
+
+def test_metrics(model: Classifier, prep: Prepared, feats: torch.Tensor) -> dict:
+    """Window and per-take figures on the test split (``feats``: its windows' features)."""
+    probs = predict(model, prep.parts["test"], feats=feats)
+    metrics = summary(prep.parts["test"].y, probs, prep.classes)
+    metrics.update(per_take(prep.parts["test"], probs, [t.path.stem for t in prep.takes]))
+    return metrics
+
+
+def run_metrics(model: Classifier, prep: Prepared, feats: torch.Tensor, history: dict,
+                extra: dict, *, robustness: bool) -> dict:
+    """The run's figures, in the order metrics.json lists them: the test split's
+    (:func:`test_metrics`), with ``robustness`` the shifted windows' accuracy (``shifted``),
+    then what every run says (classes, channels, the split, its window counts, the best epoch
+    and its validation accuracy), then ``extra``: what only a finished, or only an
+    interrupted, run says."""
+    cfg, history_acc = prep.cfg, history["val_acc"]
+    metrics = test_metrics(model, prep, feats)
+    if robustness:
+        metrics["shifted"] = shifted(model, prep.takes, prep.classes, cfg.channels,
+                                     prep.split.test, cfg.window, cfg.hop,
+                                     prep.takes[0].info.sample_rate_hz)
+    metrics.update(
+        classes=list(prep.classes), channels=list(cfg.channels), split=prep.split.description,
+        split_windows={k: len(w) for k, w in prep.parts.items()},
+        best_epoch=history["best_epoch"],
+        val_accuracy=history_acc[history["best_epoch"]] if history_acc else None,
+    )
+    metrics.update(extra)
+    return metrics
+
+
+def write_run(out: Path, cfg: TrainConfig, model: Classifier, metrics: dict, history: dict,
+              prep: Prepared) -> None:
+    """Write RUN/ (``out``): the checkpoint of ``model`` and ``cfg``, metrics.json,
+    confusion.txt and the two pictures (:func:`plots`)."""
+    out.mkdir(parents=True, exist_ok=True)
+    save_checkpoint(out / CHECKPOINT, cfg, model, metrics, classes=prep.classes,
+                    takes=prep.takes, test=prep.split.test, norm=prep.norm)
+    (out / "metrics.json").write_text(json.dumps(plain(metrics), indent=1) + "\n")
+    (out / "confusion.txt").write_text(table(metrics, prep.classes, "test split") + "\n")
+    plots(out, history, metrics, prep.classes)
+
+
+def plots(out: Path, history: dict, metrics: dict, classes: tuple[str, ...]) -> None:
+    """RUN/curves.png (the loss and validation accuracy per epoch, the kept epoch marked) and
+    RUN/confusion.png (the row-normalised confusion with its counts)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(1, 2, figsize=(9, 3.5))
+    ep = np.arange(1, len(history["train_loss"]) + 1)
+    best = history["best_epoch"] + 1
+    ax[0].plot(ep, history["train_loss"], label="train")
+    ax[0].plot(ep[: len(history["val_loss"])], history["val_loss"], label="validation")
+    ax[0].set(xlabel="epoch", ylabel="cross-entropy", title="loss")
+    ax[1].plot(ep[: len(history["val_acc"])], history["val_acc"])
+    ax[1].set(xlabel="epoch", ylabel="accuracy", title="validation accuracy", ylim=(0, 1))
+    for a in ax:  # the epoch whose weights were kept
+        a.axvline(best, color="tab:red", linestyle="--", linewidth=1, label=f"best epoch {best}")
+    ax[0].legend()
+    fig.tight_layout()
+    fig.savefig(out / "curves.png", dpi=100)
+    plt.close(fig)
+    counts = np.array(metrics["confusion"])
+    norm = np.array(metrics["confusion_normalised"])
+    fig, ax = plt.subplots(figsize=(1.4 * len(classes) + 2, 1.0 * len(classes) + 1.5))
+    ax.imshow(norm, vmin=0, vmax=1, cmap="Blues")
+    for i in range(len(classes)):
+        for j in range(len(classes)):  # the share of the row, and the count it is made of
+            ax.text(j, i, f"{norm[i, j]:.2f}\n({counts[i, j]})", ha="center", va="center",
+                    fontsize=8, color="white" if norm[i, j] > 0.5 else "black")
+    ax.set_xticks(range(len(classes)), classes, rotation=30, ha="right")
+    ax.set_yticks(range(len(classes)), classes)
+    ax.set(xlabel="estimated class", ylabel="label of input data",
+           title=f"test accuracy {metrics['accuracy']:.3f} (share of row, window count)")
+    fig.tight_layout()
+    fig.savefig(out / "confusion.png", dpi=100)
+    plt.close(fig)
+
+
+__all__ = ["test_metrics", "run_metrics", "write_run", "plots"]
