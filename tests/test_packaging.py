@@ -113,14 +113,18 @@ _BLOCK_TRAIN = (
 
 def test_commands_needing_an_extra_say_so_in_one_line():
     """On a board (no torch, no onnx) the training and export commands are installed too; each
-    must name the extra it needs instead of printing an import traceback."""
+    answers --version and --help, and a run names the extra it needs instead of printing an
+    import traceback."""
     scripts = tomllib.loads((REPO / "pyproject.toml").read_text())["project"]["scripts"]
-    for prog in ("tactile-train", "tactile-eval", "tactile-export"):
+    runs = {"tactile-train": ["data"], "tactile-eval": ["run", "data"],
+            "tactile-export": ["run", "-o", "model.onnx"]}
+    for prog, argv in runs.items():
         module, func = scripts[prog].split(":")
-        code = _BLOCK_TRAIN + f"from {module} import {func}\nsys.argv = ['{prog}', '--help']\n" \
-            f"sys.exit({func}())\n"
-        out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True)
-        assert out.returncode == 1, (prog, out.stderr)
+        for args, code in ((["--version"], 0), (["--help"], 0), (argv, 1)):
+            script = _BLOCK_TRAIN + f"from {module} import {func}\nsys.argv = {[prog, *args]!r}\n" \
+                f"sys.exit({func}())\n"
+            out = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True)
+            assert out.returncode == code, (prog, args, out.stderr)
         lines = out.stderr.strip().splitlines()
         assert len(lines) == 1 and lines[0].startswith(f"{prog}: error: needs the [train] extra")
         assert "pip install 'tactile-pen[train]'" in lines[0]
