@@ -34,7 +34,7 @@ import torch
 
 import tactile
 from tactile.device.info import PEN_CHANNELS
-from tactile.export.cli import export_run
+from tactile.export.exporter import export_run
 from tactile.training.checkpoint import CHECKPOINT, CHECKPOINT_FORMAT, CHECKPOINT_VERSION
 from tactile.training.config import TrainConfig
 from tactile.training.model import build_model

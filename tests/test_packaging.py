@@ -160,7 +160,7 @@ def test_tactile_check_on_a_board_checks_what_the_runtime_loads(tmp_path):
     junk.write_bytes(b"not onnx")
 
     def check(*args):
-        code = _BLOCK_TRAIN + "from tactile.export.check import main\n" \
+        code = _BLOCK_TRAIN + "from tactile.export.commands.check import main\n" \
             f"sys.exit(main({list(args)!r}))\n"
         return subprocess.run([sys.executable, "-c", code], capture_output=True, text=True)
 
@@ -172,6 +172,6 @@ def test_tactile_check_on_a_board_checks_what_the_runtime_loads(tmp_path):
     assert out.returncode == 3 and "not a loadable ONNX model" in out.stderr
     out = check(str(shipped), "--data", str(tmp_path))
     assert out.returncode == 1 and "need the [train] extra" in out.stderr
-    full = subprocess.run([sys.executable, "-m", "tactile.export.check", str(shipped)],
+    full = subprocess.run([sys.executable, "-m", "tactile.export.commands.check", str(shipped)],
                           capture_output=True, text=True)
     assert full.returncode == 0 and "opset 18" in full.stdout.splitlines()[0], full.stderr
