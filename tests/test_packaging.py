@@ -66,7 +66,8 @@ def test_the_built_wheel_requires_no_torch(tmp_path):
     assert not closure & {"torch", "onnx", "onnxscript", "pyemd", "emd-signal", "scipy"}, closure
     # the wheel carries every stage and the protocol spec, not only what the editable install sees
     for module in ("tactile/runtime/cli.py", "tactile/training/emd/module.py",
-                   "tactile/export/cli.py", "tactile/device/PROTOCOL.md", "tactile/contract.py",
+                   "tactile/export/commands/export.py",
+                   "tactile/device/PROTOCOL.md", "tactile/contract.py",
                    "tactile/runtime/web/index.html", "tactile/runtime/web/app.js",
                    "tactile/runtime/web/style.css"):
         assert module in names, module
