@@ -316,5 +316,5 @@ def keep_used_initializers(nodes: list[onnx.NodeProto], inits: list[onnx.TensorP
     inits[:] = [i for i in inits if i.name in used]
 
 
-__all__ = ["OPSET", "export_traced", "inline", "keep_used_initializers", "loop_body",
-           "tensor_info", "trace_graph"]
+__all__ = ["export_traced", "inline", "keep_used_initializers", "loop_body", "tensor_info",
+           "trace_graph"]
