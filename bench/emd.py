@@ -45,17 +45,13 @@ import numpy as np
 import onnx
 import onnxruntime as ort
 import torch
+from emd_pieces import count_nodes, sift_path_nodes, subgraphs  # beside this script
 from PyEMD import EMD as PyEMD
 
+from tactile.contract import IR_VERSION
+from tactile.export.emd_graph import build_emd_model, export_emd_onnx
 from tactile.runtime.model import session_options
 from tactile.training.emd import EMD
-from tactile.training.emd.onnx_export import (
-    build_emd_model,
-    count_nodes,
-    export_emd_onnx,
-    sift_path_nodes,
-    subgraphs,
-)
 from tactile.training.emd.spline import LARGE_ROWS
 
 N_IMFS, N_SIFTS = 4, 10
@@ -179,8 +175,9 @@ def bench_shape(
 def bench_pieces(repeats: int, rows: int = 8) -> list[str]:
     """Each piece of one sift traced alone (float32, ``rows`` rows of 50 samples), run by
     onnxruntime: microseconds per run, less the cost of running an empty graph."""
-    from tactile.training.emd.onnx_export import trace_graph
-    from tactile.training.emd.pieces import piece_examples
+    from emd_pieces import piece_examples
+
+    from tactile.export.traced import trace_graph
 
     def per_run(sess: ort.InferenceSession, feed: dict) -> float:
         return timed(lambda: [sess.run(None, feed) for _ in range(200)], repeats) / 200 * 1e6
@@ -192,7 +189,7 @@ def bench_pieces(repeats: int, rows: int = 8) -> list[str]:
     examples = piece_examples(rows=rows, dtype=torch.float32)
     # The fixed cost of one run: a one-node graph on the first piece's input.
     probe = trace_graph(lambda x: x * 2.0, [examples["head"][1][0]], ["i0"], ["o0"], {})
-    probe.ir_version = 8
+    probe.ir_version = IR_VERSION
     probe_sess = ort.InferenceSession(probe.SerializeToString(), opts,
                                       providers=["CPUExecutionProvider"])
     empty = per_run(probe_sess, {"i0": examples["head"][1][0].numpy()})
@@ -201,7 +198,7 @@ def bench_pieces(repeats: int, rows: int = 8) -> list[str]:
         names = [f"i{i}" for i in range(len(args))]
         n_out = len(outs) if isinstance(outs, tuple) else 1
         model = trace_graph(fn, args, names, [f"o{i}" for i in range(n_out)], {})
-        model.ir_version = 8
+        model.ir_version = IR_VERSION
         sess = ort.InferenceSession(model.SerializeToString(), opts,
                                     providers=["CPUExecutionProvider"])
         used = {i.name for i in sess.get_inputs()}

@@ -34,7 +34,7 @@ import numpy as np
 
 def build_model(work: Path) -> tuple[Path, Path]:
     from tactile.device.sim_cli import make_dataset
-    from tactile.export.cli import export_run
+    from tactile.export.exporter import export_run
     from tactile.training.config import TrainConfig
     from tactile.training.train import train
 

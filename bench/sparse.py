@@ -34,6 +34,7 @@ import torch
 from sklearn.decomposition import MiniBatchDictionaryLearning
 from sklearn.decomposition import SparseCoder as SkSparseCoder
 
+from tactile.export.coder_graph import coder_graph
 from tactile.training.sparse import SparseCoder, default_n_nonzero
 from tactile.training.sparse_check import compare, structured
 
@@ -61,7 +62,7 @@ def bench_size(name: str, features: int, atoms: int, n: int, repeats: int) -> li
     x = structured(256, features, seed=10_000 + features)
     coder = SparseCoder(m.components_, n)
     start = time.perf_counter()
-    model = coder.to_onnx()
+    model = coder_graph(coder)
     t_export = time.perf_counter() - start
     s1, s256 = session(model), session(model)
     xt = torch.from_numpy(x)
@@ -116,7 +117,7 @@ def parity() -> list[str]:
                     coder = SparseCoder(d, n)
                     with torch.no_grad():
                         outs = {"torch": coder(torch.from_numpy(x)).numpy(),
-                                "onnxruntime": session(coder.to_onnx()).run(None, {"x": x})[0]}
+                                "onnxruntime": session(coder_graph(coder)).run(None, {"x": x})[0]}
                     for impl, got in outs.items():
                         stats, t = compare(ref, got, d, x, n), totals[impl]
                         t[0] += stats["same"]

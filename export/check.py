@@ -1,30 +1,27 @@
-"""``tactile-check model.onnx [--run RUN] [--data DATA]``: is this file a model we can deploy?
+"""Is this file a model we can deploy? The checks of ``tactile-check``.
 
-Validates the contract of any ONNX file (an ONNX model at all, ``onnx.checker``, opset, input
-and output names, dtypes, ranks, the dynamic batch axis, every required metadata key) and names
-what is wrong in one line (exit code 3). With ``--run`` it re-runs the parity comparison against
-the run's PyTorch model (on ``--data``'s test windows if given, else simulated or random ones)
-and prints the table; exit 3 on failure. With ``--data`` alone it runs the file on the data's
-windows (the run's test split when the data holds its test takes, recognised by content, else
-every take, and it says which) and prints the accuracy beside the one training recorded, saying
-what that was measured on.
+:func:`load_contract` validates the contract of any ONNX file (an ONNX model at all,
+``onnx.checker``, opset, input and output names, dtypes, ranks, the dynamic batch axis, every
+required metadata key) and names what is wrong in one line (:class:`ModelContractError`, exit
+code 3). :func:`check_file` adds, given a run, the parity comparison against the run's PyTorch
+model (on a dataset's test windows if given, else simulated or random ones), printing the
+table; given a dataset alone, it runs the file on the data's windows (the run's test split
+when the data holds its test takes, recognised by content, else every take, and it says which)
+and prints the accuracy beside the one training recorded, saying what that was measured on.
 
 On a board (no ``[train]`` extra: no onnx, no torch) it checks what the runtime will: loads the
 file with onnxruntime, validates the contract and the graph's signature as ``tactile-run`` does,
-and runs one window through it; ``--run`` and ``--data`` need the extra.
+and runs one window through it (:func:`board_check`); a run or a dataset needs the extra.
 """
 
 from __future__ import annotations
 
-import argparse
 import json
-import sys
 from pathlib import Path
 from typing import TYPE_CHECKING
 
 import numpy as np
 
-from tactile.cli import Parser, add_debug, int_in, run
 from tactile.contract import OPSET, ModelContract, model_file
 from tactile.errors import ConfigError, ModelContractError
 
@@ -163,7 +160,7 @@ def _reparity(path: Path, c: ModelContract, run_dir: Path, data: Path | None,
               windows: int) -> bool:
     from tactile.export.parity import compare
     from tactile.export.windows import probe_windows
-    from tactile.training.train import load_checkpoint
+    from tactile.training.checkpoint import load_checkpoint
 
     model, ck = load_checkpoint(run_dir)
     for key, mine in (("classes", c.classes), ("channels", c.channels)):
@@ -179,7 +176,7 @@ def _reparity(path: Path, c: ModelContract, run_dir: Path, data: Path | None,
 
 
 def _accuracy(path: Path, c: ModelContract, data: Path) -> None:
-    from tactile.export.parity import session
+    from tactile.export.session import session
     from tactile.export.windows import from_dataset
 
     ck = {"classes": list(c.classes), "channels": list(c.channels),
@@ -208,16 +205,6 @@ def _accuracy(path: Path, c: ModelContract, data: Path) -> None:
           + ("" if same else "; other windows than these, so not comparable"))
 
 
-def build_parser() -> argparse.ArgumentParser:
-    p = Parser(prog="tactile-check", description=__doc__.split("\n\n")[0])
-    p.add_argument("model", type=Path, help="ONNX file to check")
-    p.add_argument("--run", type=Path, help="run folder: re-run parity against its PyTorch model")
-    p.add_argument("--data", type=Path, help="dataset folder: windows to check on")
-    p.add_argument("--windows", type=int_in(1), default=256, help="at most this many windows")
-    add_debug(p)
-    return p
-
-
 def board_check(path: Path) -> None:
     """The check with onnxruntime only: what ``tactile-run`` loads, validates and runs."""
     from tactile.runtime.model import Model
@@ -236,36 +223,37 @@ def board_check(path: Path) -> None:
           "the graph's signature, one window; the extra adds onnx.checker and the opset check")
 
 
-def _main(args: argparse.Namespace) -> int:
-    model_file(args.model)  # missing or a folder: the line and exit code tactile-run gives
+def check_file(path: Path, run_dir: Path | None = None, data: Path | None = None,
+               windows: int = 256) -> None:
+    """Check model file ``path`` and print what it holds: its contract (with the ``[train]``
+    extra: :func:`load_contract` and a run at batch 1 and 2; without it: :func:`board_check`),
+    then with ``run_dir`` parity against that run's model on at most ``windows`` windows (of
+    ``data`` if given), or with ``data`` alone the file's accuracy on it. Raises
+    :class:`ModelContractError` (a broken file, failed parity) or :class:`ConfigError` (a run
+    or data without the extra)."""
+    model_file(path)  # missing or a folder: the line and exit code tactile-run gives
     try:
         import onnx  # noqa: F401
         import torch
     except ModuleNotFoundError:  # a board: no onnx, no torch (the [train] extra)
-        if args.run is not None or args.data is not None:
+        if run_dir is not None or data is not None:
             raise ConfigError("--run and --data need the [train] extra: "
                               "pip install 'tactile-pen[train]'") from None
-        board_check(args.model)
-        return 0
+        board_check(path)
+        return
     torch.set_num_threads(1)  # one core's figures; also avoids contention on a small board
-    _, contract = load_contract(args.model)
+    _, contract = load_contract(path)
     from tactile.runtime.model import Model
 
-    Model(args.model).probe(2)  # outputs of the declared shapes at batch 1 (as tactile-run
+    Model(path).probe(2)  # outputs of the declared shapes at batch 1 (as tactile-run
     # checks at load) and 2 (the batch axis really dynamic)
-    print(describe(args.model, contract))
-    if args.run is not None:
-        if not _reparity(args.model, contract, args.run, args.data, args.windows):
-            raise ModelContractError(f"{args.model}: parity against {args.run} failed "
+    print(describe(path, contract))
+    if run_dir is not None:
+        if not _reparity(path, contract, run_dir, data, windows):
+            raise ModelContractError(f"{path}: parity against {run_dir} failed "
                                      "(table above)")
-    elif args.data is not None:
-        _accuracy(args.model, contract, args.data)
-    return 0
+    elif data is not None:
+        _accuracy(path, contract, data)
 
 
-def main(argv: list[str] | None = None) -> int:
-    return run("tactile-check", _main, build_parser().parse_args(argv))
-
-
-if __name__ == "__main__":
-    sys.exit(main())
+__all__ = ["load_contract", "signature", "describe", "board_check", "check_file"]

@@ -9,7 +9,7 @@ Any model whose ``pre`` has the three-stage interface (``emds``, ``normalise``, 
 ``finish``; :class:`tactile.training.model.Preprocess` and the granular preprocessing) and whose
 ``head`` maps ``(features, h, c) -> (logits, h, c)`` is exported. Without EMDs the whole model is
 one export. With them the graph is composed of parts, because each EMD is assembled by hand
-with ``Loop`` nodes (:func:`tactile.training.emd.onnx_export.build_emd_model`) rather than
+with ``Loop`` nodes (:func:`tactile.export.emd_graph.build_emd_model`) rather than
 traced::
 
     x (B, T, C) -> [pre: normalise, emd_inputs] -> z (B, T, C), emd0_in (B, n_0, L_0), ...
@@ -28,14 +28,13 @@ import torch
 from torch import Tensor, nn
 
 import tactile
-from tactile.contract import BATCH, INPUTS, OPSET, OUTPUTS
+from tactile.contract import BATCH, INPUTS, IR_VERSION, OPSET, OUTPUTS
 from tactile.export.compose import join, renamed, value_info
-from tactile.training.emd.onnx_export import build_emd_model, export_traced
+from tactile.export.emd_graph import build_emd_model
+from tactile.export.traced import export_traced
 
 EXAMPLE_BATCH = 3
 """Example batch of the traced export: > 1, so that the tracer cannot fix the batch size."""
-IR_VERSION = 8
-"""ONNX IR version written (onnxruntime >= 1.15 reads it)."""
 EXPORTER = f"torch.onnx.export dynamo=False (TorchScript), opset {OPSET}"
 
 _STATE_AXES = {1: BATCH}

@@ -37,9 +37,10 @@ from tactile.export.codes import (
     RTOL,
     TIE,
     code_parity,
-    coders,
     table_rows,
 )
+from tactile.export.session import session
+from tactile.export.taps import coders
 from tactile.export.ties import FLOAT32, MAX_EXCUSED, NEAR_TIE, Examined, Explainer
 from tactile.export.windows import CARRY_STEPS, Probe, random_windows, simulated
 
@@ -57,17 +58,6 @@ EVAL_BATCH = 512
 
 class ParityError(ModelContractError):
     """The ONNX graph does not compute what the PyTorch model computes (within tolerance)."""
-
-
-def session(model: bytes | str, threads: int = 1) -> ort.InferenceSession:
-    """A CPU session: ``threads`` intra-op threads, sequential, no busy-wait spinning."""
-    so = ort.SessionOptions()
-    so.intra_op_num_threads = threads
-    so.inter_op_num_threads = 1
-    so.execution_mode = ort.ExecutionMode.ORT_SEQUENTIAL
-    so.add_session_config_entry("session.intra_op.allow_spinning", "0")
-    so.log_severity_level = 3
-    return ort.InferenceSession(model, so, providers=["CPUExecutionProvider"])
 
 
 @dataclass

@@ -11,7 +11,7 @@ import numpy as np
 import onnx
 
 from tactile.export.compose import toposorted
-from tactile.export.parity import session
+from tactile.export.session import session
 
 # the learned weights; not the spectral front's Conv, whose fixed DFT basis in int8 moves the
 # log power of the weak bins by whole units (labels of 12% of windows changed, 53% with EMD)

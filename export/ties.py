@@ -16,7 +16,7 @@ is excused when the coders' float32 rounding explains it, and only then:
 
 * the graph's coders are observed on that window by a copy of the file's graph that also
   outputs each coder's images, codes and per-step picks (its ``ArgMax`` values:
-  :func:`tactile.export.codes.tapped`), run as the window was run (in its batch, alone, or
+  :func:`tactile.export.taps.tapped`), run as the window was run (in its batch, alone, or
   along its carried run); that copy's probabilities must equal the file's bit for bit;
 * PyTorch's coders are observed on the same forward pass by forward hooks (:func:`recording`),
   the atoms each chose in order by its ``encode`` of the same batch, which must give its codes
@@ -52,14 +52,8 @@ import onnx
 import torch
 from torch import nn
 
-from tactile.export.codes import (
-    CoderTap,
-    find_coders,
-    float32_apart,
-    graph_order,
-    parting,
-    tap_session,
-)
+from tactile.export.codes import float32_apart, parting
+from tactile.export.taps import CoderTap, find_coders, graph_order, tap_session
 
 IMAGE_RTOL = 1e-4
 """A row codes the same image when max |x_graph - x_torch| <= this x ||x_torch|| (the BioTac's

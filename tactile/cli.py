@@ -191,7 +191,6 @@ def _module_main(module: str) -> Callable[[list[str] | None], int]:
 
 
 record_main = command("tactile-record", guarded=True)(_module_main("tactile.device.recorder"))
-export_main = command("tactile-export")(_module_main("tactile.export.cli"))
 plot_main = command("tactile-plot")(_module_main("tactile.training.plot"))
 import_biotac_main = command("tactile-import-biotac")(_module_main("tactile.device.biotac"))
 

@@ -44,7 +44,10 @@ PREPROCESSING_VERSION = 2
 concatenate (the pen's models); 2 per-modality EMD, data images and sparse codes (described by
 the ``modalities`` key)."""
 OPSET = 18
-"""ONNX opset (default domain) the exporter writes."""
+"""ONNX opset (default domain) the exporter writes (ScatterElements with a reduction, which the
+EMD graph uses, needs >= 16)."""
+IR_VERSION = 8
+"""ONNX IR version the exporter writes (onnxruntime >= 1.15 reads it)."""
 
 INPUTS = ("x", "h", "c")
 OUTPUTS = ("probs", "h_out", "c_out")
@@ -62,7 +65,10 @@ MODALITY_MODELS = ("sf_rnn", "f_rnn", "sparse_linear")
 CODED_MODELS = ("sf_rnn", "sparse_linear")
 """Models whose features are sparse codes (each modality has a dictionary: atoms, nonzero)."""
 MAX_IMFS = 16
-"""Most IMFs of one EMD (as :class:`tactile.training.emd.EMDConfig`)."""
+"""Most IMFs of one EMD (:class:`tactile.training.emd.EMDConfig`'s limit, PyEMD ``max_imf``)."""
+MAX_SIFTS = 1000
+"""Most sifts per IMF of one EMD (:class:`tactile.training.emd.EMDConfig`'s limit, PyEMD
+``FIXE``)."""
 QUANTIZATIONS = ("none", "int8-dynamic")
 
 # One source of truth for the metadata keys: name -> (required, meaning).
@@ -598,5 +604,6 @@ __all__ = [
     "FLOAT", "KEYS", "REQUIRED", "OPTIONAL", "STATE_MODES", "MODELS", "RECURRENT",
     "MODALITY_MODELS", "CODED_MODELS", "QUANTIZATIONS", "TensorSpec", "SignalSpec",
     "ModalitySpec", "ModelContract", "model_file",
+    "IR_VERSION", "MAX_IMFS", "MAX_SIFTS",
 ]
 

@@ -11,27 +11,36 @@ decomposition then legitimately takes another branch.
 
 from __future__ import annotations
 
+import importlib.util
+
 import numpy as np
 import onnx
 import onnxruntime as ort
 import pytest
 import torch
+from conftest import REPO
 from emd_cases import compare, near_tie_gap, parity_set, run_torch
 
+from tactile.contract import OPSET
 from tactile.errors import ConfigError
+from tactile.export.emd_graph import build_emd_model, export_emd_onnx
+from tactile.export.traced import trace_graph
 from tactile.training.emd import EMD
-from tactile.training.emd.onnx_export import (
-    OPSET,
-    build_emd_model,
-    count_nodes,
-    export_emd_onnx,
-    sift_path_nodes,
-    subgraph_nodes,
-    subgraphs,
-    trace_graph,
-)
-from tactile.training.emd.pieces import piece_examples
 from tactile.training.emd.spline import LARGE_ROWS
+
+
+def _load_pieces():
+    """bench/emd_pieces.py (the same code the benchmark imports): the pieces, node counts."""
+    spec = importlib.util.spec_from_file_location("emd_pieces", REPO / "bench" / "emd_pieces.py")
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+_pieces = _load_pieces()
+piece_examples, subgraphs, subgraph_nodes = (
+    _pieces.piece_examples, _pieces.subgraphs, _pieces.subgraph_nodes)
+sift_path_nodes, count_nodes = _pieces.sift_path_nodes, _pieces.count_nodes
 
 TOL = 1e-4  # x window std
 MIN_PASS = 0.995

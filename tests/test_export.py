@@ -33,11 +33,12 @@ from tactile.contract import (
 from tactile.device.sim_cli import make_dataset
 from tactile.errors import ModelContractError
 from tactile.export.check import load_contract, signature
-from tactile.export.check import main as check_main
-from tactile.export.cli import export_run
-from tactile.export.cli import main as export_main
+from tactile.export.commands.check import main as check_main
+from tactile.export.commands.export import main as export_main
+from tactile.export.exporter import export_run
 from tactile.export.graph import split_forward
-from tactile.export.parity import ATOL, INT8_AGREEMENT, MARGIN, MIN_CARRY, session
+from tactile.export.parity import ATOL, INT8_AGREEMENT, MARGIN, MIN_CARRY
+from tactile.export.session import session
 from tactile.export.windows import simulated
 from tactile.training.checkpoint import load_checkpoint
 from tactile.training.config import TrainConfig
@@ -300,7 +301,7 @@ def test_export_cli_and_check_cli(dataset, root, capsys):
 
 
 def test_export_fails_on_broken_parity(dataset, root, capsys, monkeypatch):
-    import tactile.export.cli as cli
+    import tactile.export.exporter as cli
     from tactile.export.graph import build_graph
 
     def perturbed(model):

@@ -19,15 +19,18 @@ import onnx
 import pytest
 import torch
 
-from tactile.export.codes import AGREEMENT, RTOL, code_parity, find_coders
+from tactile.export.coder_graph import coder_graph
+from tactile.export.codes import AGREEMENT, RTOL, code_parity
 from tactile.export.graph import build_graph, split_forward
-from tactile.export.parity import ATOL, compare, session
+from tactile.export.parity import ATOL, compare
+from tactile.export.session import session
+from tactile.export.taps import find_coders
 from tactile.export.windows import Probe
 
 torch.set_num_threads(1)
 
 # Nodes of an exported coder other than Constant, per non-zero count (tests/test_sparse.py's
-# budget for the coder's own to_onnx(), which folds its constants into initializers).
+# budget for the coder's own graph (coder_graph), which folds its constants into initializers).
 NODE_BUDGET = {1: 27, 2: 77, 3: 129}
 
 
@@ -108,15 +111,15 @@ def test_the_emd_graphs_have_their_own_sizes(coded):
 
 
 def test_coders_trace_into_the_graph_as_their_own_nodes(coded):
-    """Inside the post part each coder is the node sequence of its own to_onnx() (same op
-    types in the same order; the traced part keeps its Constant nodes, which to_onnx folds),
+    """Inside the post part each coder is the node sequence of its own coder_graph() (same op
+    types in the same order; the traced part keeps its Constant nodes, which coder_graph folds),
     with a dynamic row axis (batch x steps) and within the coder's node budget."""
     model, graph = coded
     taps = find_coders(model, graph)
     assert [t.path for t in taps] == ["pre.coders.0", "pre.coders.1", "pre.coders.2"]
     for t in taps:
         ops = [n.op_type for n in t.nodes if n.op_type != "Constant"]
-        own = [n.op_type for n in t.coder.to_onnx().graph.node if n.op_type != "Constant"]
+        own = [n.op_type for n in coder_graph(t.coder).graph.node if n.op_type != "Constant"]
         assert ops == own, t.path
         assert len(ops) <= NODE_BUDGET[t.coder.n_nonzero], (t.path, len(ops))
         assert "NonZero" not in ops and "Loop" not in ops and "If" not in ops

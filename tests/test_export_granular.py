@@ -24,8 +24,8 @@ from tactile.contract import ModalitySpec, SignalSpec
 from tactile.device.info import ChannelSpec, DeviceInfo
 from tactile.device.recording import TakeWriter, load_dataset, read_take
 from tactile.export.check import load_contract
-from tactile.export.check import main as check_main
-from tactile.export.cli import export_run
+from tactile.export.commands.check import main as check_main
+from tactile.export.exporter import export_run
 from tactile.export.parity import ATOL
 from tactile.runtime.commands.run import main as run_main
 from tactile.runtime.model import Model

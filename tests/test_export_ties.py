@@ -23,6 +23,7 @@ import pytest
 import torch
 
 from tactile.export import parity
+from tactile.export.coder_graph import coder_graph
 from tactile.export.graph import build_graph
 from tactile.export.parity import ATOL, compare
 from tactile.export.ties import FLOAT32, MAX_EXCUSED, NEAR_TIE, Flips, judge_rows, recording
@@ -104,7 +105,7 @@ def test_codes_on_the_same_atoms_are_held_to_float32_accuracy():
     from sklearn.decomposition import MiniBatchDictionaryLearning
 
     from tactile.export.codes import float32_apart, float32_bound
-    from tactile.export.parity import session
+    from tactile.export.session import session
     from tactile.training.sparse_check import structured
 
     x = structured(200, 60, seed=5) * np.float32(30)
@@ -116,7 +117,7 @@ def test_codes_on_the_same_atoms_are_held_to_float32_accuracy():
     coder = SparseCoder(d, 6)
     with torch.no_grad():
         c_t, order = (v.numpy() for v in coder.encode(torch.from_numpy(x)))
-    c_o = session(coder.to_onnx().SerializeToString()).run(None, {"x": x})[0]
+    c_o = session(coder_graph(coder).SerializeToString()).run(None, {"x": x})[0]
     same = ((c_t != 0) == (c_o != 0)).all(1)
     assert same.mean() > 0.95
     for c in (c_t, c_o):  # each within float32's accuracy of float64 least squares
@@ -326,7 +327,8 @@ def test_carried_windows_inherit_the_flips_of_their_run(tied, monkeypatch):
 
 def _excused_rows(model, graph, probe) -> np.ndarray:
     """Which rows of compare's results (window mode, then the carried run) were excused."""
-    from tactile.export.parity import _carry_mode, _window_mode, session
+    from tactile.export.parity import _carry_mode, _window_mode
+    from tactile.export.session import session
     from tactile.export.ties import Examined, Explainer
 
     sess, explain, examined = session(graph.SerializeToString()), Explainer(model, graph), \

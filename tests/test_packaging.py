@@ -67,7 +67,8 @@ def test_the_built_wheel_requires_no_torch(tmp_path):
     assert not closure & {"torch", "onnx", "onnxscript", "pyemd", "emd-signal", "scipy"}, closure
     # the wheel carries every stage and the protocol spec, not only what the editable install sees
     for module in ("tactile/runtime/commands/run.py", "tactile/training/emd/module.py",
-                   "tactile/export/cli.py", "tactile/device/PROTOCOL.md", "tactile/contract.py",
+                   "tactile/export/commands/export.py",
+                   "tactile/device/PROTOCOL.md", "tactile/contract.py",
                    "tactile/runtime/web/index.html", "tactile/runtime/web/app.js",
                    "tactile/runtime/web/style.css"):
         assert module in names, module
@@ -165,7 +166,7 @@ def test_tactile_check_on_a_board_checks_what_the_runtime_loads(tmp_path):
     junk.write_bytes(b"not onnx")
 
     def check(*args):
-        code = _BLOCK_TRAIN + "from tactile.export.check import main\n" \
+        code = _BLOCK_TRAIN + "from tactile.export.commands.check import main\n" \
             f"sys.exit(main({list(args)!r}))\n"
         return subprocess.run([sys.executable, "-c", code], capture_output=True, text=True)
 
@@ -177,6 +178,6 @@ def test_tactile_check_on_a_board_checks_what_the_runtime_loads(tmp_path):
     assert out.returncode == 3 and "not a loadable ONNX model" in out.stderr
     out = check(str(shipped), "--data", str(tmp_path))
     assert out.returncode == 1 and "need the [train] extra" in out.stderr
-    full = subprocess.run([sys.executable, "-m", "tactile.export.check", str(shipped)],
+    full = subprocess.run([sys.executable, "-m", "tactile.export.commands.check", str(shipped)],
                           capture_output=True, text=True)
     assert full.returncode == 0 and "opset 18" in full.stdout.splitlines()[0], full.stderr

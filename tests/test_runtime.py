@@ -110,7 +110,7 @@ def test_smoother_averages_and_hysteresis():
 @pytest.fixture(scope="module")
 def models(tmp_path_factory):
     """Two tiny exported models (window and carried state) and their runs."""
-    from tactile.export.cli import export_run
+    from tactile.export.exporter import export_run
 
     root = tmp_path_factory.mktemp("rt")
     data = root / "data"
@@ -474,7 +474,7 @@ def test_a_device_other_in_order_units_or_rate_is_refused(models, tmp_path):
 def test_device_contract_mismatch_names_both_sides(models, tmp_path):
     """A pen that sends other channels than the model was trained on is refused before the
     first window, naming both sides."""
-    from tactile.export.cli import export_run
+    from tactile.export.exporter import export_run
 
     data = tmp_path / "imu"
     make_dataset(data, takes=4, textures=("paper", "desk"), seconds=4, seed=3)

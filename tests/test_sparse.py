@@ -25,6 +25,7 @@ from sklearn.decomposition import MiniBatchDictionaryLearning
 from sklearn.decomposition import SparseCoder as SkSparseCoder
 
 from tactile.errors import ConfigError
+from tactile.export.coder_graph import coder_graph
 from tactile.training.sparse import SparseCoder, default_n_nonzero
 from tactile.training.sparse_check import compare, sklearn_order, structured, tie_gap
 
@@ -124,7 +125,7 @@ def test_onnxruntime_matches_sklearn_over_the_grid(cases, kind):
         for f in FEATURES:
             d, x, ref_of = cases[(kind, k, f)]
             for n in nonzeros:
-                got = session(SparseCoder(d, n).to_onnx()).run(None, {"x": x})[0]
+                got = session(coder_graph(SparseCoder(d, n))).run(None, {"x": x})[0]
                 assert got.shape == (WINDOWS, k) and got.dtype == np.float32
                 check(compare(ref_of(n), got, d, x, n), (kind, k, f, n))
 
@@ -167,7 +168,7 @@ def codes_of(impl: str, d: np.ndarray, n: int, x: np.ndarray) -> np.ndarray:
     if impl == "torch":
         with torch.no_grad():
             return coder(torch.from_numpy(x)).numpy()
-    return session(coder.to_onnx()).run(None, {"x": x})[0]
+    return session(coder_graph(coder)).run(None, {"x": x})[0]
 
 
 def sk_codes(d: np.ndarray, n: int, x: np.ndarray) -> np.ndarray:
@@ -233,7 +234,7 @@ def test_exported_graph_contract_and_node_budget():
     counts = {}
     for n, (k, f) in ((1, (100, 25)), (3, (20, 110)), (10, (200, 176)), (17, (200, 176))):
         d = rng.standard_normal((k, f))
-        model = SparseCoder(d, n).to_onnx()
+        model = coder_graph(SparseCoder(d, n))
         assert [o.version for o in model.opset_import if o.domain in ("", "ai.onnx")] == [OPSET]
         ops = {node.op_type for node in model.graph.node}
         assert ops <= ALLOWED_OPS, ops - ALLOWED_OPS

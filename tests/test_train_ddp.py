@@ -61,7 +61,7 @@ def test_two_processes_learn_and_their_checkpoint_exports(tmp_path):
     np.testing.assert_allclose(ck["mean"], mean, rtol=1e-6)
     np.testing.assert_allclose(ck["std"], std, rtol=1e-6)
     pytest.importorskip("onnxruntime")
-    from tactile.export.cli import main as export_main
+    from tactile.export.commands.export import main as export_main
 
     assert export_main([str(run), "-o", str(tmp_path / "m.onnx"), "--data", str(data)]) == 0
     assert (tmp_path / "m.onnx").stat().st_size > 1000

@@ -14,11 +14,16 @@ import typing
 from dataclasses import dataclass
 from pathlib import Path
 
+from tactile.contract import MAX_IMFS
 from tactile.errors import ConfigError
 
 MODELS = ("lstm", "linear", "sf_rnn", "f_rnn", "sparse_linear")
 GRANULAR_MODELS = ("sf_rnn", "f_rnn", "sparse_linear")  # need modalities
-MAX_IMFS = 16  # tactile.training.emd's limit
+# The pen's emd_imfs / emd_sifts settings are capped below EMDConfig's own limits
+# (tactile.contract.MAX_IMFS, MAX_SIFTS): a 50-sample window holds about log2(50) ~ 6 IMFs, and
+# every sift runs on every window of every epoch, so larger values only cost training time.
+MAX_EMD_IMFS = 8  # the emd_imfs setting's cap (a modality's imfs go to MAX_IMFS)
+MAX_EMD_SIFTS = 50  # the emd_sifts setting's cap (also the modalities' sifts)
 FRONTS = ("spectral", "none")
 STATE_MODES = ("window", "carry")
 SPLITS = ("user", "take", "time")
@@ -272,8 +277,9 @@ class TrainConfig:
              ("lr", "weight_decay")),
             (0 < self.test_fraction < 1, "test_fraction must be in (0, 1)", ("test_fraction",)),
             (0 < self.val_fraction < 1, "val_fraction must be in (0, 1)", ("val_fraction",)),
-            (1 <= self.emd_imfs <= 8 and 1 <= self.emd_sifts <= 50,
-             "emd_imfs must be 1..8 and emd_sifts 1..50", ("emd_imfs", "emd_sifts")),
+            (1 <= self.emd_imfs <= MAX_EMD_IMFS and 1 <= self.emd_sifts <= MAX_EMD_SIFTS,
+             f"emd_imfs must be 1..{MAX_EMD_IMFS} and emd_sifts 1..{MAX_EMD_SIFTS}",
+             ("emd_imfs", "emd_sifts")),
             (self.carry_steps >= 2, "carry_steps must be >= 2", ("carry_steps",)),
             (self.threads >= 0, "threads must be >= 0 (0: automatic)", ("threads",)),
             (self.device in DEVICES, f"device must be one of {', '.join(DEVICES)}", ("device",)),

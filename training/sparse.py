@@ -20,7 +20,7 @@ row is a gather from the projections already made, and the code is accumulated a
 ``sum_s z_s r_s`` (``r_s`` the orthonormalised atom in atom coordinates). Rows that stopped are
 masked, never branched on: the graph is the same for every input, with no ``NonZero``, no
 data-dependent Python control flow, and the dictionary and its Gram matrix are constants.
-``torch.onnx.export(..., dynamo=False)`` at opset 18 captures it (:meth:`SparseCoder.to_onnx`).
+``torch.onnx.export(..., dynamo=False)`` at opset 18 captures it (``tactile.export.coder_graph``).
 
 scikit-learn's default number of non-zeros (``transform_n_nonzero_coefs=None``) is
 ``int(min(max(features / 10, 1), atoms))``: :func:`default_n_nonzero`.
@@ -138,14 +138,6 @@ class SparseCoder(nn.Module):
                 z = torch.cat([z, z_s[:, None]], 1)
         codes = (z.transpose(1, 2) @ coef)[:, 0]  # (B, K): sum_s z_s q_s in atom coordinates
         return codes, torch.cat(order, 1)
-
-    def to_onnx(self, batch: int = 2):
-        """The coder as an ONNX model (opset 18, the project's pinned exporter path): input
-        ``x`` (batch, features) float32 with a dynamic batch axis, output ``codes``."""
-        from tactile.training.emd.onnx_export import trace_graph
-
-        x = torch.zeros(batch, self.features)
-        return trace_graph(self, (x,), ["x"], ["codes"], {"x": {0: "batch"}, "codes": {0: "batch"}})
 
 
 __all__ = ["EPS", "SparseCoder", "default_n_nonzero"]

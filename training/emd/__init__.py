@@ -1,8 +1,8 @@
 """Empirical mode decomposition as fixed-shape tensor ops, exact against PyEMD.
 
-``EMD(n_imfs, n_sifts)`` is a torch module; ``onnx_export.export_emd_onnx`` writes it as an
-ONNX graph whose sifts run inside ONNX ``Loop`` nodes (kept out of this namespace so that the
-module imports without onnx). The pieces, in pipeline order: extrema,
+``EMD(n_imfs, n_sifts)`` is a torch module; ``tactile.export.emd_graph.export_emd_onnx``
+writes it as an ONNX graph whose sifts run inside ONNX ``Loop`` nodes (the export stage builds
+every byte of ONNX; this package needs no onnx). The pieces, in pipeline order: extrema,
 boundary knots, knot assembly, spline system and solve, envelope evaluation, one sift, the
 decomposition. See ``docs/emd.md``.
 """

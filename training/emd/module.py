@@ -7,12 +7,10 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor, nn
 
+from tactile.contract import MAX_IMFS, MAX_SIFTS
 from tactile.errors import ConfigError
 
 from .decompose import decompose
-
-MAX_IMFS = 16
-MAX_SIFTS = 1000
 
 
 @dataclass(frozen=True)

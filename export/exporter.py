@@ -1,4 +1,4 @@
-"""``tactile-export RUN/ -o model.onnx [--int8] [--data DATA]``: a run's checkpoint to one file.
+"""A run's checkpoint to one checked ONNX file (what ``tactile-export`` does).
 
 Builds the graph (preprocessing + model + state), measures parity against PyTorch on the run's
 test windows (``--data``; else a simulated pen, else random windows), refuses to write a file
@@ -9,17 +9,13 @@ float32 one.
 
 from __future__ import annotations
 
-import argparse
 import os
-import sys
 import tempfile
 import time
 from pathlib import Path
 
 import onnx
-import torch
 
-from tactile.cli import Parser, add_debug, int_in, run
 from tactile.errors import ConfigError
 from tactile.export.check import load_contract
 from tactile.export.graph import build_graph
@@ -27,7 +23,7 @@ from tactile.export.metadata import attach, contract_for
 from tactile.export.parity import Parity, ParityError, compare
 from tactile.export.quantize import latency_ms, quantize_int8
 from tactile.export.windows import probe_windows
-from tactile.training.train import load_checkpoint
+from tactile.training.checkpoint import load_checkpoint
 
 
 def export_run(run_dir: Path, out: Path, data: Path | None = None, int8: bool = False,
@@ -112,30 +108,4 @@ def _tradeoff_line(t: dict) -> str:
             f"label agreement with PyTorch {t['label_agreement']:.4f}{acc}")
 
 
-def build_parser() -> argparse.ArgumentParser:
-    p = Parser(prog="tactile-export", description=__doc__.split("\n\n")[0])
-    p.add_argument("run", type=Path, help="run folder written by tactile-train")
-    p.add_argument("-o", "--out", type=Path, required=True, help="ONNX file to write")
-    p.add_argument("--data", type=Path, help="dataset folder holding the run's test takes")
-    p.add_argument("--int8", action="store_true",
-                   help="write an onnxruntime dynamic-int8 model (default: float32)")
-    p.add_argument("--windows", type=int_in(1), default=256,
-                   help="at most this many windows for the parity check (default 256)")
-    add_debug(p)
-    return p
-
-
-def _main(args: argparse.Namespace) -> int:
-    torch.set_num_threads(1)  # one core's figures; also avoids contention on a small board
-    r = export_run(args.run, args.out, args.data, args.int8, args.windows)
-    print(f"wrote {args.out}: {r['bytes'] / 1e3:.1f} kB; export took {r['seconds']:.1f} s "
-          f"(graph {r['build_s']:.1f} s)")
-    return 0
-
-
-def main(argv: list[str] | None = None) -> int:
-    return run("tactile-export", _main, build_parser().parse_args(argv))
-
-
-if __name__ == "__main__":
-    sys.exit(main())
+__all__ = ["export_run", "output_file"]

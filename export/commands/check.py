@@ -1,0 +1,49 @@
+"""``tactile-check model.onnx [--run RUN] [--data DATA]``: is this file a model we can deploy?
+
+Validates the contract of any ONNX file (an ONNX model at all, ``onnx.checker``, opset, input
+and output names, dtypes, ranks, the dynamic batch axis, every required metadata key) and names
+what is wrong in one line (exit code 3). With ``--run`` it re-runs the parity comparison against
+the run's PyTorch model (on ``--data``'s test windows if given, else simulated or random ones)
+and prints the table; exit 3 on failure. With ``--data`` alone it runs the file on the data's
+windows (the run's test split when the data holds its test takes, recognised by content, else
+every take, and it says which) and prints the accuracy beside the one training recorded, saying
+what that was measured on.
+
+On a board (no ``[train]`` extra: no onnx, no torch) it checks what the runtime will: loads the
+file with onnxruntime, validates the contract and the graph's signature as ``tactile-run`` does,
+and runs one window through it; ``--run`` and ``--data`` need the extra.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+
+from tactile.cli import Parser, add_debug, command, int_in, run
+
+
+def build_parser() -> argparse.ArgumentParser:
+    p = Parser(prog="tactile-check", description=__doc__.split("\n\n")[0])
+    p.add_argument("model", type=Path, help="ONNX file to check")
+    p.add_argument("--run", type=Path, help="run folder: re-run parity against its PyTorch model")
+    p.add_argument("--data", type=Path, help="dataset folder: windows to check on")
+    p.add_argument("--windows", type=int_in(1), default=256, help="at most this many windows")
+    add_debug(p)
+    return p
+
+
+def _check(args: argparse.Namespace) -> int:
+    from tactile.export.check import check_file
+
+    check_file(args.model, args.run, args.data, args.windows)
+    return 0
+
+
+@command("tactile-check")
+def main(argv: list[str] | None = None) -> int:
+    return run("tactile-check", _check, build_parser().parse_args(argv))
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,50 @@
+"""``tactile-export RUN/ -o model.onnx [--int8] [--data DATA]``: a run's checkpoint to one file.
+
+Builds the graph (preprocessing + model + state), measures parity against PyTorch on the run's
+test windows (``--data``; else a simulated pen, else random windows), refuses to write a file
+that fails it, and writes the contract into the file's metadata. ``--int8`` writes an
+onnxruntime dynamic-int8 file instead and reports its size, latency and accuracy against the
+float32 one.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+
+from tactile.cli import Parser, add_debug, command, int_in, run
+
+
+def build_parser() -> argparse.ArgumentParser:
+    p = Parser(prog="tactile-export", description=__doc__.split("\n\n")[0])
+    p.add_argument("run", type=Path, help="run folder written by tactile-train")
+    p.add_argument("-o", "--out", type=Path, required=True, help="ONNX file to write")
+    p.add_argument("--data", type=Path, help="dataset folder holding the run's test takes")
+    p.add_argument("--int8", action="store_true",
+                   help="write an onnxruntime dynamic-int8 model (default: float32)")
+    p.add_argument("--windows", type=int_in(1), default=256,
+                   help="at most this many windows for the parity check (default 256)")
+    add_debug(p)
+    return p
+
+
+def _export(args: argparse.Namespace) -> int:
+    import torch
+
+    from tactile.export.exporter import export_run
+
+    torch.set_num_threads(1)  # one core's figures; also avoids contention on a small board
+    r = export_run(args.run, args.out, args.data, args.int8, args.windows)
+    print(f"wrote {args.out}: {r['bytes'] / 1e3:.1f} kB; export took {r['seconds']:.1f} s "
+          f"(graph {r['build_s']:.1f} s)")
+    return 0
+
+
+@command("tactile-export")
+def main(argv: list[str] | None = None) -> int:
+    return run("tactile-export", _export, build_parser().parse_args(argv))
+
+
+if __name__ == "__main__":
+    sys.exit(main())
