@@ -28,11 +28,8 @@ from pathlib import Path
 
 import tactile.device  # noqa: F401  (registers sim://)
 from tactile.cli import Parser, add_debug, add_port_options, float_in, int_in, run, started
-from tactile.device.connection import Connection, LinkSettings, Reconnected, Stall
-from tactile.device.decoder import Gap, Header, Samples, StreamDecoder
-from tactile.device.info import DeviceInfo
-from tactile.device.portlist import find_port
-from tactile.device.ports import keep_trying
+from tactile.device.link import Connection, LinkSettings, Reconnected, Stall, find_port, keep_trying
+from tactile.device.protocol import DeviceInfo, Gap, Header, Samples, StreamDecoder
 from tactile.errors import ModelContractError, RecordingError
 from tactile.runtime.model import Model
 from tactile.runtime.stream import Label, Smoother, Stream
@@ -240,7 +237,7 @@ def replay(path: Path, runner: Runner, stop: dict, deadline: float = math.inf,
     """Run a recorded take through the same stream, as fast as possible, until its end, a stop
     or ``deadline`` (on ``clock``, from ``--seconds``: the rest of the take is left out, with a
     line that says where it stopped)."""
-    from tactile.device.recording import read_take
+    from tactile.device.recordings import read_take
 
     take = read_take(path)
     if len(take.seq) == 0:

@@ -30,10 +30,8 @@ import numpy as np
 
 import tactile.device  # noqa: F401  (registers sim://)
 from tactile.cli import Parser, add_debug, add_port_options, float_in, run, started
-from tactile.device.connection import Connection, LinkSettings, Reconnected, Stall
-from tactile.device.decoder import Gap, Header, Samples, StreamDecoder
-from tactile.device.info import DeviceInfo
-from tactile.device.portlist import find_port
+from tactile.device.link import Connection, LinkSettings, Reconnected, Stall, find_port
+from tactile.device.protocol import DeviceInfo, Gap, Header, Samples, StreamDecoder
 from tactile.errors import ConfigError, DeviceError
 from tactile.runtime.units import to_units
 

@@ -8,8 +8,8 @@ import time
 from collections.abc import Callable, Iterator
 
 import tactile.device  # noqa: F401  (registers sim://)
-from tactile.device.connection import Connection, LinkSettings
-from tactile.device.decoder import StreamDecoder
+from tactile.device.link import Connection, LinkSettings
+from tactile.device.protocol import StreamDecoder
 from tactile.runtime.cli import Runner, Summary
 from tactile.runtime.model import Model
 from tactile.runtime.stream import Label, Smoother, Stream

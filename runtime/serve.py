@@ -34,8 +34,7 @@ from http import HTTPStatus
 from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
 from importlib import resources
 
-from tactile.device.decoder import Header, Samples
-from tactile.device.info import DeviceInfo
+from tactile.device.protocol import DeviceInfo, Header, Samples
 from tactile.errors import ConfigError
 from tactile.runtime.stream import Label
 from tactile.runtime.units import to_units

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from tactile.device.info import DeviceInfo
+from tactile.device.protocol import DeviceInfo
 
 
 def to_units(info: DeviceInfo, raw: np.ndarray) -> np.ndarray:

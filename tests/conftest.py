@@ -15,7 +15,7 @@ import numpy as np
 import pytest
 
 if TYPE_CHECKING:
-    from tactile.device.simlink import Injected
+    from tactile.device.sim import Injected
 
 REPO = Path(__file__).resolve().parents[1]
 SHARED = REPO.parent / "shared"
@@ -29,8 +29,7 @@ def pen_stream(n: int, per_frame: int = 1, seed: int = 0, header_every: int = 10
     ``spans`` lists (start, end, first_seq, n_samples) of every samples frame in the bytes
     (end includes the delimiter); header frames have n_samples = 0.
     """
-    from tactile.device.info import pen_info
-    from tactile.device.protocol import encode_header, encode_samples
+    from tactile.device.protocol import encode_header, encode_samples, pen_info
 
     rng = np.random.default_rng(seed)
     raw = rng.integers(-32768, 32768, (n, 8)).astype(np.int16)
@@ -75,12 +74,13 @@ def rng():
 
 
 def start_and_signal(entry: str, args: list[str], sig: int) -> tuple[int, str, str]:
-    """Start a console entry point (``tactile.cli:<entry>``) in a subprocess, send ``sig`` the
-    moment it handles SIGTERM (Python itself handles only SIGINT, so that is when the entry
-    point's start-up handlers are in place, before its imports: the signal lands while it
-    imports numpy and onnxruntime), and return (exit code, stdout, stderr). Linux only: it
-    reads the caught-signal mask in ``/proc/<pid>/status``."""
-    code = f"import sys; from tactile.cli import {entry}; sys.exit({entry}())"
+    """Start a console entry point (``module:function``; a bare name is ``tactile.cli:<entry>``)
+    in a subprocess, send ``sig`` the moment it handles SIGTERM (Python itself handles only
+    SIGINT, so that is when the entry point's start-up handlers are in place, before its
+    imports: the signal lands while it imports numpy and onnxruntime), and return (exit code,
+    stdout, stderr). Linux only: it reads the caught-signal mask in ``/proc/<pid>/status``."""
+    module, _, entry = entry.rpartition(":")
+    code = f"import sys; from {module or 'tactile.cli'} import {entry}; sys.exit({entry}())"
     proc = subprocess.Popen([sys.executable, "-c", code, *args], stdout=subprocess.PIPE,
                             stderr=subprocess.PIPE, text=True)
     status = Path(f"/proc/{proc.pid}/status")
@@ -105,8 +105,8 @@ def read_link(query: str, chunk: int) -> tuple[bytes, Injected, list[int]]:
     """Read a whole link the way the sim:// port does: ask for what is due, ``chunk`` samples
     more each time, and replug the pen when it is unplugged (as a reader that reconnects at
     once). Returns the bytes, the link's counts and the sizes of the frames."""
-    from tactile.device.decoder import Samples, StreamDecoder
-    from tactile.device.simlink import LinkConfig, PenLink
+    from tactile.device.protocol import Samples, StreamDecoder
+    from tactile.device.sim import LinkConfig, PenLink
 
     link = PenLink(LinkConfig.from_query(query))
     data, due, sizes = b"", 0, []

@@ -14,6 +14,7 @@ import typing
 from dataclasses import dataclass
 from pathlib import Path
 
+from tactile.device.recordings.summary import HOP, WINDOW
 from tactile.errors import ConfigError
 
 MODELS = ("lstm", "linear", "sf_rnn", "f_rnn", "sparse_linear")
@@ -197,8 +198,8 @@ class TrainConfig:
     ``cuda``.
     """
 
-    window: int = 50
-    hop: int = 10
+    window: int = WINDOW
+    hop: int = HOP
     channels: tuple[str, ...] = ()
     center: tuple[str, ...] = ("accel_*", "gyro_*")
     emd_channels: tuple[str, ...] = ()

@@ -21,7 +21,7 @@ import numpy as np
 import torch
 
 from tactile.cli import Parser, add_debug, int_in, run
-from tactile.device.recording import load_dataset
+from tactile.device.recordings import load_dataset
 from tactile.errors import ConfigError, RecordingError
 from tactile.training.config import apply_threads, resolve_threads
 from tactile.training.data import Windows, cut, find_test_split

@@ -36,7 +36,7 @@ from tqdm import tqdm
 
 import tactile
 from tactile.cli import Parser, add_debug, run
-from tactile.device.recording import load_dataset
+from tactile.device.recordings import load_dataset
 from tactile.errors import ConfigError, RecordingError
 from tactile.training.checkpoint import (
     CHECKPOINT,

@@ -30,8 +30,7 @@ from dataclasses import dataclass, field
 
 import serial
 
-from tactile.device.decoder import StreamDecoder
-from tactile.device.ports import (
+from tactile.device.link.ports import (
     PenId,
     PortAbsent,
     PortBusy,
@@ -41,6 +40,7 @@ from tactile.device.ports import (
     usb_serial,
     wait_for_port,
 )
+from tactile.device.protocol.decoder import StreamDecoder
 from tactile.errors import ConfigError, DeviceError
 
 
