@@ -1,5 +1,5 @@
 """The CSV line mode of the stream decoder: one sample per line, comma- or space-separated
-plain decimal numbers, as a hobby board prints them (``device/PROTOCOL.md``, "CSV mode").
+plain decimal numbers, as a hobby board prints them (``device/PROTOCOL.md``, "CSV line mode").
 
 A line is classified on its own (:func:`csv_kind`); :class:`CsvLines` is the part of
 :class:`~tactile.device.protocol.decoder.StreamDecoder` that turns lines into samples once the

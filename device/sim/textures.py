@@ -17,8 +17,8 @@ from tactile.errors import ConfigError
 
 @dataclass(frozen=True)
 class TextureParams:
-    """What the tip feels on one surface (``textures.toml`` gives the
-    numbers and where they come from).
+    """What the tip feels on one surface (``textures.toml`` gives the numbers and where they
+    come from).
 
     ``roughness_um``/``corr_mm``: RMS height (um) and correlation length (mm) of the random
     part of the height profile; ``period_mm``/``period_um``: wavelength and amplitude of a
