@@ -13,7 +13,7 @@ def to_units(info: DeviceInfo, raw: np.ndarray) -> np.ndarray:
     channels' units, ``raw * scale + offset`` with each channel's scale and offset from the
     device's header (``info``: :class:`~tactile.device.info.DeviceInfo`). The model takes these.
 
-    >>> from tactile.device.info import pen_info
+    >>> from tactile.device.protocol import pen_info
     >>> to_units(pen_info(), np.array([[100, 100, 16384, 0, 0, 131, 0, 0]]))[0, :3]
     array([1., 1., 1.], dtype=float32)
     """
