@@ -59,11 +59,9 @@ from pathlib import Path
 import numpy as np
 
 from tactile.cli import Parser
-from tactile.device.decoder import Gap
-from tactile.device.hapmat import import_hapmat
-from tactile.device.recording import Take, TakeWriter, load_dataset
-from tactile.device.sim_cli import make_dataset
-from tactile.device.simulator import TEXTURES
+from tactile.device.protocol import Gap
+from tactile.device.recordings import Take, TakeWriter, import_hapmat, load_dataset
+from tactile.device.sim import TEXTURES, make_dataset
 from tactile.errors import ConfigError
 from tactile.training import loop
 from tactile.training import train as train_module
@@ -171,8 +169,8 @@ def import_biotac_cached(cache: Path) -> Path:
         for f in part.iterdir():
             f.unlink()
     cache.mkdir(parents=True, exist_ok=True)
-    cmd = [sys.executable, "-m", "tactile.device.biotac", *map(str, sorted(BIOTAC.glob("*.h5"))),
-           "--out", str(part)]
+    cmd = [sys.executable, "-m", "tactile.device.commands.import_biotac",
+           *map(str, sorted(BIOTAC.glob("*.h5"))), "--out", str(part)]
     print(f"<!-- importing: tactile-import-biotac {BIOTAC}/*.h5 --out {part} -->", flush=True)
     subprocess.run(cmd, check=True, stdout=subprocess.DEVNULL)
     part.rename(data)

@@ -414,8 +414,8 @@ def pen_windows(n_windows: int, channels=("pressure_0", "accel_z", "gyro_x")) ->
     """(W, 3, 50) windows of the simulated pen (hop 25, the textures in turn), each channel
     normalised by its mean and std over all of them, as a model's preprocessing does with the
     training split's."""
-    from tactile.device.info import PEN_CHANNELS
-    from tactile.device.simulator import TEXTURES, PenSimulator
+    from tactile.device.protocol import PEN_CHANNELS
+    from tactile.device.sim import TEXTURES, PenSimulator
 
     names = [c.name for c in PEN_CHANNELS]
     idx = [names.index(c) for c in channels]

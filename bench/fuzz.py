@@ -44,9 +44,18 @@ from functools import cache
 
 import numpy as np
 
-from tactile.device.decoder import REPLAY_WINDOW, Gap, Samples, StreamDecoder
-from tactile.device.info import ChannelSpec, DeviceInfo
-from tactile.device.protocol import MAX_ENCODED, SEQ_MODULO, encode_header, encode_samples
+from tactile.device.protocol import (
+    MAX_ENCODED,
+    REPLAY_WINDOW,
+    SEQ_MODULO,
+    ChannelSpec,
+    DeviceInfo,
+    Gap,
+    Samples,
+    StreamDecoder,
+    encode_header,
+    encode_samples,
+)
 
 BINARY_KINDS = ("flip", "burst", "insert", "delete", "dup", "swap", "drop", "truncate",
                 "header", "reboot", "midstart", "mix", "noise")

@@ -368,7 +368,7 @@ def test_windows(job: Job, seconds: float) -> np.ndarray:
     ``seconds`` of data, in the contract's channels (recycled if the take is shorter)."""
     import torch
 
-    from tactile.device.recording import read_take
+    from tactile.device.recordings import read_take
 
     ck = torch.load(job.folder / "checkpoint.pt", map_location="cpu", weights_only=True)
     take = read_take(job.data / sorted(ck["test_rows"])[0])

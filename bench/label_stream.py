@@ -47,7 +47,7 @@ SHIPPED_VAL_USERS = (9, 10, 19, 24, 25, 34, 51, 61, 65, 70)
 def simulate(folder: Path, users: tuple[int, ...], classes: tuple[str, ...],
              seconds: float) -> None:
     """One take per class of each simulated user (as the shipped model's dataset has them)."""
-    from tactile.device.sim_cli import make_dataset
+    from tactile.device.sim import make_dataset
 
     for u in users:
         make_dataset(folder, 1, classes, seconds, SHIPPED_SEED, first_take=u)
@@ -55,7 +55,7 @@ def simulate(folder: Path, users: tuple[int, ...], classes: tuple[str, ...],
 
 def load_groups(folder: Path) -> dict[str, list]:
     """{user: its takes}; takes without a ``user`` field under ``"-"``."""
-    from tactile.device.recording import load_dataset
+    from tactile.device.recordings import load_dataset
 
     groups: dict[str, list] = {}
     for take in load_dataset(folder):

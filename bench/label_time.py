@@ -52,7 +52,7 @@ def _windows(contract, data: Path | None, seconds: float, seed: int = 0) -> np.n
     c = contract
     n = max(1, int(round(seconds * c.sample_rate_hz / c.hop)))
     if data is not None:
-        from tactile.device.recording import load_dataset
+        from tactile.device.recordings import load_dataset
 
         out = []
         for take in load_dataset(data):
@@ -131,7 +131,7 @@ def paper_biotac_file(fingers: str, out: Path) -> Path:
     import onnx
     import torch
 
-    from tactile.device import biotac
+    from tactile.device.recordings import biotac
     from tactile.export.graph import build_graph
     from tactile.export.metadata import attach, contract_for
     from tactile.training.config import TrainConfig

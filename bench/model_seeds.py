@@ -17,7 +17,7 @@ from pathlib import Path
 
 import numpy as np
 
-from tactile.device.simulator import PenSimulator
+from tactile.device.sim import PenSimulator
 from tactile.runtime.model import Model
 
 

@@ -9,9 +9,7 @@ import time
 
 import numpy as np
 
-from tactile.device.decoder import StreamDecoder
-from tactile.device.info import pen_info
-from tactile.device.protocol import encode_header, encode_samples
+from tactile.device.protocol import StreamDecoder, encode_header, encode_samples, pen_info
 
 BITS_PER_BYTE = 10  # 8N1 UART: start + 8 data + stop
 

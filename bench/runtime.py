@@ -33,7 +33,7 @@ import numpy as np
 
 
 def build_model(work: Path) -> tuple[Path, Path]:
-    from tactile.device.sim_cli import make_dataset
+    from tactile.device.sim import make_dataset
     from tactile.export.exporter import export_run
     from tactile.training.config import TrainConfig
     from tactile.training.train import train
@@ -145,8 +145,8 @@ def steady_latency(ours, windows: np.ndarray, passes: int) -> list[float]:
 
 def sustained_rate(model_path: Path, seconds: float = 60.0) -> float:
     """Samples per second the whole path keeps up with: bytes -> decoder -> stream -> model."""
-    from tactile.device.decoder import StreamDecoder
-    from tactile.device.simlink import LinkConfig, PenLink
+    from tactile.device.protocol import StreamDecoder
+    from tactile.device.sim import LinkConfig, PenLink
     from tactile.runtime.model import Model
     from tactile.runtime.runner import Printer, Runner, Summary
     from tactile.runtime.stream import Stream
@@ -216,8 +216,8 @@ def main() -> None:
         import onnxruntime
         import torch
 
-        from tactile.device.info import pen_info
-        from tactile.device.simulator import PenSimulator
+        from tactile.device.protocol import pen_info
+        from tactile.device.sim import PenSimulator
 
         info = pen_info()
         scale = np.array([ch.scale for ch in info.channels], np.float32)

@@ -16,7 +16,7 @@ import time
 import urllib.request
 from pathlib import Path
 
-from tactile.device.decoder import StreamDecoder
+from tactile.device.protocol import StreamDecoder
 from tactile.runtime.live import serve_runner
 from tactile.runtime.model import Model
 from tactile.runtime.runner import Printer, Runner, Summary

@@ -28,8 +28,7 @@ import time
 import numpy as np
 import torch
 
-from tactile.device.sim_cli import take_seed
-from tactile.device.simulator import PenSimulator
+from tactile.device.sim import PenSimulator, take_seed
 
 EXPERIMENTS = {
     "experiment 1": ("desk", "cardboard", "nonwoven_cloth", "paper"),

@@ -29,8 +29,8 @@ from pathlib import Path
 
 import numpy as np
 
-from tactile.device.info import PEN_CHANNELS, PEN_RATE_HZ
-from tactile.device.simulator import TEXTURES, simulate
+from tactile.device.protocol import PEN_CHANNELS, PEN_RATE_HZ
+from tactile.device.sim import TEXTURES, simulate
 
 DEFAULT_HAPMAT = (
     Path(__file__).resolve().parents[2] / "shared" / "datasets" / "hapmat" / "hapmat_stick_imu.npz"

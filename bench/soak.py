@@ -5,7 +5,7 @@
 Runs the real command (``python -m tactile.runtime.commands.run``) on a ``sim://`` port at
 ``speed=max`` whose pen is hit by garbage bytes, bit flips, dropped frames, stalls and unplugs
 (many of each), and compares what it prints with the ground truth of the same link, replayed
-here (:class:`~tactile.device.simlink.PenLink` with ``trace=True`` gives the fate of every
+here (:class:`~tactile.device.sim.PenLink` with ``trace=True`` gives the fate of every
 sample; its faults do not depend on how the port is read):
 
 * windows: the sequence number of every window's last sample (the receiver's numbering, which
@@ -49,7 +49,7 @@ def ground_truth(query: str):
     """Replay the link (replugging at each unplug, as a reader that reconnects does): the link
     (its counts and intact headers), the fate of each sample (1 = arrived intact), the bytes
     sent and where each unplug fell (stream index)."""
-    from tactile.device.simlink import LinkConfig, PenLink
+    from tactile.device.sim import LinkConfig, PenLink
 
     link = PenLink(LinkConfig.from_query(query), trace=True)
     sent, unplugs = 0, []
@@ -73,7 +73,7 @@ def runs_of(delivered: np.ndarray, start: int) -> list[tuple[int, int]]:
 def reference(model_path: Path, texture: str, seed: int, n: int, runs):
     """{end index: probabilities} of every window, from the simulator's samples fed run by run
     to a Stream (no link, no decoder)."""
-    from tactile.device.simulator import PenSimulator
+    from tactile.device.sim import PenSimulator
     from tactile.runtime.model import Model
     from tactile.runtime.stream import Stream
 

@@ -22,9 +22,8 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from tactile.device.hapmat import import_hapmat
-from tactile.device.recording import load_dataset
-from tactile.device.sim_cli import make_dataset
+from tactile.device.recordings import import_hapmat, load_dataset
+from tactile.device.sim import make_dataset
 from tactile.training.config import TrainConfig
 from tactile.training.data import channel_index, classes_of, split_windows
 from tactile.training.overrides import parse_sets

@@ -13,9 +13,9 @@ from pathlib import Path
 
 import numpy as np
 
-from tactile.device.info import PEN_CHANNELS
-from tactile.device.recording import load_dataset
-from tactile.device.simulator import TEXTURES, PenSimulator
+from tactile.device.protocol import PEN_CHANNELS
+from tactile.device.recordings import load_dataset
+from tactile.device.sim import TEXTURES, PenSimulator
 from tactile.errors import RecordingError
 from tactile.training.data import cut, find_test_split
 

@@ -34,8 +34,7 @@ from http import HTTPStatus
 from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
 from importlib import resources
 
-from tactile.device.decoder import Header, Samples
-from tactile.device.info import DeviceInfo
+from tactile.device.protocol import DeviceInfo, Header, Samples
 from tactile.errors import ConfigError
 from tactile.runtime.stream import Label
 from tactile.runtime.units import to_units
@@ -75,7 +74,7 @@ def parse_address(text: str) -> tuple[str, int]:
 
 
 def link_status(stats) -> dict:
-    """The decoder's counters a viewer needs (a :class:`~tactile.device.decoder.DecoderStats`)."""
+    """The decoder's counters a viewer needs (a :class:`~tactile.device.protocol.DecoderStats`)."""
     return {k: getattr(stats, k) for k in ("bytes_in", "frames", "samples", "crc_errors",
                                            "malformed", "bytes_discarded", "gaps",
                                            "samples_lost", "restarts")}
@@ -181,7 +180,7 @@ class Live:
 
     def feed(self, item) -> None:
         """Everything from the loop goes through here, and returns at once: a decoder event
-        (:class:`~tactile.device.decoder.Header` and :class:`~tactile.device.decoder.Samples`
+        (:class:`~tactile.device.protocol.Header` and :class:`~tactile.device.protocol.Samples`
         become ``header`` and ``samples`` objects; a gap is left to the printer's event), a
         :class:`~tactile.runtime.stream.Label`, or a dict (an event object as on stdout)."""
         if isinstance(item, dict):

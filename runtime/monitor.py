@@ -5,7 +5,7 @@ and min/max/RMS over the last second of samples, and the rate received. :func:`b
 out with the link's figures (frames, CRC errors, malformed frames, gaps, samples lost, restarts,
 reconnects); :class:`Screen` redraws them in place on a terminal and prints them afresh, plain,
 elsewhere. :func:`watch_loop` and :func:`raw_loop` read a
-:class:`~tactile.device.connection.Connection` (decoded, or the bytes in hex as
+:class:`~tactile.device.link.connection.Connection` (decoded, or the bytes in hex as
 :func:`hexdump` shows them); :func:`verdict` is the last line: alive (data at its declared rate
 within :data:`RATE_TOLERANCE`, from the first bytes to the end; otherwise ``too slow`` or ``too
 fast``) and sane (no channel flat or pinned at its limit, no errors).
@@ -22,9 +22,8 @@ from dataclasses import dataclass, field
 import numpy as np
 
 import tactile.device  # noqa: F401  (registers sim://)
-from tactile.device.connection import Connection, Reconnected, Stall
-from tactile.device.decoder import Gap, Header, Samples, StreamDecoder
-from tactile.device.info import DeviceInfo
+from tactile.device.link import Connection, Reconnected, Stall
+from tactile.device.protocol import DeviceInfo, Gap, Header, Samples, StreamDecoder
 from tactile.runtime.units import to_units
 
 INT16 = (-32768, 32767)

@@ -8,8 +8,8 @@ import time
 from collections.abc import Callable, Iterator
 
 import tactile.device  # noqa: F401  (registers sim://)
-from tactile.device.connection import Connection, LinkSettings
-from tactile.device.decoder import StreamDecoder
+from tactile.device.link import Connection, LinkSettings
+from tactile.device.protocol import StreamDecoder
 from tactile.runtime.model import Model
 from tactile.runtime.runner import Runner, Summary
 from tactile.runtime.stream import Label, Smoother, Stream
@@ -48,7 +48,7 @@ def labels(
     :class:`~tactile.runtime.model.Model` or the path of an exported ``.onnx``).
 
     It does what ``tactile-run`` does between the port and the labels, through the same
-    :class:`~tactile.device.connection.Connection`: decodes the stream, checks the device's
+    :class:`~tactile.device.link.connection.Connection`: decodes the stream, checks the device's
     header against the model's contract (channels, units, rate:
     :class:`~tactile.errors.ModelContractError` otherwise), converts counts to units
     (:func:`~tactile.runtime.units.to_units`), starts a new window after lost samples, and, with

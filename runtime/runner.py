@@ -4,7 +4,7 @@
 stalls and reconnections), checks the device against the model's contract
 (:func:`check_device`), classifies each window and hands labels and events to a
 :class:`Printer` (stdout) and a :class:`Summary` (counters). Two loops feed it:
-:func:`read_pen`, the serial loop over a :class:`~tactile.device.connection.Connection` (it
+:func:`read_pen`, the serial loop over a :class:`~tactile.device.link.connection.Connection` (it
 reconnects to the same pen only), and :func:`replay`, a recorded take as fast as it can.
 Diagnostics (:func:`say`) go to stderr, prefixed ``tactile-run:``.
 """
@@ -22,11 +22,8 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 import tactile.device  # noqa: F401  (registers sim://)
-from tactile.device.connection import Connection, LinkSettings, Reconnected, Stall
-from tactile.device.decoder import Gap, Header, Samples, StreamDecoder
-from tactile.device.info import DeviceInfo
-from tactile.device.portlist import find_port
-from tactile.device.ports import keep_trying
+from tactile.device.link import Connection, LinkSettings, Reconnected, Stall, find_port, keep_trying
+from tactile.device.protocol import DeviceInfo, Gap, Header, Samples, StreamDecoder
 from tactile.errors import ModelContractError, RecordingError
 from tactile.runtime.model import Model
 from tactile.runtime.stream import Label, Stream
@@ -136,7 +133,7 @@ class Runner:
         self.tap: Callable[[object], None] | None = None  # sees each decoder event (--serve)
 
     def handle(self, events: list) -> None:
-        """Decoder events, and the link's (:mod:`~tactile.device.connection`), in order."""
+        """Decoder events, and the link's (:mod:`~tactile.device.link.connection`), in order."""
         for ev in events:
             if self.tap is not None:
                 self.tap(ev)
@@ -195,7 +192,7 @@ def wait_for_pen(stop: dict, deadline: float, status_every: float) -> str | None
 def read_pen(runner: Runner, decoder: StreamDecoder, settings: LinkSettings, stop: dict,
              deadline: float = math.inf) -> None:
     """The serial loop: read, decode, classify, through a
-    :class:`~tactile.device.connection.Connection` (it reconnects to the same pen only), until
+    :class:`~tactile.device.link.connection.Connection` (it reconnects to the same pen only), until
     ``stop["flag"]`` is set (by a signal handler), ``deadline`` (``time.monotonic()``, from
     ``--seconds``) passes or the pen does not come back in time. A status line goes to stderr
     every ``settings.status_every`` s."""
@@ -228,7 +225,7 @@ def replay(path: Path, runner: Runner, stop: dict, deadline: float = math.inf,
     """Run a recorded take through the same stream, as fast as possible, until its end, a stop
     or ``deadline`` (on ``clock``, from ``--seconds``: the rest of the take is left out, with a
     line that says where it stopped)."""
-    from tactile.device.recording import read_take
+    from tactile.device.recordings import read_take
 
     take = read_take(path)
     if len(take.seq) == 0:

@@ -10,7 +10,7 @@ from tactile.cli import started
 
 def stop_on_signals(say: Callable[[str], None]) -> dict | None:
     """From now on, SIGINT and SIGTERM set ``stop["flag"]`` instead of ending the process: the
-    read loops (:meth:`~tactile.device.connection.Connection.chunks`, the waits for a pen,
+    read loops (:meth:`~tactile.device.link.connection.Connection.chunks`, the waits for a pen,
     :func:`~tactile.runtime.runner.replay`) check it and end, and the command finishes as
     usual. Returns ``stop`` (``{"flag": False}``), or None when a signal came while the command
     was starting (``tactile.cli.command(guarded=True)``): ``say`` then gets the line that

@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import argparse
 import functools
-import importlib
 import math
 import os
 import signal
@@ -183,16 +182,6 @@ def command(prog: str, *, guarded: bool = False, interruptible: bool = False
         return entry
 
     return wrap
-
-
-def _module_main(module: str) -> Callable[[list[str] | None], int]:
-    """Transitional: a command whose module has not moved to ``<stage>/commands/`` yet."""
-    return lambda argv=None: importlib.import_module(module).main(argv)
-
-
-record_main = command("tactile-record", guarded=True)(_module_main("tactile.device.recorder"))
-plot_main = command("tactile-plot")(_module_main("tactile.training.plot"))
-import_biotac_main = command("tactile-import-biotac")(_module_main("tactile.device.biotac"))
 
 
 def add_debug(parser: argparse.ArgumentParser) -> None:

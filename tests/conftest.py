@@ -15,7 +15,7 @@ import numpy as np
 import pytest
 
 if TYPE_CHECKING:
-    from tactile.device.simlink import Injected
+    from tactile.device.sim import Injected
 
 REPO = Path(__file__).resolve().parents[1]
 SHARED = REPO.parent / "shared"
@@ -29,8 +29,7 @@ def pen_stream(n: int, per_frame: int = 1, seed: int = 0, header_every: int = 10
     ``spans`` lists (start, end, first_seq, n_samples) of every samples frame in the bytes
     (end includes the delimiter); header frames have n_samples = 0.
     """
-    from tactile.device.info import pen_info
-    from tactile.device.protocol import encode_header, encode_samples
+    from tactile.device.protocol import encode_header, encode_samples, pen_info
 
     rng = np.random.default_rng(seed)
     raw = rng.integers(-32768, 32768, (n, 8)).astype(np.int16)
@@ -107,8 +106,8 @@ def read_link(query: str, chunk: int) -> tuple[bytes, Injected, list[int]]:
     """Read a whole link the way the sim:// port does: ask for what is due, ``chunk`` samples
     more each time, and replug the pen when it is unplugged (as a reader that reconnects at
     once). Returns the bytes, the link's counts and the sizes of the frames."""
-    from tactile.device.decoder import Samples, StreamDecoder
-    from tactile.device.simlink import LinkConfig, PenLink
+    from tactile.device.protocol import Samples, StreamDecoder
+    from tactile.device.sim import LinkConfig, PenLink
 
     link = PenLink(LinkConfig.from_query(query))
     data, due, sizes = b"", 0, []

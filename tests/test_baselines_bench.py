@@ -63,8 +63,8 @@ def _names(takes, part) -> set[str]:
 
 
 def test_nested_split_by_user_never_holds_a_test_take(tmp_path):
-    from tactile.device.recording import load_dataset
-    from tactile.device.sim_cli import make_dataset
+    from tactile.device.recordings import load_dataset
+    from tactile.device.sim import make_dataset
     from tactile.training.config import TrainConfig
     from tactile.training.data import split_takes
 
@@ -92,8 +92,8 @@ def test_nested_split_by_user_never_holds_a_test_take(tmp_path):
 
 
 def test_nested_split_in_time_cuts_the_takes_before_their_test_block(tmp_path):
-    from tactile.device.recording import load_dataset
-    from tactile.device.sim_cli import make_dataset
+    from tactile.device.recordings import load_dataset
+    from tactile.device.sim import make_dataset
     from tactile.training.config import TrainConfig
     from tactile.training.data import split_takes
 
@@ -118,8 +118,8 @@ def test_nested_split_in_time_cuts_the_takes_before_their_test_block(tmp_path):
 
 
 def test_nested_runs_read_no_test_take(tmp_path, monkeypatch):
-    from tactile.device import recording
-    from tactile.device.sim_cli import make_dataset
+    from tactile.device.recordings import reader as recording
+    from tactile.device.sim import make_dataset
     from tactile.training.config import TrainConfig
     from tactile.training.data import split_takes
 
@@ -158,8 +158,8 @@ def test_literal_selector_names_only_that_take():
 
 
 def test_same_split_with_another_seed(tmp_path):
-    from tactile.device.recording import load_dataset
-    from tactile.device.sim_cli import make_dataset
+    from tactile.device.recordings import load_dataset
+    from tactile.device.sim import make_dataset
     from tactile.training.config import TrainConfig
     from tactile.training.data import split_takes
 
@@ -295,8 +295,8 @@ def test_a_grid_with_reinit_keeps_each_splits_baseline_apart(tmp_path, monkeypat
     """--reinit trains each candidate again with seed + K on the seed's split, named: its
     baseline has other settings (seed, named takes) and is kept in its own folder. Sharing
     the seed's baseline file stopped the grid (exit 2) at the first reinit run."""
-    from tactile.device.recording import load_dataset
-    from tactile.device.sim_cli import make_dataset
+    from tactile.device.recordings import load_dataset
+    from tactile.device.sim import make_dataset
 
     b = _bench()
     make_dataset(tmp_path / "d", 8, ("paper", "mouse_pad"), 1.0, seed=0)
@@ -328,7 +328,7 @@ def test_biotac_channels_are_vibration_pressure_and_electrodes():
     """The bench's BioTac channels are the issue's plain channels, pressure + vibration +
     electrodes, in the importer's order: every channel of both fingers but the temperatures."""
     pytest.importorskip("h5py", reason="the [biotac] extra (h5py) is not installed")
-    from tactile.device.biotac import channels
+    from tactile.device.recordings.biotac import channels
 
     b = _bench()
     every = [c.name for c in channels()]
@@ -342,8 +342,8 @@ def test_the_baselines_vote_per_take_is_the_models_rule(tmp_path, monkeypatch):
     their argmax gives the window accuracy it reports); each take's vote is the most common
     window label there, counted here by hand."""
     pytest.importorskip("sklearn", reason="the [train] extra (scikit-learn) is not installed")
-    from tactile.device.recording import load_dataset
-    from tactile.device.sim_cli import make_dataset
+    from tactile.device.recordings import load_dataset
+    from tactile.device.sim import make_dataset
     from tactile.training.config import TrainConfig
 
     b = _bench()

@@ -17,12 +17,18 @@ import numpy as np
 import pytest
 from conftest import SHARED
 
-from tactile.device.biotac import channels, import_biotac
-from tactile.device.biotac import main as biotac_main
-from tactile.device.decoder import Header, Samples, decode
-from tactile.device.info import MAX_CHANNELS, ChannelSpec, DeviceInfo
-from tactile.device.protocol import encode_header
-from tactile.device.recording import TakeWriter, load_dataset, read_take
+from tactile.device.commands.import_biotac import main as biotac_main
+from tactile.device.protocol import (
+    MAX_CHANNELS,
+    ChannelSpec,
+    DeviceInfo,
+    Header,
+    Samples,
+    decode,
+    encode_header,
+)
+from tactile.device.recordings import TakeWriter, load_dataset, read_take
+from tactile.device.recordings.biotac import channels, import_biotac
 from tactile.errors import FrameError, RecordingError
 
 BOLT = SHARED / "datasets" / "biotac-bolt"
@@ -116,7 +122,7 @@ def test_import_writes_one_take_per_trial(tmp_path, capsys):
 
 
 def _run(*args: str) -> tuple[int, list[str]]:
-    out = subprocess.run([sys.executable, "-m", "tactile.device.biotac", *args],
+    out = subprocess.run([sys.executable, "-m", "tactile.device.commands.import_biotac", *args],
                          capture_output=True, text=True)
     return out.returncode, out.stderr.strip().splitlines()
 
@@ -231,9 +237,10 @@ def test_without_h5py_the_command_names_its_extra():
     block = ("import sys\nclass Block:\n    def find_spec(self, name, path=None, target=None):\n"
              "        if name.split('.')[0] == 'h5py':\n"
              "            raise ModuleNotFoundError(f'No module named {name!r}', name=name)\n"
-             "sys.meta_path.insert(0, Block())\nfrom tactile.cli import import_biotac_main\n"
+             "sys.meta_path.insert(0, Block())\n"
+             "from tactile.device.commands.import_biotac import main\n"
              "sys.argv = ['tactile-import-biotac', 'x.h5', '--out', 'y']\n"
-             "sys.exit(import_biotac_main())\n")
+             "sys.exit(main())\n")
     out = subprocess.run([sys.executable, "-c", block], capture_output=True, text=True)
     lines = out.stderr.strip().splitlines()
     assert out.returncode == 1 and lines == [
@@ -290,7 +297,7 @@ def test_import_a_slice_of_the_real_recordings(tmp_path):
     assert (take.meta["pdc_setting"], take.meta["repetition"], take.meta["user"]) == (150, 4, 4)
     assert take.meta["recorded_utc"].startswith("2012-07")
     # every trial name of the real files parses (names only: cheap)
-    from tactile.device.biotac import TRIAL
+    from tactile.device.recordings.biotac import TRIAL
     groups = []
     for f in sorted(BOLT.glob("*.h5")):
         with h5py.File(f, "r") as src:

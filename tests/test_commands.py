@@ -14,8 +14,8 @@ import pytest
 from conftest import REPO
 
 from tactile import __version__
-from tactile.device.info import pen_info
-from tactile.device.recording import TakeWriter, check_label
+from tactile.device.protocol import pen_info
+from tactile.device.recordings import TakeWriter, check_label
 from tactile.errors import RecordingError
 
 SCRIPTS = sorted(tomllib.loads((REPO / "pyproject.toml").read_text())["project"]["scripts"])
@@ -163,7 +163,7 @@ def test_plot_writes_pictures_and_refuses_what_it_cannot_plot(tmp_path):
 
 def _hapmat_npz(path: Path, nan_in: str | None = None) -> Path:
     """A small file of the bundled HapMat form: 2 materials x 300 samples x 6 channels."""
-    from tactile.device.hapmat import SOURCE_COLUMNS
+    from tactile.device.recordings.hapmat import SOURCE_COLUMNS
 
     x = np.random.default_rng(0).normal(size=(2, 300, len(SOURCE_COLUMNS)))
     classes = np.array(["Paper", "Wood"])
@@ -187,8 +187,8 @@ def test_import_force_replaces_nothing_when_an_input_is_bad(tmp_path):
 
 
 def test_plot_groups_many_channels_into_panels():
-    from tactile.device.info import ChannelSpec, DeviceInfo
-    from tactile.training.plot import LEGEND_MAX, panels
+    from tactile.device.protocol import ChannelSpec, DeviceInfo
+    from tactile.device.recordings.plot import LEGEND_MAX, panels
 
     names = ([f"f0_pac_{i:02d}" for i in range(22)] + ["f0_pdc", "f0_tac", "f0_tdc"]
              + [f"f0_ele_{i:02d}" for i in range(19)])

@@ -8,15 +8,19 @@ from conftest import pen_stream
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from tactile.device.decoder import Gap, Header, Samples, StreamDecoder, decode
-from tactile.device.info import pen_info
 from tactile.device.protocol import (
     MAX_ENCODED,
+    Gap,
+    Header,
+    Samples,
+    StreamDecoder,
     cobs_encode,
+    decode,
     encode_header,
     encode_samples,
-    samples_body,
+    pen_info,
 )
+from tactile.device.protocol.codec import samples_body
 from tactile.errors import ConfigError
 
 
@@ -166,7 +170,7 @@ def test_restart_is_a_gap_and_host_seq_stays_monotonic():
 
 
 def test_header_change_is_reported_and_mismatched_frames_dropped():
-    from tactile.device.info import PEN_CHANNELS, DeviceInfo
+    from tactile.device.protocol import PEN_CHANNELS, DeviceInfo
 
     other = DeviceInfo(100.0, PEN_CHANNELS[2:5], "imu-only")
     data = (
@@ -329,7 +333,8 @@ class _Counted:
     def __init__(self, monkeypatch):
         import binascii
 
-        from tactile.device import decoder, protocol
+        from tactile.device.protocol import codec as protocol
+        from tactile.device.protocol import decoder
 
         self.decoded = self.crc_calls = 0
         real_decode, real_crc = protocol.cobs_decode, binascii.crc_hqx
@@ -409,7 +414,7 @@ def _frames(seq0, t0, raw, per=1, period=10_000):
 
 
 def test_unknown_protocol_version_is_refused_and_reported():
-    from tactile.device.info import DeviceInfo
+    from tactile.device.protocol import DeviceInfo
 
     v99 = DeviceInfo(100.0, pen_info().channels, "future-pen", 99)
     raw = np.arange(30 * 8, dtype=np.int16).reshape(30, 8)
@@ -482,7 +487,7 @@ def test_a_frame_behind_its_whole_run_after_a_header_is_read_as_a_restart():
     (minimised), a device's frames with counts 1 and 0 swapped, a header between them, are the
     bytes of a device that restarted again before its first frame got through. The reading
     that loses nothing and never joins two runs of a device: a restart, whatever the clocks."""
-    from tactile.device.info import ChannelSpec, DeviceInfo
+    from tactile.device.protocol import ChannelSpec, DeviceInfo
 
     raw = np.random.default_rng(5).integers(-2000, 2000, (4, 8)).astype(np.int16)
     other = DeviceInfo(100.0, tuple(ChannelSpec(f"x{i}", "u") for i in range(8)), "pen")

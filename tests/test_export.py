@@ -30,7 +30,7 @@ from tactile.contract import (
     ModelContract,
     TensorSpec,
 )
-from tactile.device.sim_cli import make_dataset
+from tactile.device.sim import make_dataset
 from tactile.errors import ModelContractError
 from tactile.export.check import load_contract, signature
 from tactile.export.commands.check import main as check_main
@@ -518,7 +518,7 @@ def test_stream_refuses_a_classify_function_returning_the_wrong_width():
 
 
 def test_test_takes_are_recognised_by_content(dataset, tmp_path):
-    from tactile.device.recording import load_dataset
+    from tactile.device.recordings import load_dataset
     from tactile.training.data import find_test_split
 
     takes = load_dataset(dataset)
@@ -545,7 +545,7 @@ def test_test_takes_are_recognised_by_content(dataset, tmp_path):
 
 
 def test_check_data_says_what_it_measured(dataset, root, tmp_path, capsys):
-    from tactile.device.recording import load_dataset
+    from tactile.device.recordings import load_dataset
     from tactile.training.checkpoint import CHECKPOINT
 
     src, _, _, _, _ = _build("lstm1", GRID["lstm1"], dataset, root)

@@ -33,7 +33,7 @@ import pytest
 import torch
 
 import tactile
-from tactile.device.info import PEN_CHANNELS
+from tactile.device.protocol.info import PEN_CHANNELS
 from tactile.export.exporter import export_run
 from tactile.training.checkpoint import CHECKPOINT, CHECKPOINT_FORMAT, CHECKPOINT_VERSION
 from tactile.training.config import TrainConfig

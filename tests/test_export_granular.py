@@ -21,8 +21,8 @@ import torch
 from conftest import SHARED
 
 from tactile.contract import ModalitySpec, SignalSpec
-from tactile.device.info import ChannelSpec, DeviceInfo
-from tactile.device.recording import TakeWriter, load_dataset, read_take
+from tactile.device.protocol import ChannelSpec, DeviceInfo
+from tactile.device.recordings import TakeWriter, load_dataset, read_take
 from tactile.export.check import load_contract
 from tactile.export.commands.check import main as check_main
 from tactile.export.exporter import export_run
@@ -197,7 +197,8 @@ def _small_trial(src: Path, dst: Path, frames: int) -> str:
 
 @pytest.mark.skipif(not BOLT.is_dir(), reason=f"{BOLT} is absent (BioTac BOLT recordings)")
 def test_sf_rnn_labels_a_replayed_biotac_trial(tmp_path, capsys):
-    from tactile.device import biotac
+    from tactile.device.commands import import_biotac
+    from tactile.device.recordings import biotac
 
     data = write_takes(tmp_path / "synthetic", biotac.channels(), biotac.signals(),
                        frames=120, users=3)
@@ -205,7 +206,7 @@ def test_sf_rnn_labels_a_replayed_biotac_trial(tmp_path, capsys):
     train(data, tmp_path / "run", cfg, progress=False)
     export_run(tmp_path / "run", tmp_path / "bt.onnx", data=data, log=lambda s: None)
     group = _small_trial(BOLT / "cork.h5", tmp_path / "cork.h5", 150)
-    assert biotac.main([str(tmp_path / "cork.h5"), "--out", str(tmp_path / "real")]) == 0
+    assert import_biotac.main([str(tmp_path / "cork.h5"), "--out", str(tmp_path / "real")]) == 0
     take_path = tmp_path / "real" / f"{group}.csv"
     capsys.readouterr()
     assert run_main(["--model", str(tmp_path / "bt.onnx"), "--replay", str(take_path)]) == 0

@@ -20,18 +20,22 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from tactile.device import vectors
-from tactile.device.decoder import Gap, Header, Samples, decode
-from tactile.device.info import f32, pen_info
 from tactile.device.protocol import (
-    MAX_BODY,
     MAX_ENCODED,
     SUPPORTED_VERSIONS,
+    Gap,
+    Header,
+    Samples,
     cobs_encode,
     crc16,
+    decode,
     encode_header,
     encode_samples,
+    f32,
+    pen_info,
+    vectors,
 )
+from tactile.device.protocol.codec import MAX_BODY
 
 REPO = Path(__file__).resolve().parents[1]
 FIRMWARE = REPO / "device" / "firmware"
@@ -163,7 +167,7 @@ def test_c_limits_and_pen_header_match_python(program: Program):
     info = dict(line.split(" ", 1) for line in res.stdout.decode().splitlines())
     assert int(info["max_body"]) == MAX_BODY
     assert int(info["max_frame"]) == MAX_ENCODED + 1  # + the delimiter
-    # the sketch's channel table (pen_info.h) says what device/info.py says, to the bit
+    # the sketch's channel table (pen_info.h) says what device/protocol/info.py says, to the bit
     assert info["pen_header"] == encode_header(pen_info()).hex()
 
 

@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 from conftest import REPO
 
-from tactile.device.decoder import Gap, Samples, StreamDecoder
+from tactile.device.protocol import Gap, Samples, StreamDecoder
 
 
 def _load_fuzz():
@@ -61,7 +61,7 @@ def test_the_checker_sees_each_kind_of_failure():
 
 
 def test_throughput_inputs_are_what_they_say():
-    from tactile.device.protocol import _SuffixSearch
+    from tactile.device.protocol.codec import _SuffixSearch
 
     inputs = fuzz.adversarial_inputs(20_000)
     assert inputs["0x01 run (no delimiter)"][1] == b"\x01" * 20_000

@@ -16,9 +16,9 @@ import torch
 from conftest import SHARED
 from test_biotac import write_h5
 
-from tactile.device.biotac import import_biotac
-from tactile.device.info import ChannelSpec, DeviceInfo
-from tactile.device.recording import TakeWriter, load_dataset, read_take
+from tactile.device.protocol import ChannelSpec, DeviceInfo
+from tactile.device.recordings import TakeWriter, load_dataset, read_take
+from tactile.device.recordings.biotac import import_biotac
 from tactile.errors import ConfigError, RecordingError
 from tactile.training import granular
 from tactile.training import train as train_mod
@@ -57,7 +57,7 @@ atoms = 100
 
 
 def biotac_names() -> tuple[str, ...]:
-    from tactile.device.biotac import channels
+    from tactile.device.recordings.biotac import channels
 
     return tuple(c.name for c in channels())
 

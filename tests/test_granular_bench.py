@@ -149,8 +149,8 @@ def test_every_config_parses_and_builds_a_model_on_matching_data(path):
     import numpy as np
     import torch
 
-    from tactile.device.biotac import channels as biotac_channels
-    from tactile.device.info import PEN_CHANNELS
+    from tactile.device.protocol import PEN_CHANNELS
+    from tactile.device.recordings.biotac import channels as biotac_channels
     from tactile.training.config import TrainConfig
     from tactile.training.models import build_model
 

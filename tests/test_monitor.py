@@ -16,11 +16,18 @@ import numpy as np
 import pytest
 from conftest import page_url, read_link
 
-from tactile.device.connection import Connection
-from tactile.device.decoder import Header, Samples, StreamDecoder
-from tactile.device.info import ChannelSpec, DeviceInfo, pen_info
-from tactile.device.protocol import encode_header, encode_samples
-from tactile.device.simulator import PenSimulator
+from tactile.device.link import Connection
+from tactile.device.protocol import (
+    ChannelSpec,
+    DeviceInfo,
+    Header,
+    Samples,
+    StreamDecoder,
+    encode_header,
+    encode_samples,
+    pen_info,
+)
+from tactile.device.sim import PenSimulator
 from tactile.runtime import monitor
 from tactile.runtime.commands.monitor import main as monitor_main
 

@@ -12,8 +12,9 @@ from conftest import REPO
 def test_runtime_and_device_import_without_torch():
     code = (
         "import sys, tactile.runtime, tactile.runtime.runner, tactile.runtime.model, "
-        "tactile.runtime.stream, tactile.contract, tactile.device, tactile.device.decoder, "
-        "tactile.device.recorder, tactile.device.simlink, tactile.device.portlist, "
+        "tactile.runtime.stream, tactile.contract, tactile.device, "
+        "tactile.device.protocol.decoder, tactile.device.recordings.recorder, "
+        "tactile.device.sim.simlink, tactile.device.link.portlist, "
         "tactile.runtime.live, tactile.runtime.monitor, tactile.runtime.pen, "
         "tactile.runtime.commands.run, tactile.runtime.commands.monitor\n"
         "bad = sorted(m for m in sys.modules if m.split('.')[0] in ('torch', 'onnx', 'PyEMD'))\n"

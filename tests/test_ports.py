@@ -19,12 +19,17 @@ import serial
 from conftest import REPO, listening, rows_in
 
 import tactile.device  # noqa: F401  (registers sim://)
-from tactile.device.decoder import Header, StreamDecoder
-from tactile.device.info import ChannelSpec, DeviceInfo, pen_info
-from tactile.device.ports import PenId, PortBusy, open_port, read_some, reconnect
-from tactile.device.protocol import encode_header, encode_samples
-from tactile.device.simlink import LinkConfig, PenLink
-from tactile.device.simulator import PenSimulator
+from tactile.device.link import PenId, PortBusy, open_port, read_some, reconnect
+from tactile.device.protocol import (
+    ChannelSpec,
+    DeviceInfo,
+    Header,
+    StreamDecoder,
+    encode_header,
+    encode_samples,
+    pen_info,
+)
+from tactile.device.sim import LinkConfig, PenLink, PenSimulator
 
 SHIPPED = REPO / "models" / "pen-exp2.onnx"
 TCP_CLOSE_WAIT = 8  # tcp_info.tcpi_state once the peer's FIN has arrived
@@ -266,11 +271,11 @@ def test_what_makes_the_same_pen():
 def test_the_recorder_keeps_the_bytes_that_came_with_a_disconnect(tmp_path, reap):
     """tactile-record on a socket pen that sends 3 s of samples and hangs up at once: the take
     holds all 300 (they arrived together with the disconnect)."""
-    from tactile.device.recording import read_take
+    from tactile.device.recordings import read_take
 
     srv, url = listening()
     proc = reap(subprocess.Popen(
-        [sys.executable, "-m", "tactile.device.recorder", "--port", url, "--label", "paper",
+        [sys.executable, "-m", "tactile.device.commands.record", "--port", url, "--label", "paper",
          "--out", str(tmp_path), "--seconds", "3"],
         stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True), 120)
     try:
@@ -407,8 +412,8 @@ def test_the_recorder_finds_an_auto_detected_pen_under_its_new_name(tmp_path, mo
     goes on there, after a restart gap, to its 300 samples."""
     from serial.tools import list_ports
 
-    from tactile.device.recorder import main as record_main
-    from tactile.device.recording import read_take
+    from tactile.device.commands.record import main as record_main
+    from tactile.device.recordings import read_take
 
     first, second = InTurn(), InTurn(("pen again",))
     listed = [_FakePort(first.url, None)]
@@ -478,8 +483,8 @@ def test_a_device_listed_with_another_usb_serial_number_is_not_opened(monkeypatc
 def test_without_reconnect_a_loss_comes_after_the_bytes_that_came_with_it():
     """A Connection that does not reconnect: the samples that arrived with the disconnect are
     decoded, then a Lost event; the next read raises a one-line DeviceError."""
-    from tactile.device.connection import Connection, LinkSettings, Lost
-    from tactile.device.decoder import Samples
+    from tactile.device.link import Connection, LinkSettings, Lost
+    from tactile.device.protocol import Samples
     from tactile.errors import DeviceError
 
     srv, url = listening()

@@ -13,7 +13,8 @@ import numpy as np
 import pytest
 from conftest import REPO
 
-from tactile.device import portlist
+from tactile.device.commands import ports as ports_cmd
+from tactile.device.link import portlist
 from tactile.errors import DeviceError
 
 MODEL = REPO / "models" / "pen-exp2.onnx"
@@ -41,7 +42,7 @@ def attached(monkeypatch):
 def test_the_listing_marks_what_find_port_would_take(attached, capsys):
     attached += [FakePort("/dev/ttyS0", description="ttyS0"),
                  FakePort("/dev/ttyACM0", 0x2886, 0x8045, "A1B2C3", "XIAO nRF52840", "Seeed")]
-    assert portlist.main(["--json"]) == 0
+    assert ports_cmd.main(["--json"]) == 0
     out, err = capsys.readouterr()
     assert json.loads(out) == [
         {"device": "/dev/ttyACM0", "description": "XIAO nRF52840", "vid_pid": "2886:8045",
@@ -54,7 +55,7 @@ def test_the_listing_marks_what_find_port_would_take(attached, capsys):
     from tactile.runtime import runner
 
     assert runner.find_port is portlist.find_port  # tactile-run's rule is this one
-    assert portlist.main([]) == 0
+    assert ports_cmd.main([]) == 0
     out, _ = capsys.readouterr()
     assert out.splitlines() == [
         "DEVICE        VID:PID    SERIAL  PEN  DESCRIPTION",
@@ -69,15 +70,15 @@ def test_the_listing_marks_what_find_port_would_take(attached, capsys):
 ])
 def test_what_it_says_when_there_is_not_exactly_one_pen(attached, capsys, devices, says):
     attached += [FakePort(d) for d in devices]
-    assert portlist.main([]) == 0
+    assert ports_cmd.main([]) == 0
     assert capsys.readouterr().err == f"tactile-ports: {says}\n"
     with pytest.raises(DeviceError, match="likely pen found; give --port"):
         portlist.find_port()
 
 
 def test_tactile_record_takes_the_one_likely_pen(attached, tmp_path, capsys, monkeypatch):
-    from tactile.device import recorder
-    from tactile.device.recording import read_take
+    from tactile.device.commands import record as recorder
+    from tactile.device.recordings import read_take
 
     url = "sim://?texture=paper&seed=1&speed=max&seconds=1"
     attached.append(FakePort(url, vid=0x2886))  # a sim:// URL in the device's place
@@ -129,7 +130,7 @@ def test_labels_in_one_call_are_tactile_runs_labels():
 
 
 def test_to_units_is_counts_times_scale_plus_offset():
-    from tactile.device.info import ChannelSpec, DeviceInfo
+    from tactile.device.protocol import ChannelSpec, DeviceInfo
     from tactile.runtime import to_units
 
     info = DeviceInfo(100.0, (ChannelSpec("a", "N", 0.5, 1.0), ChannelSpec("b", "g", -2.0)))

@@ -7,10 +7,10 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from tactile.device import vectors
-from tactile.device.info import ChannelSpec, DeviceInfo, f32, pen_info
 from tactile.device.protocol import (
     MAX_ENCODED,
+    ChannelSpec,
+    DeviceInfo,
     HeaderFrame,
     SamplesFrame,
     cobs_decode,
@@ -18,7 +18,10 @@ from tactile.device.protocol import (
     crc16,
     encode_header,
     encode_samples,
+    f32,
     parse_frame,
+    pen_info,
+    vectors,
 )
 from tactile.errors import FrameError
 

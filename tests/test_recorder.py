@@ -16,17 +16,19 @@ import serial
 from conftest import listening, read_link, rows_in, start_and_signal
 
 import tactile.device  # noqa: F401  (registers sim://)
-from tactile.device.decoder import Gap, StreamDecoder
-from tactile.device.hapmat import import_hapmat
-from tactile.device.info import pen_info
-from tactile.device.ports import PortAbsent, open_port
-from tactile.device.protocol_sim import forget_unplugs
-from tactile.device.recorder import Recorder, record
-from tactile.device.recorder import main as record_main
-from tactile.device.recording import TakeWriter, load_dataset, read_take
-from tactile.device.sim_cli import make_dataset
-from tactile.device.simlink import LinkConfig, PenLink
-from tactile.device.simulator import PenSimulator
+from tactile.device.commands.record import main as record_main
+from tactile.device.link import PortAbsent, open_port
+from tactile.device.protocol import Gap, StreamDecoder, pen_info
+from tactile.device.recordings import (
+    Recorder,
+    TakeWriter,
+    import_hapmat,
+    load_dataset,
+    read_take,
+    record,
+)
+from tactile.device.sim import LinkConfig, PenLink, PenSimulator, make_dataset
+from tactile.device.sim.protocol_sim import forget_unplugs
 from tactile.errors import ConfigError, DeviceError, RecordingError
 
 
@@ -160,7 +162,7 @@ def test_recorder_reads_csv_devices(tmp_path):
 
 def test_recorder_over_a_pty(tmp_path):
     sim = subprocess.Popen(
-        [sys.executable, "-m", "tactile.device.sim_cli", "--pty", "--texture", "cardboard",
+        [sys.executable, "-m", "tactile.device.commands.sim", "--pty", "--texture", "cardboard",
          "--seed", "9", "--speed", "4", "--seconds", "20",
          "--link", "garbage=0.02&flip=0.0005&drop=0.01"],
         stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
@@ -180,7 +182,7 @@ def test_recorder_over_a_pty(tmp_path):
 
 def test_killed_recorder_leaves_a_readable_take(tmp_path):
     proc = subprocess.Popen(
-        [sys.executable, "-m", "tactile.device.recorder", "--port",
+        [sys.executable, "-m", "tactile.device.commands.record", "--port",
          "sim://?texture=paper&seed=1&speed=2", "--label", "paper", "--out", str(tmp_path),
          "--quiet"],
         stdout=subprocess.PIPE, stderr=subprocess.PIPE,
@@ -200,7 +202,7 @@ def test_killed_recorder_leaves_a_readable_take(tmp_path):
 
 def test_ctrl_c_finishes_the_take(tmp_path):
     proc = subprocess.Popen(
-        [sys.executable, "-m", "tactile.device.recorder", "--port",
+        [sys.executable, "-m", "tactile.device.commands.record", "--port",
          "sim://?texture=desk&seed=1&speed=5", "--label", "desk", "--out", str(tmp_path)],
         stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
     )
@@ -217,7 +219,7 @@ def test_ctrl_c_finishes_the_take(tmp_path):
 
 def test_ctrl_c_while_the_pen_is_unplugged_finishes_the_take(tmp_path, reap):
     proc = reap(subprocess.Popen(
-        [sys.executable, "-m", "tactile.device.recorder", "--port",
+        [sys.executable, "-m", "tactile.device.commands.record", "--port",
          "sim://?texture=desk&seed=1&speed=4&unplug=2:30", "--label", "desk", "--out",
          str(tmp_path)],
         stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
@@ -257,8 +259,8 @@ def test_a_signal_while_starting_stops_cleanly(tmp_path):
     """SIGINT while the recorder starts (from its imports on): exit 0, no take, no traceback,
     and the port is not opened (here it could not be: opening it anyway gave exit 2)."""
     code, out, err = start_and_signal(
-        "record_main", ["--port", "/dev/no-such-pen", "--label", "desk", "--out",
-                        str(tmp_path)], signal.SIGINT)
+        "tactile.device.commands.record:main", ["--port", "/dev/no-such-pen", "--label", "desk",
+                                                "--out", str(tmp_path)], signal.SIGINT)
     assert code == 0 and out == "" and "Traceback" not in err, err
     assert err.splitlines()[-1] == "tactile-record: stopped by SIGINT before any data", err
     assert not list(tmp_path.glob("**/*.csv"))
@@ -268,7 +270,7 @@ def test_ctrl_c_before_any_data_is_a_stop_not_a_device_error(tmp_path, reap):
     """A port that gives nothing (loop://): Ctrl-C after the first stall message ends with exit
     0 and says no data came; without the signal, the same run would end as a device error."""
     proc = reap(subprocess.Popen(
-        [sys.executable, "-m", "tactile.device.recorder", "--port", "loop://", "--label",
+        [sys.executable, "-m", "tactile.device.commands.record", "--port", "loop://", "--label",
          "desk", "--out", str(tmp_path)],
         stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True))
     for _ in range(20):  # progress lines, then the stall message after 2 s without data
@@ -488,8 +490,7 @@ HOSTILE_NAMES = ("a,b", "x\ny", "q\"uote", "#hash", "100%", "tab\there", "ünïc
 def test_hostile_channel_names_round_trip(tmp_path):
     """Names with a comma, a newline, a quote, '#', '%', a tab or non-ASCII letters (a device
     header can say anything): the recorder writes a take its reader accepts, names intact."""
-    from tactile.device.info import ChannelSpec, DeviceInfo
-    from tactile.device.protocol import encode_header, encode_samples
+    from tactile.device.protocol import ChannelSpec, DeviceInfo, encode_header, encode_samples
 
     info = DeviceInfo(100.0, tuple(ChannelSpec(n, "ü") for n in HOSTILE_NAMES), device="ペン")
     raw = np.arange(30 * len(HOSTILE_NAMES), dtype=np.int16).reshape(30, -1)
@@ -508,7 +509,7 @@ def test_hostile_channel_names_round_trip(tmp_path):
 def test_samples_that_do_not_fit_the_header_are_a_gap_not_a_crash(tmp_path):
     """3-channel samples before the 8-channel header (and one after it): left out as a
     'rejected' gap of their size; the 8-channel samples are all kept; the take is complete."""
-    from tactile.device.decoder import Header, Samples
+    from tactile.device.protocol import Header, Samples
 
     info = pen_info()
     raw = np.arange(20 * 8, dtype=np.int16).reshape(20, 8)
@@ -532,7 +533,7 @@ def test_a_full_disk_names_the_file_and_keeps_what_was_written(tmp_path, monkeyp
     the pen's."""
     import errno
 
-    from tactile.device import recording
+    from tactile.device.recordings import writer as recording
 
     real, room = recording._write_all, {"bytes": 30_000}
 
@@ -639,7 +640,7 @@ def test_a_failed_clock_flush_is_raised_at_close(tmp_path, monkeypatch):
     not mark its take complete either."""
     import errno
 
-    from tactile.device import recording
+    from tactile.device.recordings import writer as recording
 
     def no_space(path, text):
         raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
@@ -667,7 +668,7 @@ def test_a_command_reading_a_bad_take_says_one_line_and_exits_1(tmp_path, json_t
     2), one line naming the JSON, no traceback."""
     _meta_of(tmp_path)
     (tmp_path / "t.json").write_text(json_text)
-    proc = subprocess.run([sys.executable, "-c", "import sys; from tactile.training.summary "
+    proc = subprocess.run([sys.executable, "-c", "import sys; from tactile.device.commands.data "
                            "import main; sys.exit(main())", str(tmp_path)],
                           capture_output=True, text=True, timeout=120)
     assert proc.returncode == 1, proc.stderr
@@ -678,8 +679,7 @@ def test_frames_of_another_width_before_the_header_through_the_decoder(tmp_path)
     """The issue's case on the wire: 3-channel frames, then the 8-channel header and frames.
     Whatever the decoder makes of the first ones, the take is complete, holds all 8-channel
     samples, and says how many samples it left out."""
-    from tactile.device.decoder import Samples
-    from tactile.device.protocol import encode_header, encode_samples
+    from tactile.device.protocol import Samples, encode_header, encode_samples
 
     info = pen_info()
     raw = np.arange(40 * 8, dtype=np.int16).reshape(40, 8)
@@ -709,8 +709,8 @@ def test_a_file_size_limit_stops_the_real_recorder_cleanly(tmp_path):
         resource.setrlimit(resource.RLIMIT_FSIZE, (20_000, 20_000))
 
     proc = subprocess.run(
-        [sys.executable, "-c", "import sys; from tactile.cli import record_main; "
-         "sys.exit(record_main())", "--port", "sim://?texture=desk&seed=4&speed=max",
+        [sys.executable, "-c", "import sys; from tactile.device.commands.record import main; "
+         "sys.exit(main())", "--port", "sim://?texture=desk&seed=4&speed=max",
          "--label", "desk", "--out", str(tmp_path), "--seconds", "60", "--quiet"],
         capture_output=True, text=True, timeout=120, preexec_fn=limit)
     (csv,) = tmp_path.glob("*.csv")
@@ -728,9 +728,9 @@ def test_samples_before_any_header_are_held_in_bounds_and_never_lost_silently(tm
     recorded; a recording that ends before a header counts them as unrecorded; held samples
     that come before a reconnection are given up (whose header they were cannot be known),
     said, and counted; samples held when the header comes are all written."""
-    from tactile.device import recorder
-    from tactile.device.connection import Reconnected
-    from tactile.device.decoder import Header, Samples
+    from tactile.device.link import Reconnected
+    from tactile.device.protocol import Header, Samples
+    from tactile.device.recordings import recorder
 
     monkeypatch.setattr(recorder, "MAX_EARLY", 1000)
     frames = [Samples(32 * k, 0, np.full((32, 8), k, np.int16)) for k in range(32)]
@@ -768,7 +768,7 @@ def test_a_pen_that_never_sends_its_header_ends_with_a_count_of_what_was_not_rec
     data = b"".join(encode_samples(k, k * 10_000, raw[k : k + 1]) for k in range(1000))
     srv, url = listening()
     proc = reap(subprocess.Popen(
-        [sys.executable, "-m", "tactile.device.recorder", "--port", url, "--label", "paper",
+        [sys.executable, "-m", "tactile.device.commands.record", "--port", url, "--label", "paper",
          "--out", str(tmp_path)], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True))
     try:
         conn, _ = srv.accept()

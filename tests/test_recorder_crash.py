@@ -38,12 +38,12 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from tactile.device.recording import read_take
-from tactile.device.simulator import PenSimulator
+from tactile.device.recordings import read_take
+from tactile.device.sim import PenSimulator
 from tactile.errors import RecordingError
 
 RATE = 100.0
-ENTRY = "import sys; from tactile.cli import record_main; sys.exit(record_main())"
+ENTRY = "import sys; from tactile.device.commands.record import main; sys.exit(main())"
 DEADLINE_S = 120.0  # a kill point never reached fails the case (a hang guard, not a measure)
 
 

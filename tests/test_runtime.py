@@ -17,10 +17,9 @@ import pytest
 import torch
 from conftest import REPO, listening, read_link, start_and_signal
 
-from tactile.device.info import pen_info
-from tactile.device.protocol_sim import forget_unplugs
-from tactile.device.sim_cli import make_dataset
-from tactile.device.simulator import PenSimulator
+from tactile.device.protocol import pen_info
+from tactile.device.sim import PenSimulator, make_dataset
+from tactile.device.sim.protocol_sim import forget_unplugs
 from tactile.errors import ConfigError, ModelContractError
 from tactile.runtime.model import Model
 from tactile.runtime.stream import Smoother, Stream
@@ -217,7 +216,7 @@ def test_parity_from_bytes_to_labels(models, mode, reap):
     """Simulated pen on a pty -> tactile-run -> labels, equal to PyTorch on the same samples."""
     run_dir, onnx_path = models[mode]
     sim = reap(subprocess.Popen(  # killed after 60 s: a readline that never returns fails
-        [sys.executable, "-m", "tactile.device.sim_cli", "--pty", "--texture", "desk",
+        [sys.executable, "-m", "tactile.device.commands.sim", "--pty", "--texture", "desk",
          "--seed", "11", "--speed", "5", "--seconds", "120"],
         stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
     ), 180)
@@ -315,7 +314,7 @@ def test_faults_are_survived_and_counted(models):
 def windows_in(data: bytes, window: int = 50, hop: int = 25) -> int:
     """Windows a stream's bytes give: per run of samples between gaps, one every ``hop`` once
     ``window`` have come (what the runtime must label, found here by the decoder alone)."""
-    from tactile.device.decoder import Gap, Samples, StreamDecoder
+    from tactile.device.protocol import Gap, Samples, StreamDecoder
 
     runs = [0]
     for ev in StreamDecoder().feed(data):
@@ -529,7 +528,7 @@ def stderr_until(proc, text: str, limit: int = 200) -> list[str]:
 def test_wait_for_a_port_that_is_not_there_yet(reap):
     """Without --wait an absent port is exit 2; with it, tactile-run waits and then labels."""
 
-    from tactile.device.simlink import LinkConfig, PenLink
+    from tactile.device.sim import LinkConfig, PenLink
 
     # bound but not listening: connections are refused, and no other process can take the port
     srv = socket.socket()
@@ -743,7 +742,7 @@ def test_csv_device_is_read_in_units_and_labels_as_the_binary_one():
 
 
 def test_device_units_must_be_the_models():
-    from tactile.device.info import ChannelSpec, DeviceInfo
+    from tactile.device.protocol import ChannelSpec, DeviceInfo
     from tactile.runtime.runner import check_device
 
     model = Model(SHIPPED)

@@ -17,8 +17,7 @@ import numpy as np
 import pytest
 from conftest import REPO, page_url, pen_stream
 
-from tactile.device.decoder import Header, Samples
-from tactile.device.info import pen_info
+from tactile.device.protocol import Header, Samples, pen_info
 from tactile.errors import ConfigError
 from tactile.runtime.live import QUEUE, Live, parse_address
 from tactile.runtime.stream import Label

@@ -7,8 +7,8 @@ import dataclasses
 import numpy as np
 import pytest
 
-from tactile.device.info import PEN_CHANNELS, PEN_RATE_HZ
-from tactile.device.simulator import TEXTURES, PenSimulator, Session, simulate
+from tactile.device.protocol import PEN_CHANNELS, PEN_RATE_HZ
+from tactile.device.sim import TEXTURES, PenSimulator, Session, simulate
 from tactile.errors import ConfigError
 
 CONTACT = [t for t in TEXTURES if t != "non_contact"]
@@ -209,10 +209,9 @@ def test_a_replug_continues_the_stream_and_its_fault_schedule(monkeypatch) -> No
     import serial
 
     import tactile.device  # noqa: F401  (registers sim://)
-    from tactile.device import protocol_sim
-    from tactile.device.decoder import Gap, Samples, StreamDecoder
-    from tactile.device.ports import PortAbsent, open_port, read_some
-    from tactile.device.simlink import LinkConfig, PenLink
+    from tactile.device.link import PortAbsent, open_port, read_some
+    from tactile.device.protocol import Gap, Samples, StreamDecoder
+    from tactile.device.sim import LinkConfig, PenLink, protocol_sim
 
     protocol_sim.forget_unplugs()
     monkeypatch.setattr(protocol_sim, "TRACE", True)

@@ -6,7 +6,7 @@ from __future__ import annotations
 import pytest
 import torch
 
-from tactile.device.sim_cli import make_dataset
+from tactile.device.sim import make_dataset
 from tactile.errors import RecordingError
 from tactile.training.checkpoint import load_checkpoint
 from tactile.training.commands.eval import main as eval_main

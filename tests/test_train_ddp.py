@@ -16,9 +16,8 @@ import numpy as np
 import pytest
 import torch
 
-from tactile.device.recording import load_dataset
-from tactile.device.sim_cli import make_dataset
-from tactile.device.simulator import TEXTURES
+from tactile.device.recordings import load_dataset
+from tactile.device.sim import TEXTURES, make_dataset
 from tactile.training.checkpoint import load_checkpoint
 from tactile.training.config import TrainConfig
 from tactile.training.data import channel_stats, classes_of, cut, split_takes

@@ -15,7 +15,7 @@ import sys
 import pytest
 import torch
 
-from tactile.device.sim_cli import make_dataset
+from tactile.device.sim import make_dataset
 from tactile.training.checkpoint import RESUME, load_checkpoint, load_resume
 from tactile.training.commands.train import EXIT_INTERRUPTED
 from tactile.training.commands.train import main as train_main

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 import torch
 
-from tactile.device.sim_cli import make_dataset
+from tactile.device.sim import make_dataset
 from tactile.errors import ConfigError
 from tactile.training.commands.eval import main as eval_main
 from tactile.training.commands.train import main as train_main

@@ -7,8 +7,8 @@ import json
 
 import pytest
 
-from tactile.device.recording import load_dataset
-from tactile.device.sim_cli import make_dataset
+from tactile.device.recordings import load_dataset
+from tactile.device.sim import make_dataset
 from tactile.errors import ConfigError
 from tactile.training.config import TrainConfig
 from tactile.training.data import split_takes

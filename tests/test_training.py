@@ -9,9 +9,9 @@ import numpy as np
 import pytest
 import torch
 
-from tactile.device.info import pen_info
-from tactile.device.recording import TakeWriter, load_dataset, read_take
-from tactile.device.sim_cli import make_dataset
+from tactile.device.protocol import pen_info
+from tactile.device.recordings import TakeWriter, load_dataset, read_take
+from tactile.device.sim import make_dataset
 from tactile.errors import ConfigError, RecordingError
 from tactile.training.checkpoint import load_checkpoint
 from tactile.training.commands.eval import main as eval_main

@@ -16,7 +16,7 @@ import numpy as np
 import torch
 
 import tactile
-from tactile.device.recording import Take
+from tactile.device.recordings import Take
 from tactile.errors import RecordingError, TactileError
 from tactile.training.config import TrainConfig
 from tactile.training.models import build_model

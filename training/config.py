@@ -15,6 +15,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from tactile.contract import MAX_IMFS
+from tactile.device.recordings.summary import HOP, WINDOW
 from tactile.errors import ConfigError
 
 MODELS = ("lstm", "linear", "sf_rnn", "f_rnn", "sparse_linear")
@@ -202,8 +203,8 @@ class TrainConfig:
     ``cuda``.
     """
 
-    window: int = 50
-    hop: int = 10
+    window: int = WINDOW
+    hop: int = HOP
     channels: tuple[str, ...] = ()
     center: tuple[str, ...] = ("accel_*", "gyro_*")
     emd_channels: tuple[str, ...] = ()

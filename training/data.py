@@ -12,7 +12,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from tactile.device.recording import Take
+from tactile.device.recordings import Take
 from tactile.errors import ConfigError
 from tactile.training.config import SELECTOR, TrainConfig
 

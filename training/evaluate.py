@@ -16,7 +16,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from tactile.device.recording import load_dataset
+from tactile.device.recordings import load_dataset
 from tactile.errors import RecordingError
 from tactile.training.checkpoint import load_checkpoint
 from tactile.training.config import apply_threads, resolve_threads

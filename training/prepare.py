@@ -17,7 +17,7 @@ from pathlib import Path
 import torch
 from tqdm import tqdm
 
-from tactile.device.recording import Take
+from tactile.device.recordings import Take
 from tactile.errors import ConfigError, RecordingError
 from tactile.training.checkpoint import Norm
 from tactile.training.config import TrainConfig

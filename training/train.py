@@ -25,7 +25,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from tactile.device.recording import load_dataset
+from tactile.device.recordings import load_dataset
 from tactile.training.checkpoint import (  # load_checkpoint: export reads runs through here
     CHECKPOINT,
     RESUME,

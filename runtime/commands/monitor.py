@@ -48,9 +48,9 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def _monitor(args: argparse.Namespace) -> int:
-    from tactile.device.connection import Connection, LinkSettings
-    from tactile.device.decoder import StreamDecoder
-    from tactile.device.portlist import find_port
+    from tactile.device.link.connection import Connection, LinkSettings
+    from tactile.device.link.portlist import find_port
+    from tactile.device.protocol import StreamDecoder
     from tactile.errors import ConfigError, DeviceError
     from tactile.runtime.monitor import raw_loop, say, verdict, watch_loop
     from tactile.runtime.stop import stop_on_signals

@@ -23,7 +23,7 @@ from typing import TYPE_CHECKING
 from tactile.cli import Parser, add_debug, add_port_options, command, float_in, int_in, run
 
 if TYPE_CHECKING:  # the library is imported when the command runs, after its arguments
-    from tactile.device.decoder import StreamDecoder
+    from tactile.device.protocol import StreamDecoder
     from tactile.runtime.runner import Runner
 
 FORMATS = ("jsonl", "text", "csv")
@@ -66,7 +66,7 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def _run(args: argparse.Namespace) -> int:
-    from tactile.device.decoder import StreamDecoder
+    from tactile.device.protocol import StreamDecoder
     from tactile.runtime.model import Model
     from tactile.runtime.runner import Printer, Runner, Summary, say
     from tactile.runtime.stream import Smoother, Stream
@@ -99,8 +99,8 @@ def _read(args: argparse.Namespace, runner: Runner, decoder: StreamDecoder, dead
           ) -> None:
     """Until stopped or ``deadline`` (monotonic s): the replay, or the pen (found, or waited
     for, first)."""
-    from tactile.device.connection import LinkSettings
-    from tactile.device.portlist import find_port
+    from tactile.device.link.connection import LinkSettings
+    from tactile.device.link.portlist import find_port
     from tactile.runtime.runner import read_pen, replay, say, wait_for_pen
     from tactile.runtime.stop import stop_on_signals
 

@@ -29,7 +29,7 @@ def pyemd(x: np.ndarray, n_imfs: int = N_IMFS, n_sifts: int = N_SIFTS):
 def _pen_windows(rng: np.random.Generator, n: int, count: int) -> np.ndarray:
     """Raw int16 channels of the simulated pen, cut into windows (falls back to a local model)."""
     try:
-        from tactile.device.simulator import TEXTURES, PenSimulator
+        from tactile.device.sim import TEXTURES, PenSimulator
     except ImportError:  # simulator not available: integer accelerometer-like strokes
         t = np.arange(n)
         out = []

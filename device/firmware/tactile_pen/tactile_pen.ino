@@ -192,7 +192,7 @@ static bool imu_begin()
 }
 
 // The LSM6DS3TR-C at +/-250 deg/s gives 8.75 mdps per count (114.3 counts per deg/s); the
-// pen's header (device/info.py) says 131 counts per deg/s. Rescale by 0.00875 * 131 =
+// pen's header (device/protocol/info.py) says 131 counts per deg/s. Rescale by 0.00875 * 131 =
 // 917/800, rounding to nearest; +/-32767 is +/-250.1 deg/s, so the range saturates there.
 // (The accelerometer's 0.061 mg/LSB at +/-2 g is the header's 1/16384 g: no rescaling.)
 static int16_t gyro_to_header_counts(int16_t raw)

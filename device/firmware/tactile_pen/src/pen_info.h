@@ -1,7 +1,7 @@
 /*
  * pen_info.h - what the pen says about itself in its header frame.
  *
- * Must match device/info.py (pen_info(): PEN_CHANNELS, PEN_RATE_HZ): the host test compiles
+ * Must match device/protocol/info.py (pen_info(): PEN_CHANNELS, PEN_RATE_HZ): the host test compiles
  * this table and checks that its header frame is byte-identical to the Python one.
  */
 #ifndef TACTILE_PEN_INFO_H

@@ -2,7 +2,7 @@
  * tactile_frame.h - the pen's wire-frame encoder (portable C99).
  *
  * A frame on the wire is COBS(body + crc16_le(body)) followed by one 0x00 delimiter
- * (device/PROTOCOL.md; device/protocol.py is the reference implementation and
+ * (device/PROTOCOL.md; device/protocol/codec.py is the reference implementation and
  * device/firmware/test_vectors.txt the byte-exact vectors both sides pass).
  *
  * - No heap, no libc beyond <stdint.h>/<stddef.h>/<string.h>; all buffers are the caller's.
@@ -25,7 +25,7 @@
 extern "C" {
 #endif
 
-/* Limits: identical to device/protocol.py and device/info.py. */
+/* Limits: identical to device/protocol/codec.py and device/protocol/info.py. */
 #define TF_PROTOCOL_VERSION 1u
 #define TF_TYPE_HEADER 0x01u
 #define TF_TYPE_SAMPLES 0x02u

@@ -11,14 +11,14 @@ through a :class:`Connection`::
             break
         handle(chunk.events)         # decoder events, and Stall / Lost / Reconnected
 
-It opens the port exclusively (:func:`~tactile.device.ports.open_port`), reads it with one read
-of the device at a time (:func:`~tactile.device.ports.read_some`: the bytes that came with an
-unplug are kept and decoded), feeds its decoder, and when the port vanishes reopens it with
-backoff, taking back only the same pen (:func:`~tactile.device.ports.reconnect`: its header, its
-USB serial number when known, under a new name when the pen was auto-detected or its old name
-went to another device). What happened to the link comes back among the decoder's events, in
-order: a :class:`Stall` once per silence, a :class:`Lost` when the port went, a
-:class:`Reconnected` before the first bytes of the pen that came back.
+It opens the port exclusively (:func:`~tactile.device.link.ports.open_port`), reads it with one read
+of the device at a time (:func:`~tactile.device.link.ports.read_some`: the bytes that came with an
+unplug are kept and decoded), feeds its decoder, and when the port vanishes reopens it with backoff,
+taking back only the same pen (:func:`~tactile.device.link.ports.reconnect`: its header, its USB
+serial number when known, under a new name when the pen was auto-detected or its old name went to
+another device). What happened to the link comes back among the decoder's events, in order: a
+:class:`Stall` once per silence, a :class:`Lost` when the port went, a :class:`Reconnected` before
+the first bytes of the pen that came back.
 """
 
 from __future__ import annotations
@@ -30,8 +30,7 @@ from dataclasses import dataclass, field
 
 import serial
 
-from tactile.device.decoder import StreamDecoder
-from tactile.device.ports import (
+from tactile.device.link.ports import (
     PenId,
     PortAbsent,
     PortBusy,
@@ -41,6 +40,7 @@ from tactile.device.ports import (
     usb_serial,
     wait_for_port,
 )
+from tactile.device.protocol.decoder import StreamDecoder
 from tactile.errors import ConfigError, DeviceError
 
 
@@ -145,7 +145,7 @@ class Connection:
 
     def open(self) -> bool:
         """Open the port (waiting for it with ``settings.wait``); False when stopped or out of
-        time first. Raises :class:`~tactile.device.ports.PortBusy` when another program holds
+        time first. Raises :class:`~tactile.device.link.ports.PortBusy` when another program holds
         it, :class:`~tactile.errors.DeviceError` when it cannot be opened (now, without
         ``wait``, or ever)."""
         s = self.settings

@@ -2,8 +2,8 @@
 
 The file is untrusted (a take from elsewhere, edited by hand, or damaged): :func:`read_meta`
 checks every key the reader uses against a small schema (required or not, type, range), then
-the device header against :class:`~tactile.device.info.DeviceInfo`'s own limits, and raises one
-:class:`RecordingError` line naming the file and the key, never a traceback.
+the device header against :class:`~tactile.device.protocol.info.DeviceInfo`'s own limits, and
+raises one :class:`RecordingError` line naming the file and the key, never a traceback.
 """
 
 from __future__ import annotations
@@ -11,7 +11,7 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
-from tactile.device.info import DeviceInfo
+from tactile.device.protocol.info import DeviceInfo
 from tactile.errors import RecordingError, TactileError
 
 FORMAT = "tactile-recording"

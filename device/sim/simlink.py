@@ -1,9 +1,9 @@
 """The simulated pen on a link: the bytes it sends, with the faults a real cable has.
 
-:class:`PenLink` turns :class:`~tactile.device.simulator.PenSimulator` samples into the wire
+:class:`PenLink` turns :class:`~tactile.device.sim.simulator.PenSimulator` samples into the wire
 format (header at start and every second, samples frames, or CSV lines) and injects faults
 deterministically from its seed. The same object feeds the ``sim://`` pyserial URL
-(:mod:`tactile.device.protocol_sim`), the pseudo-terminal (``tactile-sim --pty``) and tests.
+(:mod:`tactile.device.sim.protocol_sim`), the pseudo-terminal (``tactile-sim --pty``) and tests.
 
 Fault options (all off by default):
 
@@ -29,8 +29,8 @@ from urllib.parse import parse_qsl
 
 import numpy as np
 
-from tactile.device.protocol import encode_header, encode_samples
-from tactile.device.simulator import TEXTURES, PenSimulator
+from tactile.device.protocol.codec import encode_header, encode_samples
+from tactile.device.sim.simulator import TEXTURES, PenSimulator
 from tactile.errors import ConfigError
 
 

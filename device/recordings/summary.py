@@ -1,23 +1,21 @@
-"""``tactile-data DATA [--json]``: what a dataset folder holds, per class and per user.
+"""What a dataset folder holds, per class and per user (``tactile-data``, ``tactile-plot
+--summary``).
 
-    tactile-data data/sim                 # a table: takes, users, minutes, windows, gaps
-    tactile-data data/sim --json          # the same figures as one JSON object
-
-Windows are counted as training cuts them (inside gap-free segments) at the training defaults'
-window and hop, or at ``--window``/``--hop``. Needs numpy only (no torch).
+Windows are counted as training cuts them (inside gap-free segments), by default at the
+training defaults' window and hop (:data:`WINDOW`, :data:`HOP`). Needs numpy only (no torch).
 """
 
 from __future__ import annotations
 
-import argparse
-import json
-import sys
 from collections import defaultdict
 from pathlib import Path
 
-from tactile.cli import Parser, add_debug, int_in, run
-from tactile.device.recording import Take, load_dataset
-from tactile.training.config import TrainConfig
+from tactile.device.recordings.take import Take
+
+# The window and hop training cuts by default (``TrainConfig`` takes them from here), so that
+# the counts ``tactile-data`` prints by default are the windows training sees.
+WINDOW = 50  # samples per window
+HOP = 10  # samples from one window's start to the next
 
 
 def user_of(take: Take) -> str:
@@ -85,32 +83,4 @@ def text(s: dict, folder: Path) -> str:
     return "\n".join(lines)
 
 
-def build_parser() -> argparse.ArgumentParser:
-    defaults = TrainConfig()
-    p = Parser(prog="tactile-data", description="Print what a dataset folder holds: classes, "
-               "users, takes, minutes, windows, gaps, channels and rate.")
-    p.add_argument("data", type=Path, help="dataset folder (takes: .csv + .json)")
-    p.add_argument("--window", type=int_in(1), default=defaults.window,
-                   help=f"window length in samples (default {defaults.window}, as training)")
-    p.add_argument("--hop", type=int_in(1), default=defaults.hop,
-                   help=f"samples between windows (default {defaults.hop}, as training)")
-    p.add_argument("--json", action="store_true", help="the figures as one JSON object")
-    add_debug(p)
-    return p
-
-
-def _main(args: argparse.Namespace) -> int:
-    s = summarise(load_dataset(args.data), args.window, args.hop)
-    print(json.dumps(s) if args.json else text(s, args.data))
-    return 0
-
-
-def main(argv: list[str] | None = None) -> int:
-    return run("tactile-data", _main, build_parser().parse_args(argv))
-
-
-if __name__ == "__main__":
-    sys.exit(main())
-
-
-__all__ = ["main", "summarise", "text", "windows_in", "user_of"]
+__all__ = ["WINDOW", "HOP", "summarise", "text", "windows_in", "user_of"]

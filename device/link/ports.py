@@ -16,7 +16,7 @@ only to the same pen.
   number or among the likely pens listed) and accepts it only when its header shows the same
   pen (:class:`PenId`).
 
-:class:`~tactile.device.connection.Connection` is the loop built on these that every command
+:class:`~tactile.device.link.connection.Connection` is the loop built on these that every command
 reading a pen live uses.
 """
 
@@ -34,9 +34,9 @@ from typing import TypeVar
 
 import serial
 
-from tactile.device.decoder import Header, StreamDecoder
-from tactile.device.info import DeviceInfo
-from tactile.device.portlist import looks_like_pen
+from tactile.device.link.portlist import looks_like_pen
+from tactile.device.protocol.decoder import Header, StreamDecoder
+from tactile.device.protocol.info import DeviceInfo
 from tactile.errors import DeviceError, TactileError
 
 T = TypeVar("T")
@@ -305,7 +305,7 @@ def reconnect(
     Candidates, tried with backoff (0.1 s doubling to 2 s): ``port`` itself; the devices listed
     with the pen's USB serial number (``pen.usb``: it came back under another name); and, with
     ``detect`` (the pen was found by auto-detection) or once ``port`` has shown another device,
-    every likely pen listed (:func:`~tactile.device.portlist.looks_like_pen`; only when there
+    every likely pen listed (:func:`~tactile.device.link.portlist.looks_like_pen`; only when there
     is one, as at start, before the pen's header is known). A device listed with another USB
     serial number than the pen's is not opened. Each one that opens must show the pen's header
     (:func:`probe`); one that does not is closed and said once; ``port`` is looked at again

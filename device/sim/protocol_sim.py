@@ -1,8 +1,9 @@
 """pyserial URL handler for the simulated pen: ``serial.serial_for_url("sim://?texture=paper")``.
 
-pyserial finds it because :mod:`tactile.device` appends itself to
-``serial.protocol_handler_packages``. Options are those of
-:class:`~tactile.device.simlink.LinkConfig`; ``speed=max`` serves bytes as fast as they are read.
+pyserial finds it because :mod:`tactile.device` appends ``tactile.device.sim`` to
+``serial.protocol_handler_packages`` (pyserial imports ``<package>.protocol_<scheme>``). Options
+are those of :class:`~tactile.device.sim.simlink.LinkConfig`; ``speed=max`` serves bytes as fast
+as they are read.
 """
 
 from __future__ import annotations
@@ -15,7 +16,7 @@ from urllib.parse import urlsplit
 import serial
 from serial.serialutil import PortNotOpenError, SerialBase, SerialException
 
-from tactile.device.simlink import LinkConfig, PenLink
+from tactile.device.sim.simlink import LinkConfig, PenLink
 from tactile.errors import ConfigError
 
 # Unplug state shared by every instance, keyed by URL: a reopened port must stay unopenable
@@ -152,7 +153,7 @@ TRACE = False
 
 
 def last_link(url: str) -> PenLink | None:
-    """The :class:`~tactile.device.simlink.PenLink` behind the port ``url`` opened last (the
+    """The :class:`~tactile.device.sim.simlink.PenLink` behind the port ``url`` opened last (the
     same one across replugs): its ``injected`` counts and, with :data:`TRACE`, its trace."""
     with _LOCK:
         return _LAST.get(url)

@@ -19,7 +19,7 @@ from functools import cache, lru_cache
 
 import numpy as np
 
-from tactile.device.info import (
+from tactile.device.protocol.info import (
     MAX_NAME,
     PROTOCOL_VERSION,
     ChannelSpec,

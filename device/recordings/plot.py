@@ -1,30 +1,40 @@
-"""``tactile-plot``: a take's channels over time, or a dataset's minutes per class and user.
+"""Plots of recordings (``tactile-plot``): a take's channels over time, or a dataset's minutes
+per class and user.
 
-    tactile-plot data/sim/paper-user000.csv -o take.png     # channels in units, gaps marked
-    tactile-plot data/sim --summary -o summary.png         # minutes and gaps per class and user
-
-Needs matplotlib (the ``[train]`` extra).
+Needs matplotlib (the ``[train]`` extra), imported by the functions that draw: importing this
+module does not need it.
 """
 
 from __future__ import annotations
 
-import argparse
-import sys
 from pathlib import Path
 
-import matplotlib
+import numpy as np
 
-matplotlib.use("Agg")  # files only: no display on a server or in CI
-import matplotlib.pyplot as plt  # noqa: E402
-import numpy as np  # noqa: E402
-
-from tactile.cli import Parser, add_debug, run  # noqa: E402
-from tactile.device.recording import Take, load_dataset, read_take  # noqa: E402
-from tactile.errors import ConfigError  # noqa: E402
-from tactile.training.summary import summarise  # noqa: E402
+from tactile.device.recordings.reader import load_dataset
+from tactile.device.recordings.summary import summarise
+from tactile.device.recordings.take import Take
 
 LEGEND_MAX = 8
 """A panel with more channels than this names them in its label instead of a legend."""
+
+
+def _pyplot():
+    """matplotlib's pyplot, drawing to files only (no display on a server or in CI)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    return plt
+
+
+def image_formats() -> dict[str, str]:
+    """The image file types matplotlib can write here: extension -> description."""
+    plt = _pyplot()
+    kinds = plt.figure().canvas.get_supported_filetypes()
+    plt.close("all")
+    return kinds
 
 
 def panels(channels) -> dict[tuple[str, str], list[int]]:
@@ -40,6 +50,7 @@ def plot_take(take: Take, out: Path) -> None:
     """One panel per group of channels (:func:`panels`), values in their units, time in seconds
     from the first sample, every gap a red band over all panels; the title names the label and
     source."""
+    plt = _pyplot()
     rate = take.info.sample_rate_hz
     t = (take.seq - take.seq[0]) / rate if len(take.seq) else np.zeros(0)
     values = take.values()
@@ -76,6 +87,7 @@ def plot_take(take: Take, out: Path) -> None:
 
 def plot_summary(folder: Path, out: Path) -> None:
     """Minutes recorded per class and per user, gaps written on each bar."""
+    plt = _pyplot()
     s = summarise(load_dataset(folder), 50, 50)
     fig, axes = plt.subplots(1, 2, figsize=(11, 4))
     for ax, (title, rows) in zip(axes, (("class", s["per_class"]), ("user", s["per_user"]))):
@@ -97,44 +109,4 @@ def plot_summary(folder: Path, out: Path) -> None:
     plt.close(fig)
 
 
-def build_parser() -> argparse.ArgumentParser:
-    p = Parser(prog="tactile-plot", description="Plot a take's channels over time, or with "
-               "--summary a dataset's minutes and gaps per class and user.")
-    p.add_argument("source", type=Path, help="a take's .csv file, or a dataset folder with "
-                   "--summary")
-    p.add_argument("-o", "--out", type=Path, required=True, help="image file to write (.png)")
-    p.add_argument("--summary", action="store_true", help="plot a dataset folder's summary")
-    add_debug(p)
-    return p
-
-
-def _main(args: argparse.Namespace) -> int:
-    if args.out.is_dir() or not args.out.parent.is_dir():
-        raise ConfigError(f"-o {args.out}: give an image file in a folder that exists")
-    kinds = plt.figure().canvas.get_supported_filetypes()
-    plt.close("all")
-    if args.out.suffix.lower().lstrip(".") not in kinds:
-        raise ConfigError(f"-o {args.out}: name an image file ending in .png, .svg or .pdf "
-                          f"(or any of {', '.join(sorted(kinds))})")
-    if args.summary:
-        plot_summary(args.source, args.out)
-    else:
-        if args.source.is_dir():
-            raise ConfigError(f"{args.source}: a folder; give a take's .csv, or add --summary")
-        take = read_take(args.source)
-        if len(take.seq) == 0:
-            raise ConfigError(f"{args.source}: the take holds no samples")
-        plot_take(take, args.out)
-    print(args.out)
-    return 0
-
-
-def main(argv: list[str] | None = None) -> int:
-    return run("tactile-plot", _main, build_parser().parse_args(argv))
-
-
-if __name__ == "__main__":
-    sys.exit(main())
-
-
-__all__ = ["main", "plot_take", "plot_summary"]
+__all__ = ["LEGEND_MAX", "image_formats", "panels", "plot_summary", "plot_take"]

@@ -1,6 +1,5 @@
-"""Import the BioTac BOLT recordings (two BioTac fingertips on a robot hand, 5 objects) as takes.
-
-    tactile-import-biotac PATH/cork.h5 PATH/metal_bar.h5 ... --out data/biotac
+"""Import the BioTac BOLT recordings (two BioTac fingertips on a robot hand, 5 objects) as takes
+(``tactile-import-biotac``). Needs h5py (the ``[biotac]`` extra).
 
 The recordings come from the Penn-haptics-bolt repository (``training_tests/<object>.h5``, no
 licence stated: development and evaluation only). Each HDF5 file holds one group per trial,
@@ -28,9 +27,7 @@ checks, so a bad input leaves them as they were.
 
 from __future__ import annotations
 
-import argparse
 import re
-import sys
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -38,9 +35,9 @@ from pathlib import Path
 import h5py
 import numpy as np
 
-from tactile.cli import Parser, add_debug, run
-from tactile.device.info import ChannelSpec, DeviceInfo
-from tactile.device.recording import TakeWriter, check_label, dataset_folder, replace_takes
+from tactile.device.protocol.info import ChannelSpec, DeviceInfo
+from tactile.device.recordings.take import check_label, dataset_folder, replace_takes
+from tactile.device.recordings.writer import TakeWriter
 from tactile.errors import RecordingError
 
 RATE_HZ = 100.0
@@ -210,22 +207,4 @@ def import_biotac(files: list[Path], out: Path, force: bool = False) -> list[Pat
             f.close()
 
 
-def _main(args: argparse.Namespace) -> int:
-    for p in import_biotac(args.files, args.out, args.force):
-        print(p)
-    return 0
-
-
-def main(argv: list[str] | None = None) -> int:
-    p = Parser(prog="tactile-import-biotac",
-               description="Import BioTac BOLT recordings (HDF5): one take per trial.")
-    p.add_argument("files", type=Path, nargs="+", metavar="FILE.h5",
-                   help="one HDF5 file per object (e.g. cork.h5), one group per trial")
-    p.add_argument("--out", type=Path, required=True, help="dataset folder to write")
-    p.add_argument("--force", action="store_true", help="replace takes of the same names")
-    add_debug(p)
-    return run("tactile-import-biotac", _main, p.parse_args(argv))
-
-
-if __name__ == "__main__":
-    sys.exit(main())
+__all__ = ["FINGERS", "RATE_HZ", "Trial", "channels", "import_biotac", "read_trial", "signals"]

@@ -1,7 +1,5 @@
-"""Import the HapMat recordings (a 6-axis IMU on a hand-held stick, 5 materials, 100 Hz) as takes.
-
-    tactile-import-hapmat "PATH/HapMat dataset" --out data/hapmat   # the upstream CSV files
-    tactile-import-hapmat PATH/hapmat_stick_imu.npz --out data/hapmat  # or the bundled arrays
+"""Import the HapMat recordings (a 6-axis IMU on a hand-held stick, 5 materials, 100 Hz) as takes
+(``tactile-import-hapmat``).
 
 The recordings come from https://github.com/henryyantq/haptic-kinematics (MIT licence), folder
 ``HapMat dataset``: one ``<Material> 1.csv`` per material with a ``time`` column.
@@ -15,23 +13,16 @@ sensor) and listed as such in each take's metadata. Values are stored as float64
 
 from __future__ import annotations
 
-import argparse
 import math
 import re
-import sys
 from pathlib import Path
 
 import numpy as np
 
-from tactile.cli import Parser, add_debug, run
-from tactile.device.info import ChannelSpec, DeviceInfo
-from tactile.device.recording import (
-    TakeWriter,
-    check_label,
-    dataset_folder,
-    load_numbers,
-    replace_takes,
-)
+from tactile.device.protocol.info import ChannelSpec, DeviceInfo
+from tactile.device.recordings.reader import load_numbers
+from tactile.device.recordings.take import check_label, dataset_folder, replace_takes
+from tactile.device.recordings.writer import TakeWriter
 from tactile.errors import RecordingError
 
 CHANNELS = (
@@ -139,24 +130,4 @@ def import_hapmat(source: Path, out: Path, force: bool = False) -> list[Path]:
     return paths
 
 
-def _main(args: argparse.Namespace) -> int:
-    for p in import_hapmat(args.source, args.out, args.force):
-        print(p)
-    return 0
-
-
-def main(argv: list[str] | None = None) -> int:
-    p = Parser(
-        prog="tactile-import-hapmat", description="Import the HapMat stick-IMU recordings."
-    )
-    p.add_argument("source", type=Path,
-                   help="the upstream 'HapMat dataset' folder of CSV files, or the bundled "
-                   "hapmat_stick_imu.npz")
-    p.add_argument("--out", type=Path, required=True, help="dataset folder to write")
-    p.add_argument("--force", action="store_true", help="replace takes of the same names")
-    add_debug(p)
-    return run("tactile-import-hapmat", _main, p.parse_args(argv))
-
-
-if __name__ == "__main__":
-    sys.exit(main())
+__all__ = ["CHANNELS", "SOURCE_COLUMNS", "import_hapmat"]

@@ -1,7 +1,4 @@
-"""The serial ports attached, which of them look like a pen, and ``tactile-ports``.
-
-    tactile-ports            # a table: device, VID:PID, serial number, pen?, description
-    tactile-ports --json     # the same as a JSON list
+"""The serial ports attached, and which of them look like a pen.
 
 One rule decides what looks like a pen (:func:`looks_like_pen`): ``tactile-run``,
 ``tactile-record`` and ``tactile-monitor`` use it (:func:`find_port`) when ``--port`` is omitted,
@@ -10,12 +7,8 @@ and ``tactile-ports`` shows it, so the listing says what those commands would pi
 
 from __future__ import annotations
 
-import argparse
-import json
-import sys
-from dataclasses import asdict, dataclass
+from dataclasses import dataclass
 
-from tactile.cli import Parser, add_debug, run
 from tactile.errors import DeviceError
 
 
@@ -84,37 +77,4 @@ def table(rows: list[PortRow]) -> str:
                      for c in cells)
 
 
-def build_parser() -> argparse.ArgumentParser:
-    p = Parser(prog="tactile-ports",
-               description="List the serial ports and say which look like a pen (the one that "
-               "tactile-run, tactile-record and tactile-monitor take when --port is omitted).")
-    p.add_argument("--json", action="store_true", help="a JSON list instead of a table")
-    add_debug(p)
-    return p
-
-
-def _main(args: argparse.Namespace) -> int:
-    rows = list_serial_ports()
-    if args.json:
-        print(json.dumps([asdict(r) for r in rows], indent=1))
-    elif rows:
-        print(table(rows))
-    pens = [r.device for r in rows if r.likely_pen]
-    if not rows:
-        note = "no serial ports found"
-    elif len(pens) == 1:
-        note = f"one likely pen: {pens[0]} (taken when --port is omitted)"
-    elif pens:
-        note = f"{len(pens)} likely pens: give --port"
-    else:
-        note = "no likely pen (no USB serial device): give --port"
-    print(f"tactile-ports: {note}", file=sys.stderr)
-    return 0
-
-
-def main(argv: list[str] | None = None) -> int:
-    return run("tactile-ports", _main, build_parser().parse_args(argv))
-
-
-if __name__ == "__main__":
-    sys.exit(main())
+__all__ = ["PortRow", "find_port", "list_serial_ports", "looks_like_pen", "table"]

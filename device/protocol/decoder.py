@@ -6,7 +6,7 @@ with whatever bytes arrived and get back a list of events in stream order. It
 * recognises binary frames (``device/PROTOCOL.md``) or CSV lines automatically;
 * never raises on bad bytes: garbage, CRC failures and malformed frames are skipped and counted;
 * resynchronises within one frame: a frame whose leading delimiter was lost, or that has garbage
-  glued in front of it, is still recovered (see :func:`tactile.device.protocol.find_frame`);
+  glued in front of it, is still recovered (see :func:`tactile.device.protocol.codec.find_frame`);
 * costs O(n) for n bytes whatever they are, split into reads of any size;
 * never invents or reorders samples: duplicates are dropped, overlaps trimmed, gaps reported with
   their size, and a device restart is reported as a gap;
@@ -19,15 +19,12 @@ The rules are those of ``device/PROTOCOL.md`` ("What a receiver does").
 from __future__ import annotations
 
 import math
-import re
 from collections import deque
-from dataclasses import dataclass, field
 from typing import Literal
 
 import numpy as np
 
-from tactile.device.info import FLOAT32_MAX, MAX_CHANNELS, MAX_NAME, ChannelSpec, DeviceInfo
-from tactile.device.protocol import (
+from tactile.device.protocol.codec import (
     MAX_ENCODED,
     MIN_ENCODED,
     SEQ_MODULO,
@@ -36,103 +33,21 @@ from tactile.device.protocol import (
     SamplesFrame,
     find_frame,
 )
+from tactile.device.protocol.csv_lines import MAX_CSV_LINE, CsvLines, csv_kind
+from tactile.device.protocol.events import DecoderStats, Event, Gap, Header, Samples
+from tactile.device.protocol.info import DeviceInfo
 from tactile.errors import ConfigError
 
-MAX_CSV_LINE = 4096  # bytes; a longer line without a newline is discarded
 AUTO_PENDING = 8192  # bytes held while the decoder is still deciding binary vs CSV
-CSV_AGREE = 3  # readable CSV lines of one width in a row that decide the stream's width
-CSV_HOLD = 64  # lines held at most while the CSV width is undecided
 REPLAY_WINDOW = 4096  # delivered samples remembered to recognise a re-sent frame
 _HALF = SEQ_MODULO // 2
 _MIN_PERIOD_US, _MAX_PERIOD_US = 1, 1_000_000  # sample rates from 1 MHz down to 1 Hz
-_NAME = re.compile(r"[A-Za-z_][A-Za-z0-9_./\-]*")
-# Plain decimal numbers as a board prints them: sign, digits, point, exponent. Nothing else
-# (no "1_0", "0x10", "inf", "nan", non-ASCII digits).
-_NUMBER = re.compile(r"[+-]?(?:[0-9]+(?:\.[0-9]*)?|\.[0-9]+)(?:[eE][+-]?[0-9]+)?")
 
 Mode = Literal["auto", "binary", "csv"]
 
 
-@dataclass(frozen=True)
-class Samples:
-    """A run of consecutive samples.
-
-    ``seq`` is the host's sequence number of the first sample: the device's counter unwrapped
-    past 2**32 and kept continuous across device restarts. ``t_us`` is the device clock at the
-    first sample, unwrapped (in CSV mode, which has no device clock, it is derived from ``seq``
-    and the configured rate). ``raw`` is (n, channels): int16 counts from binary frames,
-    float64 values from CSV lines.
-    """
-
-    seq: int
-    t_us: int
-    raw: np.ndarray
-
-
-@dataclass(frozen=True)
-class Header:
-    """The device described itself; ``changed`` is True when it differs from the previous one."""
-
-    info: DeviceInfo
-    changed: bool = False
-
-
-@dataclass(frozen=True)
-class Gap:
-    """Samples that should have come before ``seq`` and did not.
-
-    ``reason`` is ``"drop"`` (the device's sequence jumped: ``missing`` samples lost),
-    ``"restart"`` (the device rebooted, or the link was re-opened; ``missing`` is unknown, 0),
-    ``"rejected"`` (``missing`` CSV rows were unreadable) or ``"unsupported"`` (the device sent a
-    header of a protocol version this decoder does not read: its samples are dropped until a
-    header it reads; ``missing`` is 0, the samples refused show as a ``drop`` gap when samples
-    resume). No window may span a gap. ``detail`` says more, for people (may be empty).
-    """
-
-    seq: int
-    missing: int
-    reason: str
-    detail: str = ""
-
-
-Event = Samples | Header | Gap
-
-
-@dataclass
-class DecoderStats:
-    """Counters of everything the decoder saw and everything it dropped."""
-
-    bytes_in: int = 0
-    frames: int = 0  # good frames of any type
-    samples: int = 0  # samples delivered
-    header_frames: int = 0
-    header_changes: int = 0
-    crc_errors: int = 0  # chunks with the structure of a frame whose CRC failed
-    malformed: int = 0  # chunks that are not valid COBS, or frames with an invalid structure
-    bytes_discarded: int = 0  # bytes that belonged to no good frame or row
-    duplicates: int = 0  # frames dropped because their samples were already delivered
-    late: int = 0  # frames dropped because their samples had been reported lost (a drop gap)
-    unsupported: int = 0  # header frames of a protocol version this decoder does not read
-    refused: int = 0  # samples frames dropped because their device's header was refused
-    gaps: int = 0
-    samples_lost: int = 0
-    restarts: int = 0
-    csv_rows: int = 0
-    csv_rejected: int = 0
-    extra: dict = field(default_factory=dict)
-
-    def as_dict(self) -> dict:
-        d = {k: v for k, v in self.__dict__.items() if k != "extra"}
-        d.update(self.extra)
-        return d
-
-    @property
-    def errors(self) -> int:
-        return self.crc_errors + self.malformed + self.csv_rejected + self.unsupported
-
-
-class StreamDecoder:
-    """Incremental decoder for one device stream.
+class StreamDecoder(CsvLines):
+    """Incremental decoder for one device stream (its CSV line mode: :class:`CsvLines`).
 
     Args:
         mode: ``"auto"`` (default: decide from the bytes), ``"binary"`` or ``"csv"``.
@@ -261,7 +176,7 @@ class StreamDecoder:
             line = bytes(buf[start:end])
             first = start == 0 and self._line_partial
             start = end + 1
-            kind = _csv_kind(line) if len(line) <= MAX_CSV_LINE else None
+            kind = csv_kind(line) if len(line) <= MAX_CSV_LINE else None
             if kind == "skip" or (first and kind is not None and kind[0] == "row"):
                 continue  # a row that may be cut is no evidence
             if kind is not None and kind[0] == "row" and self._det_prev == kind[1]:
@@ -520,124 +435,6 @@ class StreamDecoder:
             self.stats.header_changes += 1
             self.info = info
             events.append(Header(info, changed=True))
-
-    # -- csv ---------------------------------------------------------------------------------------
-
-    def _feed_csv(self) -> list[Event]:
-        events: list[Event] = []
-        buf = self._buf
-        start = 0
-        while (end := buf.find(b"\n", max(start, self._scan))) >= 0:
-            line = bytes(buf[start:end])
-            start = end + 1
-            if self._line_partial and len(line) <= MAX_CSV_LINE \
-                    and _csv_kind(line) not in (None, "skip") and _csv_kind(line)[0] == "names":
-                self._line_partial = False  # a names line as a board prints it at start-up
-                self._on_line(line, events)
-            elif self._line_partial:  # the line the port was opened in: a row may be cut
-                self._line_partial = False
-                self._csv_reject(len(line) + 1)
-            elif len(line) > MAX_CSV_LINE:
-                self._csv_reject(len(line) + 1)
-            else:
-                self._on_line(line, events)
-        del buf[:start]
-        if len(buf) > MAX_CSV_LINE:
-            self._csv_reject(len(buf))
-            buf.clear()
-            self._line_partial = True  # what follows is the rest of that line
-        self._scan = len(buf)
-        return events
-
-    def _csv_reject(self, nbytes: int) -> None:
-        self.stats.csv_rejected += 1
-        self.stats.bytes_discarded += nbytes
-        if self.info is not None:  # before the first row, a bad line is not a lost sample
-            self._csv_rejected_run += 1
-
-    def _on_line(self, line: bytes, events: list[Event]) -> None:
-        kind = _csv_kind(line)
-        if kind == "skip":
-            return
-        if self._csv_width is not None:
-            self._csv_line(kind, len(line) + 1, events)
-            return
-        # undecided: hold the line; CSV_AGREE readable lines of one width in a row decide it
-        # (a names line may only open the run; unreadable lines do not break it)
-        self._csv_held.append((kind, len(line) + 1))
-        width, count = self._csv_run
-        if kind is not None:
-            what, w, _ = kind
-            count = count + 1 if what == "row" and w == width else 1
-            self._csv_run = width, count = w, count
-        if count >= CSV_AGREE:
-            self._csv_width = width
-            held, self._csv_held = self._csv_held, []
-            for k, nbytes in held:
-                self._csv_line(k, nbytes, events)
-        elif len(self._csv_held) > CSV_HOLD:
-            self._csv_reject(self._csv_held.pop(0)[1])
-
-    def _csv_line(self, kind, nbytes: int, events: list[Event]) -> None:
-        """One line once the width is decided."""
-        if kind is None:
-            self._csv_reject(nbytes)
-            return
-        what, width, values = kind
-        if what == "names":
-            if self.info is None and width == self._csv_width:  # the latest one before the
-                self._csv_names = values  # first row names the channels
-            else:
-                self._csv_reject(nbytes)
-            return
-        if width != self._csv_width:
-            self._csv_reject(nbytes)
-            return
-        if self.info is None:
-            names = self._csv_names or tuple(f"ch{i}" for i in range(width))
-            chans = tuple(ChannelSpec(n, "") for n in names)
-            self._set_info(DeviceInfo(self.csv_rate_hz, chans, "csv"), events)
-        host = self._host_next
-        if self._csv_rejected_run:
-            missing = self._csv_rejected_run
-            self._csv_rejected_run = 0
-            host += missing
-            self.stats.gaps += 1
-            self.stats.samples_lost += missing
-            events.append(Gap(host, missing, "rejected"))
-        self._host_next = host + 1
-        self.stats.csv_rows += 1
-        self.stats.samples += 1
-        t_us = round(host * 1e6 / self.info.sample_rate_hz)
-        events.append(Samples(host, t_us, np.asarray([values], dtype=np.float64)))
-
-
-def _csv_kind(line: bytes):
-    """Classify a CSV line: ``"skip"`` (blank/comment), ``None`` (unreadable),
-    ``("row", width, values)`` or ``("names", width, names)``; width is 1..MAX_CHANNELS."""
-    try:
-        text = line.decode("ascii").strip()
-    except UnicodeDecodeError:
-        return None
-    if not text or text.startswith("#"):
-        return "skip"
-    if "," in text:
-        if text.count(",") >= MAX_CHANNELS:
-            return None
-        fields = [f.strip() for f in text.split(",")]
-    else:
-        fields = text.split()
-        if len(fields) > MAX_CHANNELS:
-            return None
-    if all(_NUMBER.fullmatch(f) for f in fields):
-        values = tuple(float(f) for f in fields)
-        if not all(abs(v) <= FLOAT32_MAX for v in values):  # float32 overflow (1e39)
-            return None  # never enters the pipeline (the model reads float32)
-        return ("row", len(values), values)
-    if all(len(f) <= MAX_NAME and _NAME.fullmatch(f) for f in fields) \
-            and len(set(fields)) == len(fields):
-        return ("names", len(fields), tuple(fields))
-    return None
 
 
 def decode(data: bytes, mode: Mode = "auto", **kw) -> tuple[list[Event], DecoderStats]:

@@ -1,0 +1,93 @@
+"""``tactile-record``: read a pen and write labelled takes.
+
+    tactile-record --port sim://?texture=paper --label paper --seconds 60 --out data/
+
+Data (the paths of the takes written) goes to stdout, progress and diagnostics to stderr. Ctrl-C
+or SIGTERM finishes the take cleanly; a killed recorder leaves a readable take holding every
+sample that had reached it after the pen's header, and every gap among them. A vanished port is
+reopened with backoff and the take goes on after a ``restart`` gap. A header change (another
+pen, another layout) starts a new take.
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+import sys
+from pathlib import Path
+
+from tactile.cli import Parser, add_debug, command, float_in, int_in, run
+
+
+def build_parser() -> argparse.ArgumentParser:
+    p = Parser(
+        prog="tactile-record",
+        description="Record labelled takes from a pen (device path or pyserial URL).",
+        epilog="Ctrl-C or SIGTERM finishes the take (written and closed) and exits 0; stopped "
+               "before the port gave any data, it exits 0 and says so. Exit 2: the port cannot "
+               "be opened, or it gave no usable data before the end. Exit 1: a take cannot be "
+               "written (a full disk: the line names the file; the take keeps what was written "
+               "and is not marked complete).",
+    )
+    p.add_argument("--port", help="/dev/ttyACM0, sim://?texture=paper, socket://...; default: "
+                   "the one likely pen attached (as tactile-run; tactile-ports lists them)")
+    p.add_argument("--label", required=True, help="the texture being stroked, e.g. paper")
+    p.add_argument("--out", required=True, type=Path, help="dataset folder (created if missing)")
+    p.add_argument("--seconds", type=float_in(0.0), default=math.inf,
+                   help="stop after this much data")
+    p.add_argument("--baud", type=int_in(1), default=115200, help="UART baud rate (default 115200)")
+    p.add_argument("--csv-rate", type=float_in(0.0), default=100.0,
+                   help="rate of CSV-mode devices, Hz")
+    p.add_argument("--quiet", action="store_true", help="no progress lines on stderr")
+    add_debug(p)
+    return p
+
+
+def _main(args: argparse.Namespace) -> int:
+    from tactile.device.link.portlist import find_port
+    from tactile.device.recordings.recorder import record
+    from tactile.device.recordings.take import check_label, dataset_folder
+    from tactile.errors import DeviceError
+
+    check_label(args.label)  # before the port opens: a mistake costs no take
+    dataset_folder(args.out)
+    auto = args.port is None  # found by auto-detection: after an unplug, look again
+    if auto:
+        args.port = find_port()
+    res = record(
+        args.port, args.label, args.out, args.seconds, args.baud, args.csv_rate,
+        progress=not args.quiet, auto=auto,
+    )
+    for path in res.takes:
+        print(path)
+    st = res.stats
+    print(
+        f"tactile-record: {res.samples} samples in {len(res.takes)} take(s); gaps {st.get('gaps')}"
+        f" (lost {st.get('samples_lost')}), errors crc {st.get('crc_errors')} malformed "
+        f"{st.get('malformed')} csv {st.get('csv_rejected')}, reconnects {res.reconnects}"
+        + (f"; {res.unrecorded} before any device header, not recorded" if res.unrecorded
+           else ""),
+        file=sys.stderr,
+    )
+    if not res.takes:
+        if res.stopped_by and not st.get("bytes_in"):  # stopped, and the port was silent
+            print(f"tactile-record: stopped by {res.stopped_by} before any data",
+                  file=sys.stderr)
+            return 0
+        if st.get("bytes_in"):
+            raise DeviceError(
+                f"no take recorded from {args.port}: {st['bytes_in']} bytes read, "
+                f"{st.get('samples', 0)} samples decoded, {res.unrecorded} of them before any "
+                "device header and not recorded (a binary pen's samples need its header)")
+        raise DeviceError(f"no data received from {args.port}")
+    return 0
+
+
+@command("tactile-record", guarded=True)
+def main(argv: list[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    return run("tactile-record", _main, args)
+
+
+if __name__ == "__main__":
+    sys.exit(main())

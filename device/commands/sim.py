@@ -1,0 +1,78 @@
+"""``tactile-sim``: the simulated pen as a pseudo-terminal, or a whole synthetic dataset.
+
+    tactile-sim --pty --texture paper --seed 3        # prints /dev/pts/N, then streams
+    tactile-sim --dataset data/sim --takes 20         # 20 takes x 7 textures, as fast as it can
+
+Within Python, the same pen is ``serial.serial_for_url("sim://?texture=paper&seed=3")`` or
+``tactile.device.sim.PenSimulator``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import time
+from pathlib import Path
+
+from tactile.cli import Parser, add_debug, command, float_in, int_in, run
+
+
+def build_parser() -> argparse.ArgumentParser:
+    from tactile.device.sim.textures import TEXTURES  # the classes, named in the help
+
+    p = Parser(prog="tactile-sim", description=__doc__.split("\n\n")[0])
+    mode = p.add_mutually_exclusive_group(required=True)
+    mode.add_argument("--pty", action="store_true", help="serve the pen on a pseudo-terminal")
+    mode.add_argument("--dataset", type=Path, metavar="OUT", help="write a synthetic dataset")
+    p.add_argument("--takes", type=int_in(1), default=10,
+                   help="takes (simulated users) per texture")
+    p.add_argument("--textures", default=",".join(TEXTURES),
+                   help=f"comma-separated subset of: {', '.join(TEXTURES)}")
+    p.add_argument("--seconds", type=float_in(0.0), default=None,
+                   help="seconds per take (dataset, default 60) or of streaming (pty, default: "
+                   "until stopped)")
+    p.add_argument("--seed", type=int_in(0), default=0, help="base seed (default 0)")
+    p.add_argument("--rate", type=float_in(10.0, 10_000.0, low_open=False), default=100.0,
+                   help="sample rate, Hz (default 100)")
+    p.add_argument("--first-take", type=int_in(0), default=0,
+                   help="index of the first simulated user")
+    p.add_argument("--texture", default="paper", help="texture on the pty (default paper)")
+    p.add_argument("--link", default="", metavar="OPTIONS",
+                   help="more pty link options as for sim://, e.g. 'garbage=0.01&stall=5:1'")
+    p.add_argument("--speed", type=float_in(0.0), default=1.0, help="pty speed, x real time")
+    p.add_argument("--force", action="store_true",
+                   help="replace takes of the same names in the --dataset folder")
+    add_debug(p)
+    return p
+
+
+def _main(args: argparse.Namespace) -> int:
+    from tactile.device.sim.dataset import make_dataset
+    from tactile.device.sim.pty_server import serve_pty
+    from tactile.device.sim.simlink import LinkConfig
+
+    if args.dataset is not None:
+        textures = tuple(t.strip() for t in args.textures.split(",") if t.strip())
+        t0 = time.perf_counter()
+        paths = make_dataset(args.dataset, args.takes, textures, args.seconds or 60.0,
+                             args.seed, args.rate, args.first_take, args.force)
+        print(f"tactile-sim: {len(paths)} takes in {args.dataset} "
+              f"({time.perf_counter() - t0:.1f} s)", file=sys.stderr)
+        return 0
+    query = f"texture={args.texture}&seed={args.seed}&rate={args.rate}&speed={args.speed}"
+    if args.seconds:
+        query += f"&seconds={args.seconds}"
+    if args.link:
+        query += "&" + args.link
+    serve_pty(LinkConfig.from_query(query))
+    return 0
+
+
+@command("tactile-sim")
+def main(argv: list[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    return run("tactile-sim", _main, args)
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,179 @@
+"""Reading takes back: one (:func:`read_take`) or a dataset folder (:func:`load_dataset`).
+
+Everything wrong with a take (a key of its JSON, a row of its CSV) is a
+:class:`~tactile.errors.RecordingError` naming the file and the place.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+import re
+import warnings
+from collections.abc import Iterator
+from pathlib import Path
+
+import numpy as np
+
+from tactile.device.protocol.info import DeviceInfo
+from tactile.device.recordings.take import FIXED_COLUMNS, GAP_LINE, Take, _why, header_cell
+from tactile.device.recordings.take_meta import read_meta
+from tactile.errors import RecordingError
+
+
+def read_take(path: str | os.PathLike) -> Take:
+    """Read a take from its ``.csv`` or ``.json`` path. Raises :class:`RecordingError` naming
+    the file (and the key or the row) for anything wrong with it."""
+    path = Path(path)
+    if path.is_dir():
+        raise RecordingError(f"{path}: a folder, not a take (give the take's .csv file)")
+    if path.suffix not in (".csv", ".json"):
+        raise RecordingError(f"{path}: not a take (give the take's .csv file)")
+    csv_path, json_path = path.with_suffix(".csv"), path.with_suffix(".json")
+    for p in (csv_path, json_path):
+        if not p.is_file():
+            raise RecordingError(f"{p}: missing (a take is a .csv with a .json beside it)")
+    meta, info = read_meta(json_path)
+    try:
+        return _read_rows(csv_path, meta, info)
+    except OSError as e:
+        raise RecordingError(f"{csv_path}: cannot read ({_why(e)})") from None
+
+
+def _read_rows(csv_path: Path, meta: dict, info: DeviceInfo) -> Take:
+    c = len(info.channels)
+    with open(csv_path, "rb") as f:
+        head = f.readline()
+        # values written from counts have no decimal point and no exponent (gap lines aside);
+        # chunks end at a line's end so that a line is never seen in two halves
+        integer = True
+        while chunk := f.read(1 << 20):
+            chunk += f.readline()
+            integer = integer and not _DECIMAL.search(chunk)
+        size = f.tell()
+        f.seek(max(size - 1, 0))
+        truncated = size > len(head) and f.read(1) != b"\n"  # a killed writer's half line
+    try:
+        head_text = head.decode("utf-8").rstrip("\r\n")
+    except UnicodeDecodeError:
+        raise RecordingError(f"{csv_path}: its header line is not UTF-8 text") from None
+    columns = head_text.split(",") if head_text else []
+    expected = [*FIXED_COLUMNS, *(header_cell(n) for n in info.channel_names)]
+    if columns != expected:
+        raise RecordingError(f"{csv_path}: columns {_shown_list(columns)} do not match the "
+                             f"metadata {_shown_list(expected)}")
+    gaps: list[dict] = []
+    rows = 0
+
+    def data_lines(f):  # the rows for numpy; gap lines noted with the row they come before
+        nonlocal rows
+        for k, line in enumerate(f, start=2):
+            if not line.endswith("\n"):  # only the last line can be cut
+                continue
+            if line.startswith("#"):
+                m = GAP_LINE.fullmatch(line)
+                if not m:
+                    raise RecordingError(f"{csv_path}: line {k} is not a gap line "
+                                         f"(# gap seq=N missing=N reason=word): {line[:60]!r}")
+                gaps.append({"seq": int(m[1]), "missing": int(m[2]), "reason": m[3],
+                             "row": rows})
+            elif line.strip():
+                rows += 1
+                yield line
+
+    with open(csv_path, encoding="ascii", errors="replace", newline="") as f:
+        f.readline()
+        # numpy's C parser over the file's lines: a few bytes a value in memory (a long take
+        # must replay on a small board); an unreadable row is then found and named
+        try:
+            table = load_numbers(data_lines(f), comments=None)
+        except ValueError:
+            raise RecordingError(f"{csv_path}: {_first_bad_row(csv_path, c + 2)}") from None
+    n = len(table)
+    if n and table.shape[1] != c + 2:
+        raise RecordingError(f"{csv_path}: rows of {table.shape[1]} values, expected {c + 2}")
+    table = table.reshape(n, c + 2)
+    if n and not np.all(np.isfinite(table)):  # before any cast to integers
+        raise RecordingError(f"{csv_path}: holds NaN or inf values")
+    seq, t_us = table[:, 0].astype(np.int64), table[:, 1].astype(np.int64)
+    if n and not (np.array_equal(seq, table[:, 0]) and np.array_equal(t_us, table[:, 1])):
+        raise RecordingError(f"{csv_path}: seq and t_us must be integers")
+    integer = integer and n > 0
+    raw = table[:, 2:].astype(np.int64) if integer else table[:, 2:]
+    if n and np.any(np.diff(seq) <= 0):
+        bad = int(np.flatnonzero(np.diff(seq) <= 0)[0]) + 2
+        raise RecordingError(f"{csv_path}: seq not increasing at data row {bad}")
+    # the CSV's gap lines are the record; the JSON's copy can only lag behind them (a take of
+    # version 1 has only the copy): every gap in either is kept
+    seen = {(g["seq"], g["missing"], g["reason"]) for g in gaps}
+    for g in meta.get("gaps", []):
+        if (g["seq"], g["missing"], g["reason"]) not in seen:
+            gaps.append({"seq": g["seq"], "missing": g["missing"], "reason": g["reason"],
+                         "row": int(np.searchsorted(seq, g["seq"]))})
+    meta = {**meta, "gaps": sorted(gaps, key=lambda g: g["row"])}
+    return Take(csv_path, meta, info, seq, t_us, raw.reshape(n, c), truncated)
+
+
+def _shown_list(items: list[str]) -> str:
+    text = repr(items)
+    return text if len(text) <= 200 else text[:197] + "..."
+
+
+_DECIMAL = re.compile(rb"^[^#\n]*[.eE]", re.MULTILINE)
+
+
+def load_numbers(source, **kwargs) -> np.ndarray:
+    """``np.loadtxt`` of comma-separated numbers as a (rows, columns) float64 table; no rows is
+    an empty table, without numpy's "input contained no data" warning. ``ValueError`` on an
+    unreadable row, as numpy raises it."""
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", UserWarning)
+        return np.loadtxt(source, delimiter=",", ndmin=2, dtype=np.float64, **kwargs)
+
+
+def _first_bad_row(csv_path: Path, width: int) -> str:
+    """What is wrong with the first unreadable data row (the error path only)."""
+    with open(csv_path, encoding="ascii", errors="replace") as f:
+        f.readline()
+        k = 0  # data rows, gap lines aside
+        for number, line in enumerate(f, start=2):
+            if line.strip() == "" or line.startswith("#"):
+                continue
+            k += 1
+            fields = line.rstrip("\r\n").split(",")
+            if len(fields) != width:
+                return f"data row {k} (line {number}) has {len(fields)} values, expected {width}"
+            for v in fields:
+                try:
+                    float(v)
+                except ValueError:
+                    return f"data row {k} (line {number}): {v[:40]!r} is not a number"
+    return "unreadable rows"
+
+
+def iter_takes(folder: str | os.PathLike) -> Iterator[Path]:
+    """The ``.csv`` files of the takes in a dataset folder (recursively), sorted."""
+    folder = Path(folder)
+    if not folder.is_dir():
+        raise RecordingError(f"{folder}: not a folder")
+    return iter(sorted(p for p in folder.rglob("*.csv") if p.with_suffix(".json").is_file()))
+
+
+def load_dataset(folder: str | os.PathLike) -> list[Take]:
+    """Every take in ``folder``; raises if there is none or if channel layouts disagree."""
+    takes = [read_take(p) for p in iter_takes(folder)]
+    if not takes:
+        raise RecordingError(f"{folder}: no takes (.csv + .json pairs) found")
+    first = takes[0]
+    for t in takes[1:]:
+        if t.channels != first.channels or not math.isclose(
+            t.info.sample_rate_hz, first.info.sample_rate_hz
+        ):
+            raise RecordingError(
+                f"{t.path}: channels/rate {t.channels}@{t.info.sample_rate_hz} Hz differ from "
+                f"{first.path}: {first.channels}@{first.info.sample_rate_hz} Hz"
+            )
+    return takes
+
+
+__all__ = ["iter_takes", "load_dataset", "load_numbers", "read_take"]

@@ -1,0 +1,155 @@
+"""The take format: one take per file pair, a dataset is a folder of them.
+
+A take is ``NAME.csv`` (what the pen sent, one row per sample, columns ``seq,t_us,<channels>``,
+raw counts exactly as received, and a ``# gap ...`` line wherever the stream broke) plus
+``NAME.json`` beside it (label, channel names, units, scales, rate, device header, start time,
+source, a copy of the gaps and the decoder's counters). Both open in any text editor or
+spreadsheet. ``value_in_unit = raw * scale + offset``.
+
+This module holds what a take is (:class:`Take`, read back) and the rules its names follow (labels,
+dataset folders, CSV header cells); :mod:`~tactile.device.recordings.writer` writes takes and
+:mod:`~tactile.device.recordings.reader` reads them.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import os
+import re
+import unicodedata
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from tactile.device.protocol.info import DeviceInfo
+from tactile.errors import RecordingError
+
+FIXED_COLUMNS = ("seq", "t_us")
+GAP_LINE = re.compile(r"# gap seq=(\d+) missing=(\d+) reason=([a-z_]+)\n")
+_REASON = re.compile(r"[a-z_]+")
+
+
+@dataclass
+class Take:
+    """One recording read back.
+
+    ``raw`` is (n, channels) as stored (int64 for integer data, float64 otherwise); ``seq`` and
+    ``t_us`` are (n,) int64. ``meta["gaps"]`` lists every gap the take knows (its CSV's gap
+    lines and the JSON's copy) as dicts ``seq``, ``missing``, ``reason``, and ``row``: the index
+    of the first row after the gap.
+    """
+
+    path: Path
+    meta: dict
+    info: DeviceInfo
+    seq: np.ndarray
+    t_us: np.ndarray
+    raw: np.ndarray
+    truncated: bool = False  # the last line was cut (the writer was killed mid-write)
+
+    @property
+    def label(self) -> str:
+        return self.meta["label"]
+
+    @property
+    def channels(self) -> tuple[str, ...]:
+        return self.info.channel_names
+
+    def values(self) -> np.ndarray:
+        """(n, channels) float64 in the channels' units."""
+        scale = np.array([c.scale for c in self.info.channels])
+        offset = np.array([c.offset for c in self.info.channels])
+        return self.raw * scale + offset
+
+    def fingerprint(self) -> str:
+        """The take's identity by content: 16 hex digits of the SHA-256 of its label, channel
+        names, sequence numbers, timestamps and raw samples. Two folders holding takes of the
+        same names but other recordings give other fingerprints (training records those of its
+        test takes, so that evaluation and export recognise the test split by content)."""
+        h = hashlib.sha256()
+        h.update(repr((str(self.label), tuple(self.channels))).encode())
+        for a in (self.seq, self.t_us, self.raw):
+            arr = np.ascontiguousarray(a)
+            h.update(f"{arr.dtype.str}{arr.shape}".encode())
+            h.update(arr.tobytes())
+        return h.hexdigest()[:16]
+
+    def segments(self) -> list[tuple[int, int]]:
+        """Row ranges [start, stop) with no gap inside: split at seq jumps and recorded gaps."""
+        if len(self.seq) == 0:
+            return []
+        cuts = set((np.flatnonzero(np.diff(self.seq) != 1) + 1).tolist())
+        for g in self.meta.get("gaps", []):
+            row = g.get("row")
+            if row is None:  # a gap known by its seq only: before the first row at or after it
+                row = int(np.searchsorted(self.seq, g["seq"]))
+            if 0 < row < len(self.seq):
+                cuts.add(int(row))
+        bounds = [0, *sorted(cuts), len(self.seq)]
+        return [(a, b) for a, b in zip(bounds[:-1], bounds[1:], strict=True) if b > a]
+
+
+# A label names the take's files and a class; these are refused by FAT/exFAT cards (a board's
+# usual storage) or break the CSV/JSON pair: / \ : * ? " < > | , control characters.
+_LABEL_BAD = re.compile(r'[/\\:*?"<>|,\x00-\x1f\x7f]')
+LABEL_RULE = ("1-64 characters, not starting with '.' or a space, none of "
+              "/ \\ : * ? \" < > | , tab or newline")
+
+
+def check_label(label: str) -> str:
+    """``label`` if it can name a class and a take's files anywhere, else :class:`RecordingError`
+    stating :data:`LABEL_RULE`."""
+    if (not isinstance(label, str) or not 1 <= len(label) <= 64 or label != label.strip()
+            or label.startswith(".") or _LABEL_BAD.search(label)):
+        raise RecordingError(f"label {label!r}: must be {LABEL_RULE}")
+    return label
+
+
+def dataset_folder(folder: str | os.PathLike) -> Path:
+    """``folder`` as a dataset folder to write takes into, created if missing (with its parents);
+    :class:`RecordingError` naming it when it is a file or cannot be made."""
+    folder = Path(folder)
+    if folder.exists() and not folder.is_dir():
+        raise RecordingError(f"{folder}: not a folder (takes are written into a dataset folder)")
+    try:
+        folder.mkdir(parents=True, exist_ok=True)
+    except OSError as e:
+        raise RecordingError(f"{folder}: cannot make the dataset folder ({e.strerror})") from None
+    return folder
+
+
+def replace_takes(folder: Path, stems: list[str], force: bool) -> None:
+    """Before a command writes takes named ``stems`` into ``folder``: if any exists, refuse
+    (:class:`RecordingError` naming the first, the command neither overwrites nor duplicates a
+    dataset by being run twice) or, with ``force``, delete them."""
+    found = [p for s in stems for p in (folder / f"{s}.csv", folder / f"{s}.json") if p.exists()]
+    if found and not force:
+        more = f" and {len(found) - 1} more files" if len(found) > 1 else ""
+        raise RecordingError(f"{found[0]}{more} already exist: choose another folder, or "
+                             "--force to replace them")
+    for p in found:
+        p.unlink()
+
+
+def header_cell(name: str) -> str:
+    """A channel name as a CSV header cell: on one line, without a separator.
+
+    ``,``, ``"``, ``#``, ``%``, control characters and any space but U+0020 become ``%XX`` of
+    their UTF-8 bytes (``a,b`` -> ``a%2Cb``); everything else, non-ASCII letters included, stays
+    as it is. The JSON keeps the names themselves."""
+    out = []
+    for ch in name:
+        if ch in ',"#%' or (unicodedata.category(ch)[0] in "CZ" and ch != " "):
+            out.append("".join(f"%{b:02X}" for b in ch.encode("utf-8", "surrogatepass")))
+        else:
+            out.append(ch)
+    return "".join(out)
+
+
+def _why(e: OSError) -> str:
+    return e.strerror or str(e) or type(e).__name__
+
+
+__all__ = ["FIXED_COLUMNS", "GAP_LINE", "LABEL_RULE", "Take", "check_label", "dataset_folder",
+           "header_cell", "replace_takes"]

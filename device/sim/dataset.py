@@ -1,0 +1,67 @@
+"""A synthetic dataset: takes of the simulated pen, one simulated user per take index.
+
+    make_dataset(Path("data/sim"), takes=20)   # 20 takes x 7 textures, as fast as it can
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import zlib
+from pathlib import Path
+
+from tactile.device.recordings.take import dataset_folder, replace_takes
+from tactile.device.recordings.writer import TakeWriter
+from tactile.device.sim.simulator import TEXTURES, PenSimulator
+from tactile.errors import ConfigError
+
+
+def take_seed(base: int, texture: str, take: int) -> int:
+    """A stable seed per (texture, take): the same dataset whatever else is generated."""
+    return (base * 1_000_003 + zlib.crc32(texture.encode()) * 1009 + take) % 2**31
+
+
+def make_dataset(
+    out: Path,
+    takes: int,
+    textures: tuple[str, ...] = TEXTURES,
+    seconds: float = 60.0,
+    seed: int = 0,
+    rate_hz: float = 100.0,
+    first_take: int = 0,
+    force: bool = False,
+) -> list[Path]:
+    """Write ``takes`` takes per texture; take k of every texture is simulated user k.
+
+    Takes are named ``<texture>-user<k>``: a folder that already holds one of them is refused
+    (so that a second run neither overwrites nor duplicates a dataset), unless ``force``, which
+    replaces those takes. Other takes in the folder are left alone (``first_take`` adds users).
+    """
+    for t in textures:
+        if t not in TEXTURES:
+            raise ConfigError(f"texture {t!r}: must be one of {', '.join(TEXTURES)}")
+    if takes < 1 or not seconds > 0:
+        raise ConfigError(f"--takes {takes} and --seconds {seconds}: must be >= 1 and > 0")
+    out = dataset_folder(out)
+    replace_takes(out, [f"{t}-user{k:03d}" for k in range(first_take, first_take + takes)
+                        for t in textures], force)
+    paths = []
+    n = round(seconds * rate_hz)
+    for k in range(first_take, first_take + takes):
+        for texture in textures:
+            s = take_seed(seed, texture, k)
+            sim = PenSimulator(texture, seed=s, rate_hz=rate_hz)
+            extra = {
+                "user": k,
+                "simulator": {"texture": texture, "seed": s,
+                              "session": dataclasses.asdict(sim.session)},
+            }
+            name = f"{texture}-user{k:03d}"
+            with TakeWriter(out, texture, sim.info, "simulator", name=name, extra=extra) as w:
+                for start in range(0, n, 6000):
+                    raw = sim.read(min(6000, n - start))
+                    w.write(start, round(start * 1e6 / rate_hz), raw)
+            paths.append(w.csv_path)
+    return paths
+
+
+__all__ = ["make_dataset", "take_seed"]
