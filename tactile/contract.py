@@ -29,6 +29,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+from tactile import metadata_fields as F
 from tactile.errors import ModelContractError
 
 FORMAT = "tactile-onnx"
@@ -213,27 +214,27 @@ class ModelContract:
         if missing:
             raise ModelContractError(f"metadata key {missing[0]!r} is missing "
                                      f"({KEYS[missing[0]][1]})")
-        version = _int(meta, "tactile.format_version")
+        version = F.integer(meta, "tactile.format_version")
         if version > FORMAT_VERSION or version < 1:
             raise ModelContractError(f"metadata key 'tactile.format_version' is {version}; "
                                      f"this reader understands 1..{FORMAT_VERSION}")
         return cls(
-            classes=_names(meta, "classes"),
-            channels=_names(meta, "channels"),
-            units=_strings(meta, "units"),
-            sample_rate_hz=_number(meta, "sample_rate_hz"),
-            window=_int(meta, "window"),
-            hop=_int(meta, "hop"),
-            state_mode=_choice(meta, "state_mode", STATE_MODES),
-            model=_choice(meta, "model", MODELS),
-            state_layers=_int(meta, "state_layers"),
-            state_hidden=_int(meta, "state_hidden"),
-            preprocessing=_object(meta, "preprocessing"),
-            preprocessing_version=_int(meta, "preprocessing_version"),
-            package_version=_text(meta, "package_version"),
-            training_metrics=_object(meta, "training_metrics"),
-            parity=_object(meta, "parity"),
-            quantization=_choice(meta, "quantization", QUANTIZATIONS),
+            classes=F.names(meta, "classes"),
+            channels=F.names(meta, "channels"),
+            units=F.strings(meta, "units"),
+            sample_rate_hz=F.number(meta, "sample_rate_hz"),
+            window=F.integer(meta, "window"),
+            hop=F.integer(meta, "hop"),
+            state_mode=F.choice(meta, "state_mode", STATE_MODES),
+            model=F.choice(meta, "model", MODELS),
+            state_layers=F.integer(meta, "state_layers"),
+            state_hidden=F.integer(meta, "state_hidden"),
+            preprocessing=F.json_object(meta, "preprocessing"),
+            preprocessing_version=F.integer(meta, "preprocessing_version"),
+            package_version=F.text(meta, "package_version"),
+            training_metrics=F.json_object(meta, "training_metrics"),
+            parity=F.json_object(meta, "parity"),
+            quantization=F.choice(meta, "quantization", QUANTIZATIONS),
             format_version=version,
             extra={k: v for k, v in meta.items() if k in OPTIONAL and k not in PARSED_OPTIONAL},
             signals=_signals(meta),
@@ -382,7 +383,7 @@ def _validate_preprocessing(p: dict, channels: tuple[str, ...], bad) -> None:
     key = "preprocessing"
     for name in ("mean", "std"):
         v = p.get(name)
-        if not (isinstance(v, list) and len(v) == len(channels) and all(_isnum(x) for x in v)):
+        if not (isinstance(v, list) and len(v) == len(channels) and all(F.isnum(x) for x in v)):
             bad(key, f"{name!r} must be a list of {len(channels)} numbers")
     if any(s <= 0 for s in p["std"]):
         bad(key, "'std' must be > 0")
@@ -480,111 +481,19 @@ def _sub_samples(m: ModalitySpec, owner: dict, signals: dict, bad) -> int:
     return rs.pop()
 
 
-def _isnum(x: object) -> bool:
-    return isinstance(x, (int, float)) and not isinstance(x, bool) and math.isfinite(x)
-
-
-def _json(meta: Mapping[str, str], key: str) -> Any:
-    try:
-        return json.loads(meta[key])
-    except (TypeError, ValueError) as e:
-        raise ModelContractError(f"metadata key {key!r} is not valid JSON ({e})") from None
-
-
-def _names(meta: Mapping[str, str], key: str) -> tuple[str, ...]:
-    v = _strings(meta, key)
-    if len(set(v)) != len(v) or not all(v):
-        raise ModelContractError(f"metadata key {key!r}: names must be unique and non-empty, "
-                                 f"got {list(v)}")
-    return v
-
-
-def _strings(meta: Mapping[str, str], key: str) -> tuple[str, ...]:
-    v = _json(meta, key)
-    if not (isinstance(v, list) and all(isinstance(x, str) for x in v)):
-        raise ModelContractError(f"metadata key {key!r} must be a JSON list of strings, "
-                                 f"got {meta[key][:60]!r}")
-    return tuple(v)
-
-
-def _object(meta: Mapping[str, str], key: str) -> dict:
-    v = _json(meta, key)
-    if not isinstance(v, dict):
-        raise ModelContractError(f"metadata key {key!r} must be a JSON object, "
-                                 f"got {meta[key][:60]!r}")
-    return v
-
-
-def _int(meta: Mapping[str, str], key: str) -> int:
-    try:
-        return int(meta[key])
-    except ValueError:
-        raise ModelContractError(f"metadata key {key!r} must be an integer, "
-                                 f"got {meta[key][:60]!r}") from None
-
-
-def _number(meta: Mapping[str, str], key: str) -> float:
-    try:
-        return float(meta[key])
-    except ValueError:
-        raise ModelContractError(f"metadata key {key!r} must be a number, "
-                                 f"got {meta[key][:60]!r}") from None
-
-
-def _text(meta: Mapping[str, str], key: str) -> str:
-    return str(meta[key])
-
-
-def _choice(meta: Mapping[str, str], key: str, allowed: tuple[str, ...]) -> str:
-    v = meta[key]
-    if v not in allowed:
-        raise ModelContractError(f"metadata key {key!r} is {v[:60]!r}, allowed: "
-                                 f"{', '.join(allowed)}")
-    return v
-
-
-def _list_of_objects(meta: Mapping[str, str], key: str) -> list[dict]:
-    if key not in meta:
-        return []
-    v = _json(meta, key)
-    if not (isinstance(v, list) and v and all(isinstance(x, dict) for x in v)):
-        raise ModelContractError(f"metadata key {key!r} must be a non-empty JSON list of "
-                                 f"objects, got {meta[key][:60]!r}")
-    return v
-
-
-def _field(key: str, i: int, obj: dict, name: str, kind: str):
-    """``obj[name]`` of entry ``i`` of list ``key``, checked to be a ``kind``."""
-    v = obj.get(name)
-    ok = {
-        "name": isinstance(v, str) and bool(v),
-        "names": isinstance(v, list) and bool(v) and all(isinstance(x, str) for x in v)
-        and len(set(v)) == len(v),
-        "bool": isinstance(v, bool),
-        "int": isinstance(v, int) and not isinstance(v, bool),
-        "rate": _isnum(v) and v > 0,
-    }[kind]
-    if not ok:
-        what = {"name": "a non-empty string", "names": "a non-empty list of distinct names",
-                "bool": "true or false", "int": "an integer", "rate": "a number > 0"}[kind]
-        raise ModelContractError(f"metadata key {key!r}: entry {i} {name!r} must be {what}, "
-                                 f"got {json.dumps(v)[:60]}")
-    return tuple(v) if kind == "names" else (float(v) if kind == "rate" else v)
-
-
 def _signals(meta: Mapping[str, str]) -> tuple[SignalSpec, ...]:
-    return tuple(SignalSpec(_field("signals", i, o, "name", "name"),
-                            _field("signals", i, o, "channels", "names"),
-                            _field("signals", i, o, "rate_hz", "rate"))
-                 for i, o in enumerate(_list_of_objects(meta, "signals")))
+    return tuple(SignalSpec(F.entry_field("signals", i, o, "name", "name"),
+                            F.entry_field("signals", i, o, "channels", "names"),
+                            F.entry_field("signals", i, o, "rate_hz", "rate"))
+                 for i, o in enumerate(F.list_of_objects(meta, "signals")))
 
 
 def _modalities(meta: Mapping[str, str]) -> tuple[ModalitySpec, ...]:
     out = []
-    for i, o in enumerate(_list_of_objects(meta, "modalities")):
+    for i, o in enumerate(F.list_of_objects(meta, "modalities")):
         f = [("name", "name"), ("channels", "names"), ("signal", "bool"), ("rate_hz", "rate"),
              ("imfs", "int"), ("steps", "int"), ("atoms", "int"), ("nonzero", "int")]
-        out.append(ModalitySpec(*(_field("modalities", i, o, n, k) for n, k in f)))
+        out.append(ModalitySpec(*(F.entry_field("modalities", i, o, n, k) for n, k in f)))
     return tuple(out)
 
 
