@@ -182,8 +182,16 @@ static void spline_add(const double *kx, const double *ky, int64_t n, int64_t le
         for (int64_t j = 1; j <= n - 2; j++) {
             double a = hk[j - 1], b = 2.0 * (hk[j - 1] + hk[j]), c = hk[j];
             const double r = sl[j] - sl[j - 1];
-            if (j == 1) { a = 0.0; b = (h0 + h1) * (h0 + 2.0 * h1) / h1; c = (h1 * h1 - h0 * h0) / h1; }
-            if (j == n - 2) { c = 0.0; b = (hq + hl) * (2.0 * hq + hl) / hq; a = (hq * hq - hl * hl) / hq; }
+            if (j == 1) {
+                a = 0.0;
+                b = (h0 + h1) * (h0 + 2.0 * h1) / h1;
+                c = (h1 * h1 - h0 * h0) / h1;
+            }
+            if (j == n - 2) {
+                c = 0.0;
+                b = (hq + hl) * (2.0 * hq + hl) / hq;
+                a = (hq * hq - hl * hl) / hq;
+            }
             const double den = b - (j > 1 ? a * cp[j - 1] : 0.0);
             cp[j] = c / den;
             dp[j] = (r - (j > 1 ? a * dp[j - 1] : 0.0)) / den;
@@ -285,7 +293,8 @@ static int emd_batch(const void *x, int f32, int64_t batch, int64_t len, int32_t
     if (!x || !imfs || !residue || !n_valid) return TACTILE_EINVAL;
     /* sizes: every output index fits in size_t and int64 (len * 16 * batch) */
     const uint64_t cap = (uint64_t)(SIZE_MAX < INT64_MAX ? SIZE_MAX : INT64_MAX) / 64u;
-    if ((uint64_t)len > cap / (uint64_t)n_imfs || (uint64_t)batch > cap / ((uint64_t)len * (uint64_t)n_imfs))
+    if ((uint64_t)len > cap / (uint64_t)n_imfs ||
+        (uint64_t)batch > cap / ((uint64_t)len * (uint64_t)n_imfs))
         return TACTILE_EINVAL;
     Work w;
     if (!work_alloc(&w, len)) return TACTILE_ENOMEM;
@@ -299,7 +308,8 @@ static int emd_batch(const void *x, int f32, int64_t batch, int64_t len, int32_t
     for (int64_t i = 0; i < batch; i++) {
         int finite = 1;
         for (int64_t t = 0; t < len; t++) {
-            row[t] = f32 ? (double)((const float *)x)[i * len + t] : ((const double *)x)[i * len + t];
+            const int64_t at = i * len + t;
+            row[t] = f32 ? (double)((const float *)x)[at] : ((const double *)x)[at];
             finite &= isfinite(row[t]) != 0;
         }
         if (finite) {

@@ -19,7 +19,7 @@
 #include "tactile_native.h"
 
 typedef struct {
-    double *xy, *alpha, *L, *gamma, *wrow; /* (K), (K), (S*S), (S), (S) */
+    double *xy, *alpha, *beta, *L, *gamma, *wrow; /* (K), (K), (K), (S*S), (S), (S) */
     int64_t *perm;                         /* (K) atom at each working position */
 } Work;
 
@@ -29,7 +29,8 @@ typedef struct {
 /* Codes of one row from its correlations cov (K) with the atoms; code (K) is written. */
 static void omp_row(const double *cov, const double *gram, int64_t K, int64_t S, double eps,
                     Work *w, double *code) {
-    double *xy = w->xy, *alpha = w->alpha, *L = w->L, *gamma = w->gamma, *v = w->wrow;
+    double *xy = w->xy, *alpha = w->alpha, *beta = w->beta, *L = w->L, *gamma = w->gamma;
+    double *v = w->wrow;
     int64_t *perm = w->perm, n_active = 0;
     for (int64_t p = 0; p < K; p++) {
         perm[p] = p;
@@ -71,12 +72,14 @@ static void omp_row(const double *cov, const double *gram, int64_t K, int64_t S,
             for (int64_t j = i + 1; j < n_active; j++) s -= L[j * S + i] * gamma[j];
             gamma[i] = s / L[i * S + i];
         }
-        /* residual correlations, in working order */
-        for (int64_t p = 0; p < K; p++) {
-            double s = 0.0;
-            for (int64_t i = 0; i < n_active; i++) s += G(p, i) * gamma[i];
-            alpha[p] = xy[p] - s;
+        /* residual correlations cov - G[:, chosen] gamma, summed in atom order along the
+         * chosen atoms' Gram rows (contiguous; G is symmetric), then put in working order */
+        for (int64_t k = 0; k < K; k++) beta[k] = 0.0;
+        for (int64_t i = 0; i < n_active; i++) {
+            const double *row = gram + perm[i] * K, gi = gamma[i];
+            for (int64_t k = 0; k < K; k++) beta[k] += row[k] * gi;
         }
+        for (int64_t p = 0; p < K; p++) alpha[p] = xy[p] - beta[perm[p]];
         if (n_active == S) break;
     }
     memset(code, 0, (size_t)K * sizeof(double));
@@ -84,7 +87,8 @@ static void omp_row(const double *cov, const double *gram, int64_t K, int64_t S,
 }
 
 static void work_free(Work *w) {
-    free(w->xy); free(w->alpha); free(w->L); free(w->gamma); free(w->wrow); free(w->perm);
+    free(w->xy); free(w->alpha); free(w->beta); free(w->L); free(w->gamma); free(w->wrow);
+    free(w->perm);
 }
 
 /* The shared body of both entry points; x, dictionary, gram, codes are float (f32) or double. */
@@ -107,13 +111,14 @@ static int omp_batch(const void *x, int f32, int64_t rows, int64_t F, const void
     double *code = malloc((size_t)K * sizeof(double));
     w.xy = malloc((size_t)K * sizeof(double));
     w.alpha = malloc((size_t)K * sizeof(double));
+    w.beta = malloc((size_t)K * sizeof(double));
     w.L = malloc((size_t)(S * S) * sizeof(double));
     w.gamma = malloc((size_t)S * sizeof(double));
     w.wrow = malloc((size_t)S * sizeof(double));
     w.perm = malloc((size_t)K * sizeof(int64_t));
     int status = TACTILE_OK;
-    if (!dict || !gram || !xr || !cov || !code || !w.xy || !w.alpha || !w.L || !w.gamma ||
-        !w.wrow || !w.perm) {
+    if (!dict || !gram || !xr || !cov || !code || !w.xy || !w.alpha || !w.beta || !w.L ||
+        !w.gamma || !w.wrow || !w.perm) {
         status = TACTILE_ENOMEM;
         goto done;
     }

@@ -45,8 +45,9 @@ int tactile_emd_f32(const float *x, int64_t batch, int64_t length, int32_t n_imf
  * type: float32's for the f32 entry point, float64's for the f64 one).
  *
  * x: (rows, features). dictionary: (atoms, features). gram: (atoms, atoms), the dictionary's
- * Gram matrix. codes: (rows, atoms). A row holding NaN or inf gets zero codes; a dictionary or
- * Gram matrix holding them gives zero codes everywhere (status TACTILE_ENONFINITE). */
+ * Gram matrix (symmetric: only its rows are read). codes: (rows, atoms). A row holding NaN or
+ * inf gets zero codes; a dictionary or Gram matrix holding them gives zero codes everywhere
+ * (status TACTILE_ENONFINITE). */
 int tactile_omp_f64(const double *x, int64_t rows, int64_t features, const double *dictionary,
                     const double *gram, int64_t atoms, int64_t n_nonzero, double *codes);
 int tactile_omp_f32(const float *x, int64_t rows, int64_t features, const float *dictionary,

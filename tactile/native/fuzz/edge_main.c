@@ -54,11 +54,13 @@ static void emd_cases(void) {
             float *res_f = malloc(sizeof(float) * (size_t)(batch * n + 1));
             int64_t nv[3];
             for (long b = 0; b < batch; b++) pattern(x + b * n, n, b == 1 ? kind : 0, &seed);
-            for (long i = 0; i < batch * n; i++) xf[i] = (float)(kind == 3 || kind == 5 ? 0.0 : x[i]);
+            const int too_big = kind == 3 || kind == 5; /* beyond float's range */
+            for (long i = 0; i < batch * n; i++) xf[i] = (float)(too_big ? 0.0 : x[i]);
             const int nonfinite = (kind == 6 && n > 3) || (kind == 7 && n > 0);
             int st = tactile_emd_f64(x, batch, n, (int32_t)k, 6, imfs, res, nv);
             expect(st == (nonfinite ? TACTILE_ENONFINITE : TACTILE_OK), "emd_f64 status", kind);
-            for (long b = 0; b < batch; b++) expect(nv[b] >= 0 && nv[b] <= k, "n_valid range", kind);
+            for (long b = 0; b < batch; b++)
+                expect(nv[b] >= 0 && nv[b] <= k, "n_valid range", kind);
             if (n < 3) expect(nv[0] == 0 && nv[1] == 0, "short rows have no IMFs", n);
             st = tactile_emd_f32(xf, batch, n, (int32_t)k, 3, imfs_f, res_f, nv);
             expect(st == (nonfinite ? TACTILE_ENONFINITE : TACTILE_OK), "emd_f32 status", kind);
