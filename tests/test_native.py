@@ -34,14 +34,19 @@ F32_TOL = 2e-5
 """Max |difference| / window std between the torch module in float32 and the kernel (float64
 inside) on the same float32 window. float32's unit roundoff is 6e-8 of a value; each sift maps
 h through envelopes whose gain is of order one, so the rounding of up to n_imfs x n_sifts = 80
-sifts adds up to a few 1e-7 of the std in the mean (measured: median 4e-7 at 50 samples and
-8e-7 at 1,100, 99th percentile 1.2e-6 at 50). 2e-5 leaves a factor ten over the worst
-non-flipped windows."""
-F32_FLIP_GAP = 1e-3
-"""A window beyond ``F32_TOL`` is excused only where float32 rounding can flip an extremum or a
-boundary case: PyEMD's trajectory on it passes a near-tie (two compared samples closer than
-this x std, :func:`emd_cases.near_tie_gap`), and the kernel still agrees with the torch module
-run in float64 on the same window."""
+sifts adds up to a few 1e-7 of the std in the mean, more on long windows whose later IMFs sift
+the earlier ones' rounding again (measured: 50 samples, 4 IMFs, 300 windows: median 3.8e-7,
+worst 1.1e-6; 1,100 samples, 8 IMFs: median 9.5e-7, worst 7.8e-6 of the windows that did not
+flip)."""
+F32_FLIP_GAP = 1e-5
+"""A window beyond ``F32_TOL`` (or with another IMF count) is excused only where float32
+rounding can flip an extremum or a boundary case: PyEMD's trajectory on it passes a near-tie,
+two compared samples closer than this x std (:func:`emd_cases.near_tie_gap`), about the size
+of the accumulated float32 error; and the kernel agrees with the torch module run in float64
+on the same window. Long windows pass many more comparisons: at 1,100 samples and 8 IMFs 6 of
+30 windows flipped, at near-ties of 3e-11 to 1.8e-7 std; at 50 samples none of 300."""
+F32_FLIP_SHARE = {50: 0.05, 1100: 0.4}
+"""Largest share of flipped windows per window length (measured 0 and 0.2)."""
 
 
 def _build_in_place() -> str:
@@ -131,7 +136,7 @@ def test_emd_on_float32_windows_agrees_with_the_torch_module():
     from tactile.training.emd import EMD
 
     torch.set_num_threads(1)
-    for n_time, n_imfs, per_kind in ((50, 4, 16), (1100, 8, 2)):
+    for n_time, n_imfs, per_kind in ((50, 4, 16), (1100, 8, 3)):
         x = np.concatenate([windows(k, n_time, per_kind, 500 + i) for i, k in enumerate(KINDS)])
         std = x.std(1, keepdims=True)
         x = ((x - x.mean(1, keepdims=True)) / np.where(std > 0, std, 1.0)).astype(np.float32)
@@ -150,7 +155,7 @@ def test_emd_on_float32_windows_agrees_with_the_torch_module():
         s = x.astype(np.float64).std(1)
         rel = np.abs(imfs.astype(np.float64) - t32[0][:, 0]).max(axis=(1, 2)) / s
         off = np.flatnonzero((n_valid != t32[2][:, 0]) | (rel > F32_TOL))
-        assert len(off) <= max(1, len(x) // 20), f"{len(off)} of {len(x)} windows off"
+        assert len(off) <= F32_FLIP_SHARE[n_time] * len(x), f"{len(off)} of {len(x)} windows off"
         for i in off:
             gap = near_tie_gap(x[i].astype(np.float64), n_imfs, 10)
             assert gap < F32_FLIP_GAP, f"window {i} (N={n_time}) off by {rel[i]:.3g} of its std, " \
