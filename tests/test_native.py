@@ -15,6 +15,7 @@ import shlex
 import shutil
 import subprocess
 import sys
+import tempfile
 import warnings
 from pathlib import Path
 
@@ -52,11 +53,11 @@ F32_FLIP_SHARE = {50: 0.05, 1100: 0.4}
 def _build_in_place() -> str:
     """Build the library where the package looks for it (as ``pip install -e .`` does);
     returns the build's output (why it failed)."""
-    out = subprocess.run(
-        [sys.executable, "setup.py", "-q", "build_ext", "--inplace"], cwd=REPO,
-        capture_output=True, text=True, timeout=300,
-    )
-    shutil.rmtree(REPO / "build", ignore_errors=True)
+    with tempfile.TemporaryDirectory() as tmp:
+        out = subprocess.run(
+            [sys.executable, "setup.py", "-q", "build_ext", "--inplace", "--build-temp", tmp],
+            cwd=REPO, capture_output=True, text=True, timeout=300,
+        )
     return (out.stdout + out.stderr)[-400:]
 
 
