@@ -55,7 +55,8 @@ def _build_in_place() -> str:
     returns the build's output (why it failed)."""
     with tempfile.TemporaryDirectory() as tmp:
         out = subprocess.run(
-            [sys.executable, "setup.py", "-q", "build_ext", "--inplace", "--build-temp", tmp],
+            [sys.executable, "setup.py", "-q", "build_ext", "--inplace", "--build-temp", tmp,
+             "--build-lib", tmp],
             cwd=REPO, capture_output=True, text=True, timeout=300,
         )
     return (out.stdout + out.stderr)[-400:]
