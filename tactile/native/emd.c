@@ -1,7 +1,8 @@
 /* Empirical mode decomposition, one signal at a time, exactly as the reference EMD computes it:
  * PyEMD EMD(FIXE=k, spline_kind='cubic', nbsym=2, extrema_detection='simple') with max_imf
- * slots, and the toolkit's torch module (training/emd). Section names are those of the EMD spec
- * (docs/emd.md): §1.2 outer loop, §1.3 sifting, §1.4 extrema, §1.5 boundary, §1.6 spline.
+ * slots, and the toolkit's torch module (training/emd). Sections are EMD_SPEC's, as in the
+ * torch module (docs/emd.md): §1.2 outer loop, §1.3 sifting, §1.4 extrema, §1.5 boundary,
+ * §1.6 spline.
  *
  * All arithmetic is in double. Knots carry half values (h / 2), as the torch module's do: the
  * spline is linear in its values, so the two half envelopes add up to the mean envelope, and
