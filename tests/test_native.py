@@ -175,6 +175,25 @@ def test_emd_result_is_bit_identical_whatever_the_batch():
                 assert got.tobytes() == want.tobytes()
 
 
+def test_kernels_run_concurrently_in_threads():
+    """No global state: calls in four threads at once (ctypes releases the GIL) give the same
+    bits as one after another."""
+    from concurrent.futures import ThreadPoolExecutor
+
+    x = [windows(k, 300, 6, 40 + i) for i, k in enumerate(KINDS)]
+    rng = np.random.default_rng(4)
+    d = _dictionary(rng, 40, 30)
+    rows = [rng.standard_normal((50, 30)) for _ in range(6)]
+    alone = [native.emd(w, 5, 10) for w in x] + [native.omp(r, d, d @ d.T, 6) for r in rows]
+    with ThreadPoolExecutor(4) as pool:
+        jobs = [pool.submit(native.emd, w, 5, 10) for w in x]
+        jobs += [pool.submit(native.omp, r, d, d @ d.T, 6) for r in rows]
+        together = [j.result() for j in jobs]
+    for a, b in zip(alone, together):
+        for u, v in zip(*(t if isinstance(t, tuple) else (t,) for t in (a, b))):
+            assert u.tobytes() == v.tobytes()
+
+
 @pytest.mark.parametrize("n_time", [0, 1, 2])
 def test_emd_short_windows_have_no_imfs(n_time):
     x = np.arange(3 * n_time, dtype=np.float64).reshape(3, n_time)
