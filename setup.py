@@ -1,0 +1,26 @@
+"""The package's one compiled part: the native kernels (``tactile/native``), an optional shared
+library loaded through ctypes. Everything else is declared in ``pyproject.toml``.
+
+``optional=True``: where no C compiler works, the build says so and the package installs
+without the library (``tactile.native.available()`` is then False).
+"""
+
+import sys
+
+from setuptools import Extension, setup
+
+UNIX = sys.platform != "win32"
+
+setup(
+    ext_modules=[
+        Extension(
+            "tactile.native._kernels",
+            sources=["tactile/native/emd.c", "tactile/native/omp.c"],
+            depends=["tactile/native/tactile_native.h"],
+            libraries=["m"] if UNIX else [],
+            # no fused multiply-add contraction: the same bits on x86 and ARM boards
+            extra_compile_args=["-std=c99", "-O2", "-ffp-contract=off"] if UNIX else [],
+            optional=True,
+        )
+    ]
+)

@@ -1,0 +1,349 @@
+/* Empirical mode decomposition, one signal at a time, exactly as the reference EMD computes it:
+ * PyEMD EMD(FIXE=k, spline_kind='cubic', nbsym=2, extrema_detection='simple') with max_imf
+ * slots, and the toolkit's torch module (training/emd). Sections are EMD_SPEC's, as in the
+ * torch module (docs/emd.md): §1.2 outer loop, §1.3 sifting, §1.4 extrema, §1.5 boundary,
+ * §1.6 spline.
+ *
+ * All arithmetic is in double. Knots carry half values (h / 2), as the torch module's do: the
+ * spline is linear in its values, so the two half envelopes add up to the mean envelope, and
+ * huge signals overflow no sooner than the signal itself.
+ */
+#include <math.h>
+#include <stdlib.h>
+#include <string.h>
+
+#include "tactile_native.h"
+
+#define RANGE_THR 1e-3 /* §1.2: end when max(res) - min(res) is below this (absolute) */
+#define POWER_THR 5e-3 /* §1.2: end when sum |res| is below this (absolute) */
+
+typedef struct {
+    double *h, *acc, *mean;      /* (N) current proto-IMF, sum of IMFs, mean envelope */
+    double *kx, *ky;             /* (N + 8) knots of one envelope: positions, half values */
+    double *hk, *sl, *m, *cp, *dp; /* (N + 8) spline spacings, slopes, M / 6, Thomas sweep */
+    int64_t *pmax, *pmin;        /* (N) extremum positions */
+} Work;
+
+static int sign_of(double d) { return (d > 0.0) - (d < 0.0); }
+
+/* round(v / 2) for v >= 0, half to even, as np.round and torch.round do. */
+static int64_t half_even(int64_t v) { return (v / 2) + ((v & 1) && ((v / 2) & 1)); }
+
+/* §1.4 Extrema, 'simple'. A flat run between non-zero differences j and e (e == j + 1 is the
+ * strict case) gives one extremum at round((j + 1 + e) / 2) when their signs differ. Quirks:
+ * (1) a run starting at difference 1 is dropped; (2) a run starting at difference 0 takes the
+ * last difference as its entry slope (wrap-around); (3) a run reaching the end is dropped. */
+static void find_extrema(const double *h, int64_t n, Work *w, int64_t *na, int64_t *nb) {
+    int64_t a = 0, b = 0, j = -1, e;
+    int sj = 0;
+    for (e = 0; e < n - 1; e++) {
+        int se = sign_of(h[e + 1] - h[e]);
+        if (se == 0) continue;
+        if (j < 0) { /* first non-zero difference: quirk 2 when d[0] == 0 */
+            int last = sign_of(h[n - 1] - h[n - 2]);
+            if (e > 0 && last * se < 0) {
+                if (last > 0) w->pmax[a++] = half_even(e);
+                else w->pmin[b++] = half_even(e);
+            }
+        } else if (sj * se < 0 && !(j == 0 && e > 1)) { /* quirk 1: j == 0 with a gap */
+            int64_t mid = half_even(j + 1 + e);
+            if (sj > 0) w->pmax[a++] = mid;
+            else w->pmin[b++] = mid;
+        }
+        j = e;
+        sj = se;
+    }
+    *na = a;
+    *nb = b;
+}
+
+/* Up to 3 source samples of one side of one envelope, in PyEMD's order. */
+typedef struct {
+    int64_t i[3];
+    int n;
+} Src;
+
+/* src = list[lo:hi] reversed (numpy slice bounds: clamped, empty when hi <= lo). */
+static void take_rev(Src *s, const int64_t *list, int64_t len, int64_t lo, int64_t hi) {
+    s->n = 0;
+    if (lo < 0) lo = 0;
+    if (hi > len) hi = len;
+    for (int64_t k = hi - 1; k >= lo && s->n < 3; k--) s->i[s->n++] = list[k];
+}
+
+static void push(Src *s, int64_t i) {
+    if (s->n < 3) s->i[s->n++] = i;
+}
+
+/* An empty source list is replaced by the whole list (one element whenever it happens). */
+static void or_whole(Src *s, const int64_t *list, int64_t len) {
+    if (s->n == 0 && len > 0) {
+        s->i[0] = list[0];
+        s->n = 1;
+    }
+}
+
+/* §1.5 Boundary: the mirrored sources and symmetry points of both envelopes at both ends
+ * (PyEMD prepare_points_simple, a port of Rilling's boundary_conditions.m). P: maxima (a),
+ * Q: minima (b), both non-empty. */
+static void boundary(const double *S, int64_t n, const int64_t *P, int64_t a, const int64_t *Q,
+                     int64_t b, Src *lmax, Src *lmin, int64_t *lsym, Src *rmax, Src *rmin,
+                     int64_t *rsym) {
+    const int64_t n1 = n - 1;
+    /* Left side: cases A1, A2 (first extremum a maximum), B1, B2 (a minimum). */
+    if (P[0] < Q[0]) {
+        if (S[0] > S[Q[0]]) { /* A1 */
+            take_rev(lmax, P, a, 1, 3); take_rev(lmin, Q, b, 0, 2); *lsym = P[0];
+        } else { /* A2 */
+            take_rev(lmax, P, a, 0, 2); take_rev(lmin, Q, b, 0, 1); push(lmin, 0); *lsym = 0;
+        }
+    } else {
+        if (S[0] < S[P[0]]) { /* B1 */
+            take_rev(lmax, P, a, 0, 2); take_rev(lmin, Q, b, 1, 3); *lsym = Q[0];
+        } else { /* B2 */
+            take_rev(lmax, P, a, 0, 1); push(lmax, 0); take_rev(lmin, Q, b, 0, 2); *lsym = 0;
+        }
+    }
+    /* Right side: cases C1, C2 (last extremum a minimum), D1, D2 (a maximum). */
+    if (P[a - 1] < Q[b - 1]) {
+        if (S[n1] < S[P[a - 1]]) { /* C1 */
+            take_rev(rmax, P, a, a - 2, a); take_rev(rmin, Q, b, b - 3, b - 1); *rsym = Q[b - 1];
+        } else { /* C2: P[a-1:a] + [N1], reversed */
+            rmax->n = 0; push(rmax, n1); push(rmax, P[a - 1]);
+            take_rev(rmin, Q, b, b - 2, b); *rsym = n1;
+        }
+    } else {
+        if (S[n1] > S[Q[b - 1]]) { /* D1 */
+            take_rev(rmax, P, a, a - 3, a - 1); take_rev(rmin, Q, b, b - 2, b); *rsym = P[a - 1];
+        } else { /* D2: Q[b-1:b] + [N1], reversed */
+            take_rev(rmax, P, a, a - 2, a); rmin->n = 0; push(rmin, n1); push(rmin, Q[b - 1]);
+            *rsym = n1;
+        }
+    }
+    or_whole(lmin, Q, b); or_whole(rmin, Q, b); or_whole(lmax, P, a); or_whole(rmax, P, a);
+    /* Left fallback: the outermost mirrored knot of either list does not reach past sample 0. */
+    if (2 * *lsym - lmin->i[0] > 0 || 2 * *lsym - lmax->i[0] > 0) {
+        if (*lsym == P[0]) take_rev(lmax, P, a, 0, 2);
+        else take_rev(lmin, Q, b, 0, 2);
+        *lsym = 0;
+    }
+    /* Right fallback: the same past sample N - 1. */
+    if (2 * *rsym - rmin->i[rmin->n - 1] < n1 || 2 * *rsym - rmax->i[rmax->n - 1] < n1) {
+        if (*rsym == P[a - 1]) take_rev(rmax, P, a, a - 2, a);
+        else take_rev(rmin, Q, b, b - 2, b);
+        *rsym = n1;
+    }
+}
+
+/* Knots of one envelope: [left mirrored | interior | right mirrored], ascending, adjacent
+ * duplicate positions dropped (they carry the same sample). Returns the knot count. */
+static int64_t knots(const double *S, const Src *l, int64_t lsym, const int64_t *E, int64_t ne,
+                     const Src *r, int64_t rsym, double *kx, double *ky) {
+    int64_t k = 0;
+    for (int pass = 0; pass < 3; pass++) {
+        int64_t cnt = pass == 0 ? l->n : pass == 1 ? ne : r->n;
+        for (int64_t i = 0; i < cnt; i++) {
+            int64_t src = pass == 0 ? l->i[i] : pass == 1 ? E[i] : r->i[i];
+            int64_t pos = pass == 0 ? 2 * lsym - src : pass == 1 ? src : 2 * rsym - src;
+            if (k > 0 && (double)pos <= kx[k - 1]) continue; /* duplicate (never descending) */
+            kx[k] = (double)pos;
+            ky[k] = 0.5 * S[src];
+            k++;
+        }
+    }
+    return k;
+}
+
+/* §1.6 Spline: the cubic spline through n knots, not-a-knot for n > 3, natural for n == 3,
+ * added into out[0..N-1] (the knots span [0, N-1]). Solved for m = M / 6 (the second
+ * derivatives over 6) by the Thomas algorithm on the eliminated system of §4.6, which is
+ * strictly diagonally dominant; evaluated in scipy's local power basis. */
+static void spline_add(const double *kx, const double *ky, int64_t n, int64_t len, Work *w,
+                       double *out) {
+    double *hk = w->hk, *sl = w->sl, *m = w->m, *cp = w->cp, *dp = w->dp;
+    if (n < 3) { /* unreachable with > 2 extrema; a line (or a constant) keeps it defined */
+        for (int64_t t = 0; t < len; t++) {
+            double v = n == 0 ? 0.0 : ky[0];
+            if (n == 2) v += (ky[1] - ky[0]) / (kx[1] - kx[0]) * ((double)t - kx[0]);
+            out[t] += v;
+        }
+        return;
+    }
+    for (int64_t k = 0; k < n - 1; k++) {
+        hk[k] = kx[k + 1] - kx[k];
+        sl[k] = (ky[k + 1] - ky[k]) / hk[k];
+    }
+    m[0] = m[n - 1] = 0.0;
+    if (n == 3) { /* natural: m0 = m2 = 0 */
+        m[1] = (sl[1] - sl[0]) / (2.0 * (hk[0] + hk[1]));
+    } else {
+        /* rows j = 1 .. n-2: h[j-1] m[j-1] + 2 (h[j-1] + h[j]) m[j] + h[j] m[j+1] = s[j] - s[j-1];
+         * not-a-knot eliminates m[0] from row 1 and m[n-1] from row n-2. */
+        const double h0 = hk[0], h1 = hk[1], hq = hk[n - 3], hl = hk[n - 2];
+        for (int64_t j = 1; j <= n - 2; j++) {
+            double a = hk[j - 1], b = 2.0 * (hk[j - 1] + hk[j]), c = hk[j];
+            const double r = sl[j] - sl[j - 1];
+            if (j == 1) {
+                a = 0.0;
+                b = (h0 + h1) * (h0 + 2.0 * h1) / h1;
+                c = (h1 * h1 - h0 * h0) / h1;
+            }
+            if (j == n - 2) {
+                c = 0.0;
+                b = (hq + hl) * (2.0 * hq + hl) / hq;
+                a = (hq * hq - hl * hl) / hq;
+            }
+            const double den = b - (j > 1 ? a * cp[j - 1] : 0.0);
+            cp[j] = c / den;
+            dp[j] = (r - (j > 1 ? a * dp[j - 1] : 0.0)) / den;
+        }
+        m[n - 2] = dp[n - 2];
+        for (int64_t j = n - 3; j >= 1; j--) m[j] = dp[j] - cp[j] * m[j + 1];
+        m[0] = ((h0 + h1) * m[1] - h0 * m[2]) / h1;        /* not-a-knot, left */
+        m[n - 1] = ((hq + hl) * m[n - 2] - hl * m[n - 3]) / hq; /* and right */
+    }
+    int64_t k = 0;
+    for (int64_t t = 0; t < len; t++) {
+        const double tt = (double)t;
+        while (k < n - 2 && kx[k + 1] <= tt) k++;
+        const double B = tt - kx[k];
+        const double c2 = 3.0 * m[k], c3 = (m[k + 1] - m[k]) / hk[k];
+        const double c1 = sl[k] - hk[k] * (2.0 * m[k] + m[k + 1]);
+        out[t] += ky[k] + B * (c1 + B * (c2 + B * c3));
+    }
+}
+
+/* §1.3 One sift of h: h -= (upper + lower) / 2. Returns 0 when h has 2 extrema or fewer
+ * (h is then left as it is: the row's decomposition is finished). */
+static int sift(double *h, int64_t n, Work *w) {
+    int64_t a, b;
+    find_extrema(h, n, w, &a, &b);
+    /* a + b > 2 implies both kinds (they alternate); the guard keeps it so on any input */
+    if (a + b <= 2 || a == 0 || b == 0) return 0;
+    Src lmax, lmin, rmax, rmin;
+    int64_t lsym, rsym;
+    boundary(h, n, w->pmax, a, w->pmin, b, &lmax, &lmin, &lsym, &rmax, &rmin, &rsym);
+    memset(w->mean, 0, (size_t)n * sizeof(double));
+    int64_t k = knots(h, &lmax, lsym, w->pmax, a, &rmax, rsym, w->kx, w->ky);
+    spline_add(w->kx, w->ky, k, n, w, w->mean);
+    k = knots(h, &lmin, lsym, w->pmin, b, &rmin, rsym, w->kx, w->ky);
+    spline_add(w->kx, w->ky, k, n, w, w->mean);
+    for (int64_t t = 0; t < n; t++) h[t] -= w->mean[t];
+    return 1;
+}
+
+/* §1.2 Outer loop of one row: IMF after IMF, n_sifts sifts each. imfs (n_imfs, n) and
+ * residue (n) are written; returns n_valid. */
+static int64_t emd_row(const double *x, int64_t n, int n_imfs, int n_sifts, Work *w,
+                       double *imfs, double *residue) {
+    int64_t n_valid = 0;
+    int alive = n >= 3;
+    memset(imfs, 0, (size_t)n_imfs * (size_t)n * sizeof(double));
+    memset(w->acc, 0, (size_t)n * sizeof(double));
+    for (int k = 0; k < n_imfs && alive; k++) {
+        for (int64_t t = 0; t < n; t++) w->h[t] = x[t] - w->acc[t];
+        for (int s = 0; s < n_sifts && alive; s++) alive = sift(w->h, n, w);
+        if (!alive) break; /* a sift found <= 2 extrema: this IMF is dropped */
+        double lo = INFINITY, hi = -INFINITY, sum = 0.0;
+        for (int64_t t = 0; t < n; t++) {
+            imfs[(int64_t)k * n + t] = w->h[t];
+            w->acc[t] += w->h[t];
+            const double r = x[t] - w->acc[t];
+            lo = r < lo ? r : lo;
+            hi = r > hi ? r : hi;
+            sum += fabs(r);
+        }
+        n_valid++;
+        /* written as "stays alive while >=" so that NaN ends the row, as in the torch module */
+        alive = (hi - lo >= RANGE_THR) && (sum >= POWER_THR);
+    }
+    for (int64_t t = 0; t < n; t++) residue[t] = x[t] - w->acc[t];
+    return n_valid;
+}
+
+static void work_free(Work *w) {
+    free(w->h); free(w->acc); free(w->mean); free(w->kx); free(w->ky); free(w->hk);
+    free(w->sl); free(w->m); free(w->cp); free(w->dp); free(w->pmax); free(w->pmin);
+}
+
+static int work_alloc(Work *w, int64_t n) {
+    memset(w, 0, sizeof *w);
+    const size_t nn = (size_t)n + 8, nd = nn * sizeof(double), ni = nn * sizeof(int64_t);
+    w->h = malloc(nd); w->acc = malloc(nd); w->mean = malloc(nd); w->kx = malloc(nd);
+    w->ky = malloc(nd); w->hk = malloc(nd); w->sl = malloc(nd); w->m = malloc(nd);
+    w->cp = malloc(nd); w->dp = malloc(nd); w->pmax = malloc(ni); w->pmin = malloc(ni);
+    if (!w->h || !w->acc || !w->mean || !w->kx || !w->ky || !w->hk || !w->sl || !w->m ||
+        !w->cp || !w->dp || !w->pmax || !w->pmin) {
+        work_free(w);
+        return 0;
+    }
+    return 1;
+}
+
+/* The shared body of both entry points; x, imfs, residue are float (f32) or double. */
+static int emd_batch(const void *x, int f32, int64_t batch, int64_t len, int32_t n_imfs,
+                     int32_t n_sifts, void *imfs, void *residue, int64_t *n_valid) {
+    if (batch < 0 || len < 0 || n_imfs < 1 || n_imfs > TACTILE_EMD_MAX_IMFS || n_sifts < 1 ||
+        n_sifts > TACTILE_EMD_MAX_SIFTS)
+        return TACTILE_EINVAL;
+    if (batch == 0 || len == 0) {
+        if (batch > 0 && !n_valid) return TACTILE_EINVAL;
+        for (int64_t i = 0; i < batch; i++) n_valid[i] = 0;
+        return TACTILE_OK;
+    }
+    if (!x || !imfs || !residue || !n_valid) return TACTILE_EINVAL;
+    /* sizes: every output index fits in size_t and int64 (len * 16 * batch) */
+    const uint64_t cap = (uint64_t)(SIZE_MAX < INT64_MAX ? SIZE_MAX : INT64_MAX) / 64u;
+    if ((uint64_t)len > cap / (uint64_t)n_imfs ||
+        (uint64_t)batch > cap / ((uint64_t)len * (uint64_t)n_imfs))
+        return TACTILE_EINVAL;
+    Work w;
+    if (!work_alloc(&w, len)) return TACTILE_ENOMEM;
+    double *row = malloc((size_t)len * sizeof(double));
+    double *out = malloc(((size_t)n_imfs + 1) * (size_t)len * sizeof(double));
+    if (!row || !out) {
+        free(row); free(out); work_free(&w);
+        return TACTILE_ENOMEM;
+    }
+    int status = TACTILE_OK;
+    for (int64_t i = 0; i < batch; i++) {
+        int finite = 1;
+        for (int64_t t = 0; t < len; t++) {
+            const int64_t at = i * len + t;
+            row[t] = f32 ? (double)((const float *)x)[at] : ((const double *)x)[at];
+            finite &= isfinite(row[t]) != 0;
+        }
+        if (finite) {
+            n_valid[i] = emd_row(row, len, n_imfs, n_sifts, &w, out, out + (int64_t)n_imfs * len);
+        } else { /* no IMFs, residue = x */
+            status = TACTILE_ENONFINITE;
+            n_valid[i] = 0;
+            memset(out, 0, (size_t)n_imfs * (size_t)len * sizeof(double));
+            memcpy(out + (int64_t)n_imfs * len, row, (size_t)len * sizeof(double));
+        }
+        const int64_t ni = (int64_t)n_imfs * len;
+        for (int64_t t = 0; t < ni + len; t++) {
+            if (f32) {
+                if (t < ni) ((float *)imfs)[i * ni + t] = (float)out[t];
+                else ((float *)residue)[i * len + t - ni] = (float)out[t];
+            } else {
+                if (t < ni) ((double *)imfs)[i * ni + t] = out[t];
+                else ((double *)residue)[i * len + t - ni] = out[t];
+            }
+        }
+    }
+    free(row); free(out); work_free(&w);
+    return status;
+}
+
+int tactile_emd_f64(const double *x, int64_t batch, int64_t length, int32_t n_imfs,
+                    int32_t n_sifts, double *imfs, double *residue, int64_t *n_valid) {
+    return emd_batch(x, 0, batch, length, n_imfs, n_sifts, imfs, residue, n_valid);
+}
+
+int tactile_emd_f32(const float *x, int64_t batch, int64_t length, int32_t n_imfs,
+                    int32_t n_sifts, float *imfs, float *residue, int64_t *n_valid) {
+    return emd_batch(x, 1, batch, length, n_imfs, n_sifts, imfs, residue, n_valid);
+}
+
+int tactile_native_abi(void) { return TACTILE_NATIVE_ABI; }
