@@ -149,21 +149,42 @@ board "$VENV/bin/python" -c 'import platform, onnxruntime, numpy, serial, sys
 print(f"machine {platform.machine()}, Python {platform.python_version()}, onnxruntime "
       f"{onnxruntime.__version__}, numpy {numpy.__version__}, pyserial {serial.VERSION}")
 assert "torch" not in sys.modules' | tee "$CACHE/versions.txt" >&2
+# the native kernels, compiled by the root's own gcc while pip built the package
+board "$VENV/bin/python" -c 'from tactile import native
+assert native.available(), "the native kernel library was not built on the board"
+print(f"native kernels: {native.library_path()}")' >&2 || die "no native kernel library on the board"
 
-# --- 5. every command answers --version ---------------------------------------------------------------
+# --- 5. the kernels' parity tests, on the board ------------------------------------------------
+step "native kernel tests (pytest)"
+TESTVENV=/opt/tactile-test-venv   # a second venv: the runtime's stays as a board installs it
+[ -x "$ROOT$TESTVENV/bin/python" ] || board /usr/bin/python3 -m venv "$TESTVENV"
+# shellcheck disable=SC2086
+board "$TESTVENV/bin/python" -m pip install -q $deps pytest "EMD-signal==1.10.0" scikit-learn \
+  >"$CACHE/pip-test.log" 2>&1 && board "$TESTVENV/bin/python" -m pip install -q --no-deps \
+  --force-reinstall /opt/tactile-src >>"$CACHE/pip-test.log" 2>&1 \
+  || { tail -5 "$CACHE/pip-test.log" >&2; die "pip could not set up the test venv"; }
+# ASan and LeakSanitizer need a real kernel's memory map: qemu's user mode cannot host them, so
+# the sanitizer test runs on x86 only; torch is not installed here, so its comparisons skip
+chroot "$ROOT" /usr/bin/env -i PATH="$TESTVENV/bin:/usr/bin:/bin" HOME=/root LANG=C.UTF-8 \
+  sh -c "cd /opt/tactile-src && python -m pytest -q -p no:cacheprovider tests/test_native.py \
+  -k 'not sanitizers'" >"$CACHE/pytest-native.txt" 2>&1 \
+  || { tail -15 "$CACHE/pytest-native.txt" >&2; die "the native kernel tests failed on the board"; }
+say "  $(tail -1 "$CACHE/pytest-native.txt")"
+
+# --- 6. every command answers --version ---------------------------------------------------------------
 step "every command --version"
 for cmd in $("$PYTHON" -c 'import tomllib; print(" ".join(tomllib.load(open("pyproject.toml", "rb"))["project"]["scripts"]))'); do
   out=$(board "$VENV/bin/$cmd" --version) || die "$cmd --version failed on the board"
   say "  $out"
 done
 
-# --- 6. tactile-check on the shipped model -------------------------------------------------------
+# --- 7. tactile-check on the shipped model -------------------------------------------------------
 step "tactile-check (shipped model)"
 mkdir -p "$ROOT/opt/check"
 cp models/pen-exp2.onnx "$ROOT/opt/check/"
 board "$VENV/bin/tactile-check" /opt/check/pen-exp2.onnx >&2 || die "tactile-check failed on the board"
 
-# --- 7. tactile-run on the simulated pen through a pseudo-terminal --------------------------------
+# --- 8. tactile-run on the simulated pen through a pseudo-terminal --------------------------------
 step "tactile-run on a pty (5 s)"
 chroot "$ROOT" /usr/bin/env -i PATH="$VENV/bin:/usr/bin:/bin" HOME=/root PYTHONUNBUFFERED=1 \
   "$VENV/bin/tactile-sim" --pty --texture paper --seed 1 >"$CACHE/sim.out" 2>"$CACHE/sim.err" &
@@ -177,7 +198,7 @@ n=$(grep -c ' s  #' "$CACHE/run-pty.txt" || true)
 [ "$n" -ge 1 ] || die "tactile-run on the pty printed no label"
 say "  $n labels on $pty, e.g.: $(grep -m1 ' s  #' "$CACHE/run-pty.txt")"
 
-# --- 8. the same take replayed here and there: EMD and SF-RNN models ---------------------------------
+# --- 9. the same take replayed here and there: EMD and SF-RNN models ---------------------------------
 step "models to replay (exported here)"
 "$PYTHON" scripts/aarch64_models.py "$CACHE/models" >&2 || die "could not make the models to replay"
 rm -rf "$ROOT/opt/check/models" && cp -r "$CACHE/models" "$ROOT/opt/check/models"

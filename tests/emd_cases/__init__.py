@@ -9,7 +9,6 @@ from __future__ import annotations
 from functools import cache
 
 import numpy as np
-import torch
 
 N_IMFS = 4
 N_SIFTS = 10
@@ -116,18 +115,23 @@ def compare(x, imfs, residue, n_valid, refs=None):
     return np.asarray(same), np.asarray(rel)
 
 
-def run_torch(x: np.ndarray, dtype=torch.float64, chunk: int | None = None):
+def run_torch(x: np.ndarray, dtype=None, chunk: int | None = None):
     """Our EMD on (W, N) windows, one channel each; numpy outputs.
 
     ``chunk``: windows per call (default: all at once). The sift's tensor layout follows the
     row count (``spline.LARGE_ROWS``), so chunks below it exercise the few-row layout and large
-    calls the many-row one.
+    calls the many-row one. ``dtype``: a torch dtype, float64 by default (torch is imported
+    here, so the material above serves a machine without it: the native kernels' tests on a
+    board).
 
     Runs with one torch thread: on a busy 2-core machine, torch's default thread pool can be
     fifty times slower on these small kernels.
     """
+    import torch
+
     from tactile.training.emd import EMD
 
+    dtype = torch.float64 if dtype is None else dtype
     step = chunk or len(x)
     threads = torch.get_num_threads()
     torch.set_num_threads(1)
