@@ -646,8 +646,10 @@ def test_replay_and_csv_output(models):
     assert code == 0, err
     rows = out.splitlines()
     assert rows[0].startswith("t,seq,label,p,latency_ms,smoothed,")
-    assert len(rows) - 1 == (600 - 50) // 25 + 1
-    assert all(r.split(",")[5] for r in rows[1:])  # smoothed label present
+    windows = [r for r in rows[1:] if r.split(",")[2]]  # the stable label's changes are rows too
+    assert len(windows) == (600 - 50) // 25 + 1
+    assert all(r.split(",")[5] for r in windows)  # smoothed label present
+    assert all(r.split(",")[-1].startswith("change from=") for r in rows[1:] if r not in windows)
 
 
 def test_contract_errors_have_clear_messages_and_exit_codes(models, tmp_path):

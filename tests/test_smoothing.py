@@ -73,7 +73,7 @@ def test_the_smooth_option_and_overrides_of_a_models_defaults():
     assert parse_smooth_option("ema:0.5") == {"n": None, "tau": 0.5}
     assert parse_smooth_option(" ma:3 ") == {"n": 3, "tau": None}
     for bad, says in (("-1", "expected N"), ("x", "expected N"), ("s", "expected N"),
-                      ("1.5 s", "expected N"), ("0", "n 0"), ("0s", "tau 0.0"),
+                      ("1.5:s", "expected N"), ("0", "n 0"), ("0s", "tau 0.0"),
                       ("infs", "tau inf"), ("ema:-1", "tau -1.0")):
         with pytest.raises(ConfigError, match=says) as e:
             parse_smooth_option(bad)
