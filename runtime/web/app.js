@@ -9,7 +9,7 @@
 const SPAN_S = 10;           // seconds of each channel shown
 const STRIP_S = 60;          // seconds of labels in the strip
 // class colours, in the order of the model's classes (the label objects' `probs` keys)
-const PALETTE = ["#2f6fdf", "#1c8a4a", "#e8a317", "#8a3fd1", "#d1493f", "#1a9fb0", "#7a8a1c",
+const PALETTE = ["#2f6fdf", "#1c8a4a", "#1a9fb0", "#8a3fd1", "#d1493f", "#e8a317", "#7a8a1c",
                  "#d14f9c", "#5a6b85", "#8c5a2b"];
 const UNCERTAIN_COLOUR = "#c4c9d1";  // no stable label: grey
 const GAP_COLOUR = "#1d2430";        // a gap, a reconnection, a stall: a dark tick (then blank)
