@@ -1,7 +1,8 @@
 """The per-stream object: samples in, one label per window out.
 
-A :class:`Stream` holds one pen's ring buffer and LSTM state; the model object it calls is
-stateless and may be shared by many streams. Four verbs: :meth:`Stream.accept` samples,
+A :class:`Stream` holds one pen's ring buffer and LSTM state, and optionally its labels'
+:class:`~tactile.runtime.smoothing.PostProcessor`, reset with the state; the model object it
+calls is stateless and may be shared by many streams. Four verbs: :meth:`Stream.accept` samples,
 :meth:`Stream.ready`, :meth:`Stream.classify`, :meth:`Stream.reset` (plus :meth:`Stream.gap`
 when samples were lost). The serial loop is a few lines over it, and tests drive it with arrays.
 """
@@ -132,6 +133,7 @@ class Stream:
             self.post.reset(self._reason)
 
     def _clear(self) -> None:
+        """Empty buffer, zero state (the post-processor is :meth:`reset`'s business)."""
         self._buf = np.zeros((0, self.channels), np.float32)  # samples from index _base on
         self._seq = np.zeros(0, np.int64)
         self._t = np.zeros(0, np.int64)
