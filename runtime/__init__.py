@@ -4,9 +4,12 @@
 ``to_units(info, raw)`` (:func:`tactile.runtime.units.to_units`) converts counts to units.
 :class:`~tactile.runtime.model.Model` (the exported model, stateless) and
 :class:`~tactile.runtime.stream.Stream` (one pen's windows and state) are the pieces
-``tactile-run`` is made of; :class:`~tactile.runtime.runner.Runner` drives them from a pen's
-decoded events (:func:`~tactile.runtime.runner.read_pen`, the serial loop;
-:func:`~tactile.runtime.runner.replay`, a recorded take); :class:`~tactile.runtime.live.Live`
+``tactile-run`` is made of, with :class:`~tactile.runtime.smoothing.PostProcessor` (a
+stream's averaged, stable label and its changes;
+:class:`~tactile.runtime.smoothing.SmoothingSettings`);
+:class:`~tactile.runtime.runner.Runner` drives them from a pen's decoded events
+(:func:`~tactile.runtime.runner.read_pen`, the serial loop; :func:`~tactile.runtime.runner.replay`,
+a recorded take); :class:`~tactile.runtime.live.Live`
 is the live web page. Each name is imported on first use, so that
 ``import tactile.runtime.stream`` stays light. The command lines are in
 :mod:`tactile.runtime.commands`.
@@ -19,8 +22,10 @@ _HOME = {
     "to_units": "units",
     "Model": "model",
     "Label": "stream",
-    "Smoother": "stream",
     "Stream": "stream",
+    "PostProcessor": "smoothing",
+    "SmoothingSettings": "smoothing",
+    "UNCERTAIN": "smoothing",
     "Printer": "runner",
     "Runner": "runner",
     "Summary": "runner",

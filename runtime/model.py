@@ -13,6 +13,7 @@ import onnxruntime as ort
 
 from tactile.contract import BATCH, ModelContract, model_file
 from tactile.errors import ConfigError, ModelContractError
+from tactile.runtime.smoothing import settings_from_metadata
 
 
 def session_options(threads: int = 1) -> ort.SessionOptions:
@@ -51,7 +52,13 @@ class Model:
     running it on a zero window (batch 1, the runtime's) gives outputs of other shapes or types
     than the contract declares (:meth:`check_outputs`): onnxruntime does not enforce a graph's
     declared output shapes, so a file can declare 5 classes and return 7 probabilities.
-    :meth:`classify` checks every result the same way.
+    :meth:`classify` checks every result the same way. So is a file whose ``postprocess.*``
+    keys are incomplete or bad (:func:`~tactile.runtime.smoothing.settings_from_metadata`).
+
+    Attributes: ``contract`` (:class:`~tactile.contract.ModelContract`), ``metadata`` (all of
+    the file's ``metadata_props``, str -> str), ``postprocess`` (the label stream's
+    post-processing defaults, a :class:`~tactile.runtime.smoothing.SmoothingSettings`, or None
+    for a file without ``postprocess.*`` keys), ``path``, ``session``.
     """
 
     def __init__(self, path: str | os.PathLike, threads: int = 1,
@@ -79,8 +86,13 @@ class Model:
                 [(i.name, i.type, i.shape) for i in self.session.get_inputs()],
                 [(o.name, o.type, o.shape) for o in self.session.get_outputs()],
             )
+            postprocess = settings_from_metadata(meta)
         except ModelContractError as e:
             raise ModelContractError(f"{path}: {e}") from None
+        self.metadata: dict[str, str] = dict(meta)
+        # the label stream's post-processing defaults the file carries (``postprocess.*``,
+        # calibrated at export), or None: an older file, run without post-processing
+        self.postprocess = postprocess
         self.path = path
         self.probe(1)  # the runtime's batch size, first: a session keeps its first size fast
 

@@ -5,14 +5,15 @@ from __future__ import annotations
 import math
 import os
 import time
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Iterator, Mapping
 
 import tactile.device  # noqa: F401  (registers sim://)
 from tactile.device.link import Connection, LinkSettings
 from tactile.device.protocol import StreamDecoder
 from tactile.runtime.model import Model
-from tactile.runtime.runner import Runner, Summary
-from tactile.runtime.stream import Label, Smoother, Stream
+from tactile.runtime.runner import Runner, Summary, post_processor
+from tactile.runtime.smoothing import SmoothingSettings
+from tactile.runtime.stream import Label, Stream
 
 
 class _Collect:
@@ -35,7 +36,7 @@ def labels(
     model: Model | str | os.PathLike,
     *,
     hop: int | None = None,
-    smoother: Smoother | None = None,
+    smoothing: SmoothingSettings | Mapping | str | None = None,
     baud: int = 115200,
     seconds: float = math.inf,
     reconnect: bool = True,
@@ -56,9 +57,19 @@ def labels(
     header, its USB serial number when it has one; another device that takes its name is
     refused). ``on_event`` gets ``("gap", {"seq", "missing", "reason"})``,
     ``("stall", {"seconds"})`` (no data for ``stall_timeout`` s, once per silence) and
-    ``("reconnect", {"port"})``; ``say``, if given, the diagnostic lines ``tactile-run`` writes
-    on stderr (lost, waiting, refused). It stops after ``seconds`` (wall time) or when the
-    caller stops iterating (the port is then closed).
+    ``("reconnect", {"port"})`` and ``("change", {"from", "to", "t", "seq"})`` (the stable
+    label changed; ``from`` None after a reset); ``say``, if given, the diagnostic lines
+    ``tactile-run`` writes on stderr (lost, waiting, refused). It stops after ``seconds`` (wall
+    time) or when the caller stops iterating (the port is then closed).
+
+    Each label is post-processed as ``tactile-run`` does it
+    (:func:`~tactile.runtime.runner.post_processor`): ``smoothing`` None takes the model's
+    defaults (a file without ``postprocess.*`` metadata: raw labels, ``lab.smoothed`` None);
+    ``"raw"`` none; a :class:`~tactile.runtime.smoothing.SmoothingSettings` that setting; a dict
+    of ``smooth`` (``"5"`` windows, ``"1.5s"``), ``p_min``, ``hold`` those in place of the
+    model's, as the options ``--smooth``, ``--p-min``, ``--hold``. ``lab.smoothed.label`` is then
+    the stable label or ``"uncertain"``, with ``.p``, ``.stable`` and ``.reset`` (the reason of
+    a reset just before this window: ``"gap"``, ``"restart"``, ``"reconnect"``).
 
     Example::
 
@@ -67,13 +78,18 @@ def labels(
         for lab in labels("/dev/ttyACM0", "model.onnx"):
             print(lab.seq, lab.label, round(lab.probability, 2))   # or lab.probabilities
 
+        for lab in labels("/dev/ttyACM0", "model.onnx", smoothing={"smooth": "5", "p_min": 0.6,
+                                                                     "hold": 2}):
+            print(lab.seq, lab.smoothed.label)                     # stable, or "uncertain"
+
     Raises :class:`~tactile.errors.DeviceError` if the port cannot be opened (or, without
     ``reconnect``, is lost: after the labels of the bytes that came before the loss).
     """
     if not isinstance(model, Model):
         model = Model(model)
     out = _Collect(on_event)
-    runner = Runner(model, Stream.for_model(model, hop, smoother), out, Summary())
+    post = post_processor(model, smoothing)
+    runner = Runner(model, Stream.for_model(model, hop, post), out, Summary())
     decoder = StreamDecoder(csv_rate_hz=model.contract.sample_rate_hz)
     deadline = time.monotonic() + seconds
     settings = LinkSettings(port, baud, reconnect=reconnect, stall_timeout=stall_timeout)

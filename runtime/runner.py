@@ -2,8 +2,9 @@
 
 :class:`Runner` takes a pen's decoded events in order (headers, samples, gaps, and the link's
 stalls and reconnections), checks the device against the model's contract
-(:func:`check_device`), classifies each window and hands labels and events to a
-:class:`Printer` (stdout) and a :class:`Summary` (counters). Two loops feed it:
+(:func:`check_device`), classifies each window (post-processed by the stream's
+:class:`~tactile.runtime.smoothing.PostProcessor`, :func:`post_processor`) and hands labels and
+events to a :class:`Printer` (stdout) and a :class:`Summary` (counters). Two loops feed it:
 :func:`read_pen`, the serial loop over a :class:`~tactile.device.link.connection.Connection` (it
 reconnects to the same pen only), and :func:`replay`, a recorded take as fast as it can.
 Diagnostics (:func:`say`) go to stderr, prefixed ``tactile-run:``.
@@ -17,15 +18,16 @@ import math
 import sys
 import time
 from collections import Counter
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import tactile.device  # noqa: F401  (registers sim://)
 from tactile.device.link import Connection, LinkSettings, Reconnected, Stall, find_port, keep_trying
 from tactile.device.protocol import DeviceInfo, Gap, Header, Samples, StreamDecoder
-from tactile.errors import ModelContractError, RecordingError
+from tactile.errors import ConfigError, ModelContractError, RecordingError
 from tactile.runtime.model import Model
+from tactile.runtime.smoothing import PostProcessor, SmoothingSettings, override
 from tactile.runtime.stream import Label, Stream
 from tactile.runtime.units import to_units
 
@@ -58,45 +60,94 @@ class Summary:
 
 
 class Printer:
-    """Writes labels and events in the chosen format, flushing each line."""
+    """Writes labels and events in the chosen format, flushing each line.
 
-    def __init__(self, fmt: str, classes: tuple[str, ...], out=None) -> None:
+    ``smoothed``: the labels carry a post-processor's result (``tactile-run`` without ``--raw``,
+    with settings from the options or the model): CSV then has the columns ``smoothed_p``,
+    ``stable`` and ``reset`` after ``smoothed``, and a text line ends with the smoothed label.
+    Without it the output is the raw stream's alone (the ``smoothed`` column stays empty).
+    """
+
+    def __init__(self, fmt: str, classes: tuple[str, ...], out=None,
+                 smoothed: bool = False) -> None:
         # sys.stdout as it is now, not as it was at import (contextlib.redirect_stdout works)
         out = sys.stdout if out is None else out
-        self.fmt, self.classes, self.out = fmt, classes, out
+        self.fmt, self.classes, self.out, self.smoothed = fmt, classes, out, smoothed
         if fmt == "csv":  # an event is a row of its own: its seq (if any) and `event` filled
             self._csv = csv.writer(out, lineterminator="\n")  # quotes what needs quoting
-            self._row(["t", "seq", "label", "p", "latency_ms", "smoothed", *classes, "event"])
+            extra = ["smoothed_p", "stable", "reset"] if smoothed else []
+            self._row(["t", "seq", "label", "p", "latency_ms", "smoothed", *extra, *classes,
+                       "event"])
 
     def _row(self, cells: list) -> None:
         self._csv.writerow(cells)
         self.out.flush()
 
     def label(self, lab: Label) -> None:
+        sm = lab.smoothed if self.smoothed else None
         if self.fmt == "csv":
+            extra = [] if not self.smoothed else ["", "", ""] if sm is None else \
+                [f"{sm.p:.6f}", str(sm.stable).lower(), sm.reset or ""]
             self._row([f"{lab.t_us / 1e6:.6f}", lab.seq, lab.label, f"{lab.probability:.6f}",
-                       f"{lab.latency_ms:.3f}", lab.smoothed or "",
+                       f"{lab.latency_ms:.3f}", sm.label if sm is not None else "", *extra,
                        *(f"{lab.probabilities[c]:.6f}" for c in self.classes), ""])
             return
         if self.fmt == "jsonl":
             line = json.dumps(lab.to_dict())
         else:
-            smooth = f" ({lab.smoothed})" if lab.smoothed else ""
-            line = f"{lab.t_us / 1e6:10.2f} s  #{lab.seq:<8d} {lab.label}{smooth}  " \
+            line = f"{lab.t_us / 1e6:10.2f} s  #{lab.seq:<8d} {lab.label}  " \
                    f"p={lab.probability:.3f}"
+            if sm is not None:  # the stable label, or `uncertain` and the leading class
+                line += f"  -> {sm.label} p={sm.p:.3f}" if sm.stable else \
+                    f"  -> {sm.label} ({sm.leader} p={sm.p:.3f})"
+                if sm.reset is not None:
+                    line += f"  [reset: {sm.reset}]"
         print(line, file=self.out, flush=True)
 
     def event(self, kind: str, **fields) -> None:
-        """Gaps, stalls and reconnects: a JSON object in jsonl mode, a row with the `event`
-        column filled in csv mode, a ``#`` comment line in text mode."""
+        """Gaps, stalls, reconnects and changes of the stable label: a JSON object in jsonl
+        mode, a row with the `event` column filled in csv mode, a ``#`` comment line in text
+        mode."""
         if self.fmt == "jsonl":
             print(json.dumps({"event": kind, **fields}), file=self.out, flush=True)
         elif self.fmt == "csv":
             what = " ".join([kind, *(f"{k}={v}" for k, v in fields.items() if k != "seq")])
-            self._row(["", fields.get("seq", ""), *[""] * (len(self.classes) + 4), what])
+            blank = len(self.classes) + 4 + (3 if self.smoothed else 0)
+            self._row(["", fields.get("seq", ""), *[""] * blank, what])
         else:
             print(f"# {kind} " + " ".join(f"{k}={v}" for k, v in fields.items()),
                   file=self.out, flush=True)
+
+
+def post_processor(model: Model, smoothing=None) -> PostProcessor | None:
+    """The label stream's post-processor for ``model``, or None (raw labels only).
+
+    ``smoothing``: None, the model's defaults (its ``postprocess.*`` metadata; a file without
+    them: None); ``"raw"``, none; a :class:`~tactile.runtime.smoothing.SmoothingSettings`, that;
+    a mapping with any of ``smooth`` (``N`` windows or ``Ts``,
+    :func:`~tactile.runtime.smoothing.parse_smooth_option`),
+    ``p_min`` and ``hold``, those values in place of the model's (as ``tactile-run``'s
+    options). A bad value is a one-line :class:`ConfigError`; a model with a class named
+    ``uncertain`` (reserved) is a :class:`ModelContractError` once post-processing is on.
+    """
+    if isinstance(smoothing, str) and smoothing == "raw":
+        return None
+    if smoothing is None or isinstance(smoothing, SmoothingSettings):
+        settings = model.postprocess if smoothing is None else smoothing
+    elif isinstance(smoothing, Mapping):
+        unknown = sorted(set(smoothing) - {"smooth", "p_min", "hold"})
+        if unknown:
+            raise ConfigError(f"smoothing key {unknown[0]!r}: expected smooth, p_min, hold")
+        settings = override(model.postprocess, **smoothing)
+    else:
+        raise ConfigError(f"smoothing {smoothing!r}: None (the model's), 'raw', a "
+                          "SmoothingSettings or a dict of smooth, p_min, hold")
+    if settings is None:
+        return None
+    try:
+        return PostProcessor(settings, model.contract.classes)
+    except ConfigError as e:  # the reserved class name: the file cannot be post-processed
+        raise ModelContractError(f"{model.path}: {e}") from None
 
 
 def check_device(model: Model, info: DeviceInfo) -> None:
@@ -133,13 +184,17 @@ class Runner:
         self.tap: Callable[[object], None] | None = None  # sees each decoder event (--serve)
 
     def handle(self, events: list) -> None:
-        """Decoder events, and the link's (:mod:`~tactile.device.link.connection`), in order."""
+        """Decoder events, and the link's (:mod:`~tactile.device.link.connection`), in order.
+
+        A reconnection, a restart (a changed header, a ``restart`` gap) and a gap reset the
+        stream (its LSTM state and post-processor, with that reason); a window whose stable
+        label changes is followed by a ``change`` event (``from``, ``to``, ``t``, ``seq``)."""
         for ev in events:
             if self.tap is not None:
                 self.tap(ev)
             if isinstance(ev, Reconnected):  # the same pen, restarted: a new window
                 self.summary.reconnects += 1
-                self.stream.reset()
+                self.stream.reset("reconnect")
                 self.printer.event("reconnect", port=ev.port)
             elif isinstance(ev, Stall):
                 self.summary.stalls += 1
@@ -147,11 +202,11 @@ class Runner:
             elif isinstance(ev, Header):
                 check_device(self.model, ev.info)
                 if ev.changed:
-                    self.stream.reset()
+                    self.stream.reset("restart")
                 self.info = ev.info
             elif isinstance(ev, Gap):
                 self.summary.gaps += 1
-                self.stream.gap()
+                self.stream.gap("restart" if ev.reason == "restart" else "gap")
                 self.printer.event("gap", seq=ev.seq, missing=ev.missing, reason=ev.reason)
             elif isinstance(ev, Samples):
                 if self.info is None:  # no header yet: we cannot check or scale these samples
@@ -167,6 +222,9 @@ class Runner:
                         self.summary.first_label_s = round(
                             time.monotonic() - self.summary.started, 3)
                     self.printer.label(lab)
+                    if lab.smoothed is not None and lab.smoothed.event is not None:
+                        change = dict(lab.smoothed.event)
+                        self.printer.event(change.pop("event"), **change)
 
 
 PEN_POLL_S = 0.5  # how often --wait without --port looks for a pen
@@ -256,5 +314,5 @@ def say(msg: str) -> None:
     print(f"tactile-run: {msg}", file=sys.stderr, flush=True)
 
 
-__all__ = ["PEN_POLL_S", "Printer", "Runner", "Summary", "check_device", "read_pen", "replay",
-           "say", "wait_for_pen"]
+__all__ = ["PEN_POLL_S", "Printer", "Runner", "Summary", "check_device", "post_processor",
+           "read_pen", "replay", "say", "wait_for_pen"]

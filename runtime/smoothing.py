@@ -124,6 +124,41 @@ def make_settings(smooth: str = "ma:1", p_min: float = 0.0, hold: int = 1) -> Sm
     return SmoothingSettings(**parse_smooth(smooth), p_min=p_min, hold=hold)
 
 
+def parse_smooth_option(text: str) -> dict:
+    """The averaging as ``tactile-run --smooth`` takes it: ``N`` (a moving average over N
+    windows), ``Ts`` (an exponential average with a time constant of T s, e.g. ``1.5s``), or the
+    metadata's ``ma:N``/``ema:TAU``; -> ``{"n", "tau"}`` checked as :class:`SmoothingSettings`
+    checks them. Anything else is a one-line :class:`ConfigError`."""
+    t = str(text).strip()
+    try:
+        if t.isdigit():
+            parsed = {"n": int(t), "tau": None}
+        elif t.endswith("s") and ":" not in t:
+            parsed = {"n": None, "tau": float(t[:-1])}
+        else:
+            parsed = parse_smooth(t)
+    except (ValueError, ConfigError):
+        raise ConfigError(f"{text!r}: expected N (a moving average over N windows) or Ts (an "
+                          "exponential average with a time constant of T s, e.g. 1.5s)") from None
+    SmoothingSettings(**parsed)  # n >= 1, tau > 0 and finite
+    return parsed
+
+
+def override(defaults: SmoothingSettings | None, smooth: str | None = None,
+             p_min: float | None = None, hold: int | None = None) -> SmoothingSettings | None:
+    """``defaults`` (a model's, None for a file without any) with the given values in place of
+    its own: ``smooth`` as :func:`parse_smooth_option` reads it, ``p_min``, ``hold``. Nothing
+    given: ``defaults`` as they are (None: no post-processing); a value given over no defaults
+    starts from :class:`SmoothingSettings` () (the raw stream: ma:1, p_min 0, hold 1)."""
+    if smooth is None and p_min is None and hold is None:
+        return defaults
+    base = defaults if defaults is not None else SmoothingSettings()
+    averaging = parse_smooth_option(smooth) if smooth is not None else \
+        {"n": base.n, "tau": base.tau}
+    return SmoothingSettings(**averaging, p_min=base.p_min if p_min is None else p_min,
+                             hold=base.hold if hold is None else hold)
+
+
 @dataclass(frozen=True)
 class Smoothed:
     """The post-processor's result for one window.
@@ -313,6 +348,6 @@ def figures_from_metadata(meta: dict[str, str]) -> dict | None:
 
 __all__ = [
     "CALIBRATION_KEY", "KEYS", "PREFIX", "UNCERTAIN", "VERSION", "PostProcessor", "Smoothed",
-    "SmoothingSettings", "check_classes", "figures_from_metadata", "make_settings",
-    "parse_smooth", "settings_from_metadata", "settings_to_metadata",
+    "SmoothingSettings", "check_classes", "figures_from_metadata", "make_settings", "override",
+    "parse_smooth", "parse_smooth_option", "settings_from_metadata", "settings_to_metadata",
 ]

@@ -1,7 +1,8 @@
 """The per-stream object: samples in, one label per window out.
 
-A :class:`Stream` holds one pen's ring buffer and LSTM state; the model object it calls is
-stateless and may be shared by many streams. Four verbs: :meth:`Stream.accept` samples,
+A :class:`Stream` holds one pen's ring buffer and LSTM state, and optionally its labels'
+:class:`~tactile.runtime.smoothing.PostProcessor`, reset with the state; the model object it
+calls is stateless and may be shared by many streams. Four verbs: :meth:`Stream.accept` samples,
 :meth:`Stream.ready`, :meth:`Stream.classify`, :meth:`Stream.reset` (plus :meth:`Stream.gap`
 when samples were lost). The serial loop is a few lines over it, and tests drive it with arrays.
 """
@@ -10,13 +11,13 @@ from __future__ import annotations
 
 import math
 import time
-from collections import deque
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 import numpy as np
 
 from tactile.errors import ConfigError, ModelContractError
+from tactile.runtime.smoothing import PostProcessor, Smoothed
 
 # (window (1, T, C) float32, h, c) -> (probabilities (1, K), h, c)
 ClassifyFn = Callable[[np.ndarray, np.ndarray, np.ndarray], tuple[np.ndarray, np.ndarray,
@@ -33,9 +34,13 @@ class Label:
     probability: float
     probabilities: dict[str, float]
     latency_ms: float  # wall time of this window's model call (preprocessing + model)
-    smoothed: str | None = None  # label after the optional smoother
+    # the post-processor's result (averaged label, stability, change event), when there is one
+    smoothed: Smoothed | None = None
 
     def to_dict(self) -> dict:
+        """The JSON object of one window: the raw fields (``t`` s, ``seq``, ``label``, ``p``,
+        ``probs``, ``latency_ms``), and with a post-processor ``smoothed`` {``label``, ``p``},
+        ``stable`` and, on the first window after a reset, ``reset`` (its reason)."""
         d = {
             "t": self.t_us / 1e6,
             "seq": self.seq,
@@ -45,38 +50,11 @@ class Label:
             "latency_ms": round(self.latency_ms, 3),
         }
         if self.smoothed is not None:
-            d["smoothed"] = self.smoothed
+            d["smoothed"] = {"label": self.smoothed.label, "p": round(self.smoothed.p, 6)}
+            d["stable"] = self.smoothed.stable
+            if self.smoothed.reset is not None:
+                d["reset"] = self.smoothed.reset
         return d
-
-
-@dataclass
-class Smoother:
-    """Average of the last ``k`` windows' probabilities, with optional hysteresis: the smoothed
-    label only changes when the new class beats the current one by ``margin``."""
-
-    k: int = 1
-    margin: float = 0.0
-    _history: deque = field(default_factory=deque)
-    _current: int | None = None
-
-    def __post_init__(self) -> None:
-        if self.k < 1 or not 0 <= self.margin < 1:
-            raise ConfigError(f"smoother k={self.k}, margin={self.margin}: need k >= 1, 0 <= "
-                              "margin < 1")
-
-    def __call__(self, probs: np.ndarray) -> int:
-        self._history.append(probs)
-        while len(self._history) > self.k:
-            self._history.popleft()
-        mean = np.mean(self._history, axis=0)
-        best = int(mean.argmax())
-        if self._current is None or mean[best] >= mean[self._current] + self.margin:
-            self._current = best
-        return self._current
-
-    def reset(self) -> None:
-        self._history.clear()
-        self._current = None
 
 
 class Stream:
@@ -89,7 +67,9 @@ class Stream:
         channels: channels per sample.
         carry: carry the LSTM state from window to window (else a zero state per window).
         state_shape: (layers, hidden) of the state tensors.
-        smoother: optional :class:`Smoother` whose label is reported beside the raw one.
+        post: optional :class:`~tactile.runtime.smoothing.PostProcessor` (for ``classes``, in
+            that order) fed with every window; its result is the label's ``smoothed``. It is
+            reset with the LSTM state (:meth:`reset`, :meth:`gap`).
         rate_hz: the pen's sample rate, which times the samples of an :meth:`accept` call
             after its first (else each call must give ``period_us``).
 
@@ -105,7 +85,7 @@ class Stream:
         channels: int,
         carry: bool,
         state_shape: tuple[int, int],
-        smoother: Smoother | None = None,
+        post: PostProcessor | None = None,
         rate_hz: float | None = None,
     ) -> None:
         if window < 1 or hop < 1:
@@ -120,39 +100,54 @@ class Stream:
         self.window, self.hop, self.channels = window, hop, channels
         self.carry = carry
         self.state_shape = state_shape
-        self.smoother = smoother
+        if post is not None and tuple(post.classes) != tuple(classes):
+            raise ConfigError(f"post-processor classes {list(post.classes)} are not the "
+                              f"stream's {list(classes)} (names and order)")
+        self.post = post
+        self._reason: str | None = None  # why the state was last reset, until the next window
         if rate_hz is not None and not (math.isfinite(rate_hz) and rate_hz > 0):
             raise ConfigError(f"rate_hz {rate_hz}: must be a finite number > 0")
         self.period_us = None if rate_hz is None else 1e6 / rate_hz
-        self.reset()
+        self._clear()
 
     @classmethod
     def for_model(cls, model, hop: int | None = None,
-                  smoother: Smoother | None = None) -> Stream:
+                  post: PostProcessor | None = None) -> Stream:
         """A stream for a :class:`~tactile.runtime.model.Model`: window, hop (unless given),
         channels, state mode and sample rate from its contract."""
         c = model.contract
         return cls(model.classify, c.classes, c.window, c.hop if hop is None else hop,
-                   len(c.channels), c.state_mode == "carry", model.state_shape, smoother,
+                   len(c.channels), c.state_mode == "carry", model.state_shape, post,
                    rate_hz=c.sample_rate_hz)
 
-    def reset(self) -> None:
-        """Forget the buffered samples and the state (after a gap or on request)."""
+    def reset(self, reason: str = "reset") -> None:
+        """Forget the buffered samples, the state and the post-processor's average (after a gap,
+        a restart, a reconnection or on request). The next window's ``smoothed.reset`` is
+        ``reason`` (``"gap"``, ``"restart"``, ``"reconnect"``, ...): the first one given since
+        the last window, which names the cause when one fault brings several resets (a
+        reconnection, then the restarted pen's gap)."""
+        self._clear()
+        if self._reason is None:
+            self._reason = reason
+        if self.post is not None:
+            self.post.reset(self._reason)
+
+    def _clear(self) -> None:
+        """Empty buffer, zero state (the post-processor is :meth:`reset`'s business)."""
         self._buf = np.zeros((0, self.channels), np.float32)  # samples from index _base on
         self._seq = np.zeros(0, np.int64)
         self._t = np.zeros(0, np.int64)
         self._base = 0  # index (since reset) of _buf[0]
         self._next_end = self.window  # index one past the next window's last sample
         self._last_seq: int | None = None  # the next accept must continue from it
+        self._last_window_t: int | None = None  # t_us of the last window since the reset
         layers, hidden = self.state_shape
         self.h = np.zeros((layers, 1, hidden), np.float32)
         self.c = np.zeros((layers, 1, hidden), np.float32)
-        if self.smoother is not None:
-            self.smoother.reset()
 
-    def gap(self) -> None:
+    def gap(self, reason: str = "gap") -> None:
         """Samples were lost: no window may span the gap, and a carried state is void."""
-        self.reset()
+        self.reset(reason)
 
     def accept(self, values: np.ndarray, seq: int, t_us: int,
                period_us: float | None = None) -> None:
@@ -220,7 +215,13 @@ class Stream:
         self._trim()
         p = probs[0]
         k = int(p.argmax())
-        smoothed = self.classes[self.smoother(p)] if self.smoother is not None else None
+        smoothed = None
+        if self.post is not None:
+            if self._last_window_t is not None and last_t < self._last_window_t:
+                self.post.reset("clock")  # the device's time went back without a lost sample
+            smoothed = self.post.update(p, last_t / 1e6, last_seq)
+        self._last_window_t = last_t
+        self._reason = None
         return Label(
             last_seq, last_t, self.classes[k], float(p[k]),
             {name: float(v) for name, v in zip(self.classes, p)}, latency, smoothed,

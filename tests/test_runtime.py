@@ -22,7 +22,13 @@ from tactile.device.sim import PenSimulator, make_dataset
 from tactile.device.sim.protocol_sim import forget_unplugs
 from tactile.errors import ConfigError, ModelContractError
 from tactile.runtime.model import Model
-from tactile.runtime.stream import Smoother, Stream
+from tactile.runtime.smoothing import (
+    UNCERTAIN,
+    PostProcessor,
+    SmoothingSettings,
+    settings_to_metadata,
+)
+from tactile.runtime.stream import Stream
 from tactile.training.checkpoint import load_checkpoint
 from tactile.training.config import TrainConfig
 from tactile.training.train import train
@@ -39,8 +45,8 @@ def fake_classify(x, h, c):
     return p, h + 1, c + 1
 
 
-def make_stream(window=5, hop=2, carry=False, smoother=None, rate_hz=100.0):
-    return Stream(fake_classify, ("a", "b", "c"), window, hop, 1, carry, (1, 2), smoother,
+def make_stream(window=5, hop=2, carry=False, post=None, rate_hz=100.0):
+    return Stream(fake_classify, ("a", "b", "c"), window, hop, 1, carry, (1, 2), post,
                   rate_hz=rate_hz)
 
 
@@ -94,13 +100,36 @@ def test_state_is_carried_only_in_carry_mode():
         make_stream(window=4, hop=2, carry=True)
 
 
-def test_smoother_averages_and_hysteresis():
-    sm = Smoother(k=3, margin=0.2)
-    assert sm(np.array([0.6, 0.4])) == 0
-    assert sm(np.array([0.3, 0.7])) == 0  # mean [0.45, 0.55]: not beaten by 0.2
-    assert sm(np.array([0.1, 0.9])) == 1  # mean [0.33, 0.67]
-    with pytest.raises(ConfigError):
-        Smoother(k=0)
+def test_the_stream_feeds_its_post_processor_and_resets_it_with_the_state():
+    """The post-processor sees every window's probabilities and time; a gap, a reconnection
+    and a restart reset it with the LSTM state, and the next window says why (the first reason
+    when one fault brings two resets)."""
+    post = PostProcessor(SmoothingSettings(n=2, p_min=0.5, hold=2), ("a", "b", "c"))
+    s = make_stream(window=2, hop=2, post=post)
+    # fake_classify: a = the window's first value, b = its last, c = 1 (not normalised)
+    s.accept(np.array([[3.0], [0], [3], [0]]), seq=0, t_us=0)  # two windows led by a
+    first, second = drain(s)
+    assert (first.smoothed.label, first.smoothed.stable, first.smoothed.reset) == \
+        (UNCERTAIN, False, None)  # a has led one window of the two it needs
+    assert (second.smoothed.label, second.smoothed.p, second.smoothed.event) == \
+        ("a", 3.0, {"event": "change", "from": None, "to": "a", "t": 0.03, "seq": 3})
+    assert first.to_dict()["smoothed"] == {"label": UNCERTAIN, "p": 3.0}
+    assert second.to_dict()["stable"] is True and "reset" not in second.to_dict()
+    s.gap()
+    s.accept(np.array([[3.0], [0]]), seq=10, t_us=100_000)
+    (lab,) = drain(s)  # the average and the run start over: unsettled again
+    assert (lab.smoothed.label, lab.smoothed.reset, lab.to_dict()["reset"]) == \
+        (UNCERTAIN, "gap", "gap")
+    s.reset("reconnect")
+    s.gap("restart")  # the restarted pen's first frame, after the reconnection
+    s.accept(np.array([[3.0], [0]]), seq=0, t_us=0)
+    assert drain(s)[0].smoothed.reset == "reconnect"
+    s.accept(np.array([[3.0], [0]]), seq=2, t_us=20_000)
+    assert drain(s)[0].smoothed.reset is None
+    s.accept(np.array([[3.0], [0]]), seq=4, t_us=10_000)  # the device's clock went back
+    assert drain(s)[0].smoothed.reset == "clock"
+    with pytest.raises(ConfigError, match="post-processor classes"):
+        Stream(fake_classify, ("b", "a", "c"), 2, 2, 1, False, (1, 2), post)
 
 
 # -- exported models ----------------------------------------------------------------------------
@@ -386,6 +415,229 @@ def test_sigterm_gives_a_summary_and_exit_0(models):
     assert len([ln for ln in out.splitlines() if " p=" in ln]) == summary["windows"]
 
 
+# -- the label stream's post-processing, through tactile-run and labels() ----------------------
+
+CALIBRATED = SmoothingSettings(n=5, p_min=0.6, hold=2)
+
+
+def with_metadata(path: Path, change: dict) -> Path:
+    """A copy of the shipped model at ``path`` whose metadata has ``change`` (None: key
+    removed), as tactile-export would write the file."""
+    import onnx
+
+    m = onnx.load(SHIPPED)
+    meta = {**{p.key: p.value for p in m.metadata_props}, **change}
+    del m.metadata_props[:]
+    onnx.helper.set_model_props(m, {k: v for k, v in meta.items() if v is not None})
+    onnx.save(m, path)
+    return path
+
+
+@pytest.fixture(scope="module")
+def calibrated(tmp_path_factory) -> Path:
+    """The shipped model with post-processing defaults (``postprocess.*``) in its metadata."""
+    return with_metadata(tmp_path_factory.mktemp("pp") / "calibrated.onnx",
+                         settings_to_metadata(CALIBRATED, {"setting": CALIBRATED.describe()}))
+
+
+@pytest.fixture(scope="module")
+def take_with_a_gap(tmp_path_factory) -> Path:
+    """30 s of the simulated mouse pad (the issue's flickering surface) with 50 samples cut out
+    at 12 s: a recorded take with one gap, replayed by ``tactile-run --replay``."""
+    (take,) = make_dataset(tmp_path_factory.mktemp("take"), takes=1, textures=("mouse_pad",),
+                           seconds=30, seed=1)
+    lines = take.read_text().splitlines(keepends=True)
+    head = next(i for i, ln in enumerate(lines) if ln[:1].isdigit())  # first data row
+    del lines[head + 1200 : head + 1250]
+    take.write_text("".join(lines))
+    return take
+
+
+def take_bytes(path: Path) -> bytes:
+    """The take as its pen sent it: a header every 100 samples, frames of 10 samples that never
+    span its gap (the decoder finds the gap by the jump in seq, as on a live link)."""
+    from tactile.device.protocol import encode_header, encode_samples
+    from tactile.device.recordings import read_take
+
+    take = read_take(path)
+    out = bytearray()
+    for a, b in take.segments():
+        for i in range(a, b, 10):
+            if i % 100 == 0:
+                out += encode_header(take.info)
+            j = min(i + 10, b)
+            out += encode_samples(int(take.seq[i]), int(take.t_us[i]),
+                                  take.raw[i:j].astype(np.int16))
+    return bytes(out)
+
+
+def labels_from_bytes(data: bytes, model: Path, windows: int, **kw) -> tuple[list, list]:
+    """``tactile.runtime.labels`` on a socket:// pen that sends ``data``: the first ``windows``
+    labels, as JSON objects, and the events ``on_event`` got."""
+    from tactile.runtime import labels
+
+    srv, url = listening()
+    opened, done = threading.Event(), threading.Event()
+
+    def pen() -> None:
+        conn, _ = srv.accept()
+        with conn:  # sent once the port is open (a socket:// open drops what came before)
+            opened.wait(30)
+            conn.sendall(data)
+            done.wait(60)
+
+    thread = threading.Thread(target=pen, daemon=True)
+    thread.start()
+    got, events = [], []
+    it = labels(url, str(model), seconds=120, stall_timeout=600,
+                on_event=lambda kind, fields: events.append({"event": kind, **fields}),
+                say=lambda m: opened.set() if m.startswith("opened") else None, **kw)
+    try:
+        for lab in it:
+            got.append(lab.to_dict())
+            if len(got) == windows:
+                break
+    finally:
+        it.close()
+        done.set()
+        srv.close()
+        thread.join(10)
+    return got, events
+
+
+def without_latency(objs: list[dict]) -> list[dict]:
+    return [{k: v for k, v in o.items() if k != "latency_ms"} for o in objs]
+
+
+@pytest.mark.parametrize("options, smoothing", [
+    ([], None),  # the model's defaults
+    (["--smooth", "1.5s", "--hold", "3"], {"smooth": "1.5s", "hold": 3}),  # over the model's
+])
+def test_labels_and_tactile_run_give_the_same_stable_labels_on_a_replayed_take(
+        calibrated, take_with_a_gap, options, smoothing):
+    code, out, err = run_cli(["--model", str(calibrated), "--replay", str(take_with_a_gap),
+                              *options])
+    assert code == 0, err
+    printed = [json.loads(ln) for ln in out.splitlines()]
+    cli = [o for o in printed if "label" in o]
+    cli_changes = [o for o in printed if o.get("event") == "change"]
+    assert len(cli) == (1200 - 50) // 25 + 1 + (1750 - 50) // 25 + 1  # both sides of the gap
+    lib, events = labels_from_bytes(take_bytes(take_with_a_gap), calibrated, len(cli),
+                                    smoothing=smoothing)
+    assert without_latency(lib) == without_latency(cli)  # raw, smoothed, stable, resets
+    assert [e for e in events if e["event"] == "change"] == cli_changes
+    assert [e["event"] for e in events if e["event"] != "change"] == ["gap"]
+    raw_changes = sum(a["label"] != b["label"] for a, b in zip(cli, cli[1:]))
+    assert 1 <= len(cli_changes) < raw_changes, (len(cli_changes), raw_changes)
+
+
+def test_the_reset_at_a_gap_shows_in_the_output(calibrated, take_with_a_gap):
+    """The window after the gap starts a new average: ``reset: gap``, unsettled (hold 2), and
+    the stable label is announced again (``from`` null) once it holds."""
+    code, out, err = run_cli(["--model", str(calibrated), "--replay", str(take_with_a_gap)])
+    assert code == 0, err
+    assert "tactile-run: labels post-processed: ma:5 p_min=0.6 hold=2 (the model's)" in err
+    printed = [json.loads(ln) for ln in out.splitlines()]
+    at = next(i for i, o in enumerate(printed) if o.get("event") == "gap")
+    assert printed[at] == {"event": "gap", "seq": 1250, "missing": 50, "reason": "recorded"}
+    after = printed[at + 1]
+    assert after["seq"] == 1299 and after["reset"] == "gap"
+    assert after["stable"] is False and after["smoothed"]["label"] == UNCERTAIN
+    assert after["smoothed"]["p"] == after["p"]  # the average starts from this window alone
+    assert sum("reset" in o for o in printed) == 1  # no reset at the start of the replay
+    changes = [o for o in printed if o.get("event") == "change"]
+    assert changes[0]["from"] is None and changes[0]["seq"] < 1250
+    again = [c for c in changes if c["seq"] > 1250]
+    assert again and again[0]["from"] is None and again[0]["seq"] >= 1324  # after hold 2
+    i = printed.index(again[0])  # the event follows its window's line
+    assert printed[i - 1]["seq"] == again[0]["seq"] and printed[i - 1]["stable"]
+    assert printed[i - 1]["smoothed"]["label"] == again[0]["to"]
+    # text and CSV show both labels and the reset
+    code, text, err = run_cli(["--model", str(calibrated), "--replay", str(take_with_a_gap),
+                               "--format", "text"])
+    line = next(ln for ln in text.splitlines() if "#1299 " in ln)
+    assert re.fullmatch(r"\s+12\.99 s  #1299\s+\w+  p=\d\.\d{3}  -> uncertain \(\w+ "
+                        r"p=\d\.\d{3}\)  \[reset: gap\]", line), line
+    assert "# change from=None to=" in text
+    code, csv_out, err = run_cli(["--model", str(calibrated), "--replay", str(take_with_a_gap),
+                                  "--format", "csv"])
+    header, *rows = [r.split(",") for r in csv_out.splitlines()]
+    assert header[:9] == ["t", "seq", "label", "p", "latency_ms", "smoothed", "smoothed_p",
+                          "stable", "reset"]
+    row = next(r for r in rows if r[1] == "1299")
+    assert row[5:9] == [UNCERTAIN, row[3], "false", "gap"] and len(row) == len(header)
+    assert any(r[-1].startswith("change from=None to=") for r in rows)
+
+
+def test_raw_and_an_old_file_give_todays_output(calibrated, take_with_a_gap):
+    """``--raw`` on a file with defaults and a file without any (the shipped one) print what
+    tactile-run printed before the post-processing existed: the raw fields only, in every
+    format, and no line about post-processing on stderr."""
+    classes = Model(SHIPPED).contract.classes
+    for fmt in ("jsonl", "csv", "text"):
+        runs = []
+        for model, extra in ((SHIPPED, []), (calibrated, ["--raw"])):
+            code, out, err = run_cli(["--model", str(model), "--replay", str(take_with_a_gap),
+                                      "--format", fmt, *extra])
+            assert code == 0 and "post-processed" not in err, err
+            runs.append(out)
+        old, raw = runs
+        if fmt == "jsonl":
+            objs = [json.loads(ln) for ln in old.splitlines()]
+            assert all(set(o) == {"t", "seq", "label", "p", "probs", "latency_ms"}
+                       for o in objs if "label" in o)
+            assert [o["event"] for o in objs if "event" in o] == ["gap"]
+            old, raw = (json.dumps(without_latency([json.loads(ln) for ln in x.splitlines()]))
+                        for x in (old, raw))
+        elif fmt == "csv":
+            rows = old.splitlines()
+            assert rows[0] == ",".join(["t", "seq", "label", "p", "latency_ms", "smoothed",
+                                        *classes, "event"])
+            assert all(r.split(",")[5] == "" for r in rows[1:])
+            old, raw = ([r.split(",")[:4] + r.split(",")[5:] for r in x.splitlines()]
+                        for x in (old, raw))
+        else:
+            assert all(re.fullmatch(r"\s+\d+\.\d\d s  #\d+\s+\w+  p=\d\.\d{3}", ln)
+                       for ln in old.splitlines() if not ln.startswith("#")), old
+        assert old == raw, fmt
+
+
+def test_options_override_the_models_defaults(calibrated, take_with_a_gap):
+    def run(model, *options):
+        code, out, err = run_cli(["--model", str(model), "--replay", str(take_with_a_gap),
+                                  *options])
+        assert code == 0, err
+        said = re.search(r"labels post-processed: (.*)", err)
+        return [json.loads(ln) for ln in out.splitlines() if '"label"' in ln], said[1]
+
+    labs, said = run(calibrated, "--p-min", "0.99")
+    assert said == "ma:5 p_min=0.99 hold=2 (the model's, with the options')"
+    assert all(o["smoothed"]["p"] >= 0.99 for o in labs if o["stable"])
+    assert any(not o["stable"] and o["smoothed"]["p"] >= 0.6 for o in labs)  # stable by default
+    labs, said = run(calibrated, "--smooth", "1", "--p-min", "0", "--hold", "1")
+    assert said == "ma:1 p_min=0 hold=1 (the model's, with the options')"
+    assert all(o["stable"] and o["smoothed"] == {"label": o["label"], "p": o["p"]}
+               for o in labs)  # no averaging, no threshold: the raw label, stable
+    labs, said = run(SHIPPED, "--smooth", "0.5s")  # a file without defaults, an option given
+    assert said == "ema:0.5 p_min=0 hold=1 (the options')"
+    assert all(o["stable"] for o in labs)
+
+
+def test_bad_or_reserved_post_processing_metadata_is_a_contract_error(tmp_path):
+    bad = with_metadata(tmp_path / "bad.onnx", {**settings_to_metadata(CALIBRATED),
+                                                "postprocess.hold": "0"})
+    code, out, err = run_cli(["--model", str(bad), "--port", "loop://"])
+    assert code == 3 and out == "" and len(err.strip().splitlines()) == 1
+    assert "bad.onnx: metadata key postprocess.hold: '0'" in err
+    classes = json.dumps(["mouse_pad", "non_contact", "nonwoven_cloth", "paper", UNCERTAIN])
+    reserved = with_metadata(tmp_path / "reserved.onnx", {"classes": classes})
+    take = make_dataset(tmp_path / "d", takes=1, textures=("paper",), seconds=2, seed=1)[0]
+    code, out, err = run_cli(["--model", str(reserved), "--replay", str(take)])
+    assert code == 0 and '"label"' in out  # no post-processing: runs as before
+    code, out, err = run_cli(["--model", str(reserved), "--replay", str(take), "--smooth", "3"])
+    assert code == 3 and out == "" and "class name 'uncertain' is reserved" in err
+
+
 def test_replay_and_csv_output(models):
     _, onnx_path = models["window"]
     take = next((models["data"]).glob("paper-*.csv"))
@@ -394,8 +646,10 @@ def test_replay_and_csv_output(models):
     assert code == 0, err
     rows = out.splitlines()
     assert rows[0].startswith("t,seq,label,p,latency_ms,smoothed,")
-    assert len(rows) - 1 == (600 - 50) // 25 + 1
-    assert all(r.split(",")[5] for r in rows[1:])  # smoothed label present
+    windows = [r for r in rows[1:] if r.split(",")[2]]  # the stable label's changes are rows too
+    assert len(windows) == (600 - 50) // 25 + 1
+    assert all(r.split(",")[5] for r in windows)  # smoothed label present
+    assert all(r.split(",")[-1].startswith("change from=") for r in rows[1:] if r not in windows)
 
 
 def test_contract_errors_have_clear_messages_and_exit_codes(models, tmp_path):
@@ -493,8 +747,12 @@ SHIPPED = REPO / "models" / "pen-exp2.onnx"
 
 @pytest.mark.parametrize("option, value, says", [
     ("--threads", "100000", "must be in 1.."), ("--threads", "0", "must be in 1.."),
-    ("--hop", "0", "must be >= 1"), ("--smooth", "-1", "must be >= 1"),
-    ("--hysteresis", "1", "must be >= 0.0 and < 1.0"), ("--seconds", "nan", "must be > 0"),
+    ("--hop", "0", "must be >= 1"), ("--smooth", "-1", "expected N (a moving average"),
+    ("--smooth", "0", "n 0: must be an integer >= 1"), ("--smooth", "0s", "tau 0.0: must be"),
+    ("--smooth", "nans", "tau nan"), ("--smooth", "ma:x", "or Ts (an exponential average"),
+    ("--p-min", "1.5", "must be >= 0.0 and <= 1.0"), ("--p-min", "-0.1", "must be >= 0.0"),
+    ("--hold", "0", "must be >= 1"), ("--hold", "1.5", "'1.5' is not an integer"),
+    ("--seconds", "nan", "must be > 0"),
     ("--stall-timeout", "0", "must be > 0"), ("--baud", "fast", "'fast' is not an integer"),
 ])
 def test_bad_option_values_are_refused_in_one_line(option, value, says):
@@ -503,6 +761,17 @@ def test_bad_option_values_are_refused_in_one_line(option, value, says):
     lines = err.strip().splitlines()
     assert len(lines) == 1 and lines[0].startswith(f"tactile-run: error: argument {option}: ")
     assert says in err
+
+
+@pytest.mark.parametrize("args, says", [
+    (["--raw", "--smooth", "3"], "argument --raw: not allowed with --smooth, --p-min or --hold"),
+    (["--hold", "2", "--raw"], "argument --raw: not allowed with"),
+    (["--hysteresis", "0.1"], "unrecognized arguments: --hysteresis 0.1"),  # p_min and hold now
+])
+def test_raw_with_a_setting_and_the_old_hysteresis_are_refused_in_one_line(args, says):
+    code, out, err = run_cli(["--model", str(SHIPPED), "--port", "loop://", *args])
+    assert code == 1 and out == "" and len(err.strip().splitlines()) == 1
+    assert err.startswith("tactile-run: error: ") and says in err, err
 
 
 def finish(proc, timeout: float = 30) -> tuple[str, str]:

@@ -12,6 +12,7 @@ import subprocess
 import sys
 import threading
 import time
+import types
 
 import numpy as np
 import pytest
@@ -20,6 +21,7 @@ from conftest import REPO, page_url, pen_stream
 from tactile.device.protocol import Header, Samples, pen_info
 from tactile.errors import ConfigError
 from tactile.runtime.live import QUEUE, Live, parse_address
+from tactile.runtime.smoothing import PostProcessor, SmoothingSettings
 from tactile.runtime.stream import Label
 
 MODEL = REPO / "models" / "pen-exp2.onnx"
@@ -140,6 +142,89 @@ def test_events_carry_header_samples_labels_and_events_and_a_new_viewer_catches_
     assert got[0]["event"] == "header" and got[1] == lab.to_dict()
     first.close()
     late.close()
+
+
+def test_events_carry_the_post_processed_label_and_the_changes_as_stdout_does(live):
+    """A label with the post-processor's result is the object stdout carries (the raw fields,
+    ``smoothed``, ``stable``, ``reset``), a change event as it is; a late viewer gets the
+    latest label with its smoothed fields."""
+    post = PostProcessor(SmoothingSettings(n=2, p_min=0.6, hold=1), ("paper", "desk"))
+    post.reset("gap")
+    sm = post.update(np.array([0.75, 0.25]), 0.15, 15)
+    lab = Label(15, 150_000, "paper", 0.75, {"paper": 0.75, "desk": 0.25}, 0.5, sm)
+    change = {"event": "change", "from": None, "to": "paper", "t": 0.15, "seq": 15}
+    v = Viewer(live)
+    wait_for(lambda: live.viewers == 1, "the viewer joined")
+    live.feed(lab)
+    live.feed(change)
+    got = v.next()
+    assert got == lab.to_dict()
+    assert got["smoothed"] == {"label": "paper", "p": 0.75} and got["stable"] is True
+    assert got["reset"] == "gap"
+    assert v.next() == change
+    late = Viewer(live)
+    assert late.next() == lab.to_dict()
+    v.close()
+    late.close()
+
+
+def test_tactile_run_sends_the_page_what_it_prints(reap):
+    """tactile-run post-processing a pen's labels (a socket the test feeds, with a gap): the
+    page's /events carries the same label objects, gaps and change events as stdout."""
+    pen = socket.create_server(("127.0.0.1", 0))
+    proc = reap(subprocess.Popen(
+        [sys.executable, "-m", "tactile.runtime.commands.run", "--model", str(MODEL),
+         "--port", f"socket://127.0.0.1:{pen.getsockname()[1]}", "--serve", "127.0.0.1:0",
+         "--status-every", "1000", "--stall-timeout", "600", "--smooth", "3", "--p-min", "0.7",
+         "--hold", "2"],
+        stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True), 180)
+    conn, _ = pen.accept()
+    url = page_url(proc.stderr)
+    port = int(url.rsplit(":", 1)[1].strip("/"))
+
+    viewer = Viewer(types.SimpleNamespace(port=port))  # all Viewer needs of a Live
+    seen: list[dict] = []
+
+    def read() -> None:
+        while (m := viewer.next()).get("event") != "end":
+            seen.append(m)
+
+    def viewers() -> int:
+        c = http.client.HTTPConnection("127.0.0.1", port, timeout=10)
+        c.request("GET", "/status")
+        body = c.getresponse().read()
+        c.close()
+        return json.loads(body).get("viewers", 0)
+
+    reader = threading.Thread(target=read, daemon=True)
+    reader.start()
+    n = 3000
+    data, spans, _ = pen_stream(n, per_frame=10, seed=3)
+    start, end, first, _ = next(s for s in spans if s[2] == 1500 and s[3])  # one frame lost
+    wait_for(lambda: viewers() == 1, "the viewer joined", 60)  # before the first label
+    conn.sendall(data[:start] + data[end:])
+    after = first + 10  # the first sample after the gap; windows of 50 every 25 from there
+    last = after + 49 + 25 * ((n - 1 - after - 49) // 25)
+    printed = []
+    while not printed or printed[-1].get("seq") != last or "label" not in printed[-1]:
+        line = proc.stdout.readline()
+        assert line, "stdout ended early"
+        printed.append(json.loads(line))
+    proc.send_signal(signal.SIGINT)
+    out, err = proc.communicate(timeout=60)
+    assert proc.returncode == 0, err
+    printed += [json.loads(ln) for ln in out.splitlines()]
+    reader.join(30)
+    assert not reader.is_alive()
+    viewer.close()
+    conn.close()
+    pen.close()
+    assert "0 messages dropped" in err
+    page = [m for m in seen if m.get("event") not in ("header", "samples", "status")]
+    assert page == [o for o in printed if o.get("event") != "stall"]
+    assert any(o.get("reset") == "gap" for o in page) and any(
+        o.get("event") == "change" for o in page)
+    assert all("smoothed" in o and "stable" in o for o in page if "label" in o)
 
 
 def test_at_most_max_clients_the_next_is_refused_politely(live):

@@ -17,6 +17,8 @@ from tactile.runtime.smoothing import (
     check_classes,
     figures_from_metadata,
     make_settings,
+    override,
+    parse_smooth_option,
     settings_from_metadata,
     settings_to_metadata,
 )
@@ -63,6 +65,27 @@ def test_settings_strings():
     for bad in ("ma", "ma:x", "median:3", "ema:", "5"):
         with pytest.raises(ConfigError, match="expected ma:N"):
             make_settings(bad)
+
+
+def test_the_smooth_option_and_overrides_of_a_models_defaults():
+    assert parse_smooth_option("5") == {"n": 5, "tau": None}
+    assert parse_smooth_option("1.5s") == {"n": None, "tau": 1.5}
+    assert parse_smooth_option("ema:0.5") == {"n": None, "tau": 0.5}
+    assert parse_smooth_option(" ma:3 ") == {"n": 3, "tau": None}
+    for bad, says in (("-1", "expected N"), ("x", "expected N"), ("s", "expected N"),
+                      ("1.5:s", "expected N"), ("0", "n 0"), ("0s", "tau 0.0"),
+                      ("infs", "tau inf"), ("ema:-1", "tau -1.0")):
+        with pytest.raises(ConfigError, match=says) as e:
+            parse_smooth_option(bad)
+        assert "\n" not in str(e.value)
+    model = SmoothingSettings(n=5, p_min=0.6, hold=2)
+    assert override(model) is model and override(None) is None  # nothing given: as they are
+    assert override(model, p_min=0.9) == SmoothingSettings(n=5, p_min=0.9, hold=2)
+    assert override(model, smooth="1.5s", hold=1) == SmoothingSettings(None, 1.5, 0.6, 1)
+    assert override(None, smooth="3") == SmoothingSettings(n=3)  # over no defaults: raw's
+    assert override(None, hold=2) == SmoothingSettings(n=1, p_min=0.0, hold=2)
+    with pytest.raises(ConfigError, match="p_min 2"):
+        override(model, p_min=2)
 
 
 # -- averaging ----------------------------------------------------------------------------------

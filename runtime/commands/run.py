@@ -4,9 +4,11 @@
     tactile-run --model model.onnx --port "sim://?texture=paper&seed=3"
     tactile-run --model model.onnx --replay data/paper-....csv      # offline, as fast as it can
 
-Labels and events (gaps, stalls, reconnects) go to stdout (JSON Lines by default; ``--format
-text|csv``), diagnostics to stderr: a status line every few seconds, a line for each stall and
-reconnection, and a summary at the end. Exit codes:
+Labels and events (gaps, stalls, reconnects, changes of the stable label) go to stdout (JSON
+Lines by default; ``--format text|csv``); each window's label is the raw one and, post-processed
+(``--smooth``, ``--p-min``, ``--hold``, or the model's defaults; ``--raw``: none), a smoothed one
+that is stable or ``uncertain``. Diagnostics go to stderr: a status line every few seconds, a
+line for each stall and reconnection, and a summary at the end. Exit codes:
 0 stopped cleanly (SIGINT/SIGTERM, end of replay or of ``--seconds``), 1 bad arguments, 2 port
 cannot be opened or no pen found, 3 the model or the device does not honour the contract.
 """
@@ -51,11 +53,24 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--format", choices=FORMATS, default="jsonl",
                    help="jsonl (default): one JSON object per window or event; csv: a header, "
                    "one row per window or event; text: for people")
-    p.add_argument("--smooth", type=int_in(1), default=1, metavar="K",
-                   help="also report the label averaged over the last K windows")
-    p.add_argument("--hysteresis", type=float_in(0.0, 1.0, low_open=False, high_open=True),
-                   default=0.0, metavar="MARGIN",
-                   help="the smoothed label changes only when beaten by MARGIN")
+    post = p.add_argument_group(
+        "post-processing of the labels",
+        "each option replaces the model's default (its file's postprocess.* metadata, "
+        "calibrated at export); a file without any runs raw unless an option is given")
+    post.add_argument("--smooth", type=_smooth, metavar="N|Ts",
+                      help="average the class probabilities over the last N windows (e.g. 5), "
+                      "or exponentially with a time constant of T seconds (e.g. 1.5s); "
+                      "default: the model's, else 1 window")
+    post.add_argument("--p-min", type=float_in(0.0, 1.0, low_open=False), metavar="P",
+                      help="a label is stable only when its averaged probability is at least "
+                      "P (0..1), else it is reported as 'uncertain'; default: the model's, else 0")
+    post.add_argument("--hold", type=int_in(1), metavar="K",
+                      help="... and only once it has led for K consecutive windows (K hops: "
+                      "0.25 s each at the pen's 25 samples at 100 Hz); default: the model's, "
+                      "else 1")
+    post.add_argument("--raw", action="store_true",
+                      help="no post-processing, whatever the model says: the raw label of "
+                      "each window only")
     p.add_argument("--threads", type=int_in(1, CPUS), default=1,
                    help=f"onnxruntime threads, at most the {CPUS} cores (default 1)")
     p.add_argument("--status-every", type=float_in(0.0), default=5.0,
@@ -65,20 +80,41 @@ def build_parser() -> argparse.ArgumentParser:
     return p
 
 
+def _smooth(text: str) -> str:
+    """``--smooth``: ``N`` windows or ``Ts`` (checked here, so that a bad value is argparse's
+    one line)."""
+    from tactile.errors import ConfigError
+    from tactile.runtime.smoothing import parse_smooth_option
+
+    try:
+        parse_smooth_option(text)
+    except ConfigError as e:
+        raise argparse.ArgumentTypeError(str(e)) from None
+    return text
+
+
+POST_OPTIONS = ("smooth", "p_min", "hold")
+
+
 def _run(args: argparse.Namespace) -> int:
     from tactile.device.protocol import StreamDecoder
     from tactile.runtime.model import Model
-    from tactile.runtime.runner import Printer, Runner, Summary, say
-    from tactile.runtime.stream import Smoother, Stream
+    from tactile.runtime.runner import Printer, Runner, Summary, post_processor, say
+    from tactile.runtime.stream import Stream
 
     model = Model(args.model, threads=args.threads)
     c = model.contract
     hop = c.hop if args.hop is None else args.hop
-    smoother = Smoother(args.smooth, args.hysteresis) if args.smooth > 1 or args.hysteresis \
-        else None
-    stream = Stream.for_model(model, hop, smoother)
+    given = {k: getattr(args, k) for k in POST_OPTIONS if getattr(args, k) is not None}
+    post = post_processor(model, "raw" if args.raw else given)
+    if post is not None:
+        said = "the model's" if not given else "the options'" if model.postprocess is None \
+            else "the model's, with the options'"
+        say(f"labels post-processed: {post.settings.describe()} ({said})")
+    stream = Stream.for_model(model, hop, post)
     summary = Summary()
-    runner = Runner(model, stream, Printer(args.format, c.classes), summary)
+    runner = Runner(model, stream, Printer(args.format, c.classes, smoothed=post is not None),
+                    summary)
     decoder = StreamDecoder(csv_rate_hz=c.sample_rate_hz)
     live = None
     if args.serve:
@@ -122,7 +158,11 @@ def _read(args: argparse.Namespace, runner: Runner, decoder: StreamDecoder, dead
 
 @command("tactile-run", guarded=True)
 def main(argv: list[str] | None = None) -> int:
-    args = build_parser().parse_args(argv)
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    if args.raw and any(getattr(args, k) is not None for k in POST_OPTIONS):
+        parser.error("argument --raw: not allowed with --smooth, --p-min or --hold (it turns "
+                     "the post-processing off)")
     return run("tactile-run", _run, args)
 
 

@@ -1,13 +1,25 @@
 // The live page: reads /events (Server-Sent Events, one JSON object per message) and draws.
 // No library: plots are canvas polylines. The DOM carries what a test checks: the label shown
-// and its seq (#label[data-seq]), the samples received (#samples), the breaks drawn for samples
-// that never came (#samples[data-breaks]), the link's counters.
+// and its seq (#label[data-seq]; the stable label when the labels are post-processed, the raw
+// one in #raw-label), the samples received (#samples), the breaks drawn for samples that never
+// came (#samples[data-breaks]), the label strip's counts (#strip[data-windows], data-uncertain,
+// data-gaps), the changes of the stable label (#changes li), the link's counters.
 "use strict";
 
 const SPAN_S = 10;           // seconds of each channel shown
+const STRIP_S = 60;          // seconds of labels in the strip
+// class colours, in the order of the model's classes (the label objects' `probs` keys)
+const PALETTE = ["#2f6fdf", "#1c8a4a", "#1a9fb0", "#8a3fd1", "#d1493f", "#e8a317", "#7a8a1c",
+                 "#d14f9c", "#5a6b85", "#8c5a2b"];
+const UNCERTAIN_COLOUR = "#c4c9d1";  // no stable label: grey
+const GAP_COLOUR = "#1d2430";        // a gap, a reconnection, a stall: a dark tick (then blank)
 const $ = (id) => document.getElementById(id);
 const view = { channels: [], every: 1, rate: 100, points: 0, samples: 0, total: 0,
-               marks: [], next: null, breaks: 0, dirty: false, ended: false };
+               marks: [], next: null, breaks: 0, dirty: false, ended: false,
+               classes: [], strip: [], lastT: null, hop: 0.25, timer: null };
+// strip: {from, at (ms, the page's clock: at = arrival), label, kind: "label" | "uncertain"}
+// for a window, drawn over the device time it covers before its arrival; {at, kind: "gap"}
+// for a gap, reconnect or stall event.
 // marks: {at, cut} for the plotted sample index `at` (of view.total): a vertical line there (a
 // gap, a reconnect, a discontinuity); cut: the line is not drawn into it (samples are missing).
 // Only the marks inside the plotted span are kept.
@@ -64,24 +76,108 @@ function onSamples(m) {
 
 function fmt(v) { return Math.abs(v) >= 100 ? v.toFixed(1) : Math.abs(v) >= 1 ? v.toFixed(2) : v.toFixed(3); }
 
-function onLabel(l) {
+function classColour(name) {
+  const i = view.classes.indexOf(name);
+  return i < 0 ? UNCERTAIN_COLOUR : PALETTE[i % PALETTE.length];
+}
+
+function legend() {
+  const box = $("legend");
+  box.textContent = "";
+  const key = (name, colour, cls) => {
+    const span = document.createElement("span");
+    span.className = cls || "";
+    span.dataset.class = name;
+    span.innerHTML = "<i></i>";
+    span.querySelector("i").style.background = colour;
+    span.append(name);
+    box.appendChild(span);
+  };
+  view.classes.forEach((c) => key(c, classColour(c)));
+  if (document.body.dataset.smoothed === "yes") key("uncertain", UNCERTAIN_COLOUR);
+  key("gap", GAP_COLOUR, "gap");
+}
+
+function onLabel(l, at = performance.now()) {
+  const smoothed = l.smoothed !== undefined && l.smoothed !== null;
+  const names = Object.keys(l.probs);
+  const mode = smoothed ? "yes" : "no";
+  if (names.join("\n") !== view.classes.join("\n") || document.body.dataset.smoothed !== mode) {
+    view.classes = names;
+    document.body.dataset.smoothed = mode;
+    legend();
+  }
+  // shown large: the stable label (or "uncertain") when post-processed, else the raw label
+  const shown = smoothed ? l.smoothed.label : l.label;
+  const p = smoothed ? l.smoothed.p : l.p;
+  const stable = smoothed ? l.stable : true;
   const el = $("label");
-  el.textContent = l.label;
+  el.textContent = shown;
   el.dataset.seq = l.seq;
-  el.dataset.p = l.p;
-  const smooth = l.smoothed ? ` · smoothed: ${l.smoothed}` : "";
-  $("label-detail").textContent = `p ${l.p.toFixed(3)} · seq ${l.seq} · t ${l.t.toFixed(2)} s · ${l.latency_ms} ms${smooth}`;
+  el.dataset.p = p;
+  el.dataset.stable = stable;
+  el.style.color = stable ? classColour(shown) : "";
+  $("raw-label").textContent = l.label;
+  $("raw-label").dataset.p = l.p;
+  $("raw-p").textContent = `p ${l.p.toFixed(3)}`;
+  const reset = l.reset ? ` · reset: ${l.reset}` : "";
+  $("label-detail").textContent = `p ${p.toFixed(3)} · seq ${l.seq} · t ${l.t.toFixed(2)} s · ${l.latency_ms} ms${reset}`;
   const probs = $("probs");
   probs.textContent = "";
-  for (const [name, p] of Object.entries(l.probs)) {
+  for (const [name, q] of Object.entries(l.probs)) {
     const row = document.createElement("div");
     row.className = "row" + (name === l.label ? " top" : "");
     row.innerHTML = '<span class="name"></span><span class="bar"><i></i></span><span class="p"></span>';
     row.querySelector(".name").textContent = name;
-    row.querySelector("i").style.width = (100 * p).toFixed(1) + "%";
-    row.querySelector(".p").textContent = p.toFixed(3);
+    row.querySelector("i").style.width = (100 * q).toFixed(1) + "%";
+    row.querySelector(".p").textContent = q.toFixed(3);
     probs.appendChild(row);
   }
+  // the window covers the device time since the previous one (one hop), up to its arrival
+  if (view.lastT !== null && !l.reset && l.t > view.lastT && l.t - view.lastT < 5) view.hop = l.t - view.lastT;
+  view.lastT = l.t;
+  view.strip.push({ from: at - 1000 * view.hop, at, label: shown, kind: stable ? "label" : "uncertain" });
+  drawStrip(at);
+}
+
+function onChange(e) {
+  const li = document.createElement("li");
+  li.dataset.seq = e.seq;
+  li.dataset.from = e.from === null ? "" : e.from;
+  li.dataset.to = e.to;
+  const swatch = document.createElement("i");
+  swatch.style.background = classColour(e.to);
+  li.append(swatch, `${e.t.toFixed(2)} s  ${e.from === null ? "(start)" : e.from} → ${e.to}`);
+  const list = $("changes");
+  list.insertBefore(li, list.firstChild);
+  while (list.children.length > 20) list.removeChild(list.lastChild);
+}
+
+function drawStrip(now = performance.now()) {
+  const span = STRIP_S * 1000, start = now - span;
+  while (view.strip.length && view.strip[0].at < start - 5000) view.strip.shift();
+  const cv = $("strip"), dpr = window.devicePixelRatio || 1;
+  const w = Math.max(1, Math.round(cv.clientWidth * dpr)), h = Math.max(1, Math.round(cv.clientHeight * dpr));
+  if (cv.width !== w || cv.height !== h) { cv.width = w; cv.height = h; }
+  const g = cv.getContext("2d");
+  g.clearRect(0, 0, w, h);
+  const x = (t) => (t - start) / span * w;
+  let windows = 0, uncertain = 0, gaps = 0;
+  for (const s of view.strip) {
+    if (s.kind === "gap" || s.at < start || s.at > now) continue;
+    windows += 1;
+    if (s.kind === "uncertain") uncertain += 1;
+    g.fillStyle = s.kind === "uncertain" ? UNCERTAIN_COLOUR : classColour(s.label);
+    const x0 = Math.max(0, Math.floor(x(s.from))), x1 = Math.min(w, Math.ceil(x(s.at)));
+    if (x1 > x0) g.fillRect(x0, 0, x1 - x0, h);
+  }
+  g.fillStyle = GAP_COLOUR;  // over the windows: a gap between two windows stays visible
+  for (const s of view.strip) {
+    if (s.kind !== "gap" || s.at < start || s.at > now) continue;
+    gaps += 1;
+    g.fillRect(Math.round(x(s.at)) - dpr, 0, 2 * dpr, h);
+  }
+  Object.assign(cv.dataset, { windows, uncertain, gaps });
 }
 
 function onStatus(s) {
@@ -91,7 +187,12 @@ function onStatus(s) {
   put("stalls", s.stalls); put("dropped", s.dropped);
 }
 
-function onEvent(e) {
+function onEvent(e, at = performance.now()) {
+  if (e.event === "change") { onChange(e); return; }
+  if (e.event === "gap" || e.event === "reconnect" || e.event === "stall") {
+    view.strip.push({ at, kind: "gap" });
+    drawStrip(at);
+  }
   const li = document.createElement("li");
   const fields = Object.entries(e).filter(([k]) => k !== "event").map(([k, v]) => `${k}=${v}`).join(" ");
   li.textContent = `${e.event} ${fields}`;
@@ -144,6 +245,8 @@ function draw() {
 
 function start() {
   $("span-s").textContent = SPAN_S;
+  $("strip-s").textContent = STRIP_S;
+  view.timer = setInterval(() => drawStrip(), 1000);  // the strip scrolls between windows
   const es = new EventSource("events");
   es.onopen = () => { if (!view.ended) setState("live"); };
   es.onerror = () => { if (!view.ended) setState("reconnecting"); };
@@ -155,11 +258,11 @@ function start() {
       case "header": onHeader(m); break;
       case "samples": onSamples(m); break;
       case "status": onStatus(m); break;
-      case "end": view.ended = true; es.close(); setState("ended"); break;
+      case "end": view.ended = true; es.close(); clearInterval(view.timer); setState("ended"); break;
       default: onEvent(m);
     }
   };
-  window.addEventListener("resize", redraw);
+  window.addEventListener("resize", () => { redraw(); drawStrip(); });
 }
 
 start();
