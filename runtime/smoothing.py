@@ -200,17 +200,18 @@ class PostProcessor:
     ``p_min`` and it has been the leader for at least ``hold`` consecutive windows (this one
     included); otherwise the reported label is :data:`UNCERTAIN`.
 
-    A change event is emitted on a window whose stable label differs from the last stable label
-    since the last reset. Passing through uncertain is no event by itself: mouse_pad ->
-    uncertain -> mouse_pad emits nothing, mouse_pad -> uncertain -> paper emits one event (from
-    mouse_pad to paper) on the first stable paper window. The first stable label after a reset
-    (or after construction) emits an event with ``from`` None: a reset follows a gap, a restart
-    or a reconnection, after which the surface under the pen is not known to be the same, so the
-    label is announced again rather than assumed.
+    A change event is emitted on a window whose stable label differs from the last one
+    announced. Passing through uncertain is no event by itself: mouse_pad -> uncertain ->
+    mouse_pad emits nothing, mouse_pad -> uncertain -> paper emits one event (from mouse_pad to
+    paper) on the first stable paper window. The first stable label of a stream emits an event
+    with ``from`` None.
 
     :meth:`reset` is called wherever the stream's LSTM state is reset (a gap, a restart, a
-    reconnection); it forgets the average, the leader's run and the last stable label, and the
-    next result carries its reason.
+    reconnection); it forgets the average and the leader's run, so the label is uncertain until
+    a leader is stable again, and the next result carries its reason. It keeps the last
+    announced label: the stable label that forms after the reset is announced only if it
+    differs (a link that drops now and then on one surface gives no change events; a pen put
+    down on another surface during the gap gives one).
     """
 
     def __init__(self, settings: SmoothingSettings, classes: tuple[str, ...] | list[str]
@@ -223,17 +224,17 @@ class PostProcessor:
             raise ConfigError("classes: at least one class name")
         self._history: deque[np.ndarray] = deque(maxlen=settings.n or 1)
         self._reason: str | None = None
+        self._announced: str | None = None  # the last stable label announced by an event
         self.reset(None)
 
     def reset(self, reason: str | None = "reset") -> None:
-        """Forget everything; the next result's ``reset`` is ``reason`` (e.g. ``"gap"``,
-        ``"restart"``, ``"reconnect"``)."""
+        """Forget the average and the leader's run (not the last announced label); the next
+        result's ``reset`` is ``reason`` (e.g. ``"gap"``, ``"restart"``, ``"reconnect"``)."""
         self._history.clear()
         self._ema: np.ndarray | None = None
         self._t: float | None = None  # time of the previous window, s
         self._leader: int | None = None
         self._run = 0  # consecutive windows the leader has led
-        self._stable: str | None = None  # the last stable label since the reset
         self._reason = reason
 
     def update(self, probs: np.ndarray, t: float, seq: int) -> Smoothed:
@@ -256,10 +257,10 @@ class PostProcessor:
         s = self.settings
         stable = bool(avg[k] >= s.p_min and self._run >= s.hold)
         event = None
-        if stable and self.classes[k] != self._stable:
-            event = {"event": "change", "from": self._stable, "to": self.classes[k], "t": t,
+        if stable and self.classes[k] != self._announced:
+            event = {"event": "change", "from": self._announced, "to": self.classes[k], "t": t,
                      "seq": seq}
-            self._stable = self.classes[k]
+            self._announced = self.classes[k]
         reason, self._reason = self._reason, None
         return Smoothed(self.classes[k] if stable else UNCERTAIN, self.classes[k],
                         float(avg[k]), stable, avg, event, reason)

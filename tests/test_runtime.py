@@ -532,8 +532,8 @@ def test_labels_and_tactile_run_give_the_same_stable_labels_on_a_replayed_take(
 
 
 def test_the_reset_at_a_gap_shows_in_the_output(calibrated, take_with_a_gap):
-    """The window after the gap starts a new average: ``reset: gap``, unsettled (hold 2), and
-    the stable label is announced again (``from`` null) once it holds."""
+    """The window after the gap starts a new average: ``reset: gap``, unsettled (hold 2); the
+    stable label that forms again is announced only if it differs from the last one."""
     code, out, err = run_cli(["--model", str(calibrated), "--replay", str(take_with_a_gap)])
     assert code == 0, err
     assert "tactile-run: labels post-processed: ma:5 p_min=0.6 hold=2 (the model's)" in err
@@ -547,11 +547,17 @@ def test_the_reset_at_a_gap_shows_in_the_output(calibrated, take_with_a_gap):
     assert sum("reset" in o for o in printed) == 1  # no reset at the start of the replay
     changes = [o for o in printed if o.get("event") == "change"]
     assert changes[0]["from"] is None and changes[0]["seq"] < 1250
-    again = [c for c in changes if c["seq"] > 1250]
-    assert again and again[0]["from"] is None and again[0]["seq"] >= 1324  # after hold 2
-    i = printed.index(again[0])  # the event follows its window's line
-    assert printed[i - 1]["seq"] == again[0]["seq"] and printed[i - 1]["stable"]
-    assert printed[i - 1]["smoothed"]["label"] == again[0]["to"]
+    # once a leader holds again (hold 2) the stable label is back, announced only if it is not
+    # the one announced before the gap
+    last = [c for c in changes if c["seq"] < 1250][-1]["to"]
+    first = next(o for o in printed[at + 1:] if o.get("stable"))
+    assert first["seq"] >= 1324
+    label = first["smoothed"]["label"]
+    assert [c for c in changes if c["seq"] == first["seq"]] == ([] if label == last else [
+        {"event": "change", "from": last, "to": label, "t": first["t"], "seq": first["seq"]}])
+    i = printed.index(changes[0])  # an event follows its window's line
+    assert printed[i - 1]["seq"] == changes[0]["seq"] and printed[i - 1]["stable"]
+    assert printed[i - 1]["smoothed"]["label"] == changes[0]["to"]
     # text and CSV show both labels and the reset
     code, text, err = run_cli(["--model", str(calibrated), "--replay", str(take_with_a_gap),
                                "--format", "text"])

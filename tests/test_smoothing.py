@@ -152,7 +152,7 @@ def test_p_min_hold_uncertain_and_change_events():
     assert all(o.reset is None for o in out)
 
 
-def test_reset_mid_hold_forgets_the_run_the_average_and_the_last_label():
+def test_reset_mid_hold_forgets_the_run_and_the_average_not_the_announced_label():
     post = PostProcessor(SmoothingSettings(n=2, hold=3), AB)
     a, b = [0.75, 0.25], [0.25, 0.75]
     before = [post.update(a, t, i) for i, t in enumerate([0.0, 0.25, 0.5])]
@@ -167,13 +167,14 @@ def test_reset_mid_hold_forgets_the_run_the_average_and_the_last_label():
     np.testing.assert_allclose(after[0].probs, b)
     assert [o.reset for o in after] == ["gap", None, None, None]
     assert [o.label for o in after] == [UNCERTAIN, UNCERTAIN, "b", "b"]
-    # the first stable label after a reset is announced from None, even a -> (reset) -> b
+    # the label announced before the reset is the change's "from"
     assert [o.event for o in after] == [
-        None, None, {"event": "change", "from": None, "to": "b", "t": 0.7, "seq": 7}, None]
-    post.reset("reconnect")
+        None, None, {"event": "change", "from": "a", "to": "b", "t": 0.7, "seq": 7}, None]
+    post.reset("reconnect")  # b again after a reset: uncertain until it holds, then no event
     again = [post.update(b, t, i) for i, t in [(9, 0.0), (10, 0.25), (11, 0.5)]]
     assert again[0].reset == "reconnect"
-    assert again[2].event == {"event": "change", "from": None, "to": "b", "t": 0.5, "seq": 11}
+    assert [o.label for o in again] == [UNCERTAIN, UNCERTAIN, "b"]
+    assert [o.event for o in again] == [None, None, None]
 
 
 def test_json_fields_and_feed_from_a_runtime_label():
