@@ -22,6 +22,8 @@ from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
 
+import numpy as np
+
 import tactile.device  # noqa: F401  (registers sim://)
 from tactile.device.link import Connection, LinkSettings, Reconnected, Stall, find_port, keep_trying
 from tactile.device.protocol import DeviceInfo, Gap, Header, Samples, StreamDecoder
@@ -150,17 +152,24 @@ def post_processor(model: Model, smoothing=None) -> PostProcessor | None:
         raise ModelContractError(f"{model.path}: {e}") from None
 
 
-def check_device(model: Model, info: DeviceInfo) -> None:
-    """The device's header must give the model's channels, in order, in its units, at its rate
-    (a CSV-line device, which declares neither units nor rate, is taken in the model's)."""
+def check_device(model: Model, info: DeviceInfo) -> np.ndarray:
+    """Where the model's channels are among the device's: the columns (model order) of the
+    device's samples that the model reads. Each of the model's channels must be there, by name,
+    in the model's unit, at the model's rate (a CSV-line device, which declares neither units
+    nor rate, is taken in the model's); a device that sends more channels than the model uses
+    is fine, and the ones left unused are named once on stderr."""
     want = model.contract.channels
     got = info.channel_names
-    if got != want:
+    where = {name: i for i, name in enumerate(got)}
+    missing = [name for name in want if name not in where]
+    if missing:
         raise ModelContractError(
-            f"device channels {list(got)} do not match the model's {list(want)} (names and order)"
+            f"the device sends no {', '.join(missing)}: the model reads {list(want)}, the device "
+            f"sends {list(got)}"
         )
-    got_units = tuple(ch.unit for ch in info.channels)
-    if info.device == "csv" and not any(got_units):  # a CSV device: no units, no rate
+    columns = np.array([where[name] for name in want], np.intp)
+    got_units = tuple(info.channels[i].unit for i in columns)
+    if info.device == "csv" and not any(ch.unit for ch in info.channels):  # no units, no rate
         say(f"CSV device: its values are taken in the model's units "
             f"{list(model.contract.units)}, at the model's {model.contract.sample_rate_hz:g} Hz")
     elif got_units != model.contract.units:
@@ -173,6 +182,17 @@ def check_device(model: Model, info: DeviceInfo) -> None:
             f"device rate {info.sample_rate_hz:g} Hz does not match the model's "
             f"{model.contract.sample_rate_hz:g} Hz"
         )
+    unused = [name for name in got if name not in set(want)]
+    if unused:
+        say(f"the model reads {len(want)} of the device's {len(got)} channels; unused: "
+            f"{_names(unused)}")
+    return columns
+
+
+def _names(names: list[str], most: int = 8) -> str:
+    """At most ``most`` names, then how many more (a BioTac sends 88 channels)."""
+    more = f" and {len(names) - most} more" if len(names) > most else ""
+    return ", ".join(names[:most]) + more
 
 
 class Runner:
@@ -181,6 +201,7 @@ class Runner:
     def __init__(self, model: Model, stream: Stream, printer: Printer, summary: Summary):
         self.model, self.stream, self.printer, self.summary = model, stream, printer, summary
         self.info: DeviceInfo | None = None
+        self.columns: np.ndarray | None = None  # the device's columns the model reads
         self.tap: Callable[[object], None] | None = None  # sees each decoder event (--serve)
 
     def handle(self, events: list) -> None:
@@ -200,7 +221,8 @@ class Runner:
                 self.summary.stalls += 1
                 self.printer.event("stall", seconds=ev.seconds)
             elif isinstance(ev, Header):
-                check_device(self.model, ev.info)
+                if ev.info != self.info:  # a new header, or the pen's again after a restart
+                    self.columns = check_device(self.model, ev.info)
                 if ev.changed:
                     self.stream.reset("restart")
                 self.info = ev.info
@@ -213,7 +235,8 @@ class Runner:
                     self.summary.before_header += len(ev.raw)
                     continue
                 period = 1e6 / self.info.sample_rate_hz
-                self.stream.accept(to_units(self.info, ev.raw), ev.seq, ev.t_us, period)
+                values = to_units(self.info, ev.raw)[:, self.columns]
+                self.stream.accept(values, ev.seq, ev.t_us, period)
                 while self.stream.ready():
                     lab = self.stream.classify()
                     self.summary.windows += 1

@@ -224,6 +224,43 @@ def test_sf_rnn_labels_a_replayed_biotac_trial(tmp_path, capsys):
     assert [d["label"] for d in labels] == [classes[i] for i in p_t.argmax(1)]
 
 
+@pytest.mark.skipif(not BOLT.is_dir(), reason=f"{BOLT} is absent (BioTac BOLT recordings)")
+def test_a_model_of_one_finger_runs_on_a_take_of_both(tmp_path, capsys):
+    """Trained on finger 0's pressure, vibration and electrodes (a ``channels`` setting), the
+    default model reads them by name from a real BOLT take's 88 channels, as PyTorch does."""
+    from tactile.device.commands import import_biotac
+    from tactile.device.recordings import biotac
+
+    names = [c.name for c in biotac.channels()]
+    finger0 = tuple(n for n in names if n == "f0_pdc" or n.startswith(("f0_pac_", "f0_ele_")))
+    data = write_takes(tmp_path / "synthetic", biotac.channels(), biotac.signals(),
+                       frames=120, users=3)
+    cfg = TrainConfig.from_dict({"window": 10, "hop": 10, "frame": 5, "frame_hop": 5,
+                                 "epochs": 1, "epoch_windows": 32,
+                                 "batch_size": 16, "threads": 1, "seed": 0, "layers": 1,
+                                 "hidden": 8, "split": "user", "channels": list(finger0)})
+    train(data, tmp_path / "run", cfg, progress=False)
+    export_run(tmp_path / "run", tmp_path / "f0.onnx", data=data, log=lambda s: None)
+    group = _small_trial(BOLT / "cork.h5", tmp_path / "cork.h5", 150)
+    assert import_biotac.main([str(tmp_path / "cork.h5"), "--out", str(tmp_path / "real")]) == 0
+    take_path = tmp_path / "real" / f"{group}.csv"
+    capsys.readouterr()
+    assert run_main(["--model", str(tmp_path / "f0.onnx"), "--replay", str(take_path)]) == 0
+    out = capsys.readouterr()
+    assert f"the model reads {len(finger0)} of the device's 88 channels; unused: " in out.err
+    labels = [d for d in map(json.loads, out.out.splitlines()) if "label" in d]
+    assert [d["seq"] for d in labels] == list(range(9, 150, 10))
+    take = read_take(take_path)
+    cols = [names.index(n) for n in finger0]
+    x = np.stack([take.values()[d["seq"] - 9 : d["seq"] + 1][:, cols] for d in labels])
+    model, ck = load_checkpoint(tmp_path / "run")
+    with torch.no_grad():
+        p_t = model(torch.from_numpy(x.astype(np.float32)), *model.zero_state(len(x)))[0]
+    classes = list(ck["classes"])
+    p_run = np.array([[d["probs"][k] for k in classes] for d in labels])
+    assert np.abs(p_run - p_t.numpy()).max() <= ATOL  # stdout rounds to 6 decimals
+
+
 def test_int8_of_a_granular_model(dataset, tmp_path_factory):
     """Two EMD graphs whose loop bodies read main-graph values: the quantiser's reordering
     must not leave a file that onnx.checker refuses (it did before export/compose.toposorted).

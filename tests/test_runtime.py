@@ -702,23 +702,15 @@ def edited_take(models, tmp_path, name, edit):
     return tmp_path / f"{name}.csv"
 
 
-def test_a_device_other_in_order_units_or_rate_is_refused(models, tmp_path):
-    """The same channels in another order, another unit or another rate: exit 3 before any
-    window, one line naming both sides."""
+def test_a_device_with_other_units_or_rate_is_refused(models, tmp_path):
+    """Another unit or another rate for a channel the model reads: exit 3 before any window,
+    one line naming both sides."""
     _, onnx_path = models["window"]
-
-    def swap(device, columns):  # gyro_x and gyro_y trade places, in the header and the columns
-        ch = device["channels"]
-        i, j = [k for k, c in enumerate(ch) if c["name"] in ("gyro_x", "gyro_y")]
-        ch[i], ch[j] = ch[j], ch[i]
-        columns[i + 2], columns[j + 2] = columns[j + 2], columns[i + 2]
 
     def millivolts(device, columns):
         device["channels"][0]["unit"] = "mV"
 
-    cases = [(["--replay", str(edited_take(models, tmp_path, "order", swap))],
-              "'gyro_y', 'gyro_x'", "'gyro_x', 'gyro_y'"),
-             (["--replay", str(edited_take(models, tmp_path, "units", millivolts))],
+    cases = [(["--replay", str(edited_take(models, tmp_path, "units", millivolts))],
               "device units ['mV'", "model's ['N'"),
              (["--port", "sim://?texture=paper&speed=max&seconds=2&rate=50"],
               "device rate 50 Hz", "model's 100 Hz")]
@@ -730,22 +722,67 @@ def test_a_device_other_in_order_units_or_rate_is_refused(models, tmp_path):
         assert '"label"' not in out
 
 
-def test_device_contract_mismatch_names_both_sides(models, tmp_path):
-    """A pen that sends other channels than the model was trained on is refused before the
-    first window, naming both sides."""
+def test_channels_are_taken_by_name_in_the_models_order(models, tmp_path):
+    """A device that sends the model's channels in another order gives the same labels and
+    probabilities as one that sends them in the model's."""
+    _, onnx_path = models["window"]
+
+    def swap(device, columns):  # gyro_x and gyro_y trade places, in the header and the columns
+        ch = device["channels"]
+        i, j = [k for k, c in enumerate(ch) if c["name"] in ("gyro_x", "gyro_y")]
+        ch[i], ch[j] = ch[j], ch[i]
+        columns[i + 2], columns[j + 2] = columns[j + 2], columns[i + 2]
+
+    same = edited_take(models, tmp_path, "same", lambda device, columns: None)
+    swapped = edited_take(models, tmp_path, "swapped", swap)
+    # the samples trade places too: the same data, sent in another order
+    head, *rows = swapped.read_text().splitlines()
+    i, j = (head.split(",").index(n) for n in ("gyro_x", "gyro_y"))
+    for k, row in enumerate(rows):
+        v = row.split(",")
+        v[i], v[j] = v[j], v[i]
+        rows[k] = ",".join(v)
+    swapped.write_text("\n".join([head, *rows]) + "\n")
+    outs = []
+    for take in (same, swapped):
+        code, out, err = run_cli(["--model", str(onnx_path), "--replay", str(take)])
+        assert code == 0, err
+        assert "unused" not in err  # every channel is read
+        outs.append([{k: v for k, v in json.loads(ln).items() if k != "latency_ms"}
+                     for ln in out.splitlines()])
+    assert outs[0] == outs[1] and sum("label" in o for o in outs[0]) > 5
+
+
+def test_a_model_of_some_channels_runs_on_the_pen_that_sends_them_all(models, tmp_path):
+    """A model trained on some of the pen's channels (``channels``) reads those from the pen,
+    by name, and names the others once; a model that needs a channel the device does not send
+    is refused before the first window, naming it."""
     from tactile.export.exporter import export_run
 
     data = tmp_path / "imu"
     make_dataset(data, takes=4, textures=("paper", "desk"), seconds=4, seed=3)
     cfg = TrainConfig(epochs=1, hidden=4, layers=1, threads=1, hop=25,
-                      channels=("accel_x", "accel_y", "accel_z"))
+                      channels=("accel_z", "pressure_0", "accel_x"))
     train(data, tmp_path / "run", cfg, progress=False)
     export_run(tmp_path / "run", tmp_path / "imu.onnx", log=lambda *_: None)
-    code, out, err = run_cli(["--model", str(tmp_path / "imu.onnx"), "--port",
-                              "sim://?texture=paper&speed=max&seconds=2"])
-    assert code == 3
-    assert "device channels ['pressure_0'" in err and "model's ['accel_x'" in err
-    assert '"label"' not in out
+    code, out, err = run_until(["--model", str(tmp_path / "imu.onnx"), "--port",
+                                "sim://?texture=paper&speed=max"],
+                               lambda lines: sum('"label"' in ln for ln in lines) >= 3)
+    assert code == 0, err
+    unused = [ln for ln in err.splitlines() if "unused" in ln]
+    assert unused == ["tactile-run: the model reads 3 of the device's 8 channels; unused: "
+                      "pressure_1, accel_y, gyro_x, gyro_y, gyro_z"]
+    # the same model on a take whose device lacks accel_z
+    def no_accel_z(device, columns):
+        k = next(i for i, c in enumerate(device["channels"]) if c["name"] == "accel_z")
+        device["channels"][k]["name"] = "accel_q"
+        columns[k + 2] = "accel_q"
+
+    take = edited_take(models, tmp_path, "no_z", no_accel_z)
+    code, out, err = run_cli(["--model", str(tmp_path / "imu.onnx"), "--replay", str(take)])
+    assert code == 3 and '"label"' not in out
+    assert err.strip().splitlines()[-1].startswith("tactile-run: error: the device sends no "
+                                                   "accel_z: the model reads ['accel_z', ")
 
 
 SHIPPED = REPO / "models" / "pen-exp2.onnx"
