@@ -51,7 +51,7 @@ KEEPALIVE_S = 15.0
 _FILES = {"/": ("index.html", "text/html; charset=utf-8"),
           "/app.js": ("app.js", "text/javascript; charset=utf-8"),
           "/style.css": ("style.css", "text/css; charset=utf-8")}
-_STICKY = ("header", "label", "status")  # a new viewer gets the latest of each first
+_STICKY = ("header", "label", "change", "status")  # a new viewer gets the latest of each first
 _END = b'data: {"event":"end"}\n\n'
 _BUSY = (b"HTTP/1.1 503 Service Unavailable\r\nContent-Type: text/plain; charset=utf-8\r\n"
          b"Content-Length: 38\r\nRetry-After: 10\r\nConnection: close\r\n\r\n"
