@@ -123,4 +123,22 @@ def _rounded(f: dict) -> dict:
     return {k: round(v, 4) if isinstance(v, float) else v for k, v in f.items()}
 
 
-__all__ = ["MAX_FALSE_PER_MIN", "Calibration", "calibrate", "default_grid"]
+def summary_line(f: dict) -> str:
+    """The chosen setting and the figures :func:`calibrate` saw (its ``figures``), one line for
+    people (``tactile-export`` prints it, ``tactile-check`` shows it)."""
+    raw, sm = f["raw"], f["smoothed"]
+
+    def num(v, fmt):
+        return "-" if v is None else format(v, fmt)
+
+    n = f["streams"]
+    return (f"{f['setting']} (calibrated on {n} validation stream{'s' if n != 1 else ''}, "
+            f"{raw['minutes']:.1f} min: correct stable labels {sm['accuracy'] * 100:.1f} % "
+            f"(raw {raw['accuracy'] * 100:.1f} %), uncertain {sm['uncertain'] * 100:.1f} %, "
+            f"false changes/min {num(sm['false_per_min'], '.2f')} (raw "
+            f"{num(raw['false_per_min'], '.2f')}), change latency median "
+            f"{num(sm['latency_median_s'], '.2f')} s"
+            f"{'' if f['met_limit'] else '; the change limit NOT met'})")
+
+
+__all__ = ["MAX_FALSE_PER_MIN", "Calibration", "calibrate", "default_grid", "summary_line"]
