@@ -5,18 +5,19 @@
     python bench/label_stream.py --model model.onnx --data DATA --test-users 3,4 --val-users 9
 
 Streams: each user's takes (one user per stream; takes without a ``user`` field form one
-stream) are cut into pieces of ``--dwell`` s, shuffled (seeded) so that consecutive pieces are of
-different classes where possible, and played one after the other as one continuous sample
-stream through the runtime's own :class:`~tactile.runtime.stream.Stream` (the model's window,
-hop and state mode). A window's true class is that of its last sample. Without ``--data`` the
-stream is the simulated pen of the shipped model's dataset (``tactile-sim --seed 1``, 60 s
+stream) are played through the runtime's own :class:`~tactile.runtime.stream.Stream` (the
+model's window, hop and state mode; each gap-free segment from a fresh stream), their windows
+cut into pieces of ``--dwell`` s, and the pieces put in a seeded order in which consecutive
+pieces are of different classes where possible and played one after the other
+(:mod:`tactile.postprocess.streams`, as ``tactile-export --data`` calibrates). Without ``--data``
+the stream is the simulated pen of the shipped model's dataset (``tactile-sim --seed 1``, 60 s
 takes of every class): its 22 test users, and its 10 validation users for the calibration
 (``models/README.md``), simulated into a temporary folder first.
 
 The post-processing setting is ``--smooth/--p-min/--hold`` when given, else the one
-:func:`~tactile.runtime.calibration.calibrate` picks on the validation users' streams. Prints
+:func:`~tactile.postprocess.calibration.calibrate` picks on the validation users' streams. Prints
 the setting, the raw and smoothed figures of the test streams side by side
-(:mod:`~tactile.runtime.stream_metrics` defines them), the issue's targets with met / NOT met,
+(:mod:`~tactile.postprocess.metrics` defines them), the issue's targets with met / NOT met,
 and the figures as one JSON line.
 """
 
@@ -29,13 +30,12 @@ import tempfile
 import time
 from pathlib import Path
 
-import numpy as np
-
-from tactile.runtime.calibration import calibrate
+from tactile.export.calibrate import take_pieces
+from tactile.postprocess.calibration import calibrate
+from tactile.postprocess.metrics import WindowStream, compare
+from tactile.postprocess.smoothing import SmoothingSettings, make_settings
+from tactile.postprocess.streams import make_streams
 from tactile.runtime.model import Model
-from tactile.runtime.smoothing import SmoothingSettings, make_settings
-from tactile.runtime.stream import Stream
-from tactile.runtime.stream_metrics import WindowStream, compare
 
 SHIPPED_SEED = 1  # models/README.md: tactile-sim --dataset data/pen-exp2 ... --seed 1
 # the shipped model's split by user (its training_metrics "split", drawn with seed 0)
@@ -63,60 +63,13 @@ def load_groups(folder: Path) -> dict[str, list]:
     return groups
 
 
-def pieces(takes: list, model: Model, dwell_s: float) -> list[tuple[int, np.ndarray]]:
-    """(class index, values (n, model channels) float32) pieces of at most ``dwell_s`` s, cut
-    within the takes' gap-free segments; pieces shorter than a window are left out."""
-    c = model.contract
-    n = max(c.window, round(dwell_s * c.sample_rate_hz))
-    out = []
-    for take in takes:
-        if take.label not in c.classes:
-            continue
-        cols = [list(take.channels).index(ch) for ch in c.channels]
-        values = take.values()[:, cols].astype(np.float32)
-        for a, b in take.segments():
-            for s in range(a, b, n):
-                if min(s + n, b) - s >= c.window:
-                    out.append((c.classes.index(take.label), values[s : min(s + n, b)]))
-    return out
-
-
-def order(parts: list, rng: np.random.Generator) -> list:
-    """A random order in which consecutive pieces differ in class wherever that is possible."""
-    left, out, prev = list(parts), [], None
-    while left:
-        other = [i for i, (k, _) in enumerate(left) if k != prev] or list(range(len(left)))
-        i = other[int(rng.integers(len(other)))]
-        out.append(left.pop(i))
-        prev = out[-1][0]
-    return out
-
-
-def window_stream(model: Model, parts: list) -> WindowStream:
-    """The pieces as one sample stream through the runtime's Stream: window times, true
-    classes (of each window's last sample) and probabilities."""
-    c = model.contract
-    values = np.concatenate([v for _, v in parts])
-    truth = np.concatenate([np.full(len(v), k) for k, v in parts])
-    stream = Stream.for_model(model)
-    stream.accept(values, seq=0, t_us=0, period_us=1e6 / c.sample_rate_hz)
-    t, true, probs = [], [], []
-    while stream.ready():
-        lab = stream.classify()
-        t.append(lab.t_us / 1e6)
-        true.append(truth[lab.seq])
-        probs.append([lab.probabilities[k] for k in c.classes])
-    return WindowStream(np.array(t), np.array(true), np.array(probs), c.classes)
-
-
 def build_streams(model: Model, groups: dict[str, list], users: list[str], dwell_s: float,
                   seed: int) -> list[WindowStream]:
-    out = []
-    for u in users:
-        rng = np.random.default_rng([seed, sum(map(ord, u))])  # a user's order, whatever else
-        parts = pieces(groups[u], model, dwell_s)
-        if parts:
-            out.append(window_stream(model, order(parts, rng)))
+    """One stream per user: its takes of the model's classes through the runtime, in pieces."""
+    c = model.contract
+    parts = {u: [p for take in groups[u] if take.label in c.classes
+                 for p in take_pieces(model, take, (0, len(take.seq)), dwell_s)] for u in users}
+    out = make_streams(parts, c.classes, c.hop / c.sample_rate_hz, seed)
     if not out:
         sys.exit("label_stream.py: no take of the model's classes among those users")
     return out

@@ -96,8 +96,27 @@ def describe(path: Path, c: ModelContract, opset: int | None = OPSET) -> str:
           f"atoms as scikit-learn, max |dc|/|c| {r.get('max_rel_diff')}"
           for r in c.parity.get("codes") or []),
         f"  training  {_recorded(c)}",
+        *_postprocess_lines(c),
     ]
     return "\n".join(lines)
+
+
+def _postprocess_lines(c: ModelContract) -> list[str]:
+    """The label stream's defaults and the validation figures they were chosen on, when the
+    file carries them (an older file: none, it runs raw)."""
+    from tactile.postprocess.calibration import summary_line
+    from tactile.postprocess.smoothing import figures_from_metadata, settings_from_metadata
+
+    settings = settings_from_metadata(c.extra)
+    if settings is None:
+        return []
+    figures = figures_from_metadata(c.extra)
+    if not figures:
+        return [f"  labels    {settings.describe()} (post-processing defaults)"]
+    try:
+        return [f"  labels    {summary_line(figures)}"]
+    except (KeyError, TypeError, ValueError):  # figures of another shape: the setting alone
+        return [f"  labels    {settings.describe()} (post-processing defaults)"]
 
 
 def _excused(parity: dict) -> str:

@@ -17,6 +17,7 @@ from pathlib import Path
 import onnx
 
 from tactile.errors import ConfigError
+from tactile.export.calibrate import calibrate_file
 from tactile.export.check import load_contract
 from tactile.export.graph import build_graph
 from tactile.export.metadata import attach, contract_for
@@ -53,6 +54,7 @@ def export_run(run_dir: Path, out: Path, data: Path | None = None, int8: bool = 
         report["int8"] = _tradeoff(graph, final, parity, q, ck, model.state_shape)
         log(_tradeoff_line(report["int8"]))
     attach(final, contract_for(ck, figures, quantization, run_dir.resolve().name, model))
+    report["postprocess"] = calibrate_file(final, ck, model.cfg, data, log)
     with tempfile.NamedTemporaryFile(dir=out.parent, suffix=".onnx", delete=False) as tmp:
         tmp_path = Path(tmp.name)
     try:

@@ -4,9 +4,9 @@
 ``to_units(info, raw)`` (:func:`tactile.runtime.units.to_units`) converts counts to units.
 :class:`~tactile.runtime.model.Model` (the exported model, stateless) and
 :class:`~tactile.runtime.stream.Stream` (one pen's windows and state) are the pieces
-``tactile-run`` is made of, with :class:`~tactile.runtime.smoothing.PostProcessor` (a
+``tactile-run`` is made of, with :class:`~tactile.postprocess.smoothing.PostProcessor` (a
 stream's averaged, stable label and its changes;
-:class:`~tactile.runtime.smoothing.SmoothingSettings`);
+:class:`~tactile.postprocess.smoothing.SmoothingSettings`);
 :class:`~tactile.runtime.runner.Runner` drives them from a pen's decoded events
 (:func:`~tactile.runtime.runner.read_pen`, the serial loop; :func:`~tactile.runtime.runner.replay`,
 a recorded take); :class:`~tactile.runtime.live.Live`
@@ -23,9 +23,9 @@ _HOME = {
     "Model": "model",
     "Label": "stream",
     "Stream": "stream",
-    "PostProcessor": "smoothing",
-    "SmoothingSettings": "smoothing",
-    "UNCERTAIN": "smoothing",
+    "PostProcessor": "tactile.postprocess.smoothing",
+    "SmoothingSettings": "tactile.postprocess.smoothing",
+    "UNCERTAIN": "tactile.postprocess.smoothing",
     "Printer": "runner",
     "Runner": "runner",
     "Summary": "runner",
@@ -38,7 +38,9 @@ _HOME = {
 
 def __getattr__(name: str):
     if name in _HOME:
-        return getattr(importlib.import_module(f"tactile.runtime.{_HOME[name]}"), name)
+        home = _HOME[name]  # a module of the runtime, or a full name (the shared core's)
+        return getattr(importlib.import_module(home if "." in home else
+                                               f"tactile.runtime.{home}"), name)
     raise AttributeError(f"module 'tactile.runtime' has no attribute {name!r}")
 
 

@@ -13,7 +13,7 @@ import onnxruntime as ort
 
 from tactile.contract import BATCH, ModelContract, model_file
 from tactile.errors import ConfigError, ModelContractError
-from tactile.runtime.smoothing import settings_from_metadata
+from tactile.postprocess.smoothing import settings_from_metadata
 
 
 def session_options(threads: int = 1) -> ort.SessionOptions:
@@ -53,11 +53,11 @@ class Model:
     than the contract declares (:meth:`check_outputs`): onnxruntime does not enforce a graph's
     declared output shapes, so a file can declare 5 classes and return 7 probabilities.
     :meth:`classify` checks every result the same way. So is a file whose ``postprocess.*``
-    keys are incomplete or bad (:func:`~tactile.runtime.smoothing.settings_from_metadata`).
+    keys are incomplete or bad (:func:`~tactile.postprocess.smoothing.settings_from_metadata`).
 
     Attributes: ``contract`` (:class:`~tactile.contract.ModelContract`), ``metadata`` (all of
     the file's ``metadata_props``, str -> str), ``postprocess`` (the label stream's
-    post-processing defaults, a :class:`~tactile.runtime.smoothing.SmoothingSettings`, or None
+    post-processing defaults, a :class:`~tactile.postprocess.smoothing.SmoothingSettings`, or None
     for a file without ``postprocess.*`` keys), ``path``, ``session``.
     """
 

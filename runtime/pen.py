@@ -10,9 +10,9 @@ from collections.abc import Callable, Iterator, Mapping
 import tactile.device  # noqa: F401  (registers sim://)
 from tactile.device.link import Connection, LinkSettings
 from tactile.device.protocol import StreamDecoder
+from tactile.postprocess.smoothing import SmoothingSettings
 from tactile.runtime.model import Model
 from tactile.runtime.runner import Runner, Summary, post_processor
-from tactile.runtime.smoothing import SmoothingSettings
 from tactile.runtime.stream import Label, Stream
 
 
@@ -65,7 +65,7 @@ def labels(
     Each label is post-processed as ``tactile-run`` does it
     (:func:`~tactile.runtime.runner.post_processor`): ``smoothing`` None takes the model's
     defaults (a file without ``postprocess.*`` metadata: raw labels, ``lab.smoothed`` None);
-    ``"raw"`` none; a :class:`~tactile.runtime.smoothing.SmoothingSettings` that setting; a dict
+    ``"raw"`` none; a :class:`~tactile.postprocess.smoothing.SmoothingSettings` that setting; a dict
     of ``smooth`` (``"5"`` windows, ``"1.5s"``), ``p_min``, ``hold`` those in place of the
     model's, as the options ``--smooth``, ``--p-min``, ``--hold``. ``lab.smoothed.label`` is then
     the stable label or ``"uncertain"``, with ``.p``, ``.stable`` and ``.reset`` (the reason of

@@ -3,7 +3,7 @@
 :class:`Runner` takes a pen's decoded events in order (headers, samples, gaps, and the link's
 stalls and reconnections), checks the device against the model's contract
 (:func:`check_device`), classifies each window (post-processed by the stream's
-:class:`~tactile.runtime.smoothing.PostProcessor`, :func:`post_processor`) and hands labels and
+:class:`~tactile.postprocess.smoothing.PostProcessor`, :func:`post_processor`) and hands labels and
 events to a :class:`Printer` (stdout) and a :class:`Summary` (counters). Two loops feed it:
 :func:`read_pen`, the serial loop over a :class:`~tactile.device.link.connection.Connection` (it
 reconnects to the same pen only), and :func:`replay`, a recorded take as fast as it can.
@@ -28,8 +28,8 @@ import tactile.device  # noqa: F401  (registers sim://)
 from tactile.device.link import Connection, LinkSettings, Reconnected, Stall, find_port, keep_trying
 from tactile.device.protocol import DeviceInfo, Gap, Header, Samples, StreamDecoder
 from tactile.errors import ConfigError, ModelContractError, RecordingError
+from tactile.postprocess.smoothing import PostProcessor, SmoothingSettings, override
 from tactile.runtime.model import Model
-from tactile.runtime.smoothing import PostProcessor, SmoothingSettings, override
 from tactile.runtime.stream import Label, Stream
 from tactile.runtime.units import to_units
 
@@ -125,9 +125,9 @@ def post_processor(model: Model, smoothing=None) -> PostProcessor | None:
     """The label stream's post-processor for ``model``, or None (raw labels only).
 
     ``smoothing``: None, the model's defaults (its ``postprocess.*`` metadata; a file without
-    them: None); ``"raw"``, none; a :class:`~tactile.runtime.smoothing.SmoothingSettings`, that;
+    them: None); ``"raw"``, none; a :class:`~tactile.postprocess.smoothing.SmoothingSettings`, that;
     a mapping with any of ``smooth`` (``N`` windows or ``Ts``,
-    :func:`~tactile.runtime.smoothing.parse_smooth_option`),
+    :func:`~tactile.postprocess.smoothing.parse_smooth_option`),
     ``p_min`` and ``hold``, those values in place of the model's (as ``tactile-run``'s
     options). A bad value is a one-line :class:`ConfigError`; a model with a class named
     ``uncertain`` (reserved) is a :class:`ModelContractError` once post-processing is on.

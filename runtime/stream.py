@@ -1,7 +1,7 @@
 """The per-stream object: samples in, one label per window out.
 
 A :class:`Stream` holds one pen's ring buffer and LSTM state, and optionally its labels'
-:class:`~tactile.runtime.smoothing.PostProcessor`, reset with the state; the model object it
+:class:`~tactile.postprocess.smoothing.PostProcessor`, reset with the state; the model object it
 calls is stateless and may be shared by many streams. Four verbs: :meth:`Stream.accept` samples,
 :meth:`Stream.ready`, :meth:`Stream.classify`, :meth:`Stream.reset` (plus :meth:`Stream.gap`
 when samples were lost). The serial loop is a few lines over it, and tests drive it with arrays.
@@ -17,7 +17,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from tactile.errors import ConfigError, ModelContractError
-from tactile.runtime.smoothing import PostProcessor, Smoothed
+from tactile.postprocess.smoothing import PostProcessor, Smoothed
 
 # (window (1, T, C) float32, h, c) -> (probabilities (1, K), h, c)
 ClassifyFn = Callable[[np.ndarray, np.ndarray, np.ndarray], tuple[np.ndarray, np.ndarray,
@@ -67,7 +67,7 @@ class Stream:
         channels: channels per sample.
         carry: carry the LSTM state from window to window (else a zero state per window).
         state_shape: (layers, hidden) of the state tensors.
-        post: optional :class:`~tactile.runtime.smoothing.PostProcessor` (for ``classes``, in
+        post: optional :class:`~tactile.postprocess.smoothing.PostProcessor` (for ``classes``, in
             that order) fed with every window; its result is the label's ``smoothed``. It is
             reset with the LSTM state (:meth:`reset`, :meth:`gap`).
         rate_hz: the pen's sample rate, which times the samples of an :meth:`accept` call

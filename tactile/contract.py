@@ -104,7 +104,19 @@ KEYS: dict[str, tuple[bool, str]] = {
     "exporter": (False, "how the graph was made: torch version, exporter path, opset"),
     "training_config": (False, "JSON object: the run's resolved training config"),
     "source_run": (False, "name of the run folder the model came from"),
+    # the label stream's post-processing defaults (tactile.postprocess.smoothing reads them):
+    # all four or none; a file without them runs raw
+    "postprocess.version": (False, "version of the postprocess.* keys' meaning (this reader: "
+                                   "1); with smooth, p_min and hold"),
+    "postprocess.smooth": (False, "the averaging of the class probabilities: ma:N (the last N "
+                                  "windows) or ema:TAU (an exponential average, TAU in s)"),
+    "postprocess.p_min": (False, "a stable label's least averaged probability (0..1)"),
+    "postprocess.hold": (False, "windows a class must lead before its label is stable (>= 1)"),
+    "postprocess.calibration": (False, "JSON object: how the defaults were chosen and the "
+                                       "figures they gave on the validation streams"),
 }
+POSTPROCESS_PREFIX = "postprocess."
+"""Prefix of the label stream's post-processing keys in :data:`KEYS`."""
 REQUIRED = tuple(k for k, (req, _) in KEYS.items() if req)
 OPTIONAL = tuple(k for k, (req, _) in KEYS.items() if not req)
 PARSED_OPTIONAL = ("signals", "modalities")
@@ -513,6 +525,6 @@ __all__ = [
     "FLOAT", "KEYS", "REQUIRED", "OPTIONAL", "STATE_MODES", "MODELS", "RECURRENT",
     "MODALITY_MODELS", "CODED_MODELS", "QUANTIZATIONS", "TensorSpec", "SignalSpec",
     "ModalitySpec", "ModelContract", "model_file",
-    "IR_VERSION", "MAX_IMFS", "MAX_SIFTS",
+    "IR_VERSION", "MAX_IMFS", "MAX_SIFTS", "POSTPROCESS_PREFIX",
 ]
 

@@ -625,3 +625,76 @@ def test_check_describes_an_ensemble_by_its_members(dataset, root):
         _, out, _, _, _ = _build(name, GRID[name], dataset, root)
         meta = {p.key: p.value for p in onnx.load(out).metadata_props}
         assert want in describe(out, ModelContract.from_metadata(meta), None)
+
+
+# -- the label stream's defaults, calibrated at export --------------------------------------------
+
+
+@pytest.fixture(scope="module")
+def calibrated_export(tmp_path_factory):
+    """A tiny run on a dataset whose validation user has 40 s of each class (2 min of stream),
+    exported with ``--data``: (run, file, report, dataset)."""
+    root = tmp_path_factory.mktemp("calib")
+    data = root / "data"
+    make_dataset(data, takes=4, textures=("paper", "desk", "non_contact"), seconds=40, seed=2)
+    train(data, root / "run", TrainConfig(**BASE), progress=False)
+    out = root / "m.onnx"
+    report = export_run(root / "run", out, data=data, log=lambda s: None)
+    return root / "run", out, report, data
+
+
+def test_export_with_data_writes_the_calibrated_defaults(calibrated_export, capsys):
+    from tactile.device.recordings import load_dataset
+    from tactile.postprocess.smoothing import KEYS, figures_from_metadata
+    from tactile.runtime.model import Model
+    from tactile.training.label_stream import validation_rows
+
+    run, out, report, data = calibrated_export
+    model = Model(out)
+    assert model.postprocess is not None and set(KEYS) <= set(model.metadata)
+    figures = figures_from_metadata(model.metadata)
+    assert figures == report["postprocess"] and figures["setting"] == model.postprocess.describe()
+    # calibrated on the validation takes, never the test ones
+    net, ck = load_checkpoint(run)
+    takes = load_dataset(data)
+    rows, why = validation_rows(takes, ck, net.cfg, data.name)
+    assert rows and not why
+    assert not {takes[i].path.name for i in rows} & set(ck["test_rows"])
+    assert figures["raw"]["windows"] == sum(
+        (b - a - net.cfg.window) // net.cfg.hop + 1 for a, b in rows.values())
+    assert check_main([str(out)]) == 0
+    text = capsys.readouterr().out
+    assert f"  labels    {figures['setting']} (calibrated on " in text
+
+
+def test_calibrated_defaults_round_trip_through_the_contract(calibrated_export):
+    from tactile import contract as contract_module
+    from tactile.postprocess.smoothing import settings_from_metadata, settings_to_metadata
+
+    _, out, _, _ = calibrated_export
+    model, contract = load_contract(out)
+    meta = {p.key: p.value for p in model.metadata_props}
+    assert all(k in contract_module.OPTIONAL for k in meta if k.startswith("postprocess."))
+    again = ModelContract.from_metadata(meta).to_metadata()
+    assert {k: v for k, v in again.items() if k.startswith("postprocess.")} == \
+        {k: v for k, v in meta.items() if k.startswith("postprocess.")}
+    settings = settings_from_metadata(again)
+    assert settings_from_metadata(settings_to_metadata(settings)) == settings
+
+
+def test_export_without_validation_data_writes_no_defaults(dataset, root, tmp_path, capsys):
+    """Without --data the file has no postprocess.* keys and runs raw; with a dataset whose
+    validation takes make less than a minute of stream, neither, and one stderr line says so."""
+    from tactile.runtime.model import Model
+    from tactile.runtime.runner import post_processor
+
+    run, out, report, _, _ = _build("lstm1", GRID["lstm1"], dataset, root)
+    model = Model(out)
+    assert report["postprocess"] is None and model.postprocess is None
+    assert not [k for k in model.metadata if k.startswith("postprocess.")]
+    assert post_processor(model) is None  # an old file without the keys: raw labels
+    capsys.readouterr()
+    short = export_run(run, tmp_path / "short.onnx", data=dataset, log=lambda s: None)
+    err = capsys.readouterr().err
+    assert short["postprocess"] is None and Model(tmp_path / "short.onnx").postprocess is None
+    assert err.count("\n") == 1 and "too little validation data" in err

@@ -21,13 +21,13 @@ from tactile.device.protocol import pen_info
 from tactile.device.sim import PenSimulator, make_dataset
 from tactile.device.sim.protocol_sim import forget_unplugs
 from tactile.errors import ConfigError, ModelContractError
-from tactile.runtime.model import Model
-from tactile.runtime.smoothing import (
+from tactile.postprocess.smoothing import (
     UNCERTAIN,
     PostProcessor,
     SmoothingSettings,
     settings_to_metadata,
 )
+from tactile.runtime.model import Model
 from tactile.runtime.stream import Stream
 from tactile.training.checkpoint import load_checkpoint
 from tactile.training.config import TrainConfig

@@ -20,8 +20,8 @@ from conftest import REPO, page_url, pen_stream
 
 from tactile.device.protocol import Header, Samples, pen_info
 from tactile.errors import ConfigError
+from tactile.postprocess.smoothing import PostProcessor, SmoothingSettings
 from tactile.runtime.live import QUEUE, Live, parse_address
-from tactile.runtime.smoothing import PostProcessor, SmoothingSettings
 from tactile.runtime.stream import Label
 
 MODEL = REPO / "models" / "pen-exp2.onnx"

@@ -9,8 +9,15 @@ import pytest
 from conftest import REPO
 
 from tactile.errors import ConfigError, ModelContractError
-from tactile.runtime.calibration import calibrate, default_grid
-from tactile.runtime.smoothing import (
+from tactile.postprocess.calibration import calibrate, default_grid
+from tactile.postprocess.metrics import (
+    WindowStream,
+    compare,
+    figures,
+    raw_track,
+    smoothed_track,
+)
+from tactile.postprocess.smoothing import (
     UNCERTAIN,
     PostProcessor,
     SmoothingSettings,
@@ -23,13 +30,6 @@ from tactile.runtime.smoothing import (
     settings_to_metadata,
 )
 from tactile.runtime.stream import Label
-from tactile.runtime.stream_metrics import (
-    WindowStream,
-    compare,
-    figures,
-    raw_track,
-    smoothed_track,
-)
 
 ABC = ("a", "b", "c")
 AB = ("a", "b")

@@ -292,3 +292,56 @@ def test_eval_recognises_the_test_split_by_content_not_by_name(trained, dataset,
     assert eval_main([str(run), str(copy), "--json"]) == 0
     out = json.loads(capsys.readouterr().out)
     assert out["scope"].startswith("every take") and victim.name in out["scope"]
+
+
+def test_a_class_named_uncertain_is_refused_before_training(tmp_path, capsys):
+    """``uncertain`` is the label stream's name for "no stable label": a dataset with a class so
+    named is one line and exit 1, before any training."""
+    data = tmp_path / "data"
+    make_dataset(data, 2, ("paper", "desk"), seconds=2, seed=1)
+    for meta in data.glob("desk-*.json"):
+        d = json.loads(meta.read_text())
+        d["label"] = "uncertain"
+        meta.write_text(json.dumps(d))
+    assert train_main([str(data), "--out", str(tmp_path / "run")]) == 1
+    err = capsys.readouterr().err
+    assert len(err.strip().splitlines()) == 1 and "'uncertain'" in err and "reserve" in err
+    assert not (tmp_path / "run" / "checkpoint.pt").exists()
+
+
+def test_eval_label_stream_figures(trained, dataset, capsys):
+    """tactile-eval's label stream: the test windows' own predictions as streams; the raw
+    stream's accuracy is the window accuracy, and the figures are the metrics functions' on the
+    same predictions (a stated setting here)."""
+    from tactile.device.recordings import load_dataset
+    from tactile.postprocess.metrics import compare
+    from tactile.postprocess.smoothing import SmoothingSettings
+    from tactile.postprocess.streams import make_streams
+    from tactile.training.data import find_test_split
+    from tactile.training.label_stream import pieces
+
+    run, _ = trained
+    assert eval_main([str(run), str(dataset), "--json", "--smooth", "3", "--p-min", "0.5",
+                      "--hold", "2"]) == 0
+    out = json.loads(capsys.readouterr().out)
+    ls = out["label_stream"]
+    assert ls["setting"] == "ma:3 p_min=0.5 hold=2" and ls["source"] == "given"
+    assert ls["raw"]["windows"] == out["windows"]
+    assert ls["raw"]["accuracy"] == pytest.approx(out["accuracy"])
+    assert ls["raw"]["uncertain"] == 0 and ls["smoothed"]["windows"] == out["windows"]
+    model, ck = load_checkpoint(run)
+    takes = load_dataset(dataset)
+    rows, _, _ = find_test_split(takes, ck["test_rows"], ck["test_fingerprints"], dataset.name)
+    classes = tuple(ck["classes"])
+    w = cut(takes, classes, tuple(ck["channels"]), model.cfg.window, model.cfg.hop, rows)
+    streams = make_streams(pieces(w, predict(model, w), takes, model.cfg.window, 100.0),
+                           classes, model.cfg.hop / 100.0)
+    want = compare(streams, SmoothingSettings(n=3, p_min=0.5, hold=2))
+    for part in ("raw", "smoothed"):
+        for k, v in want[part].items():
+            assert ls[part][k] == pytest.approx(v, rel=1e-6, abs=1e-9), (part, k)
+    # without a setting: calibrated on the validation takes, or said why not; text side by side
+    assert eval_main([str(run), str(dataset)]) == 0
+    text = capsys.readouterr().out
+    assert "label stream: " in text and "post-processed with " in text
+    assert "false changes per minute" in text and "raw" in text

@@ -21,6 +21,7 @@ from tactile.errors import RecordingError
 from tactile.training.checkpoint import load_checkpoint
 from tactile.training.config import apply_threads, resolve_threads
 from tactile.training.data import Windows, cut, find_test_split
+from tactile.training.label_stream import stream_figures
 from tactile.training.model import TextureModel
 
 SHIFTS_S = (-0.2, -0.1, 0.1, 0.2)  # the "novel" set: windows moved by up to +/-0.2 s
@@ -143,9 +144,14 @@ def shifted(model: TextureModel, takes, classes, channels, rows, window: int, ho
     return out
 
 
-def evaluate_run(run_dir: Path, data: Path, threads: int | None = None) -> dict:
+def evaluate_run(run_dir: Path, data: Path, threads: int | None = None,
+                 smoothing=None) -> dict:
     """The figures of ``run_dir``'s model on ``data`` (see the module's text). ``threads``:
-    torch threads (default: the run's ``threads`` setting, resolved on this machine)."""
+    torch threads (default: the run's ``threads`` setting, resolved on this machine).
+    ``label_stream``: the test windows as a label stream, raw and post-processed with
+    ``smoothing`` (a :class:`~tactile.postprocess.smoothing.SmoothingSettings`; None: the
+    setting calibrated on the run's validation takes), by
+    :func:`tactile.training.label_stream.stream_figures`."""
     model, ck = load_checkpoint(run_dir)
     cfg = model.cfg
     s_threads = apply_threads(threads or resolve_threads(cfg.threads))
@@ -166,6 +172,8 @@ def evaluate_run(run_dir: Path, data: Path, threads: int | None = None) -> dict:
     s["threads"] = s_threads
     s["shifted"] = shifted(model, takes, classes, channels, rows, cfg.window, cfg.hop, rate)
     s["classes"] = list(classes)
+    s["label_stream"] = stream_figures(model, ck, takes, data.name, w, probs,
+                                       lambda v: predict(model, v), smoothing)
     return s
 
 

@@ -19,6 +19,7 @@ from tqdm import tqdm
 
 from tactile.device.recordings import Take
 from tactile.errors import ConfigError, RecordingError
+from tactile.postprocess.smoothing import UNCERTAIN
 from tactile.training.checkpoint import Norm
 from tactile.training.config import TrainConfig
 from tactile.training.data import (
@@ -55,10 +56,14 @@ class Prepared:
 def check_inputs(data: Path, takes: list[Take],
                  cfg: TrainConfig) -> tuple[tuple[str, ...], tuple[str, ...]]:
     """The classes and the input channels of ``takes`` (the dataset ``data``); at least two
-    classes, and ``emd_channels`` among the inputs, else one line naming what is wrong."""
+    classes, none named ``uncertain`` (the label stream's unsettled label), and
+    ``emd_channels`` among the inputs, else one line naming what is wrong."""
     classes = classes_of(takes)
     if len(classes) < 2:
         raise RecordingError(f"{data}: only one label ({classes[0]}); need at least two classes")
+    if UNCERTAIN in classes:
+        raise ConfigError(f"{data}: a class is named {UNCERTAIN!r}, the name the label stream "
+                          "reserves for no stable label: rename its takes' label")
     channels = tuple(takes[0].channels[i] for i in channel_index(takes[0], cfg.channels))
     missing = [c for c in cfg.emd_channels if c not in channels]
     if missing:

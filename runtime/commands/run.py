@@ -84,7 +84,7 @@ def _smooth(text: str) -> str:
     """``--smooth``: ``N`` windows or ``Ts`` (checked here, so that a bad value is argparse's
     one line)."""
     from tactile.errors import ConfigError
-    from tactile.runtime.smoothing import parse_smooth_option
+    from tactile.postprocess.smoothing import parse_smooth_option
 
     try:
         parse_smooth_option(text)

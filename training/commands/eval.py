@@ -1,10 +1,12 @@
 """Evaluate a trained run on a dataset: window and per-take accuracy, confusion, robustness.
 
-    tactile-eval RUN/ DATA [--json] [--threads N]
+    tactile-eval RUN/ DATA [--json] [--threads N] [--smooth S --p-min P --hold K]
 
 prints the figures of :func:`tactile.training.evaluate.evaluate_run`: accuracy over windows, the
 majority vote per take, per-class recall, the paper-style confusion table and the robustness
-check on windows shifted by up to +/-0.2 s.
+check on windows shifted by up to +/-0.2 s; then the label stream (the test takes played as
+streams, :mod:`tactile.training.label_stream`), raw and post-processed side by side, with the
+setting calibrated on the run's validation takes, or the one the options give.
 """
 
 from __future__ import annotations
@@ -24,14 +26,24 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--json", action="store_true", help="the figures as one JSON object")
     p.add_argument("--threads", type=int_in(1), metavar="N",
                    help="torch threads (default: the run's threads setting)")
+    p.add_argument("--smooth", metavar="S", help="label stream: the averaging (N windows, Ts, "
+                   "ma:N or ema:T) instead of the calibrated setting's")
+    p.add_argument("--p-min", type=float, metavar="P", help="label stream: the stable label's "
+                   "least averaged probability (0..1)")
+    p.add_argument("--hold", type=int, metavar="K", help="label stream: windows a class must "
+                   "lead before it is stable")
     add_debug(p)
     return p
 
 
 def _eval(args: argparse.Namespace) -> int:
+    from tactile.postprocess.smoothing import override
     from tactile.training.evaluate import evaluate_run, shifted_line, table
+    from tactile.training.label_stream import stream_table
 
-    s = evaluate_run(args.run, args.data, args.threads)
+    # a value given without the others: those of the raw stream (ma:1, p_min 0, hold 1)
+    smoothing = override(None, args.smooth, args.p_min, args.hold)
+    s = evaluate_run(args.run, args.data, args.threads, smoothing)
     if args.json:
         print(json.dumps(s))
         return 0
@@ -41,6 +53,7 @@ def _eval(args: argparse.Namespace) -> int:
     print(f"per take (majority vote): {s['take_accuracy']:.3f} over {s['takes']} takes")
     print("recall: " + ", ".join(f"{c} {v:.3f}" for c, v in s["recall"].items()))
     print(shifted_line(s["shifted"]))
+    print(stream_table(s["label_stream"]))
     return 0
 
 

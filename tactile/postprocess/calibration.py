@@ -1,9 +1,9 @@
 """Choosing the post-processing settings on validation streams (:func:`calibrate`).
 
 Every setting of a small grid replays the same streams through a fresh
-:class:`~tactile.runtime.smoothing.PostProcessor` (:mod:`tactile.runtime.stream_metrics`), and
+:class:`~tactile.postprocess.smoothing.PostProcessor` (:mod:`tactile.postprocess.metrics`), and
 the rule of :func:`calibrate` picks one. What it saw goes with the setting into the model file
-(:func:`~tactile.runtime.smoothing.settings_to_metadata`).
+(:func:`~tactile.postprocess.smoothing.settings_to_metadata`).
 """
 
 from __future__ import annotations
@@ -13,8 +13,8 @@ import math
 from dataclasses import dataclass
 
 from tactile.errors import ConfigError
-from tactile.runtime.smoothing import SmoothingSettings
-from tactile.runtime.stream_metrics import WindowStream, figures, raw_track, smoothed_track
+from tactile.postprocess.metrics import WindowStream, figures, raw_track, smoothed_track
+from tactile.postprocess.smoothing import SmoothingSettings
 
 MAX_FALSE_PER_MIN = 1.0
 """The change limit: at most one false change a minute (a user glancing at the label now and
@@ -72,7 +72,7 @@ def calibrate(streams: list[WindowStream], grid: tuple[SmoothingSettings, ...] |
     """Pick post-processing settings on validation ``streams`` (each replayed from a reset).
 
     Among the settings of ``grid`` (default :func:`default_grid`) with at most
-    ``max_false_per_min`` false changes per minute (:mod:`~tactile.runtime.stream_metrics`), the
+    ``max_false_per_min`` false changes per minute (:mod:`~tactile.postprocess.metrics`), the
     one whose stream carries a correct stable label in the most windows (``accuracy``: an
     ``uncertain`` window is not a correct one); ties go to the highest stable-label accuracy,
     then the shortest median change latency, then the simplest setting (moving average before
@@ -123,4 +123,22 @@ def _rounded(f: dict) -> dict:
     return {k: round(v, 4) if isinstance(v, float) else v for k, v in f.items()}
 
 
-__all__ = ["MAX_FALSE_PER_MIN", "Calibration", "calibrate", "default_grid"]
+def summary_line(f: dict) -> str:
+    """The chosen setting and the figures :func:`calibrate` saw (its ``figures``), one line for
+    people (``tactile-export`` prints it, ``tactile-check`` shows it)."""
+    raw, sm = f["raw"], f["smoothed"]
+
+    def num(v, fmt):
+        return "-" if v is None else format(v, fmt)
+
+    n = f["streams"]
+    return (f"{f['setting']} (calibrated on {n} validation stream{'s' if n != 1 else ''}, "
+            f"{raw['minutes']:.1f} min: correct stable labels {sm['accuracy'] * 100:.1f} % "
+            f"(raw {raw['accuracy'] * 100:.1f} %), uncertain {sm['uncertain'] * 100:.1f} %, "
+            f"false changes/min {num(sm['false_per_min'], '.2f')} (raw "
+            f"{num(raw['false_per_min'], '.2f')}), change latency median "
+            f"{num(sm['latency_median_s'], '.2f')} s"
+            f"{'' if f['met_limit'] else '; the change limit NOT met'})")
+
+
+__all__ = ["MAX_FALSE_PER_MIN", "Calibration", "calibrate", "default_grid", "summary_line"]

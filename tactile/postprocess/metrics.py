@@ -3,8 +3,9 @@
 A :class:`WindowStream` is what the runtime saw on one stream (window times, the model's
 probabilities) with the true class of every window, e.g. takes of different classes played one
 after the other. :func:`raw_track` and :func:`smoothed_track` turn it into the labels and change
-events a user would get (the raw argmax, or a :class:`~tactile.runtime.smoothing.PostProcessor`),
-and :func:`figures` measures them; :func:`compare` gives the raw and smoothed figures side by side.
+events a user would get (the raw argmax, or a
+:class:`~tactile.postprocess.smoothing.PostProcessor`), and :func:`figures` measures them;
+:func:`compare` gives the raw and smoothed figures side by side.
 
 Definitions (:func:`figures`), over all windows of all streams:
 
@@ -36,7 +37,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from tactile.errors import ConfigError
-from tactile.runtime.smoothing import PostProcessor, SmoothingSettings, check_classes
+from tactile.postprocess.smoothing import PostProcessor, SmoothingSettings, check_classes
 
 
 @dataclass(frozen=True)

@@ -14,7 +14,7 @@ confident and settled, and says when the reported surface changes:
 
 The settings travel in the model file's ``metadata_props`` under the ``postprocess.`` prefix
 (:func:`settings_to_metadata`, :func:`settings_from_metadata`); a file without those keys has no
-post-processing defaults. numpy only: this is runtime code.
+post-processing defaults. numpy only: the runtime, the exporter and tactile-eval share it.
 """
 
 from __future__ import annotations
@@ -26,19 +26,22 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from tactile.contract import KEYS as CONTRACT_KEYS
+from tactile.contract import POSTPROCESS_PREFIX
 from tactile.errors import ConfigError, ModelContractError
 
 UNCERTAIN = "uncertain"
 """The label reported while no class is stable; reserved: no model may name a class so."""
 
-PREFIX = "postprocess."
+PREFIX = POSTPROCESS_PREFIX
 """Prefix of every post-processing key in an ONNX file's ``metadata_props``."""
 VERSION = "1"
 """Version of the ``postprocess.*`` keys' meaning, written as ``postprocess.version``."""
-KEYS = tuple(PREFIX + k for k in ("version", "smooth", "p_min", "hold"))
-"""The keys a file with post-processing defaults must hold (``postprocess.calibration``, the
-figures the calibration saw as a JSON object, is optional)."""
 CALIBRATION_KEY = PREFIX + "calibration"
+"""The optional key: the figures the calibration saw, as a JSON object."""
+KEYS = tuple(k for k in CONTRACT_KEYS if k.startswith(PREFIX) and k != CALIBRATION_KEY)
+"""The keys a file with post-processing defaults must hold (version, smooth, p_min, hold; all
+defined in :data:`tactile.contract.KEYS`)."""
 
 
 def check_classes(classes: tuple[str, ...] | list[str]) -> tuple[str, ...]:
