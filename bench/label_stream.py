@@ -5,11 +5,12 @@
     python bench/label_stream.py --model model.onnx --data DATA --test-users 3,4 --val-users 9
 
 Streams: each user's takes (one user per stream; takes without a ``user`` field form one
-stream) are played through the runtime's own :class:`~tactile.runtime.stream.Stream` (the
-model's window, hop and state mode; each gap-free segment from a fresh stream), their windows
-cut into pieces of ``--dwell`` s, and the pieces put in a seeded order in which consecutive
-pieces are of different classes where possible and played one after the other
-(:mod:`tactile.postprocess.streams`, as ``tactile-export --data`` calibrates). Without ``--data``
+stream) have their samples cut into pieces of ``--dwell`` s, put in a seeded order in which
+consecutive pieces are of different classes where possible and joined sample by sample
+(:mod:`tactile.postprocess.streams`), and the joined stream is played through the runtime's own
+:class:`~tactile.runtime.stream.Stream` as one pen's (the model's window, hop and state mode;
+windows straddle the pieces' boundaries and a carried state carries on; as ``tactile-export
+--data`` calibrates). A window's truth is its last sample's class. Without ``--data``
 the stream is the simulated pen of the shipped model's dataset (``tactile-sim --seed 1``, 60 s
 takes of every class): its 22 test users, and its 10 validation users for the calibration
 (``models/README.md``), simulated into a temporary folder first.
@@ -30,12 +31,12 @@ import tempfile
 import time
 from pathlib import Path
 
-from tactile.export.calibrate import take_pieces
+from tactile.export.calibrate import run_streams
 from tactile.postprocess.calibration import calibrate
 from tactile.postprocess.metrics import WindowStream, compare
 from tactile.postprocess.smoothing import SmoothingSettings, make_settings
-from tactile.postprocess.streams import make_streams
 from tactile.runtime.model import Model
+from tactile.training.label_stream import take_pieces
 
 SHIPPED_SEED = 1  # models/README.md: tactile-sim --dataset data/pen-exp2 ... --seed 1
 # the shipped model's split by user (its training_metrics "split", drawn with seed 0)
@@ -65,11 +66,13 @@ def load_groups(folder: Path) -> dict[str, list]:
 
 def build_streams(model: Model, groups: dict[str, list], users: list[str], dwell_s: float,
                   seed: int) -> list[WindowStream]:
-    """One stream per user: its takes of the model's classes through the runtime, in pieces."""
+    """One stream per user: its takes of the model's classes in pieces of samples, joined and
+    run through the runtime as one pen's stream."""
     c = model.contract
     parts = {u: [p for take in groups[u] if take.label in c.classes
-                 for p in take_pieces(model, take, (0, len(take.seq)), dwell_s)] for u in users}
-    out = make_streams(parts, c.classes, c.hop / c.sample_rate_hz, seed)
+                 for p in take_pieces(take, (0, len(take.seq)), c.classes, c.channels,
+                                      c.sample_rate_hz, dwell_s)] for u in users}
+    out = run_streams(model, parts, seed)
     if not out:
         sys.exit("label_stream.py: no take of the model's classes among those users")
     return out

@@ -1,11 +1,13 @@
 """The label stream's defaults of an exported file, calibrated on the run's validation takes.
 
 ``tactile-export RUN -o F --data DATA`` plays the run's validation takes of DATA (never its
-test takes) through the file as the board will run it (the runtime's own
-:class:`~tactile.runtime.model.Model` and :class:`~tactile.runtime.stream.Stream`), cut into
-pieces of 30 s and ordered so that neighbours differ in class
-(:mod:`tactile.postprocess.streams`), lets :func:`~tactile.postprocess.calibration.calibrate`
-choose a setting, and writes it with the figures it saw into the file's ``postprocess.*`` keys
+test takes) through the file as the board will run it: their samples cut into pieces of 30 s,
+each user's pieces ordered so that neighbours differ in class and joined into one stream
+(:mod:`tactile.postprocess.streams`), which the runtime's own
+:class:`~tactile.runtime.model.Model` and :class:`~tactile.runtime.stream.Stream` label as a
+pen's (windows across the pieces' boundaries, a carried state carried on), lets
+:func:`~tactile.postprocess.calibration.calibrate` choose a setting, and writes it with the
+figures it saw into the file's ``postprocess.*`` keys
 (:func:`~tactile.postprocess.smoothing.settings_to_metadata`). Without DATA, or with too little
 validation data, the file gets no defaults (it runs raw), and one stderr line says why.
 
@@ -25,36 +27,39 @@ import onnx
 
 from tactile.device.recordings import load_dataset
 from tactile.postprocess.calibration import calibrate, summary_line
+from tactile.postprocess.metrics import WindowStream
 from tactile.postprocess.smoothing import settings_to_metadata
-from tactile.postprocess.streams import DWELL_S, Piece, make_streams, run_pieces, shortfall
+from tactile.postprocess.streams import Piece, SampleStream, make_streams, shortfall, window_stream
 from tactile.runtime.model import Model
 from tactile.runtime.stream import Stream
-from tactile.training.label_stream import group_of, validation_rows
+from tactile.training.label_stream import pieces, validation_rows
 
 
-def take_pieces(model: Model, take, rows: tuple[int, int], dwell_s: float = DWELL_S
-                ) -> list[Piece]:
-    """Pieces of rows [first, end) of ``take`` as the runtime labels them: each gap-free
-    segment through a fresh :class:`Stream` (window times from the segment's first sample,
-    s), cut into pieces of ``dwell_s`` s. The take's label must be one of the model's."""
+def run_stream(model: Model, stream: SampleStream) -> WindowStream | None:
+    """The joined ``stream`` through the runtime as a pen feeds it: one fresh
+    :class:`Stream`, the samples in order with consecutive seq numbers and no gap, one hop at a
+    time (so windows straddle the pieces' boundaries and a carried state carries on), every
+    window classified; None when the stream is shorter than one window."""
     c = model.contract
-    cols = [list(take.channels).index(ch) for ch in c.channels]
-    values = take.values()[:, cols].astype(np.float32)
-    label = c.classes.index(take.label)
-    out = []
-    for a, b in take.segments():
-        a, b = max(a, rows[0]), min(b, rows[1])
-        if b - a < c.window:
-            continue
-        stream = Stream.for_model(model)
-        stream.accept(values[a:b], seq=0, t_us=0, period_us=1e6 / c.sample_rate_hz)
-        t, probs = [], []
-        while stream.ready():
-            lab = stream.classify()
-            t.append(lab.t_us / 1e6)
+    if len(stream.truth) < c.window:
+        return None
+    runner = Stream.for_model(model)
+    probs = []
+    for a in range(0, len(stream.values), c.hop):
+        runner.accept(stream.values[a:a + c.hop], seq=a, t_us=round(a * 1e6 / stream.rate_hz))
+        while runner.ready():
+            lab = runner.classify()
             probs.append([lab.probabilities[k] for k in c.classes])
-        out += run_pieces(label, np.array(t), np.array(probs), dwell_s)
-    return out
+    return window_stream(stream, np.array(probs), c.window, c.hop)
+
+
+def run_streams(model: Model, groups: dict[str, list[Piece]], seed: int = 0
+                ) -> list[WindowStream]:
+    """Each group's pieces joined (:func:`~tactile.postprocess.streams.make_streams`) and run
+    through the file (:func:`run_stream`); streams shorter than one window are left out."""
+    c = model.contract
+    runs = (run_stream(model, s) for s in make_streams(groups, c.classes, c.sample_rate_hz, seed))
+    return [r for r in runs if r is not None]
 
 
 def calibrate_file(final: onnx.ModelProto, ck: dict, cfg, data: Path | None, log=print,
@@ -75,12 +80,9 @@ def calibrate_file(final: onnx.ModelProto, ck: dict, cfg, data: Path | None, log
         path = Path(tmp) / "model.onnx"
         onnx.save(final, path)
         model = Model(path)
-        groups: dict[str, list[Piece]] = {}
-        for i, r in rows.items():
-            if takes[i].label in model.contract.classes:
-                groups.setdefault(group_of(takes[i]), []).extend(take_pieces(model, takes[i], r))
-    c = model.contract
-    streams = make_streams(groups, c.classes, c.hop / c.sample_rate_hz)
+        c = model.contract
+        streams = run_streams(model, pieces(takes, rows, c.classes, c.channels,
+                                            c.sample_rate_hz))
     why = shortfall(streams) if streams else "no validation window"
     if why:
         warn(f"tactile-export: no label stream defaults in the file (it runs raw): too little "
@@ -93,4 +95,4 @@ def calibrate_file(final: onnx.ModelProto, ck: dict, cfg, data: Path | None, log
     return cal.figures
 
 
-__all__ = ["calibrate_file", "take_pieces"]
+__all__ = ["calibrate_file", "run_stream", "run_streams"]

@@ -148,7 +148,7 @@ def evaluate_run(run_dir: Path, data: Path, threads: int | None = None,
                  smoothing=None) -> dict:
     """The figures of ``run_dir``'s model on ``data`` (see the module's text). ``threads``:
     torch threads (default: the run's ``threads`` setting, resolved on this machine).
-    ``label_stream``: the test windows as a label stream, raw and post-processed with
+    ``label_stream``: the evaluated rows as label streams, raw and post-processed with
     ``smoothing`` (a :class:`~tactile.postprocess.smoothing.SmoothingSettings`; None: the
     setting calibrated on the run's validation takes), by
     :func:`tactile.training.label_stream.stream_figures`."""
@@ -172,7 +172,7 @@ def evaluate_run(run_dir: Path, data: Path, threads: int | None = None,
     s["threads"] = s_threads
     s["shifted"] = shifted(model, takes, classes, channels, rows, cfg.window, cfg.hop, rate)
     s["classes"] = list(classes)
-    s["label_stream"] = stream_figures(model, ck, takes, data.name, w, probs,
+    s["label_stream"] = stream_figures(model, ck, takes, data.name, rows,
                                        lambda v: predict(model, v), smoothing)
     return s
 

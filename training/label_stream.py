@@ -1,8 +1,10 @@
 """A run's label stream in PyTorch: raw against post-processed, on streams made of its takes.
 
-``tactile-eval`` measures what a user of the exported model would see: the run's test takes cut
-into pieces of 30 s and played one after the other, neighbours of different classes
-(:mod:`tactile.postprocess.streams`), the raw argmax against the post-processed stable label
+``tactile-eval`` measures what a user of the exported model would see: the samples of the run's
+test takes cut into pieces of 30 s and joined one after the other into one stream per user,
+neighbours of different classes (:mod:`tactile.postprocess.streams`), then windowed and run
+through the checkpoint as the runtime runs a pen (windows across piece boundaries, a carried
+state carried on; :func:`stream_windows`), the raw argmax against the post-processed stable label
 (:mod:`tactile.postprocess.metrics`). The post-processing setting is the one
 :func:`~tactile.postprocess.calibration.calibrate` picks on the run's validation takes played
 the same way, with this checkpoint's own probabilities (the same takes and rule as
@@ -20,10 +22,19 @@ import numpy as np
 
 from tactile.errors import ConfigError
 from tactile.postprocess.calibration import calibrate
-from tactile.postprocess.metrics import compare
+from tactile.postprocess.metrics import WindowStream, compare
 from tactile.postprocess.smoothing import SmoothingSettings
-from tactile.postprocess.streams import DWELL_S, Piece, make_streams, run_pieces, shortfall
-from tactile.training.data import Windows, cut, find_test_split, split_takes
+from tactile.postprocess.streams import (
+    DWELL_S,
+    Piece,
+    SampleStream,
+    make_streams,
+    run_pieces,
+    shortfall,
+    window_ends,
+    window_stream,
+)
+from tactile.training.data import Windows, channel_index, find_test_split, split_takes
 
 FALLBACK = SmoothingSettings(n=5, p_min=0.6, hold=2)
 """The setting measured when none is given and the validation takes cannot calibrate one (the
@@ -57,43 +68,87 @@ def group_of(take) -> str:
     return str(take.meta.get("user", "-"))
 
 
-def pieces(w: Windows, probs: np.ndarray, takes: list, window: int, rate_hz: float,
-           dwell_s: float = DWELL_S) -> dict[str, list[Piece]]:
-    """``{group: pieces}`` of windows ``w`` with their probabilities ``probs`` (N, classes):
-    each gap-free run cut into pieces of ``dwell_s`` s; a window's time is its last sample's
-    (row / ``rate_hz``, s), as the runtime stamps it."""
+def take_pieces(take, rows: tuple[int, int], classes: tuple[str, ...],
+                channels: tuple[str, ...], rate_hz: float, dwell_s: float = DWELL_S
+                ) -> list[Piece]:
+    """Sample pieces of rows [first, end) of ``take`` (its label one of ``classes``): each
+    gap-free segment's samples in ``channels``' order (all of the take's when empty), cut into
+    pieces of at most ``dwell_s`` s at ``rate_hz``."""
+    values = take.values()[:, channel_index(take, channels)].astype(np.float32)
+    label = classes.index(take.label)
+    out = []
+    for a, b in take.segments():
+        a, b = max(a, rows[0]), min(b, rows[1])
+        if b > a:
+            out += run_pieces(label, values[a:b], rate_hz, dwell_s)
+    return out
+
+
+def pieces(takes: list, rows: dict[int, tuple[int, int]] | None, classes: tuple[str, ...],
+           channels: tuple[str, ...], rate_hz: float, dwell_s: float = DWELL_S
+           ) -> dict[str, list[Piece]]:
+    """``{group: pieces}`` of rows ``rows`` (``{take index: (first, end)}``; None: every row of
+    every take) of the takes of ``classes`` (:func:`take_pieces`, :func:`group_of`)."""
+    if rows is None:
+        rows = {i: (0, len(t.seq)) for i, t in enumerate(takes)}
     groups: dict[str, list[Piece]] = {}
-    order = np.lexsort((w.start, w.run))  # each gap-free run's windows in time order
-    for rows in np.split(order, np.flatnonzero(np.diff(w.run[order])) + 1):
-        t = (w.start[rows] + window - 1) / rate_hz
-        take = takes[int(w.take[rows[0]])]
-        groups.setdefault(group_of(take), []).extend(
-            run_pieces(int(w.y[rows[0]]), t, probs[rows], dwell_s))
+    for i, r in rows.items():
+        if takes[i].label in classes:
+            groups.setdefault(group_of(takes[i]), []).extend(
+                take_pieces(takes[i], r, classes, channels, rate_hz, dwell_s))
     return groups
 
 
-def stream_figures(model, ck: dict, takes: list, folder: str, test: Windows,
-                   test_probs: np.ndarray, predict, settings: SmoothingSettings | None = None,
-                   seed: int = 0) -> dict:
-    """The label stream figures of the test windows ``test`` (their probabilities
-    ``test_probs``): ``{"setting", "source", "calibration" (what it saw on validation, or None),
+def stream_windows(stream: SampleStream, window: int, hop: int) -> Windows:
+    """The windows a pen makes on the joined ``stream``
+    (:func:`~tactile.postprocess.streams.window_ends`, every ``hop`` samples) as one gap-free
+    run (take 0, run 0), so that :func:`tactile.training.evaluate.predict` runs them as the
+    runtime does: a zero state per window, or one state carried across the whole stream, piece
+    boundaries included. ``y``: each window's last sample's class."""
+    ends = window_ends(len(stream.truth), window, hop)
+    starts = ends - (window - 1)
+    x = stream.values[starts[:, None] + np.arange(window)[None, :]]
+    zeros = np.zeros(len(ends), np.int64)
+    return Windows(x, stream.truth[ends], zeros, starts, zeros.copy())
+
+
+def run_streams(groups: dict[str, list[Piece]], classes: tuple[str, ...], rate_hz: float,
+                window: int, hop: int, predict, seed: int = 0) -> list[WindowStream]:
+    """Each group's pieces joined (:func:`~tactile.postprocess.streams.make_streams`) and run
+    through ``predict(windows)`` (probabilities (N, classes)); streams shorter than one window
+    are left out."""
+    out = []
+    for s in make_streams(groups, classes, rate_hz, seed):
+        if len(s.truth) >= window:
+            out.append(window_stream(s, predict(stream_windows(s, window, hop)), window, hop))
+    return out
+
+
+def stream_figures(model, ck: dict, takes: list, folder: str,
+                   test_rows: dict[int, tuple[int, int]] | None, predict,
+                   settings: SmoothingSettings | None = None, seed: int = 0) -> dict:
+    """The label stream figures of the test rows ``test_rows`` of ``takes`` (None: all of
+    them): ``{"setting", "source", "calibration" (what it saw on validation, or None),
     "streams", "dwell_s", "raw", "smoothed"}`` (``raw`` and ``smoothed`` as
     :func:`~tactile.postprocess.metrics.figures`). ``predict(windows)``: the model's
     probabilities (N, classes) of windows (:func:`tactile.training.evaluate.predict`).
     ``settings`` None: calibrated on the run's validation takes of ``takes``
     (:func:`validation_rows`), else :data:`FALLBACK`, saying why."""
     cfg = model.cfg
-    classes, rate = tuple(ck["classes"]), float(ck["sample_rate_hz"])
-    hop_s = cfg.hop / rate
+    classes, channels = tuple(ck["classes"]), tuple(ck["channels"])
+    rate = float(ck["sample_rate_hz"])
+
+    def streams_of(rows):
+        return run_streams(pieces(takes, rows, classes, channels, rate), classes, rate,
+                           cfg.window, cfg.hop, predict, seed)
+
     calibration, source = None, "given"
     if settings is None:
         rows, why = validation_rows(takes, ck, cfg, folder)
         streams = []
         if rows is not None:
-            w = cut(takes, classes, tuple(ck["channels"]), cfg.window, cfg.hop, rows)
-            streams = make_streams(pieces(w, predict(w), takes, cfg.window, rate),
-                                   classes, hop_s, seed)
-            why = shortfall(streams) or ""
+            streams = streams_of(rows)
+            why = (shortfall(streams) if streams else "no validation window") or ""
         if why:
             settings, source = FALLBACK, f"not calibrated: {why}"
         else:
@@ -102,8 +157,9 @@ def stream_figures(model, ck: dict, takes: list, folder: str, test: Windows,
             n = len(streams)
             source = (f"calibrated on the run's validation takes: {n} stream"
                       f"{'s' if n != 1 else ''}, {sum(s.minutes for s in streams):.1f} min")
-    test_streams = make_streams(pieces(test, test_probs, takes, cfg.window, rate), classes,
-                                hop_s, seed)
+    test_streams = streams_of(test_rows)
+    if not test_streams:
+        raise ConfigError("label stream: no test stream as long as one window")
     return {"setting": settings.describe(), "source": source, "calibration": calibration,
             "streams": len(test_streams), "dwell_s": DWELL_S,
             **compare(test_streams, settings)}
@@ -137,5 +193,5 @@ def stream_table(f: dict) -> str:
     return "\n".join(lines)
 
 
-__all__ = ["FALLBACK", "group_of", "pieces", "stream_figures", "stream_table",
-           "validation_rows"]
+__all__ = ["FALLBACK", "group_of", "pieces", "run_streams", "stream_figures", "stream_table",
+           "stream_windows", "take_pieces", "validation_rows"]

@@ -11,8 +11,8 @@ library, numpy and the core (:mod:`tactile.errors`, :mod:`tactile.contract`).
   share uncertain, false changes per minute, change latency), raw and smoothed.
 * :mod:`~tactile.postprocess.calibration`: :func:`calibrate`, a setting chosen on validation
   streams.
-* :mod:`~tactile.postprocess.streams`: streams made of pieces of takes, neighbours of
-  different classes.
+* :mod:`~tactile.postprocess.streams`: sample streams made of pieces of takes, neighbours of
+  different classes, and the truth of the windows a model makes on them.
 """
 
 from tactile.postprocess.calibration import MAX_FALSE_PER_MIN, Calibration, calibrate
@@ -25,11 +25,19 @@ from tactile.postprocess.smoothing import (
     settings_from_metadata,
     settings_to_metadata,
 )
-from tactile.postprocess.streams import Piece, join, make_streams, run_pieces, shortfall
+from tactile.postprocess.streams import (
+    Piece,
+    SampleStream,
+    join,
+    make_streams,
+    run_pieces,
+    shortfall,
+    window_stream,
+)
 
 __all__ = [
-    "MAX_FALSE_PER_MIN", "UNCERTAIN", "Calibration", "Piece", "PostProcessor",
+    "MAX_FALSE_PER_MIN", "UNCERTAIN", "Calibration", "Piece", "PostProcessor", "SampleStream",
     "SmoothingSettings", "WindowStream", "calibrate", "check_classes", "compare", "figures",
     "join", "make_streams", "run_pieces", "settings_from_metadata", "settings_to_metadata",
-    "shortfall",
+    "shortfall", "window_stream",
 ]

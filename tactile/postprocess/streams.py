@@ -2,21 +2,31 @@
 calibrating the post-processing).
 
 A take is one surface from start to end, so its label stream has no true change; a user of the
-pen moves from one surface to another. This module makes streams that do: each take's windows
-(their times, true class and the model's probabilities, however they were computed: the
-runtime's :class:`~tactile.runtime.stream.Stream` at export and in ``bench/label_stream.py``,
-PyTorch in ``tactile-eval``) are cut into pieces of at most ``dwell_s`` seconds
-(:func:`run_pieces`), the pieces of one group (a user) are put in a seeded random order in which
-neighbours differ in class wherever that is possible, and played one after the other as one
-:class:`~tactile.postprocess.metrics.WindowStream` (:func:`join`, :func:`make_streams`).
+pen moves from one surface to another. This module makes sample streams that do: each gap-free
+run of a take's samples is cut into pieces of at most ``dwell_s`` seconds (:func:`run_pieces`),
+the pieces of one group (a user) are put in a seeded random order in which neighbours differ in
+class wherever that is possible (:func:`order`), and joined sample by sample into one
+:class:`SampleStream` with the true class of every sample (:func:`join`, :func:`make_streams`).
 
-The windows of a piece are those the model gave inside one take; a window that would straddle
-two pieces (part of one surface, part of the next) does not exist here, and the state of a
-carried model restarts at each take. numpy only, no file I/O.
+The caller then runs the model over each joined stream as a pen would (the runtime's
+:class:`~tactile.runtime.stream.Stream` at export and in ``bench/label_stream.py``, PyTorch in
+``tactile-eval``): consecutive samples, no gap, so a window slides across the boundary of two
+pieces (part of one surface, part of the next) and a carried state carries on across it, as on
+the pen. :func:`window_ends` gives the windows the model makes, and :func:`window_stream` turns
+the model's probabilities into a :class:`~tactile.postprocess.metrics.WindowStream`: a window's
+time is its last sample's (sample ``i`` at ``i / rate_hz`` s) and its truth is its last
+sample's class. Why the last sample's: it is the surface under the pen when the label is
+reported, so a window still mostly of the old surface counts against the new one, and the
+latency from a true change runs from the first window that ends on the new surface (at most one
+hop after the surface changed) to the change event; the time the window needs to fill with the
+new surface is part of that latency, as it is for a user.
+
+numpy only, no file I/O (the callers read the takes and run the model).
 """
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -32,30 +42,39 @@ MIN_MINUTES = 1.0
 
 @dataclass(frozen=True)
 class Piece:
-    """Consecutive windows of one take: ``label`` the true class index, ``t`` (n,) window
-    times in s (non-decreasing), ``probs`` (n, classes) the model's probabilities (0..1)."""
+    """Consecutive samples of one take, no gap among them: ``label`` the true class index,
+    ``values`` (n, C) float32 in the model's channel order and units, n >= 1."""
 
     label: int
-    t: np.ndarray
-    probs: np.ndarray
+    values: np.ndarray
 
 
-def run_pieces(label: int, t: np.ndarray, probs: np.ndarray,
+@dataclass(frozen=True)
+class SampleStream:
+    """Pieces joined sample by sample: ``values`` (N, C) float32, ``truth`` (N,) the class
+    index of every sample, ``classes`` the class names, ``rate_hz`` the sample rate (sample
+    ``i`` at ``i / rate_hz`` s)."""
+
+    values: np.ndarray
+    truth: np.ndarray
+    classes: tuple[str, ...]
+    rate_hz: float
+
+
+def run_pieces(label: int, values: np.ndarray, rate_hz: float,
                dwell_s: float = DWELL_S) -> list[Piece]:
-    """One gap-free run of a take's windows (``t`` (n,) s, ``probs`` (n, classes)) cut into
-    pieces of at most ``dwell_s`` s, by window time from the run's first window; every piece
-    has at least one window."""
+    """One gap-free run of a take's samples (``values`` (n, C), at ``rate_hz``) cut into pieces
+    of at most ``dwell_s`` s (``floor(dwell_s * rate_hz)`` samples, at least 1) from the run's
+    first sample; the last piece holds the rest."""
     if not dwell_s > 0:
         raise ConfigError(f"dwell {dwell_s!r} s: must be > 0")
-    t = np.asarray(t, np.float64).reshape(-1)
-    probs = np.asarray(probs, np.float64)
-    if probs.ndim != 2 or len(probs) != len(t):
-        raise ConfigError(f"{len(t)} window times and probabilities of shape {probs.shape}")
-    if not len(t):
-        return []
-    slot = np.floor((t - t[0]) / dwell_s).astype(np.int64)
-    bounds = [0, *(np.flatnonzero(np.diff(slot)) + 1).tolist(), len(t)]
-    return [Piece(int(label), t[a:b], probs[a:b]) for a, b in zip(bounds[:-1], bounds[1:])]
+    if not (math.isfinite(rate_hz) and rate_hz > 0):
+        raise ConfigError(f"rate {rate_hz!r} Hz: must be a finite number > 0")
+    values = np.asarray(values, np.float32)
+    if values.ndim != 2:
+        raise ConfigError(f"samples of shape {values.shape}: expected (n, channels)")
+    size = max(1, math.floor(dwell_s * rate_hz + 1e-9))
+    return [Piece(int(label), values[a:a + size]) for a in range(0, len(values), size)]
 
 
 def order(pieces: list, rng: np.random.Generator, label=lambda p: p.label) -> list:
@@ -70,23 +89,21 @@ def order(pieces: list, rng: np.random.Generator, label=lambda p: p.label) -> li
     return out
 
 
-def join(pieces: list[Piece], classes: tuple[str, ...] | list[str], hop_s: float) -> WindowStream:
-    """``pieces`` played one after the other: each piece's times shifted so that its first
-    window comes ``hop_s`` s after the previous piece's last (one hop of the model)."""
+def join(pieces: list[Piece], classes: tuple[str, ...] | list[str],
+         rate_hz: float) -> SampleStream:
+    """``pieces`` one after the other, sample by sample, as one stream with no gap."""
     if not pieces:
         raise ConfigError("join: no pieces")
-    ts, offset = [], 0.0
-    for p in pieces:
-        shifted = p.t - p.t[0] + offset
-        ts.append(shifted)
-        offset = float(shifted[-1]) + hop_s
-    truth = np.concatenate([np.full(len(p.t), p.label, np.int64) for p in pieces])
-    return WindowStream(np.concatenate(ts), truth, np.concatenate([p.probs for p in pieces]),
-                        tuple(classes))
+    widths = {p.values.shape[1] for p in pieces}
+    if len(widths) != 1:
+        raise ConfigError(f"join: pieces of {sorted(widths)} channels")
+    truth = np.concatenate([np.full(len(p.values), p.label, np.int64) for p in pieces])
+    return SampleStream(np.concatenate([p.values for p in pieces]).astype(np.float32), truth,
+                        tuple(classes), float(rate_hz))
 
 
 def make_streams(groups: dict[str, list[Piece]], classes: tuple[str, ...] | list[str],
-                 hop_s: float, seed: int = 0) -> list[WindowStream]:
+                 rate_hz: float, seed: int = 0) -> list[SampleStream]:
     """One stream per group (e.g. a user; in sorted name order) that has pieces: its pieces in
     the order :func:`order` draws with a generator seeded by ``seed`` and the group's name (a
     group's order does not depend on the other groups)."""
@@ -94,8 +111,31 @@ def make_streams(groups: dict[str, list[Piece]], classes: tuple[str, ...] | list
     for name in sorted(groups):
         if groups[name]:
             rng = np.random.default_rng([seed, sum(map(ord, name))])
-            out.append(join(order(groups[name], rng), classes, hop_s))
+            out.append(join(order(groups[name], rng), classes, rate_hz))
     return out
+
+
+def window_ends(n: int, window: int, hop: int) -> np.ndarray:
+    """Index of the last sample of each window a pen makes on ``n`` consecutive samples (the
+    first window's samples 0..window-1, then one every ``hop``): (M,) int64, empty when
+    ``n < window``."""
+    if window < 1 or hop < 1:
+        raise ConfigError(f"window {window} and hop {hop} must be >= 1")
+    return np.arange(window - 1, n, hop, dtype=np.int64)
+
+
+def window_stream(stream: SampleStream, probs: np.ndarray, window: int,
+                  hop: int) -> WindowStream:
+    """The model's probabilities ``probs`` (M, classes) of the windows of :func:`window_ends`
+    on ``stream``, as a :class:`WindowStream`: each window's time is its last sample's (s),
+    its truth its last sample's class."""
+    ends = window_ends(len(stream.truth), window, hop)
+    probs = np.asarray(probs, np.float64)
+    if not len(ends) or len(probs) != len(ends):
+        raise ConfigError(f"{len(probs)} windows' probabilities for a stream of "
+                          f"{len(stream.truth)} samples that makes {len(ends)} windows of "
+                          f"{window} samples every {hop}")
+    return WindowStream(ends / stream.rate_hz, stream.truth[ends], probs, stream.classes)
 
 
 def shortfall(streams: list[WindowStream], min_minutes: float = MIN_MINUTES) -> str | None:
@@ -109,5 +149,5 @@ def shortfall(streams: list[WindowStream], min_minutes: float = MIN_MINUTES) -> 
     return None
 
 
-__all__ = ["DWELL_S", "MIN_MINUTES", "Piece", "join", "make_streams", "order", "run_pieces",
-           "shortfall"]
+__all__ = ["DWELL_S", "MIN_MINUTES", "Piece", "SampleStream", "join", "make_streams", "order",
+           "run_pieces", "shortfall", "window_ends", "window_stream"]
