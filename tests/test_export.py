@@ -660,8 +660,14 @@ def test_export_with_data_writes_the_calibrated_defaults(calibrated_export, caps
     rows, why = validation_rows(takes, ck, net.cfg, data.name)
     assert rows and not why
     assert not {takes[i].path.name for i in rows} & set(ck["test_rows"])
+    # each user's validation rows joined into one stream of samples, windowed as a pen does
+    per_user: dict[str, int] = {}
+    for i, (a, b) in rows.items():
+        user = str(takes[i].meta.get("user", "-"))
+        per_user[user] = per_user.get(user, 0) + b - a
+    assert figures["streams"] == len(per_user)
     assert figures["raw"]["windows"] == sum(
-        (b - a - net.cfg.window) // net.cfg.hop + 1 for a, b in rows.values())
+        (n - net.cfg.window) // net.cfg.hop + 1 for n in per_user.values())
     assert check_main([str(out)]) == 0
     text = capsys.readouterr().out
     assert f"  labels    {figures['setting']} (calibrated on " in text

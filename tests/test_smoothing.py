@@ -429,3 +429,67 @@ def test_calibration_prefers_correct_labels_to_uncertain_ones():
     assert by[loose]["false_changes"] == 2
     # the more accurate stable labels leave half the windows uncertain: the other one wins
     assert cal.settings == loose
+
+
+# -- streams of samples, joined from pieces of takes -------------------------------------------
+
+
+def test_a_run_is_cut_into_pieces_of_samples():
+    from tactile.postprocess.streams import run_pieces
+
+    values = np.arange(14, dtype=np.float32).reshape(7, 2)
+    # 1.5 s at 2 Hz: 3 samples a piece; 7 samples make 3 + 3 + 1
+    pieces = run_pieces(1, values, rate_hz=2.0, dwell_s=1.5)
+    assert [p.label for p in pieces] == [1, 1, 1]
+    assert [p.values[:, 0].tolist() for p in pieces] == [[0, 2, 4], [6, 8, 10], [12]]
+    with pytest.raises(ConfigError, match="dwell"):
+        run_pieces(1, values, rate_hz=2.0, dwell_s=0)
+
+
+def test_a_window_straddling_two_pieces_gets_the_later_class():
+    from tactile.postprocess.streams import Piece, join, window_ends, window_stream
+
+    # a: samples 0..5, b: samples 6..11 at 10 Hz; windows of 4 every 3: samples 0..3, 3..6
+    # (three of a, one of b), 6..9; the second's last sample is b's first
+    s = join([Piece(0, np.zeros((6, 1))), Piece(1, np.ones((6, 1)))], AB, 10.0)
+    assert s.truth.tolist() == [0] * 6 + [1] * 6 and s.values.dtype == np.float32
+    assert window_ends(12, 4, 3).tolist() == [3, 6, 9]
+    ws = window_stream(s, two_class([0.9, 0.7, 0.2]), 4, 3)
+    assert ws.truth.tolist() == [0, 1, 1]
+    assert ws.t.tolist() == pytest.approx([0.3, 0.6, 0.9])  # the last samples' times
+    with pytest.raises(ConfigError, match="3 windows"):
+        window_stream(s, two_class([0.9, 0.7]), 4, 3)
+
+
+def test_raw_latency_of_a_two_piece_stream_counts_the_window_filling():
+    """A pen's window of 50 samples every 25 at 100 Hz over 3.1 s of a then 2.9 s of b, with a
+    model whose p(b) is the share of b samples in its window (a tie goes to a)."""
+    from tactile.postprocess.streams import Piece, join, window_ends, window_stream
+
+    s = join([Piece(0, np.zeros((310, 1))), Piece(1, np.ones((290, 1)))], AB, 100.0)
+    # windows end at samples 49, 74, ..., 599 (23 windows); b starts at sample 310
+    ends = np.arange(49, 600, 25)
+    assert window_ends(600, 50, 25).tolist() == ends.tolist()
+    p_b = [s.values[e - 49:e + 1, 0].mean() for e in ends]
+    ws = window_stream(s, two_class([1 - p for p in p_b]), 50, 25)
+    raw = figures([ws], [raw_track(ws)])
+    # the first window ending on b ends at 324 (3.24 s): samples 275..324, 15 of b, says a;
+    # the next (300..349, 40 of b) says b at 3.49 s: latency 0.25 s (0 for the stream start).
+    # 11 windows of a truth, 12 of b, one of them wrong. Minutes: 0.49 .. 5.99 s + one hop.
+    assert raw == pytest.approx({
+        "windows": 23, "minutes": 5.75 / 60, "accuracy": 22 / 23, "stable_accuracy": 22 / 23,
+        "uncertain": 0.0, "changes": 2, "detected": 2, "missed": 0, "events": 2,
+        "false_changes": 0, "false_per_min": 0.0, "latency_median_s": 0.125,
+        "latency_p95_s": 0.2375})
+
+
+def test_streams_order_pieces_of_different_classes_next_to_each_other():
+    from tactile.postprocess.streams import Piece, make_streams
+
+    pieces = [Piece(k, np.full((2, 1), 10 * k + i)) for k in (0, 1, 2) for i in range(2)]
+    a, b = make_streams({"u1": pieces, "u2": pieces[:2], "none": []}, ABC, 1.0, seed=3)
+    assert len(a.truth) == 12 and (np.diff(a.truth[::2]) != 0).all()
+    assert sorted(a.values[::2, 0].tolist()) == [0, 1, 10, 11, 20, 21]
+    assert b.truth.tolist() == [0] * 4  # one class only: no other order possible
+    again = make_streams({"u1": pieces}, ABC, 1.0, seed=3)[0]
+    assert (again.values == a.values).all()  # a group's order ignores the other groups

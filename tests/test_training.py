@@ -310,14 +310,15 @@ def test_a_class_named_uncertain_is_refused_before_training(tmp_path, capsys):
 
 
 def test_eval_label_stream_figures(trained, dataset, capsys):
-    """tactile-eval's label stream: the test windows' own predictions as streams; the raw
-    stream's accuracy is the window accuracy, and the figures are the metrics functions' on the
-    same predictions (a stated setting here)."""
+    """tactile-eval's label stream: each user's test rows joined into one stream of samples and
+    windowed as a pen does it (windows across the takes' boundaries, a window's truth its last
+    sample's class); its windows counted and cut here by hand, and the figures are the metrics
+    functions' on those windows' predictions (a stated setting here)."""
     from tactile.device.recordings import load_dataset
-    from tactile.postprocess.metrics import compare
+    from tactile.postprocess.metrics import WindowStream, compare
     from tactile.postprocess.smoothing import SmoothingSettings
     from tactile.postprocess.streams import make_streams
-    from tactile.training.data import find_test_split
+    from tactile.training.data import Windows, find_test_split
     from tactile.training.label_stream import pieces
 
     run, _ = trained
@@ -326,16 +327,28 @@ def test_eval_label_stream_figures(trained, dataset, capsys):
     out = json.loads(capsys.readouterr().out)
     ls = out["label_stream"]
     assert ls["setting"] == "ma:3 p_min=0.5 hold=2" and ls["source"] == "given"
-    assert ls["raw"]["windows"] == out["windows"]
-    assert ls["raw"]["accuracy"] == pytest.approx(out["accuracy"])
-    assert ls["raw"]["uncertain"] == 0 and ls["smoothed"]["windows"] == out["windows"]
+    assert ls["raw"]["uncertain"] == 0 and ls["smoothed"]["windows"] == ls["raw"]["windows"]
     model, ck = load_checkpoint(run)
     takes = load_dataset(dataset)
     rows, _, _ = find_test_split(takes, ck["test_rows"], ck["test_fingerprints"], dataset.name)
-    classes = tuple(ck["classes"])
-    w = cut(takes, classes, tuple(ck["channels"]), model.cfg.window, model.cfg.hop, rows)
-    streams = make_streams(pieces(w, predict(model, w), takes, model.cfg.window, 100.0),
-                           classes, model.cfg.hop / 100.0)
+    classes, channels = tuple(ck["classes"]), tuple(ck["channels"])
+    win, hop = model.cfg.window, model.cfg.hop
+    per_user: dict[str, int] = {}
+    for i, (a, b) in rows.items():
+        user = str(takes[i].meta.get("user", "-"))
+        per_user[user] = per_user.get(user, 0) + b - a
+    assert ls["streams"] == len(per_user)
+    assert ls["raw"]["windows"] == sum((n - win) // hop + 1 for n in per_user.values())
+    right, streams = 0, []
+    for s in make_streams(pieces(takes, rows, classes, channels, 100.0), classes, 100.0):
+        starts = np.arange(0, len(s.truth) - win + 1, hop)
+        x = np.stack([s.values[a:a + win] for a in starts])
+        y = s.truth[starts + win - 1]
+        zeros = np.zeros(len(starts), np.int64)
+        probs = predict(model, Windows(x, y, zeros, starts, zeros))
+        right += int((probs.argmax(1) == y).sum())
+        streams.append(WindowStream((starts + win - 1) / 100.0, y, probs, classes))
+    assert ls["raw"]["accuracy"] == pytest.approx(right / ls["raw"]["windows"])
     want = compare(streams, SmoothingSettings(n=3, p_min=0.5, hold=2))
     for part in ("raw", "smoothed"):
         for k, v in want[part].items():
