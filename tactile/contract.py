@@ -49,6 +49,9 @@ OPSET = 18
 EMD graph uses, needs >= 16)."""
 IR_VERSION = 8
 """ONNX IR version the exporter writes (onnxruntime >= 1.15 reads it)."""
+CUSTOM_DOMAIN = "ai.tactile"
+"""The toolkit's op domain (version 1): ``EMD`` and ``SparseCode`` nodes, each with a model-local
+function of the same name as its portable fallback (``tactile.export.custom_ops``)."""
 
 INPUTS = ("x", "h", "c")
 OUTPUTS = ("probs", "h_out", "c_out")
