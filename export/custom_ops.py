@@ -12,7 +12,7 @@ Ops (version 1 of domain :data:`DOMAIN`):
 ``EMD(x_in) -> imfs, residue, n_valid``, attributes ``n_imfs``, ``n_sifts``
     x_in (batch, channels, time) float32; imfs (batch, channels, n_imfs, time); residue
     (batch, channels, time); n_valid (batch, channels) int64 (:mod:`tactile.export.emd_graph`).
-``SparseCode(x, dictionary, gram) -> codes``, attribute ``n_nonzero``
+``SparseCode(x, dictionary, gram) -> codes``, attributes ``n_nonzero``, ``variant``
     x (rows, features), dictionary (atoms, features), gram (atoms, atoms), codes (rows, atoms),
     float32 (:mod:`tactile.export.coder_graph`).
 
@@ -33,8 +33,10 @@ from tactile.contract import CUSTOM_DOMAIN, OPSET
 
 DOMAIN = CUSTOM_DOMAIN
 VERSION = 1
-ATTRIBUTES = {"EMD": ("n_imfs", "n_sifts"), "SparseCode": ("n_nonzero",)}
-"""Each op's integer attributes, in the order :func:`function_of`'s keys give them."""
+ATTRIBUTES = {"EMD": ("n_imfs", "n_sifts"), "SparseCode": ("n_nonzero", "variant")}
+"""Each op's integer attributes, in the order :func:`function_of`'s keys give them. A
+SparseCode's ``variant`` (its index among the model's coders) only picks the fallback body
+that holds its dictionary; the kernel reads the dictionary from its inputs and ignores it."""
 
 
 def _body_nodes(graph: onnx.GraphProto, prefix: str, wire: dict[str, str]) -> list:
@@ -119,6 +121,23 @@ def _branch(name: str, nodes: list, graph: onnx.GraphProto, names: list[str]) ->
     return helper.make_graph(nodes, name, [], out_info)
 
 
+def variant_body(fn: onnx.FunctionProto, k: int) -> tuple[list, list[str]]:
+    """Variant ``k``'s body in ``fn`` (made by :func:`function_of`): its nodes (reading the
+    function's inputs by name) and the names of its outputs, in the function's order."""
+    if not any(n.op_type == "If" and n.output[0].startswith("sel0/") for n in fn.node):
+        return list(fn.node), list(fn.output)  # one variant: the body itself
+    names = [f"v{k}/{o}" for o in fn.output]
+    todo = [n for n in fn.node if n.op_type == "If"]
+    while todo:
+        node = todo.pop()
+        for attr in node.attribute:
+            g = attr.g
+            if [o.name for o in g.output] == names:
+                return list(g.node), names
+            todo += [n for n in g.node if n.op_type == "If"]
+    raise ValueError(f"{fn.name}: no variant {k}")
+
+
 def custom_node(op: str, inputs: Sequence[str], outputs: Sequence[str], name: str,
                 **attrs: int) -> onnx.NodeProto:
     """One ``ai.tactile`` node (attributes as :data:`ATTRIBUTES` lists them)."""
@@ -144,4 +163,4 @@ def opset_imports() -> list[onnx.OperatorSetIdProto]:
 
 
 __all__ = ["ATTRIBUTES", "DOMAIN", "VERSION", "custom_node", "custom_nodes", "function_of",
-           "opset_imports"]
+           "opset_imports", "variant_body"]
