@@ -157,10 +157,20 @@ def custom_nodes(model: onnx.ModelProto) -> list[dict]:
     return out
 
 
+def custom_ops_key(model: onnx.ModelProto) -> str:
+    """The contract's ``custom_ops`` value for ``model`` (JSON): its nodes and their fallback."""
+    import json
+
+    return json.dumps({"domain": DOMAIN, "version": VERSION, "nodes": custom_nodes(model),
+                       "fallback": "model-local function of the same domain and name "
+                                   "(standard ONNX ops)"}, sort_keys=True)
+
+
 def opset_imports() -> list[onnx.OperatorSetIdProto]:
     """The default domain at :data:`OPSET` and ``ai.tactile`` at :data:`VERSION`."""
     return [helper.make_opsetid("", OPSET), helper.make_opsetid(DOMAIN, VERSION)]
 
 
-__all__ = ["ATTRIBUTES", "DOMAIN", "VERSION", "custom_node", "custom_nodes", "function_of",
+__all__ = ["ATTRIBUTES", "DOMAIN", "VERSION", "custom_node", "custom_nodes", "custom_ops_key",
+           "function_of",
            "opset_imports", "variant_body"]

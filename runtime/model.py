@@ -13,6 +13,7 @@ import onnxruntime as ort
 
 from tactile.contract import BATCH, ModelContract, model_file
 from tactile.errors import ConfigError, ModelContractError
+from tactile.runtime import kernels
 
 
 def session_options(threads: int = 1) -> ort.SessionOptions:
@@ -64,11 +65,12 @@ class Model:
         if options is not None and threads != 1:
             raise ConfigError("give threads or options, not both (set the threads in options)")
         path = model_file(path)
+        so = options if options is not None else session_options(threads)
+        # the ai.tactile nodes run the C kernels where the library is there, else their
+        # portable functions (tactile.runtime.kernels)
+        self.native = kernels.register(so, path)
         try:
-            self.session = ort.InferenceSession(
-                str(path), options if options is not None else session_options(threads),
-                providers=["CPUExecutionProvider"],
-            )
+            self.session = ort.InferenceSession(str(path), so, providers=["CPUExecutionProvider"])
         except Exception as e:  # noqa: BLE001  (onnxruntime raises its own untyped errors)
             first = str(e).strip().splitlines()[0] if str(e).strip() else type(e).__name__
             raise ModelContractError(f"{path}: not a loadable ONNX model ({first})") from None
