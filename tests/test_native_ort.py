@@ -273,3 +273,72 @@ def test_other_onnxruntime_versions(tmp_path):
         np.testing.assert_array_equal(z["marker1"], native.omp(x_code, d, gram, 2))
         assert "(batch, channels, time)" in str(z["bad1"]), version
         print(f"onnxruntime {version}: both paths agree", file=sys.stderr)
+
+
+# -- the runtime and tactile-check on an exported file ------------------------------------------
+
+
+@pytest.fixture(scope="module")
+def exported(tmp_path_factory):
+    from test_export_bytes import write_checkpoint
+
+    from tactile.export.exporter import export_run
+
+    run = tmp_path_factory.mktemp("run")
+    write_checkpoint("lstm-emd", run)
+    out = run / "model.onnx"
+    report = export_run(run, out, log=lambda s: None)
+    assert report["parity_native"]["passed"]  # the exporter measured the kernels too
+    return out
+
+
+@pytest.fixture
+def fresh_kernels(monkeypatch):
+    from tactile.runtime import kernels
+
+    monkeypatch.setattr(kernels, "_state", {"disabled": False, "said": False})
+    return kernels
+
+
+def test_contract_records_the_custom_nodes(exported):
+    from tactile.runtime.model import Model
+
+    c = Model(exported).contract
+    assert [(n["op"], n["name"]) for n in c.custom_ops] == [("EMD", "emd0")]
+    assert c.custom_ops[0]["attributes"] == {"n_imfs": 2, "n_sifts": 3}
+    assert c.parity["native"]["passed"]
+
+
+def test_runtime_runs_the_kernel_and_falls_back_saying_so_once(exported, fresh_kernels,
+                                                               monkeypatch, capsys):
+    from tactile.runtime.model import Model
+
+    assert fresh_kernels.library_path() == native.library_path()
+    fast = Model(exported)
+    assert fast.native and capsys.readouterr().err == ""
+    monkeypatch.setenv("TACTILE_NATIVE", "0")
+    assert fresh_kernels.library_path() is None
+    slow, again = Model(exported), Model(exported)
+    assert not slow.native and not again.native
+    err = capsys.readouterr().err
+    assert err.count("portable") == 1 and "disabled" in err
+    x = np.random.default_rng(0).standard_normal(
+        (4, fast.contract.window, len(fast.contract.channels))).astype(np.float32)
+    h, c = fast.zero_state(4)
+    p_fast = fast.session.run(None, {"x": x, "h": h, "c": c})[0]
+    p_slow = slow.session.run(None, {"x": x, "h": h, "c": c})[0]
+    assert np.abs(p_fast - p_slow).max() <= 1e-4
+
+
+def test_disable_forces_the_portable_path(fresh_kernels):
+    fresh_kernels.disable()
+    assert fresh_kernels.library_path() is None
+
+
+@pytest.mark.parametrize("flag, line", [([], "EMD: native kernel"),
+                                        (["--no-native"], "EMD: portable graph")])
+def test_check_names_the_path_of_each_custom_op(exported, fresh_kernels, capsys, flag, line):
+    from tactile.export.commands.check import main
+
+    assert main([str(exported), *flag]) == 0
+    assert f"kernels   {line}" in capsys.readouterr().out
