@@ -140,9 +140,19 @@ static int omp_batch(const void *x, int f32, int64_t rows, int64_t F, const void
         }
         if (ok) {
             for (int64_t k = 0; k < K; k++) { /* correlations with every atom: D x */
-                double s = 0.0;
-                for (int64_t f = 0; f < F; f++) s += dict[k * F + f] * xr[f];
-                cov[k] = s;
+                /* four partial sums (the additions' latency, not their count, bounds a single
+                 * running sum), added pairwise: a BLAS-like order, not numpy's exact bits */
+                const double *dk = dict + k * F;
+                double s0 = 0.0, s1 = 0.0, s2 = 0.0, s3 = 0.0;
+                int64_t f = 0;
+                for (; f + 4 <= F; f += 4) {
+                    s0 += dk[f] * xr[f];
+                    s1 += dk[f + 1] * xr[f + 1];
+                    s2 += dk[f + 2] * xr[f + 2];
+                    s3 += dk[f + 3] * xr[f + 3];
+                }
+                for (; f < F; f++) s0 += dk[f] * xr[f];
+                cov[k] = (s0 + s1) + (s2 + s3);
             }
             omp_row(cov, gram, K, S, eps, &w, code);
         } else {
