@@ -108,8 +108,9 @@ typedef OrtStatus *(*OrtKernelContextGetOutputFn)(OrtKernelContext *ctx, size_t 
 typedef void (*OrtReleaseStatusFn)(OrtStatus *status);
 typedef void (*OrtReleaseTensorTypeAndShapeInfoFn)(OrtTensorTypeAndShapeInfo *info);
 
-/* Entry `pos` of the table `api` (an array of function pointers). */
-#define ORT_FN(api, type, pos) ((type)(((void *const *)(const void *)(api))[pos]))
+/* Entry `pos` of the table `api` (an array of function pointers), as a function of `type`. */
+typedef void (*OrtAnyFn)(void);
+#define ORT_FN(api, type, pos) ((type)(((const OrtAnyFn *)(const void *)(api))[pos]))
 
 /* OrtCustomOp, in the header's field order; the comments give the version that added a field. */
 typedef struct OrtCustomOp {
