@@ -8,7 +8,8 @@
  *     the outputs of the portable EMD graph (tactile.export.emd_graph), same layout and dtypes.
  *   SparseCode(x, dictionary, gram) -> codes     attribute n_nonzero (1..atoms)
  *     x (rows, features), dictionary (atoms, features), gram (atoms, atoms), codes (rows, atoms),
- *     all float32: the portable coder graph's (tactile.export.coder_graph).
+ *     all float32: the portable coder graph's (tactile.export.coder_graph). The node's other
+ *     attribute, variant, only picks the fallback function's body; the kernel ignores it.
  *
  * The inputs come from a model file and a device: every shape, type and setting is checked and
  * a bad one gives an error status that onnxruntime reports (the session's run fails with its
