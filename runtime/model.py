@@ -46,6 +46,10 @@ class Model:
         options: onnxruntime session options to use instead of ``session_options(threads)``
             (start from :func:`session_options` and change what you need, e.g. allow spinning
             or parallel execution); then ``threads`` is not used and must be left at 1.
+            The kernel library is registered in them when the file has custom nodes.
+
+    ``native`` is True when the file's ``ai.tactile`` nodes (EMD, sparse codes) run the C
+    kernels, False when they run the file's portable graphs (:mod:`tactile.runtime.kernels`).
 
     Raises :class:`ModelContractError` (a one-line message naming the problem) if the file is
     missing, not ONNX, not made by the exporter, its graph does not match its metadata, or
