@@ -342,3 +342,18 @@ def test_check_names_the_path_of_each_custom_op(exported, fresh_kernels, capsys,
 
     assert main([str(exported), *flag]) == 0
     assert f"kernels   {line}" in capsys.readouterr().out
+
+
+def test_without_a_built_library_the_runtime_says_so_once(exported, fresh_kernels, monkeypatch,
+                                                          capsys):
+    """An install without a C compiler: no library, the portable graphs, one stderr line."""
+    from tactile.runtime.model import Model
+
+    monkeypatch.setattr(native, "library_path", lambda: None)
+    assert fresh_kernels.library_path() is None
+    models = [Model(exported), Model(exported)]
+    assert not any(m.native for m in models)
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "installed without a C compiler" in err
+    assert fresh_kernels.paths(models[0].contract.custom_ops, False) == [
+        "EMD: portable graph (no kernel library)"]
