@@ -78,8 +78,10 @@ def signature(values, initializers=()) -> list[tuple[str, str, list]]:
     return out
 
 
-def describe(path: Path, c: ModelContract, opset: int | None = OPSET) -> str:
-    """What the file holds, for people (``opset`` None: not checked)."""
+def describe(path: Path, c: ModelContract, opset: int | None = OPSET,
+             kernels: list[str] = ()) -> str:
+    """What the file holds, for people (``opset`` None: not checked); ``kernels``: the path
+    each custom op takes on this machine (:func:`tactile.runtime.kernels.paths`)."""
     emd = c.preprocessing.get("emd")
     checked = f"opset {opset}, " if opset is not None else ""
     lines = [
@@ -97,6 +99,7 @@ def describe(path: Path, c: ModelContract, opset: int | None = OPSET) -> str:
           for r in c.parity.get("codes") or []),
         f"  training  {_recorded(c)}",
         *_postprocess_lines(c),
+        *(f"  kernels   {line}" for line in kernels),
     ]
     return "\n".join(lines)
 
@@ -117,6 +120,13 @@ def _postprocess_lines(c: ModelContract) -> list[str]:
         return [f"  labels    {summary_line(figures)}"]
     except (KeyError, TypeError, ValueError):  # figures of another shape: the setting alone
         return [f"  labels    {settings.describe()} (post-processing defaults)"]
+
+
+def _paths(model) -> list[str]:
+    """The path each of the file's custom ops takes in ``model``'s session."""
+    from tactile.runtime import kernels
+
+    return kernels.paths(model.contract.custom_ops, model.native)
 
 
 def _excused(parity: dict) -> str:
@@ -237,7 +247,7 @@ def board_check(path: Path) -> None:
                                                   and abs(float(probs.sum()) - 1.0) < 1e-3):
         raise ModelContractError(f"{path}: a zero window gives probabilities {probs.tolist()}, "
                                  f"not {len(c.classes)} finite values summing to 1")
-    print(describe(path, c, opset=None))
+    print(describe(path, c, opset=None, kernels=_paths(model)))
     print("  checked   with onnxruntime only (the [train] extra is not installed): the contract, "
           "the graph's signature, one window; the extra adds onnx.checker and the opset check")
 
@@ -264,9 +274,10 @@ def check_file(path: Path, run_dir: Path | None = None, data: Path | None = None
     _, contract = load_contract(path)
     from tactile.runtime.model import Model
 
-    Model(path).probe(2)  # outputs of the declared shapes at batch 1 (as tactile-run
+    loaded = Model(path)
+    loaded.probe(2)  # outputs of the declared shapes at batch 1 (as tactile-run
     # checks at load) and 2 (the batch axis really dynamic)
-    print(describe(path, contract))
+    print(describe(path, contract, kernels=_paths(loaded)))
     if run_dir is not None:
         if not _reparity(path, contract, run_dir, data, windows):
             raise ModelContractError(f"{path}: parity against {run_dir} failed "

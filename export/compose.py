@@ -47,14 +47,19 @@ def join(
     outputs: Sequence[onnx.ValueInfoProto],
     opset: int,
     name: str,
+    functions: Sequence[onnx.FunctionProto] = (),
 ) -> onnx.ModelProto:
-    """One model from already-renamed graphs, in execution order, with the given signature."""
+    """One model from already-renamed graphs, in execution order, with the given signature;
+    with ``functions`` (the ``ai.tactile`` ops' fallbacks) also those and their domain."""
     nodes, inits = [], []
     for g in parts:
         nodes += list(g.node)
         inits += list(g.initializer)
     graph = helper.make_graph(nodes, name, list(inputs), list(outputs), initializer=inits)
-    model = helper.make_model(graph, opset_imports=[helper.make_opsetid("", opset)])
+    opsets = [helper.make_opsetid("", opset)]
+    if functions:
+        opsets.append(helper.make_opsetid(functions[0].domain, 1))
+    model = helper.make_model(graph, opset_imports=opsets, functions=list(functions))
     return model
 
 

@@ -454,6 +454,25 @@ def build_emd_model(
     return model
 
 
+def emd_node_model(n_imfs: int, n_sifts: int, n_channels: int, n_time: int) -> onnx.ModelProto:
+    """The EMD as one ``ai.tactile::EMD`` node (float32) whose model-local function holds
+    :func:`build_emd_model`'s graph (:mod:`tactile.export.custom_ops`): the native kernel where
+    onnxruntime has the library registered, the portable graph anywhere else. Same input and
+    outputs as :func:`build_emd_model`'s."""
+    from tactile.export.custom_ops import custom_node, function_of, opset_imports
+
+    body = build_emd_model(n_imfs, n_sifts, n_channels, n_time, torch.float32)
+    node = custom_node("EMD", ["x_in"], ["imfs", "residue", "n_valid"], "emd",
+                       n_imfs=n_imfs, n_sifts=n_sifts)
+    fn = function_of("EMD", [([n_channels, n_time, n_imfs, n_sifts], body.graph)])
+    graph = helper.make_graph([node], "emd", list(body.graph.input), list(body.graph.output))
+    model = helper.make_model(graph, opset_imports=opset_imports(), functions=[fn],
+                              producer_name="tactile.training.emd")
+    model.ir_version = IR_VERSION
+    onnx.checker.check_model(model, full_check=True)
+    return model
+
+
 def export_emd_onnx(
     path: str | Path,
     n_imfs: int = 4,
@@ -461,11 +480,17 @@ def export_emd_onnx(
     n_channels: int = 8,
     n_time: int = 50,
     dtype: torch.dtype = torch.float32,
+    native: bool = False,
 ) -> onnx.ModelProto:
-    """Write the EMD graph to ``path`` and return it. Input name ``x_in``."""
-    model = build_emd_model(n_imfs, n_sifts, n_channels, n_time, dtype)
+    """Write the EMD graph to ``path`` and return it. Input name ``x_in``. With ``native``
+    (float32 only) the file holds :func:`emd_node_model`: one custom node, the graph as its
+    fallback."""
+    if native and dtype != torch.float32:
+        raise ConfigError("the native EMD node is float32 only")
+    model = (emd_node_model(n_imfs, n_sifts, n_channels, n_time) if native
+             else build_emd_model(n_imfs, n_sifts, n_channels, n_time, dtype))
     onnx.save(model, str(path))
     return model
 
 
-__all__ = ["PCR_ALWAYS", "build_emd_model", "export_emd_onnx"]
+__all__ = ["PCR_ALWAYS", "build_emd_model", "emd_node_model", "export_emd_onnx"]

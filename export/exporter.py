@@ -12,6 +12,7 @@ from __future__ import annotations
 import os
 import tempfile
 import time
+from dataclasses import replace
 from pathlib import Path
 
 import onnx
@@ -19,10 +20,12 @@ import onnx
 from tactile.errors import ConfigError
 from tactile.export.calibrate import calibrate_file
 from tactile.export.check import load_contract
+from tactile.export.custom_ops import custom_nodes, custom_ops_key
 from tactile.export.graph import build_graph
 from tactile.export.metadata import attach, contract_for
 from tactile.export.parity import Parity, ParityError, compare
 from tactile.export.quantize import latency_ms, quantize_int8
+from tactile.export.session import native_available
 from tactile.export.windows import probe_windows
 from tactile.training.checkpoint import load_checkpoint
 
@@ -44,6 +47,13 @@ def export_run(run_dir: Path, out: Path, data: Path | None = None, int8: bool = 
     _require(parity, "float32")
     report = {"build_s": round(t_build, 2), "parity": parity.to_dict()}
     final, quantization, figures = graph, "none", parity.to_dict()
+    custom = custom_nodes(graph)
+    if custom and native_available():  # the same file on the kernels: it must pass too
+        fast = compare(model, graph.SerializeToString(), probe, ck, native=True)
+        log("native kernels:\n" + fast.table())
+        _require(fast, "float32 (native kernels)")
+        figures = {**figures, "native": fast.to_dict()}
+        report["parity_native"] = fast.to_dict()
     if int8:
         final = quantize_int8(graph)
         q = compare(model, final.SerializeToString(), probe, ck, criterion="int8")
@@ -53,7 +63,10 @@ def export_run(run_dir: Path, out: Path, data: Path | None = None, int8: bool = 
         quantization = "int8-dynamic"
         report["int8"] = _tradeoff(graph, final, parity, q, ck, model.state_shape)
         log(_tradeoff_line(report["int8"]))
-    attach(final, contract_for(ck, figures, quantization, run_dir.resolve().name, model))
+    contract = contract_for(ck, figures, quantization, run_dir.resolve().name, model)
+    if custom_nodes(final):
+        contract = replace(contract, extra={**contract.extra, "custom_ops": custom_ops_key(final)})
+    attach(final, contract)
     report["postprocess"] = calibrate_file(final, ck, model.cfg, data, log)
     with tempfile.NamedTemporaryFile(dir=out.parent, suffix=".onnx", delete=False) as tmp:
         tmp_path = Path(tmp.name)

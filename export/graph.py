@@ -29,7 +29,9 @@ from torch import Tensor, nn
 
 import tactile
 from tactile.contract import BATCH, INPUTS, IR_VERSION, OPSET, OUTPUTS
+from tactile.export.coder_graph import coder_function, coders_as_nodes
 from tactile.export.compose import join, renamed, value_info
+from tactile.export.custom_ops import DOMAIN, custom_node, function_of, opset_imports
 from tactile.export.emd_graph import build_emd_model
 from tactile.export.traced import export_traced
 
@@ -101,12 +103,14 @@ def build_graph(model: nn.Module) -> onnx.ModelProto:
     x = example_input(model)
     h, c = model.zero_state(EXAMPLE_BATCH)
     state = {"h": _STATE_AXES, "c": _STATE_AXES, "h_out": _STATE_AXES, "c_out": _STATE_AXES}
-    with torch.no_grad():
+    with torch.no_grad(), coders_as_nodes(model) as coders:
         if not len(model.pre.emds):
             out = trace(model, [x, h, c], INPUTS, OUTPUTS,
                         {"x": {0: BATCH}, "probs": {0: BATCH}, **state})
         else:
             out = _compose(model, x, h, c, state)
+    # the coders' own graphs, traced as they are (outside coders_as_nodes)
+    out = _with_functions(out, [coder_function(coders)] if coders else [])
     out.ir_version = IR_VERSION
     out.producer_name = "tactile.export"
     out.producer_version = tactile.__version__
@@ -114,8 +118,24 @@ def build_graph(model: nn.Module) -> onnx.ModelProto:
     return out
 
 
+def _with_functions(model: onnx.ModelProto, functions: list) -> onnx.ModelProto:
+    """``model`` with more ``ai.tactile`` functions and the domain's opset import (none: as it
+    is); its coder nodes named ``coder<variant>``."""
+    if not functions and not model.functions:
+        return model
+    for node in model.graph.node:
+        if node.domain == DOMAIN and node.op_type == "SparseCode":
+            variant = next(a.i for a in node.attribute if a.name == "variant")
+            node.name = f"coder{variant}"
+    del model.opset_import[:]
+    model.opset_import.extend(opset_imports())
+    model.functions.extend(functions)
+    return model
+
+
 def _compose(model: nn.Module, x: Tensor, h: Tensor, c: Tensor, state: dict) -> onnx.ModelProto:
-    """pre (traced) -> one EMD Loop graph per entry of ``model.pre.emds`` -> post (traced)."""
+    """pre (traced) -> one ``ai.tactile::EMD`` node per entry of ``model.pre.emds`` (its Loop
+    graph as the function's body) -> post (traced; its coders one ``SparseCode`` node each)."""
     pre_m = _Pre(model.pre)
     z, *sel = pre_m(x)
     emds = list(model.pre.emds)
@@ -125,15 +145,26 @@ def _compose(model: nn.Module, x: Tensor, h: Tensor, c: Tensor, state: dict) -> 
     pre = trace(pre_m, [x], ["x"], ["z", *ins],
                 {"x": batch, "z": batch, **dict.fromkeys(ins, batch)})
     graphs = [renamed(pre, "pre/", {"x": "x", "z": "z", **{n: n for n in ins}})]
-    imfs = []
+    imfs, bodies, emd_nodes, shapes = [], {}, [], []
     for k, (emd, s) in enumerate(zip(emds, sel, strict=True)):
         imfs.append(emd(s)[0])  # (B, n_k, K_k, L_k): the post's example input
-        mid = build_emd_model(emd.n_imfs, emd.n_sifts, int(s.shape[1]), int(s.shape[2]),
-                              torch.float32)
-        emd_in, emd_out = mid.graph.input[0].name, mid.graph.output[0].name  # x_in, imfs
-        graphs.append(renamed(mid, f"emd{k}/", {emd_in: ins[k], emd_out: outs[k]}))
+        key = (int(s.shape[1]), int(s.shape[2]), emd.n_imfs, emd.n_sifts)
+        if key not in bodies:
+            bodies[key] = build_emd_model(emd.n_imfs, emd.n_sifts, *key[:2], torch.float32).graph
+        emd_nodes.append(custom_node("EMD", [ins[k]], [outs[k], f"emd{k}/residue",
+                                                       f"emd{k}/n_valid"], f"emd{k}",
+                                     n_imfs=emd.n_imfs, n_sifts=emd.n_sifts))
+        c_k, t_k = key[:2]  # the node's output shapes (inference through the pick loses them)
+        f32, i64 = onnx.TensorProto.FLOAT, onnx.TensorProto.INT64
+        shapes += [onnx.helper.make_tensor_value_info(outs[k], f32, [BATCH, c_k, emd.n_imfs, t_k]),
+                   onnx.helper.make_tensor_value_info(f"emd{k}/residue", f32, [BATCH, c_k, t_k]),
+                   onnx.helper.make_tensor_value_info(f"emd{k}/n_valid", i64, [BATCH, c_k])]
+    graphs.append(onnx.helper.make_graph(emd_nodes, "emd", [], []))
     post = trace(_Post(model), [z, *imfs, h, c], ["z", *outs, "h", "c"], OUTPUTS,
                  {"z": batch, **dict.fromkeys(outs, batch), "probs": batch, **state})
     graphs.append(renamed(post, "post/", {n: n for n in ["z", *outs, "h", "c", *OUTPUTS]}))
-    return join(graphs, value_info(pre, ["x"]) + value_info(post, ["h", "c"]),
-                value_info(post, OUTPUTS), OPSET, "tactile")
+    functions = [function_of("EMD", [(list(k), g) for k, g in bodies.items()])]
+    out = join(graphs, value_info(pre, ["x"]) + value_info(post, ["h", "c"]),
+               value_info(post, OUTPUTS), OPSET, "tactile", functions)
+    out.graph.value_info.extend(shapes)
+    return out

@@ -191,13 +191,15 @@ def _windows(n: int) -> str:
 
 @torch.no_grad()
 def compare(model: nn.Module, onnx_model: bytes | str, probe: Probe, ck: dict,
-            criterion: str = "strict") -> Parity:
+            criterion: str = "strict", native: bool = False) -> Parity:
     """Run ``probe`` through both and measure (carry mode also along each run); for a model
     with sparse coders also the graph's codes of the probe's windows against scikit-learn's
     (:func:`tactile.export.codes.code_parity`), which must pass too, and the windows above
-    :data:`ATOL` explained by the coders' float32 rounding (:mod:`tactile.export.ties`)."""
+    :data:`ATOL` explained by the coders' float32 rounding (:mod:`tactile.export.ties`).
+    ``native``: run the file's ``ai.tactile`` nodes on the kernel library (the codes and their
+    excuses are read from the portable bodies either way)."""
     model = model.eval()
-    sess = session(onnx_model)
+    sess = session(onnx_model, native=native)
     carry = model.cfg.state == "carry"
     if carry:
         probe = _with_long_run(probe, ck)

@@ -21,6 +21,7 @@ import onnx
 from onnx import TensorProto, helper
 from torch import nn
 
+from tactile.contract import CUSTOM_DOMAIN
 from tactile.errors import ModelContractError
 from tactile.export.session import session
 from tactile.training.sparse import SparseCoder
@@ -54,10 +55,44 @@ def _scope(node: onnx.NodeProto) -> str:
     return parts[-2] if len(parts) >= 3 else ""
 
 
+def portable(graph: onnx.ModelProto, found: list[tuple[str, SparseCoder]]) -> onnx.ModelProto:
+    """``graph`` with each ``ai.tactile::SparseCode`` node (a coder as one node, its
+    ``variant`` the index into ``found``) replaced by the body the file's fallback function
+    runs for it (the coder's own traced graph), its nodes named ``/<path>/<op>_<i>`` so that
+    its scope is the coder's; ``graph`` itself when it has no such node."""
+    if not any(n.domain == CUSTOM_DOMAIN and n.op_type == "SparseCode" for n in graph.graph.node):
+        return graph
+    from tactile.export.compose import renamed
+    from tactile.export.custom_ops import variant_body
+
+    (fn,) = [f for f in graph.functions if f.domain == CUSTOM_DOMAIN and f.name == "SparseCode"]
+    out = onnx.ModelProto()
+    out.CopyFrom(graph)
+    nodes = []
+    for node in graph.graph.node:
+        if node.domain != CUSTOM_DOMAIN or node.op_type != "SparseCode":
+            nodes.append(node)
+            continue
+        variant = next(a.i for a in node.attribute if a.name == "variant")
+        path = found[variant][0]
+        body, outs = variant_body(fn, variant)
+        wire = dict(zip(fn.input, node.input, strict=True))
+        wire.update(zip(outs, node.output, strict=True))
+        g = renamed(onnx.helper.make_model(onnx.helper.make_graph(body, "coder", [], [])),
+                    f"{path}/", wire)
+        for i, n in enumerate(g.node):
+            n.name = f"/{path}/{n.op_type}_{i}"
+        nodes += list(g.node)
+    del out.graph.node[:]
+    out.graph.node.extend(nodes)
+    return out
+
+
 def find_coders(model: nn.Module, graph: onnx.ModelProto) -> list[CoderTap]:
     """Locate every coder of ``model`` in ``graph``: :class:`CoderNotFound` unless each has
-    exactly one outside input and one output used outside its scope."""
-    g = graph.graph
+    exactly one outside input and one output used outside its scope. A coder exported as one
+    ``SparseCode`` node is located in its portable form (:func:`portable`)."""
+    g = portable(graph, coders(model)).graph
     consts = {i.name for i in g.initializer}
     consts |= {o for n in g.node if n.op_type == "Constant" for o in n.output}
     found = coders(model)
@@ -100,7 +135,7 @@ def tapped(graph: onnx.ModelProto, taps: list[CoderTap], orders: bool = False
     """A copy of ``graph`` that also outputs each coder's images and codes (same nodes), and
     with ``orders`` each coder's picks (:func:`picks`) after them, coder by coder."""
     out = onnx.ModelProto()
-    out.CopyFrom(graph)
+    out.CopyFrom(portable(graph, [(t.path, t.coder) for t in taps]))
     del out.metadata_props[:]
     for t in taps:
         out.graph.output.extend([helper.make_tensor_value_info(t.x, TensorProto.FLOAT, None),
@@ -132,5 +167,5 @@ def tap_session(graph: onnx.ModelProto, taps: list[CoderTap]):
     return sess, steps, names
 
 
-__all__ = ["CoderNotFound", "CoderTap", "coders", "find_coders", "picks", "tapped",
+__all__ = ["CoderNotFound", "CoderTap", "coders", "find_coders", "picks", "portable", "tapped",
            "graph_order", "tap_session"]

@@ -14,6 +14,7 @@ import onnxruntime as ort
 from tactile.contract import BATCH, ModelContract, model_file
 from tactile.errors import ConfigError, ModelContractError
 from tactile.postprocess.smoothing import settings_from_metadata
+from tactile.runtime import kernels
 
 
 def session_options(threads: int = 1) -> ort.SessionOptions:
@@ -46,6 +47,10 @@ class Model:
         options: onnxruntime session options to use instead of ``session_options(threads)``
             (start from :func:`session_options` and change what you need, e.g. allow spinning
             or parallel execution); then ``threads`` is not used and must be left at 1.
+            The kernel library is registered in them when the file has custom nodes.
+
+    ``native`` is True when the file's ``ai.tactile`` nodes (EMD, sparse codes) run the C
+    kernels, False when they run the file's portable graphs (:mod:`tactile.runtime.kernels`).
 
     Raises :class:`ModelContractError` (a one-line message naming the problem) if the file is
     missing, not ONNX, not made by the exporter, its graph does not match its metadata, or
@@ -71,11 +76,12 @@ class Model:
         if options is not None and threads != 1:
             raise ConfigError("give threads or options, not both (set the threads in options)")
         path = model_file(path)
+        so = options if options is not None else session_options(threads)
+        # the ai.tactile nodes run the C kernels where the library is there, else their
+        # portable functions (tactile.runtime.kernels)
+        self.native = kernels.register(so, path)
         try:
-            self.session = ort.InferenceSession(
-                str(path), options if options is not None else session_options(threads),
-                providers=["CPUExecutionProvider"],
-            )
+            self.session = ort.InferenceSession(str(path), so, providers=["CPUExecutionProvider"])
         except Exception as e:  # noqa: BLE001  (onnxruntime raises its own untyped errors)
             first = str(e).strip().splitlines()[0] if str(e).strip() else type(e).__name__
             raise ModelContractError(f"{path}: not a loadable ONNX model ({first})") from None

@@ -49,6 +49,9 @@ OPSET = 18
 EMD graph uses, needs >= 16)."""
 IR_VERSION = 8
 """ONNX IR version the exporter writes (onnxruntime >= 1.15 reads it)."""
+CUSTOM_DOMAIN = "ai.tactile"
+"""The toolkit's op domain (version 1): ``EMD`` and ``SparseCode`` nodes, each with a model-local
+function of the same name as its portable fallback (``tactile.export.custom_ops``)."""
 
 INPUTS = ("x", "h", "c")
 OUTPUTS = ("probs", "h_out", "c_out")
@@ -102,6 +105,10 @@ KEYS: dict[str, tuple[bool, str]] = {
                           "graph takes them), signal, rate_hz, imfs, steps, atoms, nonzero}; "
                           "absent: none (format version 2)"),
     "exporter": (False, "how the graph was made: torch version, exporter path, opset"),
+    "custom_ops": (False, f"JSON object: the graph's {CUSTOM_DOMAIN} nodes {{domain, version, "
+                          "nodes: [{op, name, attributes}], fallback}: each runs the native "
+                          "kernel where onnxruntime has the library registered, else the "
+                          "model-local function of its name (the portable graph); absent: none"),
     "training_config": (False, "JSON object: the run's resolved training config"),
     "source_run": (False, "name of the run folder the model came from"),
     # the label stream's post-processing defaults (tactile.postprocess.smoothing reads them):
@@ -281,6 +288,21 @@ class ModelContract:
             meta["modalities"] = json.dumps([m.to_json() for m in self.modalities])
         meta.update(self.extra)
         return meta
+
+    @property
+    def custom_ops(self) -> list[dict[str, Any]]:
+        """The ``custom_ops`` key's nodes ({op, name, attributes}), [] without the key."""
+        raw = self.extra.get("custom_ops")
+        if not raw:
+            return []
+        try:
+            nodes = json.loads(raw).get("nodes", [])
+        except (ValueError, AttributeError):
+            raise ModelContractError("custom_ops: not a JSON object with a 'nodes' list") from None
+        if not isinstance(nodes, list) or not all(isinstance(n, dict) and "op" in n
+                                                  for n in nodes):
+            raise ModelContractError("custom_ops: 'nodes' must be a list of {op, ...} objects")
+        return nodes
 
     # -- graph signature ---------------------------------------------------------------------
 

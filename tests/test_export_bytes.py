@@ -109,9 +109,13 @@ def export_sha256(run: Path, out: Path) -> str:
 
 def versions() -> dict[str, str]:
     """The versions the goldens depend on: the serialisation (torch, onnx) and the parity
-    figures in the metadata (onnxruntime)."""
+    figures in the metadata (onnxruntime; with the native kernels built, the metadata also
+    holds the parity measured on them)."""
+    from tactile import native
+
     return {"torch": torch.__version__, "onnx": onnx.__version__,
-            "onnxruntime": onnxruntime.__version__}
+            "onnxruntime": onnxruntime.__version__,
+            "native_kernels": "built" if native.available() else "absent"}
 
 
 _SHA: dict[str, str] = {}

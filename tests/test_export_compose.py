@@ -80,10 +80,13 @@ def test_one_emd_graph_per_emd_and_a_valid_file(which, request):
     model, graph = request.getfixturevalue(which)
     onnx.checker.check_model(graph, full_check=True)
     onnx.shape_inference.infer_shapes(graph, check_type=True, strict_mode=True)
-    # one EMD graph per EMD module (its Loop nests sit in If nodes), each under its own prefix
-    prefixes = sorted({o.split("/")[0] for n in graph.graph.node if n.op_type == "If"
-                       for o in n.output})
+    # one ai.tactile EMD node per EMD module, each under its own prefix; the model-local
+    # function holds one EMD graph per shape (its Loop nests sit in If nodes)
+    prefixes = sorted({o.split("/")[0] for n in graph.graph.node if n.op_type == "EMD"
+                       for o in n.output[1:]})
     assert prefixes == [f"emd{k}" for k in range(len(model.pre.emds))] == ["emd0", "emd1"]
+    (fn,) = [f for f in graph.functions if f.name == "EMD"]
+    assert sum(n.op_type == "If" for n in fn.node) == 1  # the pick between the two shapes
     sess = session(graph.SerializeToString())
     x = toy.windows(5, seed=11)
     h, c = (t.numpy() for t in model.zero_state(5))

@@ -57,8 +57,9 @@ def test_library_exports_the_kernels_and_no_python():
                          text=True, check=True).stdout
     defined = {ln.split()[-1] for ln in out.splitlines() if " T " in ln}
     assert {"tactile_emd_f64", "tactile_emd_f32", "tactile_omp_f64", "tactile_omp_f32",
-            "tactile_native_abi"} <= defined
+            "tactile_native_abi", "RegisterCustomOps"} <= defined
     undefined = subprocess.run(["nm", "-D", "--undefined-only", str(path)], capture_output=True,
                                text=True, check=True).stdout
     assert "Py" not in undefined, undefined  # no libpython symbol: loadable outside Python
+    assert "Ort" not in undefined, undefined  # onnxruntime's C API only through its table
     assert not [s for s in defined if s.startswith("Py")]

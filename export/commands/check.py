@@ -29,6 +29,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--run", type=Path, help="run folder: re-run parity against its PyTorch model")
     p.add_argument("--data", type=Path, help="dataset folder: windows to check on")
     p.add_argument("--windows", type=int_in(1), default=256, help="at most this many windows")
+    p.add_argument("--no-native", action="store_true",
+                   help="run the portable EMD/sparse-code graphs, not the C kernels")
     add_debug(p)
     return p
 
@@ -36,6 +38,10 @@ def build_parser() -> argparse.ArgumentParser:
 def _check(args: argparse.Namespace) -> int:
     from tactile.export.check import check_file
 
+    if args.no_native:
+        from tactile.runtime import kernels
+
+        kernels.disable()
     check_file(args.model, args.run, args.data, args.windows)
     return 0
 

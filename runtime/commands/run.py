@@ -75,6 +75,8 @@ def build_parser() -> argparse.ArgumentParser:
                    help=f"onnxruntime threads, at most the {CPUS} cores (default 1)")
     p.add_argument("--status-every", type=float_in(0.0), default=5.0,
                    help="status line period, s")
+    p.add_argument("--no-native", action="store_true",
+                   help="run the portable EMD/sparse-code graphs, not the C kernels")
     add_port_options(p, "the channels, labels and link")
     add_debug(p)
     return p
@@ -102,6 +104,9 @@ def _run(args: argparse.Namespace) -> int:
     from tactile.runtime.runner import Printer, Runner, Summary, post_processor, say
     from tactile.runtime.stream import Stream
 
+    if args.no_native:
+        from tactile.runtime import kernels
+        kernels.disable()
     model = Model(args.model, threads=args.threads)
     c = model.contract
     hop = c.hop if args.hop is None else args.hop

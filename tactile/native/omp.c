@@ -86,6 +86,36 @@ static void omp_row(const double *cov, const double *gram, int64_t K, int64_t S,
     for (int64_t i = 0; i < n_active; i++) code[perm[i]] = gamma[i];
 }
 
+/* Rows whose correlations are computed together: each atom's row of the dictionary is read
+ * once for the block (the dictionary, not the arithmetic, bounded the time). */
+#define ROW_BLOCK 4
+
+/* cov (nb, K): the correlations of the nb rows xr (nb, F) with every atom, D x. Each sum is
+ * four partial sums (the additions' latency, not their count, bounds a single running sum)
+ * added pairwise: a BLAS-like order, not numpy's exact bits, and the same for a row in any
+ * block. */
+static void correlations(const double *dict, const double *xr, int64_t nb, int64_t F,
+                         int64_t K, double *cov) {
+    for (int64_t k = 0; k < K; k++) {
+        const double *dk = dict + k * F;
+        double s[ROW_BLOCK][4] = {{0.0}};
+        int64_t f = 0;
+        for (; f + 4 <= F; f += 4) {
+            for (int64_t b = 0; b < nb; b++) {
+                const double *xb = xr + b * F;
+                s[b][0] += dk[f] * xb[f];
+                s[b][1] += dk[f + 1] * xb[f + 1];
+                s[b][2] += dk[f + 2] * xb[f + 2];
+                s[b][3] += dk[f + 3] * xb[f + 3];
+            }
+        }
+        for (; f < F; f++)
+            for (int64_t b = 0; b < nb; b++) s[b][0] += dk[f] * xr[b * F + f];
+        for (int64_t b = 0; b < nb; b++)
+            cov[b * K + k] = (s[b][0] + s[b][1]) + (s[b][2] + s[b][3]);
+    }
+}
+
 static void work_free(Work *w) {
     free(w->xy); free(w->alpha); free(w->beta); free(w->L); free(w->gamma); free(w->wrow);
     free(w->perm);
@@ -106,8 +136,8 @@ static int omp_batch(const void *x, int f32, int64_t rows, int64_t F, const void
     memset(&w, 0, sizeof w);
     double *dict = malloc((size_t)(K * F) * sizeof(double));
     double *gram = malloc((size_t)(K * K) * sizeof(double));
-    double *xr = malloc((size_t)F * sizeof(double));
-    double *cov = malloc((size_t)K * sizeof(double));
+    double *xr = malloc((size_t)(ROW_BLOCK * F) * sizeof(double));
+    double *cov = malloc((size_t)(ROW_BLOCK * K) * sizeof(double));
     double *code = malloc((size_t)K * sizeof(double));
     w.xy = malloc((size_t)K * sizeof(double));
     w.alpha = malloc((size_t)K * sizeof(double));
@@ -132,26 +162,30 @@ static int omp_batch(const void *x, int f32, int64_t rows, int64_t F, const void
         finite &= isfinite(gram[i]) != 0;
     }
     if (!finite) status = TACTILE_ENONFINITE;
-    for (int64_t r = 0; r < rows; r++) {
-        int ok = finite;
-        for (int64_t f = 0; f < F; f++) {
-            xr[f] = f32 ? (double)((const float *)x)[r * F + f] : ((const double *)x)[r * F + f];
-            ok &= isfinite(xr[f]) != 0;
-        }
-        if (ok) {
-            for (int64_t k = 0; k < K; k++) { /* correlations with every atom: D x */
-                double s = 0.0;
-                for (int64_t f = 0; f < F; f++) s += dict[k * F + f] * xr[f];
-                cov[k] = s;
+    for (int64_t r0 = 0; r0 < rows; r0 += ROW_BLOCK) {
+        const int64_t nb = rows - r0 < ROW_BLOCK ? rows - r0 : ROW_BLOCK;
+        int ok[ROW_BLOCK];
+        for (int64_t b = 0; b < nb; b++) {
+            ok[b] = finite;
+            for (int64_t f = 0; f < F; f++) {
+                const int64_t i = (r0 + b) * F + f;
+                xr[b * F + f] = f32 ? (double)((const float *)x)[i] : ((const double *)x)[i];
+                ok[b] &= isfinite(xr[b * F + f]) != 0;
             }
-            omp_row(cov, gram, K, S, eps, &w, code);
-        } else {
-            status = TACTILE_ENONFINITE;
-            memset(code, 0, (size_t)K * sizeof(double));
         }
-        for (int64_t k = 0; k < K; k++) {
-            if (f32) ((float *)codes)[r * K + k] = (float)code[k];
-            else ((double *)codes)[r * K + k] = code[k];
+        correlations(dict, xr, nb, F, K, cov);
+        for (int64_t b = 0; b < nb; b++) {
+            const int64_t r = r0 + b;
+            if (ok[b]) {
+                omp_row(cov + b * K, gram, K, S, eps, &w, code);
+            } else {
+                status = TACTILE_ENONFINITE;
+                memset(code, 0, (size_t)K * sizeof(double));
+            }
+            for (int64_t k = 0; k < K; k++) {
+                if (f32) ((float *)codes)[r * K + k] = (float)code[k];
+                else ((double *)codes)[r * K + k] = code[k];
+            }
         }
     }
 done:

@@ -1,0 +1,84 @@
+"""The native kernel library in the runtime's onnxruntime sessions.
+
+An exported file holds each EMD and each sparse coder as one ``ai.tactile`` node with a
+model-local function as its portable fallback (``docs/export.md``). Registered in a session's
+options, the package's kernel library (``tactile/native``, built where the install had a C
+compiler) runs those nodes in C; without it onnxruntime runs the functions, the standard-op
+graphs, with the same results up to float32 rounding. :func:`library_path` says which:
+``TACTILE_NATIVE=0`` in the environment, or :func:`disable` (``--no-native`` on tactile-run and
+tactile-check), forces the portable graphs. No torch, no onnx: numpy and onnxruntime only.
+"""
+
+from __future__ import annotations
+
+import os
+import sys
+from pathlib import Path
+
+from tactile.contract import CUSTOM_DOMAIN
+
+_state = {"disabled": False, "said": False}
+
+
+def disable() -> None:
+    """Run the portable graphs in every session made after this call (``--no-native``)."""
+    _state["disabled"] = True
+
+
+def library_path() -> Path | None:
+    """The built kernel library's path, or None: not built (no C compiler at install time),
+    ``TACTILE_NATIVE=0``, or :func:`disable` called."""
+    if _state["disabled"] or os.environ.get("TACTILE_NATIVE", "").strip() == "0":
+        return None
+    from tactile import native
+
+    return native.library_path()
+
+
+def has_custom_nodes(path: str | os.PathLike) -> bool:
+    """Whether the file names the ``ai.tactile`` domain (its custom nodes' opset import): a
+    byte search, since the runtime has no onnx package to parse the file with."""
+    try:
+        return CUSTOM_DOMAIN.encode() in Path(path).read_bytes()
+    except OSError:
+        return False
+
+
+def register(options, path: str | os.PathLike) -> bool:
+    """Register the kernel library in ``options`` (an ``onnxruntime.SessionOptions``) when the
+    file at ``path`` has custom nodes and the library is there; True when registered. When
+    the file has custom nodes and the library is not used, say once on stderr that the
+    portable graphs run."""
+    if not has_custom_nodes(path):
+        return False
+    lib = library_path()
+    if lib is not None:
+        try:
+            options.register_custom_ops_library(str(lib))
+            return True
+        except Exception as e:  # noqa: BLE001  (onnxruntime's untyped errors)
+            reason = f"the kernel library did not load ({str(e).strip().splitlines()[0]})"
+    elif _state["disabled"] or os.environ.get("TACTILE_NATIVE", "").strip() == "0":
+        reason = "native kernels disabled"
+    else:
+        reason = "no kernel library: the package was installed without a C compiler"
+    if not _state["said"]:
+        _state["said"] = True
+        print(f"tactile: running the portable EMD/sparse-code graphs ({reason})", file=sys.stderr)
+    return False
+
+
+def paths(custom_ops: list[dict], registered: bool) -> list[str]:
+    """One line per custom op type of a file: ``EMD: native kernel`` or ``EMD: portable graph
+    (...)``, as this process runs it (``registered``: the session has the library)."""
+    if registered:
+        how = "native kernel"
+    elif _state["disabled"] or os.environ.get("TACTILE_NATIVE", "").strip() == "0":
+        how = "portable graph (native kernels disabled)"
+    else:
+        how = "portable graph (no kernel library)"
+    ops = list(dict.fromkeys(c["op"] for c in custom_ops))
+    return [f"{op}: {how}" for op in ops]
+
+
+__all__ = ["disable", "has_custom_nodes", "library_path", "paths", "register"]

@@ -1,0 +1,359 @@
+"""The kernels inside onnxruntime: the ``ai.tactile`` custom-op library (``ort_ops.c``) and the
+model-local functions that stand in for it where it is not registered.
+
+Tiny models hold one custom node and a FunctionProto of the same domain and name. With the
+library registered the kernel runs (a fallback whose body computes something else proves which
+ran); without it the function runs; on real bodies (the EMD and coder graphs) both paths agree
+within the float32 bound of ``tests/test_native.py``. Bad shapes, types and settings give an
+onnxruntime error, never a crash. ``TACTILE_ORT_PYTHONS`` (interpreters with other onnxruntime
+versions, space-separated, e.g. one with onnxruntime 1.19.2, the oldest supported) reruns the
+paths there; without it that test skips (and fails under ``CI=true``).
+"""
+
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+
+import numpy as np
+import onnx
+import onnxruntime as ort
+import pytest
+import torch
+from onnx import TensorProto, helper, numpy_helper
+
+from tactile import native
+from tactile.export.coder_graph import coder_graph, coder_node_model
+from tactile.export.custom_ops import function_of, opset_imports
+from tactile.export.emd_graph import build_emd_model, emd_node_model
+from tactile.training.emd import EMD
+from tactile.training.sparse import SparseCoder
+
+pytestmark = pytest.mark.skipif(not native.available(), reason="native kernels not built")
+
+F32_TOL = 2e-5  # tests/test_native.py: kernel (float64 inside) vs float32 graph, x window std
+
+
+def _session(model: onnx.ModelProto, library: bool) -> ort.InferenceSession:
+    so = ort.SessionOptions()
+    so.intra_op_num_threads = 1
+    so.log_severity_level = 3
+    if library:
+        so.register_custom_ops_library(str(native.library_path()))
+    return ort.InferenceSession(model.SerializeToString(), so,
+                                providers=["CPUExecutionProvider"])
+
+
+def _vi(name, shape, elem=TensorProto.FLOAT):
+    return helper.make_tensor_value_info(name, elem, shape)
+
+
+def _marker_coder(d: np.ndarray, n_nonzero: int) -> onnx.ModelProto:
+    """A SparseCode node whose fallback is NOT OMP: codes = x @ dictionary^T (dense)."""
+    fn = helper.make_function(
+        "ai.tactile", "SparseCode", ["x", "dictionary", "gram"], ["codes"],
+        [helper.make_node("Transpose", ["dictionary"], ["dt"]),
+         helper.make_node("MatMul", ["x", "dt"], ["codes"])],
+        [helper.make_opsetid("", 18)], attributes=["n_nonzero"])
+    node = helper.make_node("SparseCode", ["x", "d", "g"], ["codes"], domain="ai.tactile",
+                            n_nonzero=n_nonzero)
+    gram = (d.astype(np.float64) @ d.astype(np.float64).T).astype(np.float32)
+    graph = helper.make_graph([node], "marker", [_vi("x", ["b", d.shape[1]])],
+                              [_vi("codes", ["b", d.shape[0]])],
+                              initializer=[numpy_helper.from_array(d, "d"),
+                                           numpy_helper.from_array(gram, "g")])
+    model = helper.make_model(graph, opset_imports=opset_imports(), functions=[fn])
+    model.ir_version = 8
+    onnx.checker.check_model(model, full_check=True)
+    return model
+
+
+def test_registered_library_runs_the_kernel_and_the_function_runs_without_it():
+    rng = np.random.default_rng(0)
+    d = rng.standard_normal((6, 9)).astype(np.float32)
+    x = rng.standard_normal((4, 9)).astype(np.float32)
+    model = _marker_coder(d, 2)
+    plain = _session(model, False).run(None, {"x": x})[0]
+    kernel = _session(model, True).run(None, {"x": x})[0]
+    np.testing.assert_allclose(plain, x @ d.T, rtol=1e-5, atol=1e-5)  # the function's body
+    gram = (d.astype(np.float64) @ d.astype(np.float64).T).astype(np.float32)
+    np.testing.assert_array_equal(kernel, native.omp(x, d, gram, 2))  # the C kernel
+    assert ((kernel != 0).sum(1) <= 2).all()
+
+
+@pytest.mark.parametrize("shape", [(1, 1, 50), (3, 2, 50), (2, 1, 1100)])
+def test_emd_node_paths_agree(shape):
+    batch, channels, n_time = shape
+    n_imfs = 8 if n_time > 100 else 4
+    model = emd_node_model(n_imfs, 10, channels, n_time)
+    assert [n.op_type for n in model.graph.node] == ["EMD"]
+    t = np.linspace(0, 1, n_time)
+    rng = np.random.default_rng(n_time)
+    x = (np.sin(2 * np.pi * 7 * t) + 0.5 * np.sin(2 * np.pi * 23 * t)
+         + 0.1 * rng.standard_normal((batch, channels, n_time))).astype(np.float32)
+    portable = _session(model, False).run(None, {"x_in": x})
+    kernel = _session(model, True).run(None, {"x_in": x})
+    graph = _session(build_emd_model(n_imfs, 10, channels, n_time), False).run(None, {"x_in": x})
+    for a, b in zip(portable, graph):
+        np.testing.assert_array_equal(a, b)  # the function is the graph, bit for bit
+    assert [a.dtype for a in kernel] == [np.float32, np.float32, np.int64]
+    assert [a.shape for a in kernel] == [a.shape for a in portable]
+    np.testing.assert_array_equal(kernel[2], portable[2])
+    std = x.std(-1)[..., None]
+    # the kernel computes in float64: the float64 torch module up to float32 output rounding
+    ref = EMD(n_imfs, 10)(torch.from_numpy(x.astype(np.float64)))
+    np.testing.assert_array_equal(kernel[2], ref[2].numpy())
+    assert (np.abs(kernel[0] - ref[0].numpy()) / std[..., None]).max() <= 1e-6
+    # the float32 graph drifts from it by float32 rounding: test_native's bound at 50 samples;
+    # at 1,100 samples and 8 IMFs the later IMFs re-sift the earlier ones' rounding
+    tol = F32_TOL if n_time <= 50 else 20 * F32_TOL
+    assert (np.abs(kernel[0] - portable[0]) / std[..., None]).max() <= tol
+    assert (np.abs(kernel[1] - portable[1]) / std).max() <= tol
+
+
+def test_coder_node_paths_agree():
+    rng = np.random.default_rng(3)
+    d = rng.standard_normal((46, 30))
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    coder = SparseCoder(d, 5)
+    model = coder_node_model(coder)
+    x = rng.standard_normal((46, 30)).astype(np.float32)
+    portable = _session(model, False).run(None, {"x": x})[0]
+    kernel = _session(model, True).run(None, {"x": x})[0]
+    np.testing.assert_array_equal(portable, _session(coder_graph(coder), False).run(
+        None, {"x": x})[0])
+    same = ((portable != 0) == (kernel != 0)).all(1)  # same atoms chosen (near-ties aside)
+    assert same.mean() >= 0.95
+    assert np.abs(portable - kernel)[same].max() <= 1e-4 * max(1.0, np.abs(portable).max())
+
+
+def test_two_emd_shapes_share_one_function():
+    g1 = build_emd_model(4, 10, 2, 50).graph
+    g2 = build_emd_model(3, 5, 1, 30).graph
+    fn = function_of("EMD", [([2, 50, 4, 10], g1), ([1, 30, 3, 5], g2)])
+    nodes = [helper.make_node("EMD", ["x1"], ["i1", "r1", "v1"], domain="ai.tactile",
+                              n_imfs=4, n_sifts=10),
+             helper.make_node("EMD", ["x2"], ["i2", "r2", "v2"], domain="ai.tactile",
+                              n_imfs=3, n_sifts=5)]
+    graph = helper.make_graph(nodes, "two", [_vi("x1", ["b", 2, 50]), _vi("x2", ["b", 1, 30])],
+                              [_vi("i1", ["b", 2, 4, 50]), _vi("i2", ["b", 1, 3, 30])])
+    model = helper.make_model(graph, opset_imports=opset_imports(), functions=[fn])
+    model.ir_version = 8
+    onnx.checker.check_model(model, full_check=True)
+    rng = np.random.default_rng(5)
+    feed = {"x1": rng.standard_normal((3, 2, 50)).astype(np.float32),
+            "x2": rng.standard_normal((3, 1, 30)).astype(np.float32)}
+    portable = _session(model, False).run(None, feed)
+    kernel = _session(model, True).run(None, feed)
+    for k, (n_imfs, n_sifts, c, t) in enumerate([(4, 10, 2, 50), (3, 5, 1, 30)]):
+        own = _session(build_emd_model(n_imfs, n_sifts, c, t), False).run(
+            None, {"x_in": feed[f"x{k + 1}"]})[0]
+        np.testing.assert_array_equal(portable[k], own)
+        np.testing.assert_allclose(kernel[k], own, rtol=0, atol=1e-5)
+
+
+def _loose(op: str, inputs, outputs, **attrs) -> onnx.ModelProto:
+    """A one-node model whose inputs have no declared shape: only the kernel checks them."""
+    node = helper.make_node(op, [i for i, _ in inputs], [o for o, _ in outputs],
+                            domain="ai.tactile", **attrs)
+    vis = [helper.make_tensor_value_info(i, e, None) for i, e in inputs]
+    outs = [helper.make_tensor_value_info(o, e, None) for o, e in outputs]
+    model = helper.make_model(helper.make_graph([node], "loose", vis, outs),
+                              opset_imports=opset_imports())
+    model.ir_version = 8
+    return model
+
+
+F, I64 = TensorProto.FLOAT, TensorProto.INT64
+EMD_IO = ([("x", F)], [("i", F), ("r", F), ("v", I64)])
+CODE_IO = ([("x", F), ("d", F), ("g", F)], [("c", F)])
+_f = np.float32
+
+
+@pytest.mark.parametrize("op, io, attrs, feed, message", [
+    ("EMD", EMD_IO, {"n_imfs": 4, "n_sifts": 10}, {"x": np.zeros((2, 50), _f)},
+     "(batch, channels, time)"),
+    ("EMD", EMD_IO, {"n_imfs": 4, "n_sifts": 10}, {"x": np.zeros((1, 1, 1, 5), _f)},
+     "(batch, channels, time)"),
+    ("EMD", EMD_IO, {"n_imfs": 0, "n_sifts": 10}, {"x": np.zeros((1, 1, 50), _f)},
+     "out of range"),
+    ("EMD", EMD_IO, {"n_imfs": 4, "n_sifts": 5000}, {"x": np.zeros((1, 1, 50), _f)},
+     "out of range"),
+    ("EMD", EMD_IO, {"n_imfs": 4}, {"x": np.zeros((1, 1, 50), _f)}, "n_sifts"),
+    ("SparseCode", CODE_IO, {"n_nonzero": 2},
+     {"x": np.zeros((3, 5), _f), "d": np.zeros((4, 6), _f), "g": np.zeros((4, 4), _f)},
+     "features"),
+    ("SparseCode", CODE_IO, {"n_nonzero": 2},
+     {"x": np.zeros((3, 5), _f), "d": np.zeros((4, 5), _f), "g": np.zeros((4, 3), _f)},
+     "gram"),
+    ("SparseCode", CODE_IO, {"n_nonzero": 9},
+     {"x": np.zeros((3, 5), _f), "d": np.zeros((4, 5), _f), "g": np.zeros((4, 4), _f)},
+     "n_nonzero"),
+    ("SparseCode", CODE_IO, {"n_nonzero": 2},
+     {"x": np.zeros((3, 5, 1), _f), "d": np.zeros((4, 5), _f), "g": np.zeros((4, 4), _f)},
+     "2-d float32"),
+    ("SparseCode", CODE_IO, {"n_nonzero": 2},
+     {"x": np.zeros((3, 0), _f), "d": np.zeros((4, 0), _f), "g": np.zeros((4, 4), _f)},
+     "features"),
+])
+def test_bad_inputs_give_an_onnxruntime_error(op, io, attrs, feed, message):
+    model = _loose(op, *io, **attrs)
+    with pytest.raises((ort.capi.onnxruntime_pybind11_state.Fail,
+                        ort.capi.onnxruntime_pybind11_state.InvalidArgument,
+                        ort.capi.onnxruntime_pybind11_state.RuntimeException)) as err:
+        _session(model, True).run(None, feed)
+    assert message in str(err.value)
+
+
+def test_empty_batch_and_non_finite_rows():
+    model = _loose("EMD", *EMD_IO, n_imfs=3, n_sifts=4)
+    sess = _session(model, True)
+    imfs, res, nv = sess.run(None, {"x": np.zeros((0, 2, 40), _f)})
+    assert imfs.shape == (0, 2, 3, 40) and res.shape == (0, 2, 40) and nv.shape == (0, 2)
+    x = np.random.default_rng(0).standard_normal((1, 2, 40)).astype(_f)
+    x[0, 1, 7] = np.nan
+    imfs, res, nv = sess.run(None, {"x": x})  # the kernels' defined result for that row
+    assert nv[0, 1] == 0 and not imfs[0, 1].any()
+    np.testing.assert_array_equal(res[0, 1], x[0, 1])
+    assert nv[0, 0] > 0
+
+
+_OTHER = """
+import sys, numpy as np, onnxruntime as ort
+lib, folder = sys.argv[1], sys.argv[2]
+z = np.load(folder + "/io.npz")
+outs = {}
+for use in (0, 1):
+    so = ort.SessionOptions()
+    if use:
+        so.register_custom_ops_library(lib)
+    for name in ("emd", "marker"):
+        s = ort.InferenceSession(folder + "/" + name + ".onnx", so,
+                                 providers=["CPUExecutionProvider"])
+        outs[f"{name}{use}"] = s.run(None, {s.get_inputs()[0].name: z[name]})[0]
+    try:
+        s = ort.InferenceSession(folder + "/bad.onnx", so, providers=["CPUExecutionProvider"])
+        s.run(None, {"x": np.zeros((2, 50), np.float32)})
+        outs[f"bad{use}"] = np.array("no error")
+    except Exception as e:
+        outs[f"bad{use}"] = np.array(str(e))
+np.savez(folder + "/out.npz", version=np.array(ort.__version__), **outs)
+"""
+
+
+def test_other_onnxruntime_versions(tmp_path):
+    pythons = os.environ.get("TACTILE_ORT_PYTHONS", "").split()
+    if not pythons:
+        if os.environ.get("CI") == "true":
+            pytest.fail("CI=true: set TACTILE_ORT_PYTHONS to interpreters with onnxruntime "
+                        "1.19.2 and the newest")
+        pytest.skip("TACTILE_ORT_PYTHONS not set (interpreters with other onnxruntime versions)")
+    rng = np.random.default_rng(9)
+    d = rng.standard_normal((6, 9)).astype(np.float32)
+    emd = emd_node_model(4, 10, 1, 50)
+    onnx.save(emd, tmp_path / "emd.onnx")
+    onnx.save(_marker_coder(d, 2), tmp_path / "marker.onnx")
+    onnx.save(_loose("EMD", *EMD_IO, n_imfs=4, n_sifts=10), tmp_path / "bad.onnx")
+    x_emd = rng.standard_normal((2, 1, 50)).astype(np.float32)
+    x_code = rng.standard_normal((4, 9)).astype(np.float32)
+    np.savez(tmp_path / "io.npz", emd=x_emd, marker=x_code)
+    (tmp_path / "other.py").write_text(_OTHER)
+    want_emd = _session(emd, False).run(None, {"x_in": x_emd})[0]
+    gram = (d.astype(np.float64) @ d.astype(np.float64).T).astype(np.float32)
+    for python in pythons:
+        run = subprocess.run([python, str(tmp_path / "other.py"), str(native.library_path()),
+                              str(tmp_path)], capture_output=True, text=True, timeout=300)
+        assert run.returncode == 0, run.stderr[-2000:]
+        z = np.load(tmp_path / "out.npz")
+        version = str(z["version"])
+        np.testing.assert_array_equal(z["emd0"], want_emd, err_msg=version)
+        np.testing.assert_allclose(z["emd1"], want_emd, rtol=0, atol=1e-5, err_msg=version)
+        np.testing.assert_allclose(z["marker0"], x_code @ d.T, rtol=1e-5, atol=1e-5)
+        np.testing.assert_array_equal(z["marker1"], native.omp(x_code, d, gram, 2))
+        assert "(batch, channels, time)" in str(z["bad1"]), version
+        print(f"onnxruntime {version}: both paths agree", file=sys.stderr)
+
+
+# -- the runtime and tactile-check on an exported file ------------------------------------------
+
+
+@pytest.fixture(scope="module")
+def exported(tmp_path_factory):
+    from test_export_bytes import write_checkpoint
+
+    from tactile.export.exporter import export_run
+
+    run = tmp_path_factory.mktemp("run")
+    write_checkpoint("lstm-emd", run)
+    out = run / "model.onnx"
+    report = export_run(run, out, log=lambda s: None)
+    assert report["parity_native"]["passed"]  # the exporter measured the kernels too
+    return out
+
+
+@pytest.fixture
+def fresh_kernels(monkeypatch):
+    from tactile.runtime import kernels
+
+    monkeypatch.setattr(kernels, "_state", {"disabled": False, "said": False})
+    return kernels
+
+
+def test_contract_records_the_custom_nodes(exported):
+    from tactile.runtime.model import Model
+
+    c = Model(exported).contract
+    assert [(n["op"], n["name"]) for n in c.custom_ops] == [("EMD", "emd0")]
+    assert c.custom_ops[0]["attributes"] == {"n_imfs": 2, "n_sifts": 3}
+    assert c.parity["native"]["passed"]
+
+
+def test_runtime_runs_the_kernel_and_falls_back_saying_so_once(exported, fresh_kernels,
+                                                               monkeypatch, capsys):
+    from tactile.runtime.model import Model
+
+    assert fresh_kernels.library_path() == native.library_path()
+    fast = Model(exported)
+    assert fast.native and capsys.readouterr().err == ""
+    monkeypatch.setenv("TACTILE_NATIVE", "0")
+    assert fresh_kernels.library_path() is None
+    slow, again = Model(exported), Model(exported)
+    assert not slow.native and not again.native
+    err = capsys.readouterr().err
+    assert err.count("portable") == 1 and "disabled" in err
+    x = np.random.default_rng(0).standard_normal(
+        (4, fast.contract.window, len(fast.contract.channels))).astype(np.float32)
+    h, c = fast.zero_state(4)
+    p_fast = fast.session.run(None, {"x": x, "h": h, "c": c})[0]
+    p_slow = slow.session.run(None, {"x": x, "h": h, "c": c})[0]
+    assert np.abs(p_fast - p_slow).max() <= 1e-4
+
+
+def test_disable_forces_the_portable_path(fresh_kernels):
+    fresh_kernels.disable()
+    assert fresh_kernels.library_path() is None
+
+
+@pytest.mark.parametrize("flag, line", [([], "EMD: native kernel"),
+                                        (["--no-native"], "EMD: portable graph")])
+def test_check_names_the_path_of_each_custom_op(exported, fresh_kernels, capsys, flag, line):
+    from tactile.export.commands.check import main
+
+    assert main([str(exported), *flag]) == 0
+    assert f"kernels   {line}" in capsys.readouterr().out
+
+
+def test_without_a_built_library_the_runtime_says_so_once(exported, fresh_kernels, monkeypatch,
+                                                          capsys):
+    """An install without a C compiler: no library, the portable graphs, one stderr line."""
+    from tactile.runtime.model import Model
+
+    monkeypatch.setattr(native, "library_path", lambda: None)
+    assert fresh_kernels.library_path() is None
+    models = [Model(exported), Model(exported)]
+    assert not any(m.native for m in models)
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "installed without a C compiler" in err
+    assert fresh_kernels.paths(models[0].contract.custom_ops, False) == [
+        "EMD: portable graph (no kernel library)"]
