@@ -65,7 +65,8 @@ def run_streams(model: Model, groups: dict[str, list[Piece]], seed: int = 0
 def calibrate_file(final: onnx.ModelProto, ck: dict, cfg, data: Path | None, log=print,
                    warn=None) -> dict | None:
     """Add the ``postprocess.*`` keys to ``final`` (its contract already attached) when the
-    run's validation takes in ``data`` make enough stream; returns what the calibration saw
+    run's validation takes in ``data`` make enough stream and the chosen setting labels at
+    least as many of their windows right as the raw stream; returns what the calibration saw
     (None: no defaults written, ``warn`` (default: a line on stderr) said why, unless there is
     no ``data``). ``cfg``: the checkpoint's training config (to draw its split again)."""
     warn = warn or (lambda line: print(line, file=sys.stderr))
@@ -89,6 +90,13 @@ def calibrate_file(final: onnx.ModelProto, ck: dict, cfg, data: Path | None, log
              f"validation data ({why})")
         return None
     cal = calibrate(streams)
+    raw, chosen = cal.figures["raw"]["accuracy"], cal.figures["smoothed"]["accuracy"]
+    if chosen < raw:  # a default that labels fewer windows right than no post-processing
+        warn(f"tactile-export: no label stream defaults in the file (it runs raw): the best "
+             f"setting of the grid, {cal.settings.describe()}, gives fewer correct stable "
+             f"labels than the raw stream on the validation streams ({chosen:.1%} against "
+             f"{raw:.1%})")
+        return None
     onnx.helper.set_model_props(final, {**{p.key: p.value for p in final.metadata_props},
                                         **settings_to_metadata(cal.settings, cal.figures)})
     log(f"label stream defaults: {summary_line(cal.figures)}")

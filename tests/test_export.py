@@ -704,3 +704,24 @@ def test_export_without_validation_data_writes_no_defaults(dataset, root, tmp_pa
     err = capsys.readouterr().err
     assert short["postprocess"] is None and Model(tmp_path / "short.onnx").postprocess is None
     assert err.count("\n") == 1 and "too little validation data" in err
+
+
+def test_a_setting_that_labels_fewer_windows_right_than_raw_is_not_written(
+        calibrated_export, tmp_path, monkeypatch, capsys):
+    """A grid whose only setting leaves nearly every window uncertain (p_min 0.999): the
+    calibration picks it, but it labels fewer windows right than the raw stream, so the file
+    gets no defaults and runs raw, and one stderr line says why."""
+    import tactile.export.calibrate as cal_module
+    from tactile.postprocess.calibration import calibrate
+    from tactile.postprocess.smoothing import SmoothingSettings
+    from tactile.runtime.model import Model
+
+    cautious = SmoothingSettings(n=1, p_min=0.999, hold=3)
+    monkeypatch.setattr(cal_module, "calibrate", lambda streams: calibrate(streams, (cautious,)))
+    run, _, _, data = calibrated_export
+    capsys.readouterr()
+    report = export_run(run, tmp_path / "raw.onnx", data=data, log=lambda s: None)
+    err = capsys.readouterr().err
+    assert report["postprocess"] is None and Model(tmp_path / "raw.onnx").postprocess is None
+    assert err.count("\n") == 1 and "fewer correct stable labels than the raw stream" in err
+    assert "ma:1 p_min=0.999 hold=3" in err
