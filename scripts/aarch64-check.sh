@@ -203,12 +203,23 @@ step "models to replay (exported here)"
 "$PYTHON" scripts/aarch64_models.py "$CACHE/models" >&2 || die "could not make the models to replay"
 rm -rf "$ROOT/opt/check/models" && cp -r "$CACHE/models" "$ROOT/opt/check/models"
 
+step "tactile-check: the kernels' path on the board"
+board "$VENV/bin/tactile-check" /opt/check/models/sf_rnn.onnx >"$CACHE/check-sf_rnn.txt" 2>&1 \
+  || die "tactile-check of the SF-RNN model failed on the board: $(tail -2 "$CACHE/check-sf_rnn.txt")"
+for op in EMD SparseCode; do
+  grep -q "kernels   $op: native kernel" "$CACHE/check-sf_rnn.txt" \
+    || die "tactile-check on the board does not run $op on the native kernel: $(grep kernels "$CACHE/check-sf_rnn.txt")"
+done
+grep 'kernels ' "$CACHE/check-sf_rnn.txt" | sed 's/^/aarch64-check:   /' >&2
+
 step "replay parity (board vs this machine)"
-for m in emd sf_rnn; do
+for m in emd sf_rnn sf_rnn-portable; do
   take=/opt/check/models/take.csv
-  "$(dirname "$PYTHON")/tactile-run" --model "$CACHE/models/$m.onnx" --replay "$CACHE/models/take.csv" \
+  file=${m%-portable}.onnx native=()
+  [ "$m" != "${m%-portable}" ] && native=(--no-native)  # the same file's portable graphs
+  "$(dirname "$PYTHON")/tactile-run" --model "$CACHE/models/$file" --replay "$CACHE/models/take.csv" \
     >"$CACHE/host-$m.jsonl" 2>/dev/null || die "tactile-run --replay ($m) failed on this machine"
-  board "$VENV/bin/tactile-run" --model "/opt/check/models/$m.onnx" --replay "$take" \
+  board "$VENV/bin/tactile-run" --model "/opt/check/models/$file" --replay "$take" "${native[@]}" \
     >"$CACHE/board-$m.jsonl" 2>"$CACHE/board-$m.err" || die "tactile-run --replay ($m) failed on the board: $(tail -1 "$CACHE/board-$m.err")"
   "$PYTHON" - "$CACHE/host-$m.jsonl" "$CACHE/board-$m.jsonl" "$m" "$TOL" <<'EOF' || die "the board's labels differ ($m)"
 import json, sys
