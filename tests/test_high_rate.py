@@ -81,8 +81,9 @@ def test_the_front_end_sees_the_signal_not_its_aliases():
 
 
 def _model(cfg: TrainConfig):
+    emd = [CHANNELS.index(c) for c in cfg.emd_channels]
     return build_model(cfg, 5, torch.zeros(len(CHANNELS)), torch.ones(len(CHANNELS)),
-                       channels=CHANNELS, rate_hz=RATE)
+                       channels=CHANNELS, rate_hz=RATE, emd_index=emd)
 
 
 def test_a_declared_signal_changes_the_input_layout():
@@ -136,3 +137,14 @@ def test_a_biotac_take_trains_and_exports_with_parity(tmp_path):
     assert [(h["signal"], h["frame"], h["hop"]) for h in high] == [
         ("f0_pac", 440, 220), ("f1_pac", 440, 220)]
     assert high[0]["bands_hz"][-1][1] == 1100.0
+
+
+def test_the_linear_head_adds_the_signals_bands_over_the_window():
+    cfg = TrainConfig(channels=CHANNELS, signals=SIGNAL, model="linear",
+                      emd_channels=("f0_pdc",), emd_imfs=2, emd_sifts=2)
+    m = _model(cfg).eval()
+    nb = len(band_bins(50 * R // 2 + 1))  # one frame: the whole window at 2.2 kHz
+    assert m.head.out.in_features == 2 + nb + 1
+    p, _, _ = m(torch.randn(2, 50, len(CHANNELS)), *m.zero_state(2))
+    assert p.shape == (2, 5)
+    assert _model(cfg.replace(signals={})).head.out.in_features == 2

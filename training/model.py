@@ -220,19 +220,32 @@ def member_loss(loss_fn, logits: Tensor, y: Tensor) -> Tensor:
 
 
 class LinearHead(nn.Module):
-    """Baseline: logits from the log mean energy of each IMF over the window (B, Ce*K).
+    """Baseline: logits from the log mean energy of each IMF over the window (B, Ce*K), and
+    with ``signals`` (per high-rate signal the indices of its sub-sample channels) each
+    signal's log band powers over the whole window at its own rate and its mean
+    (:class:`HighRateFront` with one frame of ``window`` frames).
 
     The state passes through untouched so that both heads share one interface.
     """
 
-    def __init__(self, n_channels: int, n_emd: int, n_classes: int):
+    def __init__(self, n_channels: int, n_emd: int, n_classes: int,
+                 signals: list[list[int]] | None = None, window: int = 0):
         super().__init__()
         self.n_channels = n_channels
-        self.out = nn.Linear(n_emd, n_classes)
+        n_in = n_emd
+        if signals:
+            rates = sorted({len(s) for s in signals})
+            self.high = nn.ModuleList([HighRateFront([s for s in signals if len(s) == r],
+                                                     window, window) for r in rates])
+            n_in += sum(h.n_out for h in self.high)
+        self.signals = bool(signals)
+        self.out = nn.Linear(n_in, n_classes)
 
     def forward(self, f: Tensor, h: Tensor, c: Tensor) -> tuple[Tensor, Tensor, Tensor]:
         imfs = f[:, :, self.n_channels :]  # (B, T, Ce*K)
         energy = torch.log(imfs.pow(2).mean(dim=1) + LOG_EPS)  # (B, Ce*K)
+        if self.signals:
+            energy = torch.cat([energy, *(hf(f)[:, 0] for hf in self.high)], dim=1)
         return self.out(energy), h, c
 
 
@@ -300,7 +313,8 @@ class TextureModel(Classifier):
                      for _ in range(cfg.ensemble)]
             self.head = heads[0] if cfg.ensemble == 1 else Ensemble(heads)
         else:
-            self.head = LinearHead(self.pre.n_channels, self.pre.n_emd, n_classes)
+            self.head = LinearHead(self.pre.n_channels, self.pre.n_emd, n_classes, signals,
+                                   cfg.window)
 
     @property
     def state_shape(self) -> tuple[int, int]:

@@ -81,7 +81,7 @@ def prepare(takes: list[Take], classes: tuple[str, ...], channels: tuple[str, ..
             for m in layout))
     else:
         cfg = cfg.replace(channels=channels)
-        if cfg.model == "lstm" and cfg.front == "spectral":  # signals framed at their rate
+        if cfg.model == "linear" or cfg.front == "spectral":  # signals at their own rate
             signals = (resolve_signals(cfg.signals, channels) if cfg.signals
                        else signals_of_takes(takes, channels))
             if signals:
