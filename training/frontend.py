@@ -17,7 +17,11 @@ import torch
 from torch import Tensor, nn
 
 BANDS_PER_OCTAVE = 2
-LOG_FLOOR = 1e-4  # band power floor of the normalised (unit-variance) channels
+LOG_FLOOR = 1e-4
+"""Floor of each DFT bin's power |X_k|^2 (the plain front's, ``SpectralFront.LOG_FLOOR``): a
+band's floor is that of its bins in the band power's scale. On the unit-variance scale of the
+normalised signal it sits far below a 12-bit sensor's quantisation noise (a BioTac's vibration,
+std about 140 counts: per-bin powers 1e-6 to 1e-4 in the band scale, bin floors 3e-9)."""
 
 
 def band_bins(n_bins: int, per_octave: int = BANDS_PER_OCTAVE) -> list[tuple[int, int]]:
@@ -53,8 +57,9 @@ class HighRateFront(nn.Module):
     ``hop * r`` samples of the signal, so T' = (T - frame) // hop + 1, the plain channels'
     frames. Band power: ``2 / (N * sum(w ** 2)) * sum over the band's bins of |DFT(w * s)|^2``
     with ``w`` the Hann taper of N = frame * r samples, the mean square a tone lying wholly in
-    the band contributes (a sine of amplitude A: A^2 / 2); features ``log(power +
-    LOG_FLOOR)``. No trainable weights (the caller's batch normalisation scales them).
+    the band contributes (a sine of amplitude A: A^2 / 2); features ``log(power + floor)``
+    with ``floor = LOG_FLOOR * 2 / (N * sum(w ** 2)) * bins in the band``. No trainable
+    weights (the caller's batch normalisation scales them).
     """
 
     def __init__(self, signals: list[list[int]], frame: int, hop: int) -> None:
@@ -83,6 +88,8 @@ class HighRateFront(nn.Module):
         for j, (a, b) in enumerate(bands):
             pool[j, a - 1 : b - 1] = scale
         self.register_buffer("pool", pool.float())  # (nb, K'): bins -> band powers
+        floor = [LOG_FLOOR * scale * (b - a) for a, b in bands]
+        self.register_buffer("floor", torch.tensor(floor, dtype=torch.float32).unsqueeze(1))
         self.register_buffer("index", torch.tensor([i for s in signals for i in s],
                                                    dtype=torch.long))  # (S * r,)
         self.n_used = len(used)
@@ -96,7 +103,7 @@ class HighRateFront(nn.Module):
         frames = y.shape[2]
         re, im = y[:, 0 : 2 * self.n_used : 2], y[:, 1 : 2 * self.n_used : 2]
         power = torch.matmul(self.pool, re * re + im * im)  # (B * S, nb, T')
-        z = torch.cat([torch.log(power + LOG_FLOOR), y[:, 2 * self.n_used :]], dim=1)
+        z = torch.cat([torch.log(power + self.floor), y[:, 2 * self.n_used :]], dim=1)
         return z.reshape(b, self.n_out, frames).transpose(1, 2)  # (B, T', S * (nb + 1))
 
 
