@@ -119,7 +119,7 @@ def signal_features(x: np.ndarray, signals: list[list[int]], rate: float) -> np.
     """(N, T, C) windows -> (N, S * nb): per high-rate signal (the indices of its ``r``
     sub-sample channels, in time order) the log energy of the mean-free, Hann-tapered window
     of the signal at its true rate (``T * r`` samples at ``rate * r`` Hz) in the model's
-    half-octave bands up to its Nyquist frequency
+    third-octave bands up to its Nyquist frequency
     (:func:`tactile.training.frontend.band_bins`)."""
     from tactile.training.frontend import band_bins
 

@@ -388,7 +388,7 @@ def test_bad_arguments_are_one_line_before_any_dataset_is_made(tmp_path, monkeyp
 
 def test_signal_features_put_a_tone_in_its_band():
     """The baseline's high-rate bands: a 2.2 kHz signal given as 22 sub-sample channels of 50
-    frames; a 300 Hz tone's energy lands in the half-octave band holding 300 Hz (bins of 2 Hz
+    frames; a 300 Hz tone's energy lands in the third-octave band holding 300 Hz (bins of 2 Hz
     in a 1,100-sample window), at the energy of the Hann-tapered tone; the plain channel
     beside it is not read."""
     from tactile.training.frontend import band_bins

@@ -12,7 +12,13 @@ import pytest
 import torch
 
 from tactile.training.config import TrainConfig
-from tactile.training.frontend import LOG_FLOOR, HighRateFront, band_bins, band_edges_hz
+from tactile.training.frontend import (
+    BANDS_PER_OCTAVE,
+    LOG_FLOOR,
+    HighRateFront,
+    band_bins,
+    band_edges_hz,
+)
 from tactile.training.models import build_model
 
 RATE, R = 100.0, 22  # frames/s, sub-samples a frame: a 2.2 kHz signal
@@ -41,15 +47,15 @@ def reference(s: np.ndarray, frame: int, hop: int, rate: float) -> np.ndarray:
     return np.array(rows)
 
 
-def test_bands_are_half_octaves_up_to_nyquist_at_any_rate():
+def test_bands_are_third_octaves_up_to_nyquist_at_any_rate():
     for frame, rate in ((440, 2200.0), (20, 100.0), (1000, 8000.0)):
         edges = band_edges_hz(frame, rate)
         assert edges[0][0] == pytest.approx(rate / frame)  # from the first bin
         assert edges[-1][1] == pytest.approx(rate / 2)  # to Nyquist
         assert all(b[0] == a[1] for a, b in zip(edges, edges[1:], strict=False))
         wide = [hi / lo for lo, hi in edges if hi - lo > 1.5 * rate / frame]
-        assert max(wide) <= 2**0.5 * 1.5  # half an octave (rounded to whole bins)
-    assert band_bins(221)[-1] == (182, 221)  # the last band holds the Nyquist bin (220)
+        assert max(wide) <= 2 ** (1 / BANDS_PER_OCTAVE) * 1.5  # (rounded to whole bins)
+    assert band_bins(221)[-1] == (204, 221)  # the last band holds the Nyquist bin (220)
 
 
 def test_a_tone_lands_in_its_band_at_its_level():

@@ -4,7 +4,7 @@ A high-rate signal reaches the model as ``r`` channels per frame (its consecutiv
 in time order, ``tactile.training.modality``). Framing each of those channels at the frame
 rate would see only aliases of the signal; :class:`HighRateFront` regroups them into the
 signal ``(B, T * r)`` by a reshape, frames it with frames ``r`` times as long (so its frames
-start and end with the window's frames) and gives, per frame, the log power in half-octave
+start and end with the window's frames) and gives, per frame, the log power in third-octave
 bands up to the signal's Nyquist frequency and the frame's mean. Everything is a reshape, a
 fixed convolution and a fixed matrix product: it traces to standard ONNX ops.
 """
@@ -16,7 +16,7 @@ import math
 import torch
 from torch import Tensor, nn
 
-BANDS_PER_OCTAVE = 2
+BANDS_PER_OCTAVE = 3  # third-octave bands, as acoustics measures spectra
 LOG_FLOOR = 1e-4
 """Floor of each DFT bin's power |X_k|^2 (the plain front's, ``SpectralFront.LOG_FLOOR``): a
 band's floor is that of its bins in the band power's scale. On the unit-variance scale of the
@@ -50,7 +50,7 @@ def band_edges_hz(frame: int, rate_hz: float,
 
 class HighRateFront(nn.Module):
     """(B, T, F) features -> (B, T', S * (nb + 1)): per high-rate signal and frame, the log
-    power in each of nb half-octave bands (:func:`band_bins`) and the frame's mean.
+    power in each of nb third-octave bands (:func:`band_bins`) and the frame's mean.
 
     ``signals``: per signal the indices into F of its ``r`` sub-sample channels, in time order
     (every signal of one front has the same ``r``); frames of ``frame * r`` samples every
