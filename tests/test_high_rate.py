@@ -157,3 +157,18 @@ def test_the_linear_head_adds_the_signals_bands_over_the_window():
     p, _, _ = m(torch.randn(2, 50, len(CHANNELS)), *m.zero_state(2))
     assert p.shape == (2, 5)
     assert _model(cfg.replace(signals={})).head.out.in_features == 2
+
+
+def test_gain_augmentation_keeps_a_signal_whole():
+    """One random gain for all of a signal's sub-samples (a gain per sub-sample would
+    modulate the signal at the frame rate); the plain channels keep their own; without a
+    signal the gains are those of every other model, draw for draw."""
+    high = _model(TrainConfig(channels=CHANNELS, signals=SIGNAL))
+    plain = _model(TrainConfig(channels=CHANNELS))
+    f = torch.ones(4, 2, 50, len(CHANNELS))
+    g = high.augment_gain(f, 0.3, torch.Generator().manual_seed(0))
+    sub = g[..., 1 : 1 + R]
+    assert torch.equal(sub, sub[..., :1].expand_as(sub))
+    assert len(torch.unique(g[0, 0, 0])) == len(CHANNELS) - R + 1
+    want = super(type(plain), plain).augment_gain(f, 0.3, torch.Generator().manual_seed(0))
+    assert torch.equal(plain.augment_gain(f, 0.3, torch.Generator().manual_seed(0)), want)

@@ -305,6 +305,7 @@ class TextureModel(Classifier):
                  signals: list[list[int]] | None = None):
         super().__init__()
         self.cfg, self.n_classes = cfg, n_classes
+        self.signals = [list(s) for s in signals or []]
         self.pre = Preprocess(mean, std, emd_index, cfg.emd_imfs, cfg.emd_sifts, center_index)
         if cfg.model == "lstm":
             heads = [LSTMHead(self.pre.n_features, n_classes, cfg.hidden, cfg.layers,
@@ -315,6 +316,16 @@ class TextureModel(Classifier):
         else:
             self.head = LinearHead(self.pre.n_channels, self.pre.n_emd, n_classes, signals,
                                    cfg.window)
+
+    def augment_gain(self, f: Tensor, amount: float, gen: torch.Generator) -> Tensor:
+        """:meth:`Classifier.augment_gain`, with one gain for all the sub-sample channels of
+        each high-rate signal (that of its first): a gain per sub-sample would modulate the
+        signal at the frame rate, lines at every multiple of it that the signal never had."""
+        shape = (*f.shape[:2], 1, f.shape[-1])
+        gain = 1 + amount * (2 * torch.rand(shape, generator=gen) - 1)
+        for idx in self.signals:
+            gain[..., idx] = gain[..., idx[:1]]
+        return f * gain.to(f.device)
 
     @property
     def state_shape(self) -> tuple[int, int]:
