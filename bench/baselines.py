@@ -19,8 +19,9 @@ Datasets (``--only``, repeatable):
 * ``biotac``: the BioTac BOLT recordings (5 objects, 74 trials, two fingers) as a user gets them:
   ``tactile-import-biotac ../shared/datasets/biotac-bolt/*.h5 --out CACHE`` (done once, into
   ``--cache``, outside the repository), then trained on that folder: pressure, vibration and
-  electrodes as plain channels at 100 Hz (:data:`BIOTAC_CHANNELS`, 84 of the importer's 88:
-  not the two temperatures of each finger), one take per trial, split by trial: the fifth
+  electrodes (:data:`BIOTAC_CHANNELS`, 84 of the importer's 88: not the two temperatures of
+  each finger; the takes declare each finger's vibration a 2.2 kHz signal, which the default
+  model frames at that rate), one take per trial, split by trial: the fifth
   repetition of every object and pressure tests (``test = "repetition:5"``), one of the other
   four validates (drawn from the seed); ``hop=50`` (windows do not overlap): a run takes about
   120-330 s of CPU; the default hop (``--set hop=10``: 5x the windows) took 185-285 s a run
@@ -38,7 +39,9 @@ The baseline: per window and channel the mean, the log standard deviation and th
 the mean-free, Hann-tapered window in :data:`N_BANDS` equal bands from 0 Hz to the Nyquist
 frequency; standardised on the training windows; scikit-learn's multinomial
 ``LogisticRegression``, its ``C`` picked from :data:`CS` on the validation windows (and, when the
-defaults refit on training + validation windows, refitted on them too). The defaults train with
+defaults refit on training + validation windows, refitted on them too). For takes that declare
+high-rate signals a second one adds each signal's log band energies at its true rate
+(:func:`signal_features`), ``C`` also chosen on validation. The defaults train with
 ``tactile.training.train.train`` and one thread; each run's wall time and its CPU time (user +
 sys of this process) are printed. Beside the window accuracy, the table gives both models'
 majority vote per test take (``tactile-eval``'s ``per_take``), what trial-based datasets report.
