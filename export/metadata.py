@@ -31,6 +31,11 @@ def contract_for(ck: dict, parity: dict, quantization: str = "none",
         layers, hidden = (int(cfg["layers"]), int(cfg["hidden"])) if lstm else (1, 1)
     layout = tuple(getattr(model, "layout", None) or ())
     signals, modalities = _granular(layout, channels, cfg["model"])
+    high_rate = (_high_rate(cfg, channels, float(ck["sample_rate_hz"]))
+                 if cfg["model"] in ("lstm", "linear") and not cfg.get("modalities") else [])
+    if high_rate:
+        signals = tuple(SignalSpec(h["signal"], tuple(h["channels"]), h["rate_hz"])
+                        for h in high_rate)
     preprocessing = {
         "mean": [float(v) for v in ck["mean"]],
         "std": [float(v) for v in ck["std"]],
@@ -39,6 +44,9 @@ def contract_for(ck: dict, parity: dict, quantization: str = "none",
     }
     if modalities:
         preprocessing["sifts"] = int(cfg["emd_sifts"])
+    if high_rate:
+        preprocessing["high_rate"] = [{k: v for k, v in h.items() if k != "channels"}
+                                      for h in high_rate]
     extra = {
         "exporter": f"{EXPORTER}; torch {torch.__version__}, onnx {onnx.__version__}",
         "training_config": _json(cfg),
@@ -88,6 +96,30 @@ def _granular(layout: tuple, channels: list[str], model: str
                                        int(m.imfs), int(m.steps), int(m.atoms) if coded else 0,
                                        int(nonzero)))
     return tuple(signals), tuple(modalities)
+
+
+def _high_rate(cfg: dict, channels: list[str], rate_hz: float) -> list[dict]:
+    """The high-rate signals a pen model takes at their own rate
+    (``tactile.training.frontend.HighRateFront``: an ``lstm``'s spectral front in frames, a
+    ``linear`` head over the whole window): per signal its name, sub-sample channels, rate,
+    frame and hop (samples at that rate) and band edges (Hz); empty without signals or with
+    an lstm's ``front='none'``."""
+    from tactile.training.config import signals_from
+    from tactile.training.frontend import band_edges_hz
+    from tactile.training.modality import resolve_signals
+
+    linear = cfg["model"] == "linear"
+    if not (linear or cfg.get("front") == "spectral") or not cfg.get("signals"):
+        return []
+    out = []
+    for name, names in resolve_signals(signals_from(cfg["signals"]), tuple(channels)):
+        r = len(names)
+        frame, hop = ((int(cfg["window"]) * r,) * 2 if linear else
+                      (int(cfg["frame"]) * r, int(cfg["frame_hop"]) * r))
+        out.append({"signal": name, "channels": list(names), "rate_hz": rate_hz * r,
+                    "frame": frame, "hop": hop,
+                    "bands_hz": [[lo, hi] for lo, hi in band_edges_hz(frame, rate_hz * r)]})
+    return out
 
 
 def _metrics(m: dict) -> dict:

@@ -92,7 +92,10 @@ KEYS: dict[str, tuple[bool, str]] = {
     "state_hidden": (True, "state tensors' last axis (integer)"),
     "preprocessing": (True, "JSON object: mean, std (per channel), center (channel names), "
                             "emd (null or {channels, imfs, sifts}), as computed in the graph; "
-                            "with modalities also sifts (the modalities' EMD sifts)"),
+                            "with modalities also sifts (the modalities' EMD sifts); with "
+                            "high-rate signals in an lstm's spectral front also high_rate "
+                            "(per signal: signal, rate_hz, frame and hop in its samples, "
+                            "bands_hz [[lo, hi], ...]: its log band powers per frame)"),
     "preprocessing_version": (True, f"version of the preprocessing (integer, this reader: "
                                     f"{PREPROCESSING_VERSION})"),
     "package_version": (True, "tactile version that exported the file"),
@@ -100,7 +103,9 @@ KEYS: dict[str, tuple[bool, str]] = {
     "parity": (True, "JSON object: ONNX vs PyTorch figures measured at export (passed, ...)"),
     "quantization": (True, '"none" (float32) or "int8-dynamic"'),
     "signals": (False, "JSON list of high-rate signals {name, channels (sub-samples of a "
-                       "frame, in time order), rate_hz}; absent: none (format version 2)"),
+                       "frame, in time order), rate_hz}: the graph treats each as one signal "
+                       "at rate_hz (a granular model's modalities, an lstm's spectral "
+                       "front: preprocessing.high_rate); absent: none (format version 2)"),
     "modalities": (False, "JSON list of modalities {name, channels (names, in the order the "
                           "graph takes them), signal, rate_hz, imfs, steps, atoms, nonzero}; "
                           "absent: none (format version 2)"),

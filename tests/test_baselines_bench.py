@@ -384,3 +384,29 @@ def test_bad_arguments_are_one_line_before_any_dataset_is_made(tmp_path, monkeyp
         err = capsys.readouterr().err
         assert e.value.code == 1 and err.count("\n") == 1 and says in err, err
         assert "Traceback" not in err
+
+
+def test_signal_features_put_a_tone_in_its_band():
+    """The baseline's high-rate bands: a 2.2 kHz signal given as 22 sub-sample channels of 50
+    frames; a 300 Hz tone's energy lands in the third-octave band holding 300 Hz (bins of 2 Hz
+    in a 1,100-sample window), at the energy of the Hann-tapered tone; the plain channel
+    beside it is not read."""
+    from tactile.training.frontend import band_bins
+
+    b = _bench()
+    r, t = 22, np.arange(50 * 22) / 2200.0
+    s = 2.0 * np.sin(2 * np.pi * 300.0 * t) + 7.0
+    x = np.concatenate([np.ones((1, 50, 1)), s.reshape(1, 50, r)], axis=2)  # plain, then signal
+    f = b.signal_features(x, [list(range(1, 1 + r))], 100.0)
+    bands = band_bins(551)
+    assert f.shape == (1, len(bands))
+    k = next(i for i, (lo, hi) in enumerate(bands) if lo <= 300.0 / 2 < hi)  # bin 150
+    assert int(np.argmax(f[0])) == k
+    w = np.hanning(len(s))
+    # Parseval: the one-sided rfft energy of the tapered tone, (A / 2)^2 * N * sum(w^2)
+    want = np.log(2 * (2.0 / 2) ** 2 * len(s) * np.sum(w**2) / 2)
+    assert f[0, k] == pytest.approx(want, abs=0.02)
+    assert np.all(np.delete(f[0], k) < want - 8)
+    x2 = x.copy()
+    x2[..., 0] = 5.0
+    np.testing.assert_array_equal(b.signal_features(x2, [list(range(1, 1 + r))], 100.0), f)

@@ -14,6 +14,7 @@ from torch import Tensor, nn
 
 from tactile.training.config import TrainConfig
 from tactile.training.emd import EMD
+from tactile.training.frontend import HighRateFront
 
 LOG_EPS = 1e-6
 
@@ -122,15 +123,35 @@ class LSTMHead(nn.Module):
     With ``front='spectral'`` the LSTM runs over the :class:`SpectralFront`'s frames (dropout on
     its input too), else over the samples. With ``wide``, a linear map of the mean over the
     steps of what the LSTM reads (before its input dropout) is added to the logits.
+
+    ``signals`` (with ``front='spectral'``): per high-rate signal the indices into F of its
+    sub-sample channels, in time order. Those channels then skip the :class:`SpectralFront`
+    (which would see aliases of the signal) and go to a :class:`HighRateFront` per sub-sample
+    count instead (their band powers at the signal's own rate, in the same frames,
+    batch-normalised); the LSTM reads the plain channels' frame features, then the signals'.
     """
 
     def __init__(self, n_in: int, n_classes: int, hidden: int, layers: int, dropout: float,
-                 front: str = "none", frame: int = 20, frame_hop: int = 10, wide: bool = False):
+                 front: str = "none", frame: int = 20, frame_hop: int = 10, wide: bool = False,
+                 signals: list[list[int]] | None = None):
         super().__init__()
         self.layers, self.hidden = layers, hidden
-        self.front = SpectralFront(n_in, frame, frame_hop) if front == "spectral" else None
-        n_lstm = self.front.n_out if self.front is not None else n_in
-        self.in_drop = nn.Dropout(dropout if self.front is not None else 0.0)
+        signals = signals if front == "spectral" else None
+        taken = {i for s in signals or [] for i in s}
+        plain = [i for i in range(n_in) if i not in taken]
+        self.front = (SpectralFront(len(plain), frame, frame_hop)
+                      if front == "spectral" and plain else None)
+        n_lstm = self.front.n_out if self.front is not None else (0 if signals else n_in)
+        if signals:
+            rates = sorted({len(s) for s in signals})
+            self.high = nn.ModuleList([HighRateFront([s for s in signals if len(s) == r],
+                                                     frame, frame_hop) for r in rates])
+            n_high = sum(h.n_out for h in self.high)
+            self.high_norm = nn.BatchNorm1d(n_high)
+            self.register_buffer("plain_index", torch.tensor(plain, dtype=torch.long))
+            n_lstm += n_high
+        self.signals = bool(signals)
+        self.in_drop = nn.Dropout(dropout if front == "spectral" else 0.0)
         self.lstm = nn.LSTM(
             n_lstm, hidden, layers, batch_first=True, dropout=dropout if layers > 1 else 0.0
         )
@@ -138,10 +159,20 @@ class LSTMHead(nn.Module):
         self.out = nn.Linear(hidden, n_classes)
         self.wide = nn.Linear(n_lstm, n_classes) if wide else None
 
+    def frames(self, f: Tensor) -> Tensor:
+        """(B, T, F) features -> (B, T', F') what the LSTM reads with a spectral front."""
+        if not self.signals:
+            return self.front(f)
+        high = torch.cat([h(f) for h in self.high], dim=2)  # (B, T', S * (nb + 1))
+        parts = [self.high_norm(high.transpose(1, 2)).transpose(1, 2)]
+        if self.front is not None:
+            parts.insert(0, self.front(torch.index_select(f, 2, self.plain_index)))
+        return torch.cat(parts, dim=2)
+
     def forward(self, f: Tensor, h: Tensor, c: Tensor) -> tuple[Tensor, Tensor, Tensor]:
         x = f
-        if self.front is not None:
-            f = self.front(f)  # (B, T', F')
+        if self.front is not None or self.signals:
+            f = self.frames(f)  # (B, T', F')
             x = self.in_drop(f)
         y, (h, c) = self.lstm(x, (h, c))  # y: (B, T, H)
         logits = self.out(self.drop(y[:, -1]))
@@ -189,19 +220,32 @@ def member_loss(loss_fn, logits: Tensor, y: Tensor) -> Tensor:
 
 
 class LinearHead(nn.Module):
-    """Baseline: logits from the log mean energy of each IMF over the window (B, Ce*K).
+    """Baseline: logits from the log mean energy of each IMF over the window (B, Ce*K), and
+    with ``signals`` (per high-rate signal the indices of its sub-sample channels) each
+    signal's log band powers over the whole window at its own rate and its mean
+    (:class:`HighRateFront` with one frame of ``window`` frames).
 
     The state passes through untouched so that both heads share one interface.
     """
 
-    def __init__(self, n_channels: int, n_emd: int, n_classes: int):
+    def __init__(self, n_channels: int, n_emd: int, n_classes: int,
+                 signals: list[list[int]] | None = None, window: int = 0):
         super().__init__()
         self.n_channels = n_channels
-        self.out = nn.Linear(n_emd, n_classes)
+        n_in = n_emd
+        if signals:
+            rates = sorted({len(s) for s in signals})
+            self.high = nn.ModuleList([HighRateFront([s for s in signals if len(s) == r],
+                                                     window, window) for r in rates])
+            n_in += sum(h.n_out for h in self.high)
+        self.signals = bool(signals)
+        self.out = nn.Linear(n_in, n_classes)
 
     def forward(self, f: Tensor, h: Tensor, c: Tensor) -> tuple[Tensor, Tensor, Tensor]:
         imfs = f[:, :, self.n_channels :]  # (B, T, Ce*K)
         energy = torch.log(imfs.pow(2).mean(dim=1) + LOG_EPS)  # (B, Ce*K)
+        if self.signals:
+            energy = torch.cat([energy, *(hf(f)[:, 0] for hf in self.high)], dim=1)
         return self.out(energy), h, c
 
 
@@ -257,17 +301,31 @@ class TextureModel(Classifier):
     """
 
     def __init__(self, cfg: TrainConfig, n_classes: int, mean: Tensor, std: Tensor,
-                 emd_index: list[int], center_index: list[int] | None = None):
+                 emd_index: list[int], center_index: list[int] | None = None,
+                 signals: list[list[int]] | None = None):
         super().__init__()
         self.cfg, self.n_classes = cfg, n_classes
+        self.signals = [list(s) for s in signals or []]
         self.pre = Preprocess(mean, std, emd_index, cfg.emd_imfs, cfg.emd_sifts, center_index)
         if cfg.model == "lstm":
             heads = [LSTMHead(self.pre.n_features, n_classes, cfg.hidden, cfg.layers,
-                              cfg.dropout, cfg.front, cfg.frame, cfg.frame_hop, cfg.wide)
+                              cfg.dropout, cfg.front, cfg.frame, cfg.frame_hop, cfg.wide,
+                              signals)
                      for _ in range(cfg.ensemble)]
             self.head = heads[0] if cfg.ensemble == 1 else Ensemble(heads)
         else:
-            self.head = LinearHead(self.pre.n_channels, self.pre.n_emd, n_classes)
+            self.head = LinearHead(self.pre.n_channels, self.pre.n_emd, n_classes, signals,
+                                   cfg.window)
+
+    def augment_gain(self, f: Tensor, amount: float, gen: torch.Generator) -> Tensor:
+        """:meth:`Classifier.augment_gain`, with one gain for all the sub-sample channels of
+        each high-rate signal (that of its first): a gain per sub-sample would modulate the
+        signal at the frame rate, lines at every multiple of it that the signal never had."""
+        shape = (*f.shape[:2], 1, f.shape[-1])
+        gain = 1 + amount * (2 * torch.rand(shape, generator=gen) - 1)
+        for idx in self.signals:
+            gain[..., idx] = gain[..., idx[:1]]
+        return f * gain.to(f.device)
 
     @property
     def state_shape(self) -> tuple[int, int]:

@@ -16,7 +16,7 @@ from torch import Tensor
 from tactile.errors import ConfigError
 from tactile.training.config import TrainConfig
 from tactile.training.granular import GranularModel
-from tactile.training.modality import resolve
+from tactile.training.modality import resolve, resolve_signals
 from tactile.training.model import Classifier, TextureModel
 
 Builder = Callable[..., Classifier]
@@ -25,7 +25,17 @@ Builder = Callable[..., Classifier]
 def _texture(cfg: TrainConfig, n_classes: int, mean: Tensor, std: Tensor, *,
              channels: tuple[str, ...], rate_hz: float, emd_index: list[int] | None,
              center_index: list[int] | None) -> Classifier:
-    return TextureModel(cfg, n_classes, mean, std, list(emd_index or []), center_index)
+    return TextureModel(cfg, n_classes, mean, std, list(emd_index or []), center_index,
+                        signal_index(cfg, channels))
+
+
+def signal_index(cfg: TrainConfig, channels: tuple[str, ...]) -> list[list[int]] | None:
+    """Per high-rate signal of ``cfg.signals`` the indices of its sub-sample channels in
+    ``channels`` (time order); None without signals (or without channels to resolve them)."""
+    if not (cfg.signals and channels):
+        return None
+    signals = resolve_signals(cfg.signals, tuple(channels))
+    return [[channels.index(c) for c in names] for _, names in signals]
 
 
 def _granular(cfg: TrainConfig, n_classes: int, mean: Tensor, std: Tensor, *,

@@ -86,11 +86,19 @@ def prepare(takes: list[Take], classes: tuple[str, ...], channels: tuple[str, ..
             for m in layout))
     else:
         cfg = cfg.replace(channels=channels)
+        if cfg.model == "linear" or cfg.front == "spectral":  # signals at their own rate
+            signals = (resolve_signals(cfg.signals, channels) if cfg.signals
+                       else signals_of_takes(takes, channels))
+            if signals:
+                cfg = cfg.replace(signals=literal_signals(signals))
+                log.info("high-rate signals: " + "; ".join(
+                    f"{n} ({len(c)} sub-samples a frame, "
+                    f"{takes[0].info.sample_rate_hz * len(c):g} Hz)" for n, c in signals))
     split, parts = split_windows(takes, classes, channels, cfg)
     log.info(f"classes {list(classes)}; windows train {len(parts['train'])}, "
              f"val {len(parts['val'])}, test {len(parts['test'])}; split {split.description}")
     # statistics fitted once (rank 0) and shared: every process normalises alike
-    stats = (pooled_stats(parts["train"].x, channels, signals) if cfg.modalities
+    stats = (pooled_stats(parts["train"].x, channels, signals) if cfg.modalities or signals
              else channel_stats(parts["train"]))
     mean, std = dist.broadcast(*stats)
     emd_index = [channels.index(c) for c in cfg.emd_channels]

@@ -1,0 +1,174 @@
+"""High-rate signals in the default model: the front end that frames a declared signal at its
+own rate (``tactile.training.frontend``) against a numpy reference, the model's input layout
+and the contract with and without a signal, and a BioTac take through training and export."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import onnx
+import pytest
+import torch
+
+from tactile.training.config import TrainConfig
+from tactile.training.frontend import (
+    BANDS_PER_OCTAVE,
+    LOG_FLOOR,
+    HighRateFront,
+    band_bins,
+    band_edges_hz,
+)
+from tactile.training.models import build_model
+
+RATE, R = 100.0, 22  # frames/s, sub-samples a frame: a 2.2 kHz signal
+PAC = tuple(f"f0_pac_{i:02d}" for i in range(R))
+CHANNELS = ("f0_pdc", *PAC, *(f"f0_ele_{i:02d}" for i in range(19)))
+SIGNAL = (("f0_pac", PAC),)
+
+
+def reference(s: np.ndarray, frame: int, hop: int, rate: float) -> np.ndarray:
+    """(n,) signal -> (frames, bands + 1): per frame the band powers (bins whose frequency
+    lies in each band of ``band_edges_hz``, of the Hann-tapered frame's rfft, scaled to the
+    mean square of a tone) as logs, then the frame's mean."""
+    edges = band_edges_hz(frame, rate)
+    freqs = np.fft.rfftfreq(frame, 1.0 / rate)
+    w = np.hanning(frame)
+    rows = []
+    for a in range(0, len(s) - frame + 1, hop):
+        seg = s[a : a + frame]
+        scale = 2.0 / (frame * np.sum(w**2))
+        p = np.abs(np.fft.rfft(w * seg)) ** 2 * scale
+        inside = [(freqs >= lo) & ((freqs < hi) | (hi == rate / 2) & (freqs == hi))
+                  for lo, hi in edges]
+        bands = np.array([p[b].sum() for b in inside])
+        floor = np.array([LOG_FLOOR * scale * b.sum() for b in inside])  # per bin
+        rows.append([*np.log(bands + floor), seg.mean()])
+    return np.array(rows)
+
+
+def test_bands_are_third_octaves_up_to_nyquist_at_any_rate():
+    for frame, rate in ((440, 2200.0), (20, 100.0), (1000, 8000.0)):
+        edges = band_edges_hz(frame, rate)
+        assert edges[0][0] == pytest.approx(rate / frame)  # from the first bin
+        assert edges[-1][1] == pytest.approx(rate / 2)  # to Nyquist
+        assert all(b[0] == a[1] for a, b in zip(edges, edges[1:], strict=False))
+        wide = [hi / lo for lo, hi in edges if hi - lo > 1.5 * rate / frame]
+        assert max(wide) <= 2 ** (1 / BANDS_PER_OCTAVE) * 1.5  # (rounded to whole bins)
+    assert band_bins(221)[-1] == (204, 221)  # the last band holds the Nyquist bin (220)
+
+
+def test_a_tone_lands_in_its_band_at_its_level():
+    """A 300 Hz tone of amplitude 2 in a 2.2 kHz signal given as 22 sub-sample channels: the
+    front end's log band powers equal the numpy reference and put log(2^2 / 2) in the band
+    holding 300 Hz (Hann leakage stays inside it), far below elsewhere."""
+    t = np.arange(50 * R) / (RATE * R)
+    s = 2.0 * np.sin(2 * np.pi * 300.0 * t) + 0.5
+    x = torch.tensor(s.reshape(1, 50, R), dtype=torch.float32)
+    front = HighRateFront([list(range(R))], frame=20, hop=10)
+    got = front(x)[0].numpy()  # (T', nb + 1)
+    want = reference(s, 20 * R, 10 * R, RATE * R)
+    assert got.shape == want.shape == (4, len(band_edges_hz(440, 2200.0)) + 1)
+    np.testing.assert_allclose(got, want, atol=2e-3)
+    edges = band_edges_hz(440, 2200.0)
+    k = next(i for i, (lo, hi) in enumerate(edges) if lo <= 300.0 < hi)
+    assert np.all(np.argmax(got[:, :-1], axis=1) == k)
+    np.testing.assert_allclose(got[:, k], np.log(2.0), atol=0.01)  # A^2 / 2 = 2
+    others = np.delete(got[:, :-1], [0, k], axis=1)  # band 0 (5-10 Hz): the mean's leakage
+    assert np.all(others < np.log(2.0) - 10) and np.all(got[:, 0] < np.log(2.0) - 3)
+    np.testing.assert_allclose(got[:, -1], 0.5, atol=0.01)  # the frame's mean
+
+
+def test_the_front_end_sees_the_signal_not_its_aliases():
+    """Two tones 100 Hz apart alias to the same frequency in every 100 Hz sub-sample channel;
+    at the signal's rate they land in different bands."""
+    t = np.arange(50 * R) / (RATE * R)
+    front = HighRateFront([list(range(R))], frame=20, hop=10)
+    out = [front(torch.tensor(np.sin(2 * np.pi * f * t).reshape(1, 50, R),
+                              dtype=torch.float32))[0, :, :-1].argmax(1) for f in (210, 610)]
+    assert not torch.equal(out[0], out[1])
+
+
+def _model(cfg: TrainConfig):
+    emd = [CHANNELS.index(c) for c in cfg.emd_channels]
+    return build_model(cfg, 5, torch.zeros(len(CHANNELS)), torch.ones(len(CHANNELS)),
+                       channels=CHANNELS, rate_hz=RATE, emd_index=emd)
+
+
+def test_a_declared_signal_changes_the_input_layout():
+    plain = _model(TrainConfig(channels=CHANNELS))
+    high = _model(TrainConfig(channels=CHANNELS, signals=SIGNAL))
+    nb = len(band_bins(20 * R // 2 + 1))
+    k = 20 // 2 + 1  # the plain front's bins
+    assert plain.head.lstm.input_size == len(CHANNELS) * (k + 1)
+    assert high.head.lstm.input_size == (len(CHANNELS) - R) * (k + 1) + nb + 1
+    x = torch.randn(3, 50, len(CHANNELS))
+    for m in (plain.eval(), high.eval()):
+        p, _, _ = m(x, *m.zero_state(3))
+        assert p.shape == (3, 5) and torch.allclose(p.sum(1), torch.ones(3))
+    # the model's input is still (B, T, C) frames: the signal's channels are a reshape away
+    none = _model(TrainConfig(channels=CHANNELS, signals=SIGNAL, front="none"))
+    assert none.head.lstm.input_size == len(CHANNELS)
+
+
+def test_a_biotac_take_trains_and_exports_with_parity(tmp_path):
+    """88 channels as the importer writes them (the takes declare f0_pac and f1_pac), the
+    default model with no setting but a short run: one epoch, exported with parity; the
+    contract names both signals and how the front end frames them."""
+    pytest.importorskip("h5py")
+    from test_biotac import write_h5
+
+    from tactile.contract import ModelContract
+    from tactile.device.recordings.biotac import import_biotac
+    from tactile.export.exporter import export_run
+    from tactile.training.checkpoint import load_checkpoint
+    from tactile.training.train import train
+
+    for obj in ("cork", "glass_bottle"):
+        write_h5(tmp_path / f"{obj}.h5",
+                 {f"{obj}_pdc100_1cm_{r:02d}": 120 for r in (1, 2, 3)}, seed=len(obj))
+    data = tmp_path / "data"
+    import_biotac(sorted(tmp_path.glob("*.h5")), data)
+    run = tmp_path / "run"
+    train(data, run, TrainConfig(epochs=1, threads=1, batch_size=16), progress=False)
+    model, ck = load_checkpoint(run)
+    assert len(ck["channels"]) == 88
+    assert [n for n, _ in ck["config"]["signals"].items()] == ["f0_pac", "f1_pac"]
+    assert len(model.head.high) == 1 and model.head.high[0].n_signals == 2
+    out = tmp_path / "model.onnx"
+    report = export_run(run, out, log=lambda s: None)
+    assert report["parity"]["passed"]
+    meta = {p.key: p.value for p in onnx.load(str(out)).metadata_props}
+    contract = ModelContract.from_metadata(meta)
+    assert [(s.name, s.rate_hz, len(s.channels)) for s in contract.signals] == [
+        ("f0_pac", 2200.0, R), ("f1_pac", 2200.0, R)]
+    high = json.loads(meta["preprocessing"])["high_rate"]
+    assert [(h["signal"], h["frame"], h["hop"]) for h in high] == [
+        ("f0_pac", 440, 220), ("f1_pac", 440, 220)]
+    assert high[0]["bands_hz"][-1][1] == 1100.0
+
+
+def test_the_linear_head_adds_the_signals_bands_over_the_window():
+    cfg = TrainConfig(channels=CHANNELS, signals=SIGNAL, model="linear",
+                      emd_channels=("f0_pdc",), emd_imfs=2, emd_sifts=2)
+    m = _model(cfg).eval()
+    nb = len(band_bins(50 * R // 2 + 1))  # one frame: the whole window at 2.2 kHz
+    assert m.head.out.in_features == 2 + nb + 1
+    p, _, _ = m(torch.randn(2, 50, len(CHANNELS)), *m.zero_state(2))
+    assert p.shape == (2, 5)
+    assert _model(cfg.replace(signals={})).head.out.in_features == 2
+
+
+def test_gain_augmentation_keeps_a_signal_whole():
+    """One random gain for all of a signal's sub-samples (a gain per sub-sample would
+    modulate the signal at the frame rate); the plain channels keep their own; without a
+    signal the gains are those of every other model, draw for draw."""
+    high = _model(TrainConfig(channels=CHANNELS, signals=SIGNAL))
+    plain = _model(TrainConfig(channels=CHANNELS))
+    f = torch.ones(4, 2, 50, len(CHANNELS))
+    g = high.augment_gain(f, 0.3, torch.Generator().manual_seed(0))
+    sub = g[..., 1 : 1 + R]
+    assert torch.equal(sub, sub[..., :1].expand_as(sub))
+    assert len(torch.unique(g[0, 0, 0])) == len(CHANNELS) - R + 1
+    want = super(type(plain), plain).augment_gain(f, 0.3, torch.Generator().manual_seed(0))
+    assert torch.equal(plain.augment_gain(f, 0.3, torch.Generator().manual_seed(0)), want)
