@@ -25,10 +25,14 @@ def disable() -> None:
     _state["disabled"] = True
 
 
+def _disabled() -> bool:
+    return _state["disabled"] or os.environ.get("TACTILE_NATIVE", "").strip() == "0"
+
+
 def library_path() -> Path | None:
     """The built kernel library's path, or None: not built (no C compiler at install time),
     ``TACTILE_NATIVE=0``, or :func:`disable` called."""
-    if _state["disabled"] or os.environ.get("TACTILE_NATIVE", "").strip() == "0":
+    if _disabled():
         return None
     from tactile import native
 
@@ -58,7 +62,7 @@ def register(options, path: str | os.PathLike) -> bool:
             return True
         except Exception as e:  # noqa: BLE001  (onnxruntime's untyped errors)
             reason = f"the kernel library did not load ({str(e).strip().splitlines()[0]})"
-    elif _state["disabled"] or os.environ.get("TACTILE_NATIVE", "").strip() == "0":
+    elif _disabled():
         reason = "native kernels disabled"
     else:
         reason = "no kernel library: the package was installed without a C compiler"
@@ -73,7 +77,7 @@ def paths(custom_ops: list[dict], registered: bool) -> list[str]:
     (...)``, as this process runs it (``registered``: the session has the library)."""
     if registered:
         how = "native kernel"
-    elif _state["disabled"] or os.environ.get("TACTILE_NATIVE", "").strip() == "0":
+    elif _disabled():
         how = "portable graph (native kernels disabled)"
     else:
         how = "portable graph (no kernel library)"
