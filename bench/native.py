@@ -93,15 +93,22 @@ def emd_case(n_channels: int, n_time: int, n_imfs: int, repeats: int) -> list[st
                  race(fns, repeats, calls))
 
 
-def omp_case(repeats: int, rows: int = 46, features: int = 176, atoms: int = 200,
-             n_nonzero: int = 17) -> list[str]:
+def omp_rows(calls: int, rows: int, features: int, atoms: int) -> tuple[np.ndarray, np.ndarray]:
+    """A unit-norm dictionary (atoms, features) and ``calls`` batches of rows (calls, rows,
+    features), float32, seeded: a few atoms of each row's mix plus noise."""
     rng = np.random.default_rng(0)
     d = rng.standard_normal((atoms, features))
     d = (d / np.linalg.norm(d, axis=1, keepdims=True)).astype(np.float32)
-    calls = 10
     x = (rng.standard_normal((calls, rows, features)) * 0.3
          + ((rng.random((calls, rows, atoms)) < 0.05) * rng.standard_normal((calls, rows, atoms)))
          @ d).astype(np.float32)
+    return d, x
+
+
+def omp_case(repeats: int, rows: int = 46, features: int = 176, atoms: int = 200,
+             n_nonzero: int = 17) -> list[str]:
+    calls = 10
+    d, x = omp_rows(calls, rows, features, atoms)
     gram = (d.astype(np.float64) @ d.astype(np.float64).T).astype(np.float32)
     sk = SkCoder(d, transform_algorithm="omp", transform_n_nonzero_coefs=n_nonzero)
     coder = SparseCoder(d, n_nonzero)

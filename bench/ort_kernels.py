@@ -36,7 +36,7 @@ from threadpoolctl import threadpool_limits
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from label_time import label_time, paper_biotac_file  # noqa: E402
-from native import N_SIFTS, race, signal_windows  # noqa: E402
+from native import N_SIFTS, omp_rows, race, signal_windows  # noqa: E402
 
 from tactile import native  # noqa: E402
 from tactile.export.coder_graph import coder_node_model  # noqa: E402
@@ -83,13 +83,8 @@ def emd_case(n_channels: int, n_time: int, n_imfs: int, repeats: int) -> list[st
 
 def code_case(repeats: int, rows: int = 46, features: int = 176, atoms: int = 200,
               n_nonzero: int = 17) -> list[str]:
-    rng = np.random.default_rng(0)
-    d = rng.standard_normal((atoms, features))
-    d = (d / np.linalg.norm(d, axis=1, keepdims=True)).astype(np.float32)
     calls = 10
-    x = (rng.standard_normal((calls, rows, features)) * 0.3
-         + ((rng.random((calls, rows, atoms)) < 0.05) * rng.standard_normal((calls, rows, atoms)))
-         @ d).astype(np.float32)
+    d, x = omp_rows(calls, rows, features, atoms)
     model = coder_node_model(SparseCoder(d, n_nonzero))
     fast, slow = _session(model, True), _session(model, False)
     fns = {"native node": lambda i: fast.run(None, {"x": x[i]}),
