@@ -18,6 +18,7 @@ import torch
 
 from tactile.device.recordings import load_dataset
 from tactile.errors import RecordingError
+from tactile.training import feature_pass
 from tactile.training.checkpoint import load_checkpoint
 from tactile.training.config import apply_threads, resolve_threads
 from tactile.training.data import Windows, cut, find_test_split
@@ -62,7 +63,9 @@ def predict(
 
 
 def _features(model: TextureModel, x: torch.Tensor, batch: int = 512) -> torch.Tensor:
-    return torch.cat([model.pre(x[i : i + batch]) for i in range(0, len(x), batch)])
+    """The features as training computes them (its feature pass: EMD and codes in float64)."""
+    with feature_pass.feature_pass():
+        return torch.cat([model.pre(x[i : i + batch]) for i in range(0, len(x), batch)])
 
 
 def runs(w: Windows) -> list[np.ndarray]:

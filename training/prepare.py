@@ -20,6 +20,7 @@ from tqdm import tqdm
 from tactile.device.recordings import Take
 from tactile.errors import ConfigError, RecordingError
 from tactile.postprocess.smoothing import UNCERTAIN
+from tactile.training import feature_pass
 from tactile.training.checkpoint import Norm
 from tactile.training.config import TrainConfig
 from tactile.training.data import (
@@ -132,6 +133,14 @@ def features(model: Classifier, parts: dict[str, Windows], seed: int, log: Log,
     """Every part's features (N, S, F) by ``model.pre``, once. A granular model's
     preprocessing that ``needs_dictionaries`` goes in three steps: the data images, the
     dictionaries learned from the training images (seeded with ``seed``), then the codes."""
+    if len(getattr(model.pre, "emds", ())) or getattr(model.pre, "needs_dictionaries", False):
+        log.info(f"EMD and sparse codes in float64 by {feature_pass.backend()}")
+    with feature_pass.feature_pass():
+        return _features_exact(model, parts, seed, log, dist)
+
+
+def _features_exact(model: Classifier, parts: dict[str, Windows], seed: int, log: Log,
+                    dist: Dist) -> dict[str, torch.Tensor]:
     if not getattr(model.pre, "needs_dictionaries", False):
         return {k: _features(model.pre, w, log, k, dist) for k, w in parts.items()}
     images = {k: _features(model.pre.images, w, log, f"images {k}", dist)

@@ -32,7 +32,9 @@ import numpy as np
 import torch
 from torch import Tensor, nn
 
+from tactile import native
 from tactile.errors import ConfigError
+from tactile.training import feature_pass
 
 EPS = float(np.finfo(np.float32).eps)
 """scikit-learn's early-exit threshold for float32 data: ``np.finfo(Gram.dtype).eps``."""
@@ -87,7 +89,18 @@ class SparseCoder(nn.Module):
         return self.dictionary.shape[1]
 
     def forward(self, x: Tensor) -> Tensor:
-        """x: (batch, features) -> codes (batch, atoms)."""
+        """x: (batch, features) -> codes (batch, atoms). In training's feature pass
+        (:func:`~tactile.training.feature_pass.feature_pass`) the pursuit runs in float64 (the
+        same epsilon), by the native kernel where it is built, and the codes come back in
+        ``x``'s dtype."""
+        exporting = torch.jit.is_tracing() or torch.onnx.is_in_onnx_export()
+        if not exporting and not x.requires_grad and feature_pass.active():
+            if x.device.type == "cpu" and native.available():
+                g = self.gram.numpy()
+                codes = native.omp(x.detach().float().numpy(), self.dictionary.numpy(), g,
+                                   self.n_nonzero)
+                return torch.from_numpy(codes).to(x.dtype)
+            return self.encode(x.detach().double())[0].to(x.dtype)
         return self.encode(x)[0]
 
     def encode(self, x: Tensor) -> tuple[Tensor, Tensor]:

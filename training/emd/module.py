@@ -7,8 +7,10 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor, nn
 
+from tactile import native
 from tactile.contract import MAX_IMFS, MAX_SIFTS
 from tactile.errors import ConfigError
+from tactile.training import feature_pass
 
 from .decompose import decompose
 
@@ -72,10 +74,29 @@ class EMD(nn.Module):
         if not exporting and not bool(torch.isfinite(x).all()):
             raise ValueError("EMD input contains NaN or inf")
         b, c, t = x.shape
+        if t >= 3 and not exporting and not x.requires_grad and feature_pass.active():
+            return self._float64(x)
         if t < 3:  # no sample can be an extremum: nothing to decompose
             imfs = x.new_zeros(b, c, self.n_imfs, t)
             return imfs, x.clone(), torch.zeros(b, c, dtype=torch.int64, device=x.device)
         imfs, residue, n_valid = decompose(x.reshape(-1, t), self.n_imfs, self.n_sifts)
+        return self._shaped(imfs, residue, n_valid, b, c)
+
+    def _float64(self, x: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+        """The decomposition in float64 (training's feature pass), by the native kernel when
+        it is built, else by torch; the IMFs and residue come back in ``x``'s dtype."""
+        b, c, t = x.shape
+        rows = x.detach().reshape(-1, t).to(torch.float64)
+        if x.device.type == "cpu" and native.available():
+            out = native.emd(rows.numpy(), self.n_imfs, self.n_sifts)
+            imfs, residue, n_valid = (torch.from_numpy(a) for a in out)
+        else:
+            imfs, residue, n_valid = decompose(rows, self.n_imfs, self.n_sifts)
+        return self._shaped(imfs.to(x.dtype), residue.to(x.dtype), n_valid, b, c)
+
+    def _shaped(self, imfs: Tensor, residue: Tensor, n_valid: Tensor, b: int,
+                c: int) -> tuple[Tensor, Tensor, Tensor]:
+        t = imfs.shape[-1]
         return (
             imfs.reshape(b, c, self.n_imfs, t),
             residue.reshape(b, c, t),

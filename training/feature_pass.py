@@ -1,0 +1,44 @@
+"""Training's feature pass: the EMD and sparse codes of every window, computed once, exact.
+
+Inside :func:`feature_pass` the toolkit's ``EMD`` modules and ``SparseCoder`` s compute in
+float64 (their inputs and outputs keep their dtype) and call the native kernels
+(:mod:`tactile.native`) when they are built and enabled, torch otherwise. Both compute the
+same thing in the same precision, so a feature pass gives the same features, within float64
+rounding before the cast back, whether the kernels are built or not (the kernels are the
+fast path, 10-15x torch's on a BioTac window); in float32 a near-tie of two extrema or two
+atoms can decide a knot or an atom, and float64 is also closer to the references (PyEMD,
+scikit-learn). Outside (export's traced graph, the parity check, gradients) the modules
+compute in their input's dtype as before.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterator
+from contextlib import contextmanager
+
+_depth = [0]
+
+
+@contextmanager
+def feature_pass() -> Iterator[None]:
+    """Within: EMD and sparse coding in float64, through the native kernels where built."""
+    _depth[0] += 1
+    try:
+        yield
+    finally:
+        _depth[0] -= 1
+
+
+def active() -> bool:
+    """True inside :func:`feature_pass`."""
+    return _depth[0] > 0
+
+
+def backend() -> str:
+    """What a feature pass runs on this machine, for the training log."""
+    from tactile import native
+
+    return "the native kernels" if native.available() else "torch (no native kernels)"
+
+
+__all__ = ["active", "backend", "feature_pass"]
