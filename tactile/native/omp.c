@@ -19,47 +19,123 @@
 #include "tactile_native.h"
 
 typedef struct {
-    double *xy, *alpha, *beta, *L, *gamma, *wrow; /* (K), (K), (K), (S*S), (S), (S) */
-    int64_t *perm;                         /* (K) atom at each working position */
+    double *alpha, *L, *gamma, *xy, *wrow, *grow; /* (K), (S*S), (S), (S), (S), (S*K) */
+    int64_t *chosen, *pos, *perm; /* (S) the atoms in the order chosen; (K) each atom's working
+                                   * position; (K) the atom at each working position */
 } Work;
 
-/* Gram entry of the atoms at working positions p and q. */
-#define G(p, q) gram[perm[(p)] * K + perm[(q)]]
+/* Atoms a block of the loops below keeps in registers. */
+#define LANES 8
 
-/* Codes of one row from its correlations cov (K) with the atoms; code (K) is written. */
-static void omp_row(const double *cov, const double *gram, int64_t K, int64_t S, double eps,
-                    Work *w, double *code) {
-    double *xy = w->xy, *alpha = w->alpha, *beta = w->beta, *L = w->L, *gamma = w->gamma;
-    double *v = w->wrow;
-    int64_t *perm = w->perm, n_active = 0;
-    for (int64_t p = 0; p < K; p++) {
-        perm[p] = p;
-        xy[p] = alpha[p] = cov[p];
+/* alpha = cov - G[:, chosen] gamma for n chosen atoms whose Gram rows are grow (n, K): each
+ * atom's sum runs over the chosen atoms in order, LANES atoms at a time in registers. */
+static void residual(const double *cov, const double *grow, const double *gamma, int64_t n,
+                     int64_t K, double *alpha) {
+    int64_t k0 = 0;
+    for (; k0 + LANES <= K; k0 += LANES) {
+        double acc[LANES];
+        for (int j = 0; j < LANES; j++) acc[j] = grow[k0 + j] * gamma[0];
+        for (int64_t i = 1; i < n; i++) {
+            const double *row = grow + i * K + k0, gi = gamma[i];
+            for (int j = 0; j < LANES; j++) acc[j] += row[j] * gi;
+        }
+        for (int j = 0; j < LANES; j++) alpha[k0 + j] = cov[k0 + j] - acc[j];
+    }
+    for (; k0 < K; k0++) {
+        double acc = grow[k0] * gamma[0];
+        for (int64_t i = 1; i < n; i++) acc += grow[i * K + k0] * gamma[i];
+        alpha[k0] = cov[k0] - acc;
+    }
+}
+
+/* The atom of largest |alpha|, the first in working order (pos) among equals: scikit-learn's
+ * argmax over its working order. Four lanes each keep their largest and its first atom (one
+ * running maximum would wait on every comparison) and note a tie with it; ties across or
+ * within lanes (rare: duplicate atoms, an all-zero row) are settled by a second scan. */
+static int64_t largest(const double *alpha, const int64_t *pos, int64_t K) {
+    double m[4] = {-1.0, -1.0, -1.0, -1.0};
+    int64_t at[4] = {0, 0, 0, 0};
+    int tie = 0;
+    int64_t k = 0;
+    for (; k + 4 <= K; k += 4)
+        for (int j = 0; j < 4; j++) {
+            const double a = fabs(alpha[k + j]);
+            tie |= a == m[j];
+            at[j] = a > m[j] ? k + j : at[j];
+            m[j] = a > m[j] ? a : m[j];
+        }
+    for (; k < K; k++) {
+        const double a = fabs(alpha[k]);
+        tie |= a == m[0];
+        at[0] = a > m[0] ? k : at[0];
+        m[0] = a > m[0] ? a : m[0];
+    }
+    int64_t lam = at[0];
+    double best = m[0];
+    for (int j = 1; j < 4; j++) {
+        tie |= m[j] == best;
+        if (m[j] > best) {
+            best = m[j];
+            lam = at[j];
+        }
+    }
+    if (tie)
+        for (k = 0; k < K; k++)
+            if (fabs(alpha[k]) == best && pos[k] < pos[lam]) lam = k;
+    return lam;
+}
+
+/* Codes of one row from its correlations cov (K) with the atoms; code (K) is written.
+ *
+ * The arrays are kept in atom order (so that every loop over the atoms is a plain vector
+ * loop); scikit-learn's working order, which swaps each chosen atom to the front, survives
+ * only where it decides anything: among atoms of equal largest |correlation| it picks the one
+ * first in working order (pos). grow holds the chosen atoms' Gram rows in double. */
+static void omp_row(const double *cov, const void *gram, int f32, int64_t K, int64_t S,
+                    double eps, Work *w, double *code) {
+    double *alpha = w->alpha, *L = w->L, *gamma = w->gamma, *xy = w->xy;
+    double *v = w->wrow, *grow = w->grow;
+    int64_t *chosen = w->chosen, *pos = w->pos, *perm = w->perm, n_active = 0;
+    for (int64_t k = 0; k < K; k++) {
+        pos[k] = perm[k] = k;
+        alpha[k] = cov[k];
     }
     for (;;) {
-        int64_t lam = 0;
-        for (int64_t p = 1; p < K; p++)
-            if (fabs(alpha[p]) > fabs(alpha[lam])) lam = p;
-        if (lam < n_active || alpha[lam] * alpha[lam] < eps) break; /* chosen, or too small */
+        const int64_t lam = largest(alpha, pos, K);
+        if (pos[lam] < n_active || alpha[lam] * alpha[lam] < eps) break; /* chosen, or small */
+        const double glam = f32 ? (double)((const float *)gram)[lam * K + lam]
+                                : ((const double *)gram)[lam * K + lam];
         if (n_active > 0) {
-            /* new Cholesky row: solve L v = G[lam, active] (forward substitution) */
+            /* new Cholesky row: solve L v = G[chosen, lam] (forward substitution) */
             double vv = 0.0;
             for (int64_t i = 0; i < n_active; i++) {
-                double s = G(lam, i);
+                double s = grow[i * K + lam];
                 for (int64_t j = 0; j < i; j++) s -= L[i * S + j] * v[j];
                 v[i] = s / L[i * S + i];
                 vv += v[i] * v[i];
             }
-            const double lkk = G(lam, lam) - vv;
+            const double lkk = glam - vv;
             if (lkk <= eps) break; /* the chosen atoms are dependent */
             for (int64_t j = 0; j < n_active; j++) L[n_active * S + j] = v[j];
             L[n_active * S + n_active] = sqrt(lkk);
         } else {
-            L[0] = sqrt(G(lam, lam));
+            L[0] = sqrt(glam);
         }
-        /* swap the atom into working position n_active */
-        int64_t ti = perm[n_active]; perm[n_active] = perm[lam]; perm[lam] = ti;
-        double td = xy[n_active]; xy[n_active] = xy[lam]; xy[lam] = td;
+        /* the atom takes working position n_active; the atom there takes lam's old one */
+        const int64_t other = perm[n_active];
+        pos[other] = pos[lam];
+        perm[pos[lam]] = other;
+        pos[lam] = n_active;
+        perm[n_active] = lam;
+        chosen[n_active] = lam;
+        xy[n_active] = cov[lam];
+        double *g = grow + n_active * K;
+        if (f32) {
+            const float *gr = (const float *)gram + lam * K;
+            for (int64_t k = 0; k < K; k++) g[k] = (double)gr[k];
+        } else {
+            memcpy(g, (const double *)gram + lam * K, (size_t)K * sizeof(double));
+        }
         n_active++;
         /* gamma = (L L^T)^-1 xy[:n_active]: forward, then backward substitution */
         for (int64_t i = 0; i < n_active; i++) {
@@ -72,61 +148,64 @@ static void omp_row(const double *cov, const double *gram, int64_t K, int64_t S,
             for (int64_t j = i + 1; j < n_active; j++) s -= L[j * S + i] * gamma[j];
             gamma[i] = s / L[i * S + i];
         }
-        /* residual correlations cov - G[:, chosen] gamma, summed in atom order along the
-         * chosen atoms' Gram rows (contiguous; G is symmetric), then put in working order */
-        for (int64_t k = 0; k < K; k++) beta[k] = 0.0;
-        for (int64_t i = 0; i < n_active; i++) {
-            const double *row = gram + perm[i] * K, gi = gamma[i];
-            for (int64_t k = 0; k < K; k++) beta[k] += row[k] * gi;
-        }
-        for (int64_t p = 0; p < K; p++) alpha[p] = xy[p] - beta[perm[p]];
+        /* residual correlations cov - G[:, chosen] gamma, summed in the order the atoms were
+         * chosen along their Gram rows (G is symmetric) */
+        residual(cov, grow, gamma, n_active, K, alpha);
         if (n_active == S) break;
     }
     memset(code, 0, (size_t)K * sizeof(double));
-    for (int64_t i = 0; i < n_active; i++) code[perm[i]] = gamma[i];
+    for (int64_t i = 0; i < n_active; i++) code[chosen[i]] = gamma[i];
 }
 
-/* Rows whose correlations are computed together: each atom's row of the dictionary is read
- * once for the block (the dictionary, not the arithmetic, bounded the time). */
-#define ROW_BLOCK 4
+/* Rows whose correlations are computed together: each row of the transposed dictionary is
+ * read once for the block. */
+#define ROW_BLOCK 8
 
-/* cov (nb, K): the correlations of the nb rows xr (nb, F) with every atom, D x. Each sum is
- * four partial sums (the additions' latency, not their count, bounds a single running sum)
- * added pairwise: a BLAS-like order, not numpy's exact bits, and the same for a row in any
- * block. */
-static void correlations(const double *dict, const double *xr, int64_t nb, int64_t F,
+/* cov (nb, K): the correlations of the nb rows xr (nb, F) with every atom, from the
+ * transposed dictionary dt (F, K): each sum runs over the features in order (the same for a
+ * row in any block), two rows and LANES atoms at a time in registers. */
+static void correlations(const double *dt, const double *xr, int64_t nb, int64_t F,
                          int64_t K, double *cov) {
-    for (int64_t k = 0; k < K; k++) {
-        const double *dk = dict + k * F;
-        double s[ROW_BLOCK][4] = {{0.0}};
-        int64_t f = 0;
-        for (; f + 4 <= F; f += 4) {
-            for (int64_t b = 0; b < nb; b++) {
-                const double *xb = xr + b * F;
-                s[b][0] += dk[f] * xb[f];
-                s[b][1] += dk[f + 1] * xb[f + 1];
-                s[b][2] += dk[f + 2] * xb[f + 2];
-                s[b][3] += dk[f + 3] * xb[f + 3];
+    for (int64_t b0 = 0; b0 < nb; b0 += 2) {
+        const double *x0 = xr + b0 * F, *x1 = xr + (b0 + 1 < nb ? b0 + 1 : b0) * F;
+        int64_t k0 = 0;
+        for (; k0 + LANES <= K; k0 += LANES) {
+            double a0[LANES], a1[LANES];
+            for (int j = 0; j < LANES; j++) {
+                a0[j] = dt[k0 + j] * x0[0];
+                a1[j] = dt[k0 + j] * x1[0];
             }
+            for (int64_t f = 1; f < F; f++) {
+                const double *d = dt + f * K + k0, u = x0[f], v = x1[f];
+                for (int j = 0; j < LANES; j++) {
+                    a0[j] += d[j] * u;
+                    a1[j] += d[j] * v;
+                }
+            }
+            for (int j = 0; j < LANES; j++) cov[b0 * K + k0 + j] = a0[j];
+            if (b0 + 1 < nb)
+                for (int j = 0; j < LANES; j++) cov[(b0 + 1) * K + k0 + j] = a1[j];
         }
-        for (; f < F; f++)
-            for (int64_t b = 0; b < nb; b++) s[b][0] += dk[f] * xr[b * F + f];
-        for (int64_t b = 0; b < nb; b++)
-            cov[b * K + k] = (s[b][0] + s[b][1]) + (s[b][2] + s[b][3]);
+        for (; k0 < K; k0++)
+            for (int64_t b = b0; b < nb && b < b0 + 2; b++) {
+                double a = dt[k0] * xr[b * F];
+                for (int64_t f = 1; f < F; f++) a += dt[f * K + k0] * xr[b * F + f];
+                cov[b * K + k0] = a;
+            }
     }
 }
 
 static void work_free(Work *w) {
-    free(w->xy); free(w->alpha); free(w->beta); free(w->L); free(w->gamma); free(w->wrow);
-    free(w->perm);
+    free(w->alpha); free(w->L); free(w->gamma); free(w->xy); free(w->wrow);
+    free(w->grow); free(w->chosen); free(w->pos); free(w->perm);
 }
 
 /* The shared body of both entry points; x, dictionary, gram, codes are float (f32) or double. */
 static int omp_batch(const void *x, int f32, int64_t rows, int64_t F, const void *dictionary,
-                     const void *gram_in, int64_t K, int64_t S, void *codes) {
+                     const void *gram, int64_t K, int64_t S, void *codes) {
     if (rows < 0 || F < 1 || K < 1 || S < 1 || S > K) return TACTILE_EINVAL;
     if (rows == 0) return TACTILE_OK;
-    if (!x || !dictionary || !gram_in || !codes) return TACTILE_EINVAL;
+    if (!x || !dictionary || !gram || !codes) return TACTILE_EINVAL;
     const uint64_t cap = (uint64_t)(SIZE_MAX < INT64_MAX ? SIZE_MAX : INT64_MAX) / 16u;
     if ((uint64_t)K > cap / (uint64_t)K || (uint64_t)F > cap / (uint64_t)K ||
         (uint64_t)rows > cap / (uint64_t)(K > F ? K : F))
@@ -134,33 +213,36 @@ static int omp_batch(const void *x, int f32, int64_t rows, int64_t F, const void
     const double eps = f32 ? (double)FLT_EPSILON : DBL_EPSILON;
     Work w;
     memset(&w, 0, sizeof w);
-    double *dict = malloc((size_t)(K * F) * sizeof(double));
-    double *gram = malloc((size_t)(K * K) * sizeof(double));
+    double *dt = malloc((size_t)(K * F) * sizeof(double));
     double *xr = malloc((size_t)(ROW_BLOCK * F) * sizeof(double));
     double *cov = malloc((size_t)(ROW_BLOCK * K) * sizeof(double));
     double *code = malloc((size_t)K * sizeof(double));
-    w.xy = malloc((size_t)K * sizeof(double));
     w.alpha = malloc((size_t)K * sizeof(double));
-    w.beta = malloc((size_t)K * sizeof(double));
     w.L = malloc((size_t)(S * S) * sizeof(double));
     w.gamma = malloc((size_t)S * sizeof(double));
+    w.xy = malloc((size_t)S * sizeof(double));
     w.wrow = malloc((size_t)S * sizeof(double));
+    w.grow = malloc((size_t)(S * K) * sizeof(double));
+    w.chosen = malloc((size_t)S * sizeof(int64_t));
+    w.pos = malloc((size_t)K * sizeof(int64_t));
     w.perm = malloc((size_t)K * sizeof(int64_t));
     int status = TACTILE_OK;
-    if (!dict || !gram || !xr || !cov || !code || !w.xy || !w.alpha || !w.beta || !w.L ||
-        !w.gamma || !w.wrow || !w.perm) {
+    if (!dt || !xr || !cov || !code || !w.alpha || !w.L || !w.gamma || !w.xy ||
+        !w.wrow || !w.grow || !w.chosen || !w.pos || !w.perm) {
         status = TACTILE_ENOMEM;
         goto done;
     }
     int finite = 1;
-    for (int64_t i = 0; i < K * F; i++) {
-        dict[i] = f32 ? (double)((const float *)dictionary)[i] : ((const double *)dictionary)[i];
-        finite &= isfinite(dict[i]) != 0;
-    }
-    for (int64_t i = 0; i < K * K; i++) {
-        gram[i] = f32 ? (double)((const float *)gram_in)[i] : ((const double *)gram_in)[i];
-        finite &= isfinite(gram[i]) != 0;
-    }
+    for (int64_t k = 0; k < K; k++)
+        for (int64_t f = 0; f < F; f++) {
+            const int64_t i = k * F + f;
+            const double d = f32 ? (double)((const float *)dictionary)[i]
+                                 : ((const double *)dictionary)[i];
+            dt[f * K + k] = d;
+            finite &= isfinite(d) != 0;
+        }
+    for (int64_t i = 0; i < K * K; i++)
+        finite &= isfinite(f32 ? (double)((const float *)gram)[i] : ((const double *)gram)[i]) != 0;
     if (!finite) status = TACTILE_ENONFINITE;
     for (int64_t r0 = 0; r0 < rows; r0 += ROW_BLOCK) {
         const int64_t nb = rows - r0 < ROW_BLOCK ? rows - r0 : ROW_BLOCK;
@@ -173,11 +255,11 @@ static int omp_batch(const void *x, int f32, int64_t rows, int64_t F, const void
                 ok[b] &= isfinite(xr[b * F + f]) != 0;
             }
         }
-        correlations(dict, xr, nb, F, K, cov);
+        correlations(dt, xr, nb, F, K, cov);
         for (int64_t b = 0; b < nb; b++) {
             const int64_t r = r0 + b;
             if (ok[b]) {
-                omp_row(cov + b * K, gram, K, S, eps, &w, code);
+                omp_row(cov + b * K, gram, f32, K, S, eps, &w, code);
             } else {
                 status = TACTILE_ENONFINITE;
                 memset(code, 0, (size_t)K * sizeof(double));
@@ -189,7 +271,7 @@ static int omp_batch(const void *x, int f32, int64_t rows, int64_t F, const void
         }
     }
 done:
-    free(dict); free(gram); free(xr); free(cov); free(code); work_free(&w);
+    free(dt); free(xr); free(cov); free(code); work_free(&w);
     return status;
 }
 
