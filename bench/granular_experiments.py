@@ -3,6 +3,7 @@
     python bench/granular_experiments.py                          # everything, 3 seeds
     python bench/granular_experiments.py --dataset biotac --block vibration --models sf_rnn
     python bench/granular_experiments.py --seeds 1 --set epochs=5 # a quick look
+    python bench/granular_experiments.py --budget cut             # the earlier cut budget
     python bench/granular_experiments.py --report                 # print what the cache holds
 
 Per dataset and block (BioTac: vibration only, all three modalities; the pen: pressure,
@@ -54,6 +55,12 @@ TITLES = {("biotac", "vibration"): "BioTac, vibration only",
           ("biotac", "all"): "BioTac, all three modalities (vibration, pressure, electrodes)",
           ("pen", "all"): "simulated pen, all three modalities (pressure, acceleration, "
                           "rotation)"}
+BUDGETS = {
+    "full": (),  # the configs as they are: the toolkit's training defaults
+    # the earlier budget-cut table: at most 20 epochs, patience 5, early stopping on the
+    # validation loss, no refit, 4 sifts per IMF
+    "cut": ("epochs=20", "patience=5", "select=loss", "refit=off", "emd_sifts=4"),
+}
 PEN_TEXTURES = ("non_contact", "paper", "nonwoven_cloth", "plastic_folder", "mouse_pad")
 
 # The paper's Table 1 (granular media, two classes): dims of the feature space, neurons,
@@ -525,6 +532,9 @@ def build_parser() -> argparse.ArgumentParser:
                    help="a count (3: seeds 0, 1, 2, the default) or a list 0,1,2")
     p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
                    help="tactile-train --set for every run (new runs: part of the run's key)")
+    p.add_argument("--budget", choices=tuple(BUDGETS), default="full",
+                   help="full: the configs' training settings, the toolkit's defaults "
+                        "(default); cut: + " + " ".join(f"--set {v}" for v in BUDGETS["cut"]))
     p.add_argument("--threads", type=int, default=1, help="torch threads per run (default 1)")
     p.add_argument("--no-memo", action="store_true",
                    help="compute every EMD (default: reuse identical ones, see EMDMemo)")
@@ -549,7 +559,8 @@ def main(argv: list[str] | None = None) -> int:
         data["biotac"] = biotac_data(args.cache, args.biotac)
     if "pen" in args.dataset:
         data["pen"] = pen_data(args.cache, args.pen_users, args.pen_seconds)
-    jobs = jobs_for(todo, args.seeds, data, args.cache, args.set, args.configs)
+    sets = [*BUDGETS[args.budget], *args.set]
+    jobs = jobs_for(todo, args.seeds, data, args.cache, sets, args.configs)
     if not args.report:
         # seed-major: every row gets its first seed before any row gets its second
         order = sorted(jobs, key=lambda j: (args.seeds.index(j.seed), todo.index(j.row)))

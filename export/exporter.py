@@ -28,6 +28,7 @@ from tactile.export.quantize import latency_ms, quantize_int8
 from tactile.export.session import native_available
 from tactile.export.windows import probe_windows
 from tactile.training.checkpoint import load_checkpoint
+from tactile.training.feature_pass import feature_pass
 
 
 def export_run(run_dir: Path, out: Path, data: Path | None = None, int8: bool = False,
@@ -49,7 +50,10 @@ def export_run(run_dir: Path, out: Path, data: Path | None = None, int8: bool = 
     final, quantization, figures = graph, "none", parity.to_dict()
     custom = custom_nodes(graph)
     if custom and native_available():  # the same file on the kernels: it must pass too
-        fast = compare(model, graph.SerializeToString(), probe, ck, native=True)
+        # against PyTorch's EMD in float64, the kernel's precision (in float32 a near-tie of
+        # two extrema may place a knot elsewhere; the model was trained on float64 EMD)
+        with feature_pass(emd=True, codes=False):
+            fast = compare(model, graph.SerializeToString(), probe, ck, native=True)
         log("native kernels:\n" + fast.table())
         _require(fast, "float32 (native kernels)")
         figures = {**figures, "native": fast.to_dict()}

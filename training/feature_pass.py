@@ -16,22 +16,28 @@ from __future__ import annotations
 from collections.abc import Iterator
 from contextlib import contextmanager
 
-_depth = [0]
+_on = {"emd": 0, "codes": 0}
 
 
 @contextmanager
-def feature_pass() -> Iterator[None]:
-    """Within: EMD and sparse coding in float64, through the native kernels where built."""
-    _depth[0] += 1
+def feature_pass(emd: bool = True, codes: bool = True) -> Iterator[None]:
+    """Within: EMD (``emd``) and sparse coding (``codes``) in float64, through the native
+    kernels where built. Export's check of the kernel path takes the EMD alone: its graph's
+    coders run float32 arithmetic's near-tie rules, which :mod:`tactile.export.ties` judges
+    against PyTorch's float32 coders."""
+    kinds = [k for k, on in (("emd", emd), ("codes", codes)) if on]
+    for k in kinds:
+        _on[k] += 1
     try:
         yield
     finally:
-        _depth[0] -= 1
+        for k in kinds:
+            _on[k] -= 1
 
 
-def active() -> bool:
-    """True inside :func:`feature_pass`."""
-    return _depth[0] > 0
+def active(kind: str) -> bool:
+    """True inside a :func:`feature_pass` that covers ``kind`` ("emd" or "codes")."""
+    return _on[kind] > 0
 
 
 def backend() -> str:

@@ -94,7 +94,7 @@ class SparseCoder(nn.Module):
         same epsilon), by the native kernel where it is built, and the codes come back in
         ``x``'s dtype."""
         exporting = torch.jit.is_tracing() or torch.onnx.is_in_onnx_export()
-        if not exporting and not x.requires_grad and feature_pass.active():
+        if not exporting and not x.requires_grad and feature_pass.active("codes"):
             if x.device.type == "cpu" and native.available():
                 g = self.gram.numpy()
                 codes = native.omp(x.detach().float().numpy(), self.dictionary.numpy(), g,

@@ -74,7 +74,7 @@ class EMD(nn.Module):
         if not exporting and not bool(torch.isfinite(x).all()):
             raise ValueError("EMD input contains NaN or inf")
         b, c, t = x.shape
-        if t >= 3 and not exporting and not x.requires_grad and feature_pass.active():
+        if t >= 3 and not exporting and not x.requires_grad and feature_pass.active("emd"):
             return self._float64(x)
         if t < 3:  # no sample can be an extremum: nothing to decompose
             imfs = x.new_zeros(b, c, self.n_imfs, t)
