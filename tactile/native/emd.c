@@ -202,14 +202,22 @@ static void spline_add(const double *kx, const double *ky, int64_t n, int64_t le
         m[0] = ((h0 + h1) * m[1] - h0 * m[2]) / h1;        /* not-a-knot, left */
         m[n - 1] = ((hq + hl) * m[n - 2] - hl * m[n - 3]) / hq; /* and right */
     }
-    int64_t k = 0;
-    for (int64_t t = 0; t < len; t++) {
-        const double tt = (double)t;
-        while (k < n - 2 && kx[k + 1] <= tt) k++;
-        const double B = tt - kx[k];
+    /* sample t lies in the piece k with kx[k] <= t < kx[k + 1] (the first piece before the
+     * first knot, the last one past n - 2); a piece's coefficients are computed once */
+    int64_t t = 0;
+    for (int64_t k = 0; k <= n - 2 && t < len; k++) {
         const double c2 = 3.0 * m[k], c3 = (m[k + 1] - m[k]) / hk[k];
         const double c1 = sl[k] - hk[k] * (2.0 * m[k] + m[k + 1]);
-        out[t] += ky[k] + B * (c1 + B * (c2 + B * c3));
+        const double x0 = kx[k], y0 = ky[k];
+        int64_t end = len;
+        if (k < n - 2) { /* the knots are whole sample positions: t < kx[k + 1] exactly */
+            const double e = kx[k + 1] < (double)len ? kx[k + 1] : (double)len;
+            end = e > (double)t ? (int64_t)ceil(e) : t;
+        }
+        for (; t < end; t++) {
+            const double B = (double)t - x0;
+            out[t] += y0 + B * (c1 + B * (c2 + B * c3));
+        }
     }
 }
 

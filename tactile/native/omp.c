@@ -19,68 +19,96 @@
 #include "tactile_native.h"
 
 typedef struct {
-    double *alpha, *L, *gamma, *xy, *wrow, *grow; /* (K), (S*S), (S), (S), (S), (S*K) */
+    double *alpha, *L, *Lt, *inv, *gamma, *z, *xy, *wrow, *grow; /* (K), (S*S) x 2, (S) x 5, (S*K) */
     int64_t *chosen, *pos, *perm; /* (S) the atoms in the order chosen; (K) each atom's working
                                    * position; (K) the atom at each working position */
 } Work;
 
-/* Atoms a block of the loops below keeps in registers. */
-#define LANES 8
+/* Atoms a block of the loops below keeps in registers: enough independent sums to hide the
+ * additions' latency. With GCC or Clang the blocks are written as vectors of 2 doubles (one
+ * SSE2 or NEON register); the arithmetic is the same, lane by lane, as the scalar loops other
+ * compilers get: each sum in the same order, no fused multiply-add. */
+#define LANES 16
+
+#if defined(__GNUC__) || defined(__clang__)
+typedef double v2d __attribute__((vector_size(16)));
+#define NV (LANES / 2)
+static inline v2d load2(const double *p) {
+    v2d v;
+    memcpy(&v, p, sizeof v);
+    return v;
+}
+static inline void store2(double *p, v2d v) { memcpy(p, &v, sizeof v); }
+
+/* acc (LANES) = sum_i rows[i * stride + j] * w[i], i = 0..n-1, in order */
+static inline void block_sum(const double *rows, int64_t stride, const double *w, int64_t n,
+                             double *acc) {
+    v2d a[NV];
+    for (int v = 0; v < NV; v++) a[v] = load2(rows + 2 * v) * w[0];
+    for (int64_t i = 1; i < n; i++) {
+        const double *r = rows + i * stride;
+        const double wi = w[i];
+        for (int v = 0; v < NV; v++) a[v] += load2(r + 2 * v) * wi;
+    }
+    for (int v = 0; v < NV; v++) store2(acc + 2 * v, a[v]);
+}
+#else
+static void block_sum(const double *rows, int64_t stride, const double *w, int64_t n,
+                      double *acc) {
+    for (int j = 0; j < LANES; j++) acc[j] = rows[j] * w[0];
+    for (int64_t i = 1; i < n; i++)
+        for (int j = 0; j < LANES; j++) acc[j] += rows[i * stride + j] * w[i];
+}
+#endif
 
 /* alpha = cov - G[:, chosen] gamma for n chosen atoms whose Gram rows are grow (n, K): each
- * atom's sum runs over the chosen atoms in order, LANES atoms at a time in registers. */
-static void residual(const double *cov, const double *grow, const double *gamma, int64_t n,
-                     int64_t K, double *alpha) {
+ * atom's sum runs over the chosen atoms in order. Returns the largest |alpha|. */
+static double residual(const double *cov, const double *grow, const double *gamma, int64_t n,
+                       int64_t K, double *alpha) {
+    double m[LANES] = {0.0}, acc[LANES];
     int64_t k0 = 0;
     for (; k0 + LANES <= K; k0 += LANES) {
-        double acc[LANES];
-        for (int j = 0; j < LANES; j++) acc[j] = grow[k0 + j] * gamma[0];
-        for (int64_t i = 1; i < n; i++) {
-            const double *row = grow + i * K + k0, gi = gamma[i];
-            for (int j = 0; j < LANES; j++) acc[j] += row[j] * gi;
+        block_sum(grow + k0, K, gamma, n, acc);
+        for (int j = 0; j < LANES; j++) {
+            const double a = cov[k0 + j] - acc[j];
+            alpha[k0 + j] = a;
+            m[j] = fabs(a) > m[j] ? fabs(a) : m[j];
         }
-        for (int j = 0; j < LANES; j++) alpha[k0 + j] = cov[k0 + j] - acc[j];
     }
     for (; k0 < K; k0++) {
-        double acc = grow[k0] * gamma[0];
-        for (int64_t i = 1; i < n; i++) acc += grow[i * K + k0] * gamma[i];
-        alpha[k0] = cov[k0] - acc;
+        double a = grow[k0] * gamma[0];
+        for (int64_t i = 1; i < n; i++) a += grow[i * K + k0] * gamma[i];
+        alpha[k0] = cov[k0] - a;
+        m[0] = fabs(alpha[k0]) > m[0] ? fabs(alpha[k0]) : m[0];
     }
+    double best = m[0];
+    for (int j = 1; j < LANES; j++) best = m[j] > best ? m[j] : best;
+    return best;
 }
 
-/* The atom of largest |alpha|, the first in working order (pos) among equals: scikit-learn's
- * argmax over its working order. Four lanes each keep their largest and its first atom (one
- * running maximum would wait on every comparison) and note a tie with it; ties across or
- * within lanes (rare: duplicate atoms, an all-zero row) are settled by a second scan. */
-static int64_t largest(const double *alpha, const int64_t *pos, int64_t K) {
-    double m[4] = {-1.0, -1.0, -1.0, -1.0};
-    int64_t at[4] = {0, 0, 0, 0};
-    int tie = 0;
-    int64_t k = 0;
-    for (; k + 4 <= K; k += 4)
-        for (int j = 0; j < 4; j++) {
-            const double a = fabs(alpha[k + j]);
-            tie |= a == m[j];
-            at[j] = a > m[j] ? k + j : at[j];
-            m[j] = a > m[j] ? a : m[j];
-        }
-    for (; k < K; k++) {
-        const double a = fabs(alpha[k]);
-        tie |= a == m[0];
-        at[0] = a > m[0] ? k : at[0];
-        m[0] = a > m[0] ? a : m[0];
-    }
-    int64_t lam = at[0];
+/* The largest |alpha| of the initial correlations (LANES running maxima). */
+static double largest_abs(const double *alpha, int64_t K) {
+    double m[LANES] = {0.0};
+    int64_t k0 = 0;
+    for (; k0 + LANES <= K; k0 += LANES)
+        for (int j = 0; j < LANES; j++)
+            m[j] = fabs(alpha[k0 + j]) > m[j] ? fabs(alpha[k0 + j]) : m[j];
+    for (; k0 < K; k0++) m[0] = fabs(alpha[k0]) > m[0] ? fabs(alpha[k0]) : m[0];
     double best = m[0];
-    for (int j = 1; j < 4; j++) {
-        tie |= m[j] == best;
-        if (m[j] > best) {
-            best = m[j];
-            lam = at[j];
-        }
-    }
-    if (tie)
-        for (k = 0; k < K; k++)
+    for (int j = 1; j < LANES; j++) best = m[j] > best ? m[j] : best;
+    return best;
+}
+
+/* The atom whose |alpha| is best, the first in working order (pos) among equals: scikit-
+ * learn's argmax over its working order. Equals are rare (duplicate atoms, an all-zero row):
+ * the scan stops at the first, then counts the others before settling them by pos. */
+static int64_t atom_of(const double *alpha, const int64_t *pos, int64_t K, double best) {
+    int64_t lam = 0;
+    while (lam < K - 1 && fabs(alpha[lam]) != best) lam++;
+    int64_t more = 0;
+    for (int64_t k = lam + 1; k < K; k++) more += fabs(alpha[k]) == best;
+    if (more)
+        for (int64_t k = lam + 1; k < K; k++)
             if (fabs(alpha[k]) == best && pos[k] < pos[lam]) lam = k;
     return lam;
 }
@@ -93,15 +121,16 @@ static int64_t largest(const double *alpha, const int64_t *pos, int64_t K) {
  * first in working order (pos). grow holds the chosen atoms' Gram rows in double. */
 static void omp_row(const double *cov, const void *gram, int f32, int64_t K, int64_t S,
                     double eps, Work *w, double *code) {
-    double *alpha = w->alpha, *L = w->L, *gamma = w->gamma, *xy = w->xy;
+    double *alpha = w->alpha, *L = w->L, *Lt = w->Lt, *inv = w->inv, *gamma = w->gamma, *z = w->z, *xy = w->xy;
     double *v = w->wrow, *grow = w->grow;
     int64_t *chosen = w->chosen, *pos = w->pos, *perm = w->perm, n_active = 0;
     for (int64_t k = 0; k < K; k++) {
         pos[k] = perm[k] = k;
         alpha[k] = cov[k];
     }
+    double best = largest_abs(alpha, K);
     for (;;) {
-        const int64_t lam = largest(alpha, pos, K);
+        const int64_t lam = atom_of(alpha, pos, K, best);
         if (pos[lam] < n_active || alpha[lam] * alpha[lam] < eps) break; /* chosen, or small */
         const double glam = f32 ? (double)((const float *)gram)[lam * K + lam]
                                 : ((const double *)gram)[lam * K + lam];
@@ -111,15 +140,17 @@ static void omp_row(const double *cov, const void *gram, int f32, int64_t K, int
             for (int64_t i = 0; i < n_active; i++) {
                 double s = grow[i * K + lam];
                 for (int64_t j = 0; j < i; j++) s -= L[i * S + j] * v[j];
-                v[i] = s / L[i * S + i];
+                v[i] = s * inv[i];
                 vv += v[i] * v[i];
             }
             const double lkk = glam - vv;
             if (lkk <= eps) break; /* the chosen atoms are dependent */
             for (int64_t j = 0; j < n_active; j++) L[n_active * S + j] = v[j];
             L[n_active * S + n_active] = sqrt(lkk);
+            inv[n_active] = 1.0 / L[n_active * S + n_active];
         } else {
             L[0] = sqrt(glam);
+            inv[0] = 1.0 / L[0];
         }
         /* the atom takes working position n_active; the atom there takes lam's old one */
         const int64_t other = perm[n_active];
@@ -137,20 +168,25 @@ static void omp_row(const double *cov, const void *gram, int f32, int64_t K, int
             memcpy(g, (const double *)gram + lam * K, (size_t)K * sizeof(double));
         }
         n_active++;
-        /* gamma = (L L^T)^-1 xy[:n_active]: forward, then backward substitution */
-        for (int64_t i = 0; i < n_active; i++) {
+        /* gamma = (L L^T)^-1 xy[:n_active]: forward substitution (z = L^-1 xy; only its new
+         * entry is new, the others are the same sums as before), then backward substitution
+         * along the rows of Lt = L^T */
+        {
+            const int64_t i = n_active - 1;
             double s = xy[i];
-            for (int64_t j = 0; j < i; j++) s -= L[i * S + j] * gamma[j];
-            gamma[i] = s / L[i * S + i];
+            for (int64_t j = 0; j < i; j++) s -= L[i * S + j] * z[j];
+            z[i] = s * inv[i];
+            for (int64_t j = 0; j <= i; j++) Lt[j * S + i] = L[i * S + j];
         }
         for (int64_t i = n_active - 1; i >= 0; i--) {
-            double s = gamma[i];
-            for (int64_t j = i + 1; j < n_active; j++) s -= L[j * S + i] * gamma[j];
-            gamma[i] = s / L[i * S + i];
+            double s = z[i];
+            const double *lt = Lt + i * S;
+            for (int64_t j = i + 1; j < n_active; j++) s -= lt[j] * gamma[j];
+            gamma[i] = s * inv[i];
         }
         /* residual correlations cov - G[:, chosen] gamma, summed in the order the atoms were
          * chosen along their Gram rows (G is symmetric) */
-        residual(cov, grow, gamma, n_active, K, alpha);
+        best = residual(cov, grow, gamma, n_active, K, alpha);
         if (n_active == S) break;
     }
     memset(code, 0, (size_t)K * sizeof(double));
@@ -163,40 +199,24 @@ static void omp_row(const double *cov, const void *gram, int f32, int64_t K, int
 
 /* cov (nb, K): the correlations of the nb rows xr (nb, F) with every atom, from the
  * transposed dictionary dt (F, K): each sum runs over the features in order (the same for a
- * row in any block), two rows and LANES atoms at a time in registers. */
+ * row in any block), LANES atoms at a time in registers. */
 static void correlations(const double *dt, const double *xr, int64_t nb, int64_t F,
                          int64_t K, double *cov) {
-    for (int64_t b0 = 0; b0 < nb; b0 += 2) {
-        const double *x0 = xr + b0 * F, *x1 = xr + (b0 + 1 < nb ? b0 + 1 : b0) * F;
+    for (int64_t b = 0; b < nb; b++) {
+        const double *x = xr + b * F;
+        double *c = cov + b * K;
         int64_t k0 = 0;
-        for (; k0 + LANES <= K; k0 += LANES) {
-            double a0[LANES], a1[LANES];
-            for (int j = 0; j < LANES; j++) {
-                a0[j] = dt[k0 + j] * x0[0];
-                a1[j] = dt[k0 + j] * x1[0];
-            }
-            for (int64_t f = 1; f < F; f++) {
-                const double *d = dt + f * K + k0, u = x0[f], v = x1[f];
-                for (int j = 0; j < LANES; j++) {
-                    a0[j] += d[j] * u;
-                    a1[j] += d[j] * v;
-                }
-            }
-            for (int j = 0; j < LANES; j++) cov[b0 * K + k0 + j] = a0[j];
-            if (b0 + 1 < nb)
-                for (int j = 0; j < LANES; j++) cov[(b0 + 1) * K + k0 + j] = a1[j];
+        for (; k0 + LANES <= K; k0 += LANES) block_sum(dt + k0, K, x, F, c + k0);
+        for (; k0 < K; k0++) {
+            double a = dt[k0] * x[0];
+            for (int64_t f = 1; f < F; f++) a += dt[f * K + k0] * x[f];
+            c[k0] = a;
         }
-        for (; k0 < K; k0++)
-            for (int64_t b = b0; b < nb && b < b0 + 2; b++) {
-                double a = dt[k0] * xr[b * F];
-                for (int64_t f = 1; f < F; f++) a += dt[f * K + k0] * xr[b * F + f];
-                cov[b * K + k0] = a;
-            }
     }
 }
 
 static void work_free(Work *w) {
-    free(w->alpha); free(w->L); free(w->gamma); free(w->xy); free(w->wrow);
+    free(w->alpha); free(w->L); free(w->Lt); free(w->inv); free(w->z); free(w->gamma); free(w->xy); free(w->wrow);
     free(w->grow); free(w->chosen); free(w->pos); free(w->perm);
 }
 
@@ -219,6 +239,9 @@ static int omp_batch(const void *x, int f32, int64_t rows, int64_t F, const void
     double *code = malloc((size_t)K * sizeof(double));
     w.alpha = malloc((size_t)K * sizeof(double));
     w.L = malloc((size_t)(S * S) * sizeof(double));
+    w.Lt = malloc((size_t)(S * S) * sizeof(double));
+    w.z = malloc((size_t)S * sizeof(double));
+    w.inv = malloc((size_t)S * sizeof(double));
     w.gamma = malloc((size_t)S * sizeof(double));
     w.xy = malloc((size_t)S * sizeof(double));
     w.wrow = malloc((size_t)S * sizeof(double));
@@ -227,7 +250,7 @@ static int omp_batch(const void *x, int f32, int64_t rows, int64_t F, const void
     w.pos = malloc((size_t)K * sizeof(int64_t));
     w.perm = malloc((size_t)K * sizeof(int64_t));
     int status = TACTILE_OK;
-    if (!dt || !xr || !cov || !code || !w.alpha || !w.L || !w.gamma || !w.xy ||
+    if (!dt || !xr || !cov || !code || !w.alpha || !w.L || !w.Lt || !w.z || !w.inv || !w.gamma || !w.xy ||
         !w.wrow || !w.grow || !w.chosen || !w.pos || !w.perm) {
         status = TACTILE_ENOMEM;
         goto done;
