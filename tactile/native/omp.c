@@ -52,6 +52,31 @@ static inline void block_sum(const double *rows, int64_t stride, const double *w
     }
     for (int v = 0; v < NV; v++) store2(acc + 2 * v, a[v]);
 }
+/* The correlations of 4 rows x (F) with 8 atoms: c[r * K + j] = sum_f dt[f * K + j] x_r[f],
+ * in order of f (as block_sum sums): each loaded pair of atoms serves four rows. */
+#define CORR_ROWS 4
+static inline void block_corr(const double *dt, int64_t K, const double *x, int64_t F,
+                              double *c) {
+    v2d a[CORR_ROWS][4];
+    for (int v = 0; v < 4; v++) {
+        const v2d d = load2(dt + 2 * v);
+        for (int r = 0; r < CORR_ROWS; r++) a[r][v] = d * x[r * F];
+    }
+    for (int64_t f = 1; f < F; f++) {
+        const double *row = dt + f * K;
+        const double x0 = x[f], x1 = x[F + f], x2 = x[2 * F + f], x3 = x[3 * F + f];
+        for (int v = 0; v < 4; v++) {
+            const v2d d = load2(row + 2 * v);
+            a[0][v] += d * x0;
+            a[1][v] += d * x1;
+            a[2][v] += d * x2;
+            a[3][v] += d * x3;
+        }
+    }
+    for (int r = 0; r < CORR_ROWS; r++)
+        for (int v = 0; v < 4; v++) store2(c + r * K + 2 * v, a[r][v]);
+}
+#define HAVE_BLOCK_CORR 1
 #else
 static void block_sum(const double *rows, int64_t stride, const double *w, int64_t n,
                       double *acc) {
@@ -137,11 +162,12 @@ static void omp_row(const double *cov, const void *gram, int f32, int64_t K, int
         if (n_active > 0) {
             /* new Cholesky row: solve L v = G[chosen, lam] (forward substitution) */
             double vv = 0.0;
-            for (int64_t i = 0; i < n_active; i++) {
-                double s = grow[i * K + lam];
-                for (int64_t j = 0; j < i; j++) s -= L[i * S + j] * v[j];
-                v[i] = s * inv[i];
-                vv += v[i] * v[i];
+            for (int64_t i = 0; i < n_active; i++) v[i] = grow[i * K + lam];
+            for (int64_t i = 0; i < n_active; i++) { /* column by column: a vector update */
+                const double vi = v[i] * inv[i], *lt = Lt + i * S;
+                v[i] = vi;
+                vv += vi * vi;
+                for (int64_t k = i + 1; k < n_active; k++) v[k] -= lt[k] * vi;
             }
             const double lkk = glam - vv;
             if (lkk <= eps) break; /* the chosen atoms are dependent */
@@ -170,7 +196,7 @@ static void omp_row(const double *cov, const void *gram, int f32, int64_t K, int
         n_active++;
         /* gamma = (L L^T)^-1 xy[:n_active]: forward substitution (z = L^-1 xy; only its new
          * entry is new, the others are the same sums as before), then backward substitution
-         * along the rows of Lt = L^T */
+         * (Lt = L^T keeps L's columns contiguous for the forward sweeps) */
         {
             const int64_t i = n_active - 1;
             double s = xy[i];
@@ -178,11 +204,11 @@ static void omp_row(const double *cov, const void *gram, int f32, int64_t K, int
             z[i] = s * inv[i];
             for (int64_t j = 0; j <= i; j++) Lt[j * S + i] = L[i * S + j];
         }
-        for (int64_t i = n_active - 1; i >= 0; i--) {
-            double s = z[i];
-            const double *lt = Lt + i * S;
-            for (int64_t j = i + 1; j < n_active; j++) s -= lt[j] * gamma[j];
-            gamma[i] = s * inv[i];
+        for (int64_t i = 0; i < n_active; i++) gamma[i] = z[i];
+        for (int64_t j = n_active - 1; j >= 0; j--) { /* row by row of L: a vector update */
+            const double gj = gamma[j] * inv[j], *lj = L + j * S;
+            gamma[j] = gj;
+            for (int64_t i = 0; i < j; i++) gamma[i] -= lj[i] * gj;
         }
         /* residual correlations cov - G[:, chosen] gamma, summed in the order the atoms were
          * chosen along their Gram rows (G is symmetric) */
@@ -202,7 +228,20 @@ static void omp_row(const double *cov, const void *gram, int f32, int64_t K, int
  * row in any block), LANES atoms at a time in registers. */
 static void correlations(const double *dt, const double *xr, int64_t nb, int64_t F,
                          int64_t K, double *cov) {
-    for (int64_t b = 0; b < nb; b++) {
+    int64_t b = 0;
+#ifdef HAVE_BLOCK_CORR
+    for (; b + CORR_ROWS <= nb && K >= 8; b += CORR_ROWS) {
+        int64_t k0 = 0;
+        for (; k0 + 8 <= K; k0 += 8) block_corr(dt + k0, K, xr + b * F, F, cov + b * K + k0);
+        for (; k0 < K; k0++)
+            for (int64_t r = b; r < b + CORR_ROWS; r++) {
+                double a = dt[k0] * xr[r * F];
+                for (int64_t f = 1; f < F; f++) a += dt[f * K + k0] * xr[r * F + f];
+                cov[r * K + k0] = a;
+            }
+    }
+#endif
+    for (; b < nb; b++) {
         const double *x = xr + b * F;
         double *c = cov + b * K;
         int64_t k0 = 0;
