@@ -203,7 +203,8 @@ def compare(model: nn.Module, onnx_model: bytes | str, probe: Probe, ck: dict,
     carry = model.cfg.state == "carry"
     if carry:
         probe = _with_long_run(probe, ck)
-    explain = Explainer(model, onnx_model) if criterion == "strict" and coders(model) else None
+    explain = (Explainer(model, onnx_model, native=native)
+               if criterion == "strict" and coders(model) else None)
     examined = Examined()
     p_t, p_o, p_1, s_diff = _window_mode(model, sess, probe.x, explain, examined)
     n = len(probe)  # window-mode rows come first, in probe order

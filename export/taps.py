@@ -130,12 +130,14 @@ def picks(tap: CoderTap) -> list[str]:
     return out
 
 
-def tapped(graph: onnx.ModelProto, taps: list[CoderTap], orders: bool = False
-           ) -> onnx.ModelProto:
+def tapped(graph: onnx.ModelProto, taps: list[CoderTap], orders: bool = False,
+           native: bool = False) -> onnx.ModelProto:
     """A copy of ``graph`` that also outputs each coder's images and codes (same nodes), and
-    with ``orders`` each coder's picks (:func:`picks`) after them, coder by coder."""
+    with ``orders`` each coder's picks (:func:`picks`) after them, coder by coder. With
+    ``native`` the ``SparseCode`` nodes stay (the kernel library runs them; they have no
+    picks to tap: their images and codes are the node's input and output)."""
     out = onnx.ModelProto()
-    out.CopyFrom(portable(graph, [(t.path, t.coder) for t in taps]))
+    out.CopyFrom(graph if native else portable(graph, [(t.path, t.coder) for t in taps]))
     del out.metadata_props[:]
     for t in taps:
         out.graph.output.extend([helper.make_tensor_value_info(t.x, TensorProto.FLOAT, None),
@@ -153,16 +155,20 @@ def graph_order(picks: np.ndarray, codes: np.ndarray) -> np.ndarray:
     return np.where(np.arange(picks.shape[1])[None, :] < live[:, None], picks, -1)
 
 
-def tap_session(graph: onnx.ModelProto, taps: list[CoderTap]):
+def tap_session(graph: onnx.ModelProto, taps: list[CoderTap], native: bool = False):
     """onnxruntime on the :func:`tapped` copy of ``graph`` for ``taps``, with each coder's
     picks when every coder has one ``ArgMax`` per non-zero: ``(session, picks, names)``,
-    ``picks`` per coder its :func:`picks` (None otherwise) and ``names`` the added outputs in
-    order (per coder its images and codes, then every coder's picks)."""
-    try:
-        steps = [picks(t) for t in taps]
-    except CoderNotFound:
-        steps = None
-    sess = session(tapped(graph, taps, orders=steps is not None).SerializeToString())
+    ``picks`` per coder its :func:`picks` (None otherwise, and with ``native``: the kernel
+    library runs the coders) and ``names`` the added outputs in order (per coder its images and
+    codes, then every coder's picks)."""
+    steps = None
+    if not native:
+        try:
+            steps = [picks(t) for t in taps]
+        except CoderNotFound:
+            steps = None
+    sess = session(tapped(graph, taps, orders=steps is not None, native=native)
+                   .SerializeToString(), native=native)
     names = [v for t in taps for v in (t.x, t.codes)] + [v for p in steps or [] for v in p]
     return sess, steps, names
 

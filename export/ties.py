@@ -163,7 +163,8 @@ def recording(coders: list[nn.Module]):
 
 
 def judge_rows(d: np.ndarray, x_t: np.ndarray, c_t: np.ndarray, order_t: np.ndarray | None,
-               x_g: np.ndarray, c_g: np.ndarray, order_g: np.ndarray | None) -> Flips:
+               x_g: np.ndarray, c_g: np.ndarray, order_g: np.ndarray | None,
+               float64: bool = False) -> Flips:
     """Rows of one coder (dictionary ``d`` (atoms, features)): PyTorch's images ``x_t``,
     codes ``c_t`` and atoms in order ``order_t`` (rows, n; -1 after a stop), the graph's
     ``x_g``, ``c_g``, ``order_g``. Every row's images must agree (:data:`IMAGE_RTOL`). A row
@@ -174,7 +175,9 @@ def judge_rows(d: np.ndarray, x_t: np.ndarray, c_t: np.ndarray, order_t: np.ndar
     than :data:`~tactile.export.codes.RESOLUTION_FACTOR` x float32's resolution of that
     step's correlations when that is coarser (:func:`~tactile.export.codes.parting` on
     PyTorch's image). Without the graph's order (``order_g`` None: its coder does not pick
-    one atom per non-zero) no flip is a near-tie."""
+    one atom per non-zero) no flip is a near-tie, unless ``float64``: the graph's coder is the
+    native kernel, which computes OMP in float64: where it parted from PyTorch is found from
+    its code (:func:`kernel_order`)."""
     img = np.abs(x_g.astype(np.float64) - x_t).max(1)
     same_image = img <= IMAGE_RTOL * np.linalg.norm(x_t.astype(np.float64), axis=1)
     differ = ((c_t != 0) != (c_g != 0)).any(1)
@@ -186,12 +189,16 @@ def judge_rows(d: np.ndarray, x_t: np.ndarray, c_t: np.ndarray, order_t: np.ndar
         ratio = np.where(rel == 0, 0.0, rel / np.maximum(tol, 1e-300))
         out.beyond = int((ratio > 1).sum())
         out.max_code_diff, out.max_code_ratio = float(rel.max()), float(ratio.max())
-    if order_t is None or order_g is None:
+    if order_t is None or (order_g is None and not float64):
         return out
     for i in flipped:
         if not same_image[i]:
             continue
-        gap, tolerance = parting(d, x_t[i], order_t[i].tolist(), order_g[i].tolist())
+        if order_g is None:
+            other = kernel_order(d, x_g[i], order_t[i].tolist(), c_g[i])
+        else:
+            other = order_g[i].tolist()
+        gap, tolerance = parting(d, x_t[i], order_t[i].tolist(), other)
         if abs(gap) < tolerance:
             out.ties += 1
             out.max_gap = max(out.max_gap, abs(gap))
@@ -199,16 +206,70 @@ def judge_rows(d: np.ndarray, x_t: np.ndarray, c_t: np.ndarray, order_t: np.ndar
     return out
 
 
+def kernel_order(d: np.ndarray, x: np.ndarray, order_t: list[int], code: np.ndarray
+                 ) -> list[int]:
+    """The native kernel's atoms for image ``x`` as far as a near-tie judgement needs them:
+    its code shows which atoms it chose, not in which order. When OMP in float64 on the file's
+    float32 Gram matrix (what the kernel computes) chose those atoms, its order. Otherwise:
+    the atoms PyTorch picked (in
+    ``order_t``, -1 after a stop) that the kernel's code also holds, up to the first one it
+    lacks, are the two runs' common start (OMP's residual after a set of atoms does not depend
+    on their order); at that step the kernel took, of its other atoms, the one with the largest
+    float64 residual correlation after the common start (it computes OMP in float64), then
+    -1s to the same length."""
+    support = set(np.flatnonzero(code).tolist())
+    n = len(order_t)
+    path = _float64_order(d, x, n)
+    if set(path) == support:  # the kernel's own run (same atoms): its order
+        return path + [-1] * (n - len(path))
+    common = []
+    for a in order_t:
+        if a < 0 or a not in support:
+            break
+        common.append(int(a))
+    rest = sorted(support - set(common))
+    if not rest:
+        return common + [-1] * (n - len(common))
+    d64, x64 = d.astype(np.float64), x.astype(np.float64)
+    r = x64
+    if common:
+        sub = d64[common]
+        r = x64 - sub.T @ np.linalg.lstsq(sub.T, x64, rcond=None)[0]
+    pick = rest[int(np.argmax(np.abs(d64[rest] @ r)))]
+    return common + [pick] + [-1] * (n - len(common) - 1)
+
+
+def _float64_order(d: np.ndarray, x: np.ndarray, n: int) -> list[int]:
+    """OMP's atoms in order for image ``x``, in float64 on ``D D^T`` rounded once to float32
+    (the Gram matrix a file holds), from scikit-learn's coefficient path."""
+    import warnings
+
+    from sklearn.linear_model import orthogonal_mp_gram
+
+    d64, x64 = d.astype(np.float64), x.astype(np.float64)
+    gram = (d64 @ d64.T).astype(np.float32).astype(np.float64)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # "ended prematurely": an early exit is fine here
+        path = orthogonal_mp_gram(gram, d64 @ x64, n_nonzero_coefs=n, return_path=True)
+    path = path.reshape(len(d), -1)
+    order: list[int] = []
+    for s in range(path.shape[1]):
+        order += [int(a) for a in np.flatnonzero(path[:, s]) if a not in order]
+    return order
+
+
 class Explainer:
     """The graph's coders (a tapped copy of the file's graph) and PyTorch's (hooks) on the
     windows whose probabilities differ, for a model with coders."""
 
-    def __init__(self, model: nn.Module, graph: bytes | str | onnx.ModelProto) -> None:
+    def __init__(self, model: nn.Module, graph: bytes | str | onnx.ModelProto,
+                 native: bool = False) -> None:
         if not isinstance(graph, onnx.ModelProto):
             graph = (onnx.load_from_string(graph) if isinstance(graph, bytes)
                      else onnx.load(graph))
         self.taps: list[CoderTap] = find_coders(model, graph)
-        self.sess, self.picks, tapped_names = tap_session(graph, self.taps)
+        self.native = native  # the kernel library runs the coders: float64 OMP's picks
+        self.sess, self.picks, tapped_names = tap_session(graph, self.taps, native=native)
         self.names = ["probs", "h_out", "c_out"] + tapped_names
         self.coders = [t.coder for t in self.taps]
         self.model = model
@@ -273,7 +334,8 @@ class Explainer:
                 return Flips(reproduced=False)
             t, r = slice(w * s, (w + 1) * s), slice(g * s, (g + 1) * s)
             out = out + judge_rows(d, x_t[t], c_t[t], None if order is None else order[t],
-                                   x_g[r], c_g[r], None if order_g is None else order_g[r])
+                                   x_g[r], c_g[r], None if order_g is None else order_g[r],
+                                   float64=self.native)
         return out
 
 

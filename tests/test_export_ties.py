@@ -26,6 +26,7 @@ from tactile.export import parity
 from tactile.export.coder_graph import coder_graph
 from tactile.export.graph import build_graph
 from tactile.export.parity import ATOL, compare
+from tactile.export.session import native_available
 from tactile.export.ties import FLOAT32, MAX_EXCUSED, NEAR_TIE, Flips, judge_rows, recording
 from tactile.export.windows import Probe
 from tactile.training.sparse import SparseCoder
@@ -524,3 +525,17 @@ def test_tactile_check_names_the_excused_windows():
     both = {**parity, "windows_excused_float32": 1, "max_abs_prob_diff_excused_float32": 0.00027}
     assert _excused(both) == ("; 2 of 256 windows excused for near-tie atom flips, max |dp| "
                               "0.0084; 1 of 256 for float32 code accuracy, max |dp| 0.00027")
+
+
+@pytest.mark.skipif(not native_available(), reason="the native kernels are not built")
+def test_the_kernel_path_excuses_its_near_tie_flips(tied):
+    """The same near-tie on the kernel path: the library's SparseCode computes OMP in float64
+    and has no picks to tap, so a flipped row's order is float64 OMP's on the graph's image
+    (:func:`~tactile.export.ties.kernel_order`); the windows are excused as near-ties."""
+    model, graph, n_used = tied
+    p = compare(model, graph.SerializeToString(), _probe(N), CK, native=True)
+    assert p.passed, p.table()
+    f = p.flips
+    assert f["windows_examined"] >= 1 and f["not_reproduced"] == f["not_by_codes"] == 0, f
+    assert f["rows_flipped"] == f["rows_near_tie"] >= 1, f
+    assert p.windows_excused == f["windows_examined"] <= n_used
