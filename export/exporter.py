@@ -63,6 +63,13 @@ def export_run(run_dir: Path, out: Path, data: Path | None = None, int8: bool = 
         q = compare(model, final.SerializeToString(), probe, ck, criterion="int8")
         log("int8:\n" + q.table())
         _require(q, "int8")
+        if custom_nodes(final) and native_available():
+            with feature_pass(emd=True, codes=False):
+                q_fast = compare(model, final.SerializeToString(), probe, ck, criterion="int8",
+                                 native=True)
+            log("int8, native kernels:\n" + q_fast.table())
+            _require(q_fast, "int8 (native kernels)")
+            report["int8_native"] = q_fast.to_dict()
         figures = {**q.to_dict(), "float32": parity.to_dict()}
         quantization = "int8-dynamic"
         report["int8"] = _tradeoff(graph, final, parity, q, ck, model.state_shape)

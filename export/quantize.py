@@ -10,6 +10,7 @@ from pathlib import Path
 import numpy as np
 import onnx
 
+from tactile.contract import CUSTOM_DOMAIN
 from tactile.export.compose import toposorted
 from tactile.export.session import session
 
@@ -22,7 +23,10 @@ def quantize_int8(model: onnx.ModelProto) -> onnx.ModelProto:
     """Dynamic int8 quantisation (weights int8, activations quantised at run time).
 
     ``quant_pre_process`` runs first (shape inference and graph clean-up that the quantiser
-    relies on); metadata is not carried over: the caller writes the contract afterwards.
+    relies on); metadata is not carried over: the caller writes the contract afterwards. A
+    graph with ``ai.tactile`` nodes skips the pre-process's onnxruntime optimisation, which
+    would inline their fallback functions: the int8 file keeps the custom nodes (the kernel
+    path) and their functions (the portable one).
     """
     from onnxruntime.quantization import QuantType, quantize_dynamic
     from onnxruntime.quantization.shape_inference import quant_pre_process
@@ -31,7 +35,9 @@ def quantize_int8(model: onnx.ModelProto) -> onnx.ModelProto:
     with tempfile.TemporaryDirectory() as tmp:
         src, pre, out = (Path(tmp) / n for n in ("f32.onnx", "pre.onnx", "int8.onnx"))
         onnx.save(model, src)
-        quant_pre_process(str(src), str(pre), skip_symbolic_shape=True)
+        custom = any(n.domain == CUSTOM_DOMAIN for n in model.graph.node)
+        quant_pre_process(str(src), str(pre), skip_symbolic_shape=True,
+                          skip_optimization=custom)
         quantize_dynamic(str(pre), str(out), weight_type=QuantType.QInt8,
                          op_types_to_quantize=list(QUANTIZED_OPS))
         # the optimiser orders nodes by their explicit inputs only; a Loop or If body may read

@@ -16,17 +16,19 @@ from pathlib import Path
 
 import h5py
 import numpy as np
+import onnx
 import pytest
 import torch
 from conftest import SHARED
 
-from tactile.contract import ModalitySpec, SignalSpec
+from tactile.contract import CUSTOM_DOMAIN, ModalitySpec, SignalSpec
 from tactile.device.protocol import ChannelSpec, DeviceInfo
 from tactile.device.recordings import TakeWriter, load_dataset, read_take
 from tactile.export.check import load_contract
 from tactile.export.commands.check import main as check_main
 from tactile.export.exporter import export_run
 from tactile.export.parity import ATOL
+from tactile.export.session import native_available
 from tactile.runtime.commands.run import main as run_main
 from tactile.runtime.model import Model
 from tactile.training.checkpoint import load_checkpoint
@@ -272,3 +274,15 @@ def test_int8_of_a_granular_model(dataset, tmp_path_factory):
     _, contract = load_contract(root / "int8.onnx")  # onnx.checker, shape inference, contract
     assert contract.quantization == "int8-dynamic" and contract.model == "sf_rnn"
     assert contract.parity["criterion"] == "int8" and contract.parity["passed"]
+    # the int8 file keeps its custom nodes and their fallback functions (the quantiser's
+    # pre-process would inline the functions): the kernel path where built, the portable one
+    # anywhere, each checked
+    def custom(path):
+        m = onnx.load(path)
+        return (sorted(n.op_type for n in m.graph.node if n.domain == CUSTOM_DOMAIN),
+                sorted(f.name for f in m.functions))
+
+    assert custom(root / "int8.onnx") == custom(root / "model.onnx")
+    assert custom(root / "int8.onnx")[1] == ["EMD", "SparseCode"]
+    if native_available():
+        assert report["int8_native"]["passed"]
