@@ -380,3 +380,75 @@ def test_without_a_built_library_the_runtime_says_so_once(exported, fresh_kernel
     assert err.count("\n") == 1 and "installed without a C compiler" in err
     assert fresh_kernels.paths(models[0].contract.custom_ops, False) == [
         "EMD: portable graph (no kernel library)"]
+
+
+_SANITIZED = """
+import sys, numpy as np, onnxruntime as ort
+lib, folder = sys.argv[1], sys.argv[2]
+so = ort.SessionOptions()
+so.register_custom_ops_library(lib)
+rng = np.random.default_rng(3)
+ran = 0
+shapes = {"emd50": (2, 2, 50), "emd3": (2, 1, 3), "emd1": (2, 1, 1), "code": (5, 12)}
+for name, shape in shapes.items():
+    s = ort.InferenceSession(f"{folder}/{name}.onnx", so, providers=["CPUExecutionProvider"])
+    first = s.get_inputs()[0]
+    for kind in ("noise", "nan", "inf", "huge", "tiny", "constant", "walk", "empty"):
+        x = rng.standard_normal(shape).astype(np.float32)
+        if kind == "nan": x.flat[::7] = np.nan
+        if kind == "inf": x.flat[::5] = np.inf
+        if kind == "huge": x *= np.float32(3e37)
+        if kind == "tiny": x *= np.float32(1e-38)
+        if kind == "constant": x[:] = 1.5
+        if kind == "walk": x = np.cumsum(x, axis=-1, dtype=np.float32)
+        if kind == "empty": x = x[:0]
+        for _ in range(3):  # repeated calls: per-call allocations must be freed
+            s.run(None, {first.name: x})
+            ran += 1
+print("runs", ran)
+"""
+
+
+def test_custom_ops_inside_onnxruntime_under_address_and_undefined_sanitizers(tmp_path):
+    """The custom-op library built with ASan and UBSan, loaded into onnxruntime in a Python
+    whose allocator ASan intercepts (LD_PRELOAD), runs both ops on noise, NaN, inf, huge, tiny,
+    constant, random-walk and empty inputs at lengths 50, 3 and 1, three calls each: no
+    sanitizer report. (LeakSanitizer stays off: the interpreter itself holds memory at exit;
+    the kernels' own leak check is the C test of tests/test_native.py.)"""
+    import shutil
+
+    gcc = shutil.which("gcc")
+    if gcc is None or sys.platform != "linux":
+        msg = "needs gcc on Linux to build the sanitized library"
+        if os.environ.get("CI", "").lower() == "true":
+            pytest.fail(msg)
+        pytest.skip(msg)
+    src = Path(native.__file__).parent
+    lib = tmp_path / "libtactile_asan.so"
+    build = subprocess.run(
+        [gcc, "-std=c99", "-shared", "-fPIC", "-O1", "-g", "-fno-omit-frame-pointer",
+         "-fsanitize=address,undefined", "-fno-sanitize-recover=all", "-ffp-contract=off",
+         f"-I{src}", str(src / "emd.c"), str(src / "omp.c"), str(src / "ort_ops.c"),
+         "-o", str(lib), "-lm"], capture_output=True, text=True, timeout=300)
+    assert build.returncode == 0, build.stderr[-2000:]
+    runtime = subprocess.run([gcc, "-print-file-name=libasan.so"], capture_output=True,
+                             text=True).stdout.strip()
+    ubsan = subprocess.run([gcc, "-print-file-name=libubsan.so"], capture_output=True,
+                           text=True).stdout.strip()
+    assert Path(runtime).exists(), runtime
+    for name, (c, t) in (("emd50", (2, 50)), ("emd3", (1, 3))):
+        onnx.save(emd_node_model(4, 10, c, t), tmp_path / f"{name}.onnx")
+    onnx.save(_loose("EMD", *EMD_IO, n_imfs=4, n_sifts=10), tmp_path / "emd1.onnx")  # < 3
+    d = np.random.default_rng(0).standard_normal((20, 12))
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    onnx.save(coder_node_model(SparseCoder(d.astype(np.float32), 3)), tmp_path / "code.onnx")
+    (tmp_path / "run.py").write_text(_SANITIZED)
+    env = {**os.environ, "LD_PRELOAD": f"{runtime} {ubsan}" if Path(ubsan).exists() else runtime,
+           "ASAN_OPTIONS": "detect_leaks=0:halt_on_error=1:abort_on_error=0",
+           "UBSAN_OPTIONS": "print_stacktrace=1:halt_on_error=1"}
+    run = subprocess.run([sys.executable, str(tmp_path / "run.py"), str(lib), str(tmp_path)],
+                         capture_output=True, text=True, timeout=600, env=env)
+    report = run.stdout + run.stderr
+    assert run.returncode == 0, report[-3000:]
+    assert "Sanitizer" not in report and "runtime error" not in report, report[-3000:]
+    assert "runs 96" in run.stdout, report[-1000:]
