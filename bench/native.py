@@ -54,14 +54,16 @@ def signal_windows(n_windows: int, n_channels: int, n_time: int, seed: int = 0) 
 
 def race(fns: dict, repeats: int, calls: int) -> dict[str, float]:
     """Milliseconds per call of each function, the fastest of ``repeats`` interleaved rounds of
-    ``calls`` calls (after a warm-up round)."""
+    ``calls`` calls (after a warm-up round), as CPU time of the calling thread: every
+    implementation here runs on it (torch and onnxruntime on one thread), so that a loaded
+    machine's waiting is left out."""
     best = dict.fromkeys(fns, np.inf)
     for round_ in range(repeats + 1):
         for name, fn in fns.items():
-            start = time.perf_counter()
+            start = time.thread_time()
             for i in range(calls):
                 fn(i)
-            ms = (time.perf_counter() - start) / calls * 1e3
+            ms = (time.thread_time() - start) / calls * 1e3
             if round_:
                 best[name] = min(best[name], ms)
     return best
