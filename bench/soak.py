@@ -238,6 +238,8 @@ def main(argv: list[str] | None = None) -> int:
         mbs = [m for _, m in rss]
         print(f"RSS of tactile-run: start {mbs[0]:.1f} MB, max {max(mbs):.1f} MB, end "
               f"{mbs[-1]:.1f} MB ({len(mbs)} samples over {rss[-1][0]:.0f} s)")
+        tenths = [mbs[min(len(mbs) - 1, k * len(mbs) // 10)] for k in range(1, 10)]
+        print("RSS at each tenth of the run: " + ", ".join(f"{m:.1f}" for m in tenths) + " MB")
     ok = same_windows and same_labels and worst < 1e-5 and gap_ok and \
         back_in_one == first_after and summary["reconnects"] == inj.unplugs
     if not same_windows:
