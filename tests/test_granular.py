@@ -16,6 +16,7 @@ import torch
 from conftest import SHARED
 from test_biotac import write_h5
 
+from tactile import native
 from tactile.device.protocol import ChannelSpec, DeviceInfo
 from tactile.device.recordings import TakeWriter, load_dataset, read_take
 from tactile.device.recordings.biotac import import_biotac
@@ -694,3 +695,23 @@ def test_a_real_trial_gives_the_designs_images(tmp_path):
         np.testing.assert_allclose(f[s, :22], (pac[t] - pac.mean()) / pac.std(), atol=1e-4)
         want = ((ele[t - 4 : t + 1] - ele.mean(0)) / ele.std(0)).T.reshape(-1)  # (unit, time)
         np.testing.assert_allclose(f[s, 47:], want, atol=1e-4)
+
+
+@pytest.mark.skipif(not native.available(), reason="the native kernels are not built")
+def test_training_does_not_depend_on_whether_the_kernels_are_built(toy, tmp_path, monkeypatch):
+    """The feature pass (EMD and codes of every window) runs in float64 on the kernels or in
+    torch: the same run twice, once with TACTILE_NATIVE=0, gives the same weights bit for bit
+    and the same figures."""
+    cfg = _cfg("sf_rnn", epochs=3, patience=3, refit="off")
+    fast = train(toy, tmp_path / "kernels", cfg, progress=False)
+    monkeypatch.setenv("TACTILE_NATIVE", "0")
+    assert not native.available()
+    slow = train(toy, tmp_path / "torch", cfg, progress=False)
+    a, _ = load_checkpoint(tmp_path / "kernels")
+    b, _ = load_checkpoint(tmp_path / "torch")
+    sa, sb = a.state_dict(), b.state_dict()
+    assert sa.keys() == sb.keys()
+    for k in sa:
+        assert torch.equal(sa[k], sb[k]), k
+    for k in ("accuracy", "val_accuracy", "best_epoch"):
+        assert fast[k] == slow[k], k
