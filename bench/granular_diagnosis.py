@@ -193,6 +193,9 @@ def main(argv: list[str] | None = None) -> int:
              for k, x in d["x"].items()}
     print(f"band-energy baseline (+ vibration bands at 2.2 kHz): "
           f"{val_accuracy(feats['train'], feats['val'], y):.3f}")
+    bands = {k: signal_features(x.numpy(), [pac], d["rate"]) for k, x in d["x"].items()}
+    print(f"the vibration's bands at 2.2 kHz alone: "
+          f"{val_accuracy(bands['train'], bands['val'], y):.3f}")
     print("energy kept by the codes (validation images): " + ", ".join(
         f"{n} {a:.3f} (median frame {m:.3f})" for n, a, m in energy_kept(d)))
     c = d["codes"]["train"].double()
