@@ -50,10 +50,7 @@ def export_run(run_dir: Path, out: Path, data: Path | None = None, int8: bool = 
     final, quantization, figures = graph, "none", parity.to_dict()
     custom = custom_nodes(graph)
     if custom and native_available():  # the same file on the kernels: it must pass too
-        # against PyTorch's EMD in float64, the kernel's precision (in float32 a near-tie of
-        # two extrema may place a knot elsewhere; the model was trained on float64 EMD)
-        with feature_pass(emd=True, codes=False):
-            fast = compare(model, graph.SerializeToString(), probe, ck, native=True)
+        fast = _on_kernels(model, graph, probe, ck, "strict")
         log("native kernels:\n" + fast.table())
         _require(fast, "float32 (native kernels)")
         figures = {**figures, "native": fast.to_dict()}
@@ -64,9 +61,7 @@ def export_run(run_dir: Path, out: Path, data: Path | None = None, int8: bool = 
         log("int8:\n" + q.table())
         _require(q, "int8")
         if custom_nodes(final) and native_available():
-            with feature_pass(emd=True, codes=False):
-                q_fast = compare(model, final.SerializeToString(), probe, ck, criterion="int8",
-                                 native=True)
+            q_fast = _on_kernels(model, final, probe, ck, "int8")
             log("int8, native kernels:\n" + q_fast.table())
             _require(q_fast, "int8 (native kernels)")
             report["int8_native"] = q_fast.to_dict()
@@ -92,6 +87,15 @@ def export_run(run_dir: Path, out: Path, data: Path | None = None, int8: bool = 
         tmp_path.unlink(missing_ok=True)
     report.update(seconds=round(time.perf_counter() - t0, 2), bytes=out.stat().st_size)
     return report
+
+
+def _on_kernels(model, graph: onnx.ModelProto, probe, ck: dict, criterion: str):
+    """Parity of ``graph`` on the kernel library, against PyTorch's EMD in float64: the
+    kernel's precision (in float32 a near-tie of two extrema may place a knot elsewhere) and
+    the features the model was trained on."""
+    with feature_pass(emd=True, codes=False):
+        return compare(model, graph.SerializeToString(), probe, ck, criterion=criterion,
+                       native=True)
 
 
 def output_file(out: Path) -> Path:

@@ -54,6 +54,7 @@ from torch import nn
 
 from tactile.export.codes import float32_apart, parting
 from tactile.export.taps import CoderTap, find_coders, graph_order, tap_session
+from tactile.training.sparse_check import sklearn_order
 
 IMAGE_RTOL = 1e-4
 """A row codes the same image when max |x_graph - x_torch| <= this x ||x_torch|| (the BioTac's
@@ -241,21 +242,10 @@ def kernel_order(d: np.ndarray, x: np.ndarray, order_t: list[int], code: np.ndar
 
 def _float64_order(d: np.ndarray, x: np.ndarray, n: int) -> list[int]:
     """OMP's atoms in order for image ``x``, in float64 on ``D D^T`` rounded once to float32
-    (the Gram matrix a file holds), from scikit-learn's coefficient path."""
-    import warnings
-
-    from sklearn.linear_model import orthogonal_mp_gram
-
-    d64, x64 = d.astype(np.float64), x.astype(np.float64)
+    (the Gram matrix a file holds)."""
+    d64 = d.astype(np.float64)
     gram = (d64 @ d64.T).astype(np.float32).astype(np.float64)
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore")  # "ended prematurely": an early exit is fine here
-        path = orthogonal_mp_gram(gram, d64 @ x64, n_nonzero_coefs=n, return_path=True)
-    path = path.reshape(len(d), -1)
-    order: list[int] = []
-    for s in range(path.shape[1]):
-        order += [int(a) for a in np.flatnonzero(path[:, s]) if a not in order]
-    return order
+    return sklearn_order(d64, x.astype(np.float64), n, gram=gram)
 
 
 class Explainer:

@@ -19,11 +19,13 @@ from sklearn.linear_model import orthogonal_mp_gram
 from tactile.training.sparse import EPS as FLOAT32_EPS  # float32's epsilon
 
 
-def sklearn_order(d: np.ndarray, x: np.ndarray, n: int) -> list[int]:
+def sklearn_order(d: np.ndarray, x: np.ndarray, n: int,
+                  gram: np.ndarray | None = None) -> list[int]:
     """The atoms scikit-learn's OMP picks for window ``x`` (features,) with dictionary ``d``
     (atoms, features) and ``n`` non-zeros, in order (from its coefficient path), computed as
-    its transform computes them (Gram in x's dtype)."""
-    gram = (d @ d.T).astype(x.dtype)
+    its transform computes them (Gram in x's dtype), or on ``gram`` when given."""
+    if gram is None:
+        gram = (d @ d.T).astype(x.dtype)
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")  # "ended prematurely": an early exit is fine here
         path = orthogonal_mp_gram(gram, d @ x, n_nonzero_coefs=n, return_path=True)
