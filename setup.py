@@ -17,7 +17,8 @@ setup(
         Extension(
             "tactile.native._kernels",
             sources=["tactile/native/emd.c", "tactile/native/omp.c", "tactile/native/ort_ops.c"],
-            depends=["tactile/native/tactile_native.h", "tactile/native/ort_api.h"],
+            depends=["tactile/native/tactile_native.h", "tactile/native/ort_api.h",
+                     "tactile/native/omp_core.h"],
             libraries=["m"] if UNIX else [],
             # no fused multiply-add contraction: the same bits on x86 and ARM boards; -O3
             # vectorises the independent loops (no reassociation without -ffast-math: the same

@@ -9,7 +9,9 @@ Cases, each at batch 1 (one window per call), the same windows for every impleme
 * EMD 8 x 50 samples (the pen's 8 channels), 4 IMFs x 10 sifts; PyEMD loops over the channels;
 * OMP of 46 rows x 176 features on 200 atoms, 17 non-zeros (one vibration image of the granular
   model), float32: the kernel, scikit-learn's ``SparseCoder(transform_algorithm="omp")``
-  transform and the torch ``SparseCoder``.
+  transform and the torch ``SparseCoder``; and the kernel's baseline loops
+  (``TACTILE_NATIVE_SIMD=base``: SSE2 on x86-64) beside the AVX2 ones it picks where the
+  processor has them (the same on processors without).
 
 Prints milliseconds per call and each one's time over the kernel's, all measured in this run:
 every implementation runs once per round (after a warm-up round) and keeps its fastest round,
@@ -21,6 +23,7 @@ exported graph does (float64 inside).
 from __future__ import annotations
 
 import argparse
+import os
 import sys
 import time
 import warnings
@@ -120,8 +123,20 @@ def omp_case(repeats: int, rows: int = 46, features: int = 176, atoms: int = 200
         with torch.no_grad():
             coder(xt[i])
 
+    def baseline_copy(i):  # the kernel's baseline vector loops where an AVX2 copy would run
+        before = os.environ.get("TACTILE_NATIVE_SIMD")
+        os.environ["TACTILE_NATIVE_SIMD"] = "base"
+        try:
+            native.omp(x[i], d, gram, n_nonzero)
+        finally:
+            if before is None:
+                os.environ.pop("TACTILE_NATIVE_SIMD")
+            else:
+                os.environ["TACTILE_NATIVE_SIMD"] = before
+
     fns = {
         "native f32": lambda i: native.omp(x[i], d, gram, n_nonzero),
+        "native, baseline": baseline_copy,
         "torch SparseCoder": torch_omp,
         "scikit-learn": lambda i: sk.transform(x[i]),
     }

@@ -385,6 +385,35 @@ def test_omp_ties_and_early_exits_follow_scikit_learn():
         np.testing.assert_allclose(got, want, rtol=1e-9, atol=1e-9)
 
 
+def _has_avx2() -> bool:
+    try:
+        return " avx2" in Path("/proc/cpuinfo").read_text()
+    except OSError:
+        return False
+
+
+@pytest.mark.skipif(not _has_avx2(), reason="the AVX2 copy of the OMP loops runs only on x86-64 "
+                    "processors with AVX2 (this one has none, or no /proc/cpuinfo)")
+@pytest.mark.parametrize("dtype", [np.float32, np.float64])
+def test_omp_avx2_copy_gives_the_baseline_bits(monkeypatch, dtype):
+    """omp.c's hot loops exist twice on x86-64: 2 and 4 doubles a vector. They must compute
+    the same sums in the same order: the same codes, bit for bit, at sizes that fill the
+    vector blocks and sizes that leave remainders."""
+    rng = np.random.default_rng(11)
+    for atoms, features, n_nonzero, rows in ((200, 176, 17, 203), (100, 95, 9, 50),
+                                             (37, 13, 7, 9), (5, 3, 3, 4)):
+        d = _dictionary(rng, atoms, features).astype(dtype)
+        gram = (d.astype(np.float64) @ d.astype(np.float64).T).astype(dtype)
+        x = (rng.standard_normal((rows, features))
+             + (rng.random((rows, atoms)) < 0.05) * 2.0 @ d).astype(dtype)
+        monkeypatch.delenv("TACTILE_NATIVE_SIMD", raising=False)
+        fast = native.omp(x, d, gram, n_nonzero)
+        monkeypatch.setenv("TACTILE_NATIVE_SIMD", "base")
+        base = native.omp(x, d, gram, n_nonzero)
+        assert (fast != 0).sum() > rows  # codes were computed
+        assert fast.tobytes() == base.tobytes(), (atoms, features)
+
+
 def test_omp_refuses_bad_input():
     d = np.eye(4)
     with pytest.raises(ConfigError, match="n_nonzero=5"):

@@ -115,6 +115,23 @@ static void omp_cases(void) {
     expect(tactile_omp_f64(NULL, 0, F, NULL, NULL, K, 2, NULL) == TACTILE_OK, "rows 0", 0);
     g[5] = NAN;
     expect(tactile_omp_f64(x, R, F, d, g, K, 2, codes) == TACTILE_ENONFINITE, "NaN gram", 0);
+    g[5] = 0.0;
+    d[K * F - 1] = -INFINITY;
+    expect(tactile_omp_f64(x, R, F, d, g, K, 2, codes) == TACTILE_ENONFINITE, "inf dictionary",
+           0);
+    int zero = 1;
+    for (int i = 0; i < R * K; i++) zero &= codes[i] == 0.0;
+    expect(zero, "inf dictionary: zero codes", 0);
+    for (int i = 0; i < K * F; i++) df[i] = 0.5f;
+    for (int i = 0; i < K * K; i++) gf[i] = 0.25f * F;
+    gf[K * K - 1] = INFINITY;
+    expect(tactile_omp_f32(xf, R, F, df, gf, K, 2, cf) == TACTILE_ENONFINITE, "inf gram f32", 0);
+    gf[K * K - 1] = 0.25f * F;
+    df[0] = NAN;
+    expect(tactile_omp_f32(xf, R, F, df, gf, K, 2, cf) == TACTILE_ENONFINITE, "NaN dictionary f32",
+           0);
+    df[0] = 0.5f;
+    expect(tactile_omp_f32(xf, R, F, df, gf, K, 2, cf) == TACTILE_OK, "finite f32", 0);
 }
 
 int main(void) {
