@@ -17,10 +17,16 @@
 #define RANGE_THR 1e-3 /* §1.2: end when max(res) - min(res) is below this (absolute) */
 #define POWER_THR 5e-3 /* §1.2: end when sum |res| is below this (absolute) */
 
+/* One envelope's spline: knots, then the arrays of its solve, (N + 8) each. */
+typedef struct {
+    double *kx, *ky;               /* knot positions, half values */
+    double *hk, *sl, *m, *cp, *dp; /* spacings, slopes, M / 6, the Thomas sweep */
+    int64_t n;                     /* knots */
+} Env;
+
 typedef struct {
     double *h, *acc, *mean;      /* (N) current proto-IMF, sum of IMFs, mean envelope */
-    double *kx, *ky;             /* (N + 8) knots of one envelope: positions, half values */
-    double *hk, *sl, *m, *cp, *dp; /* (N + 8) spline spacings, slopes, M / 6, Thomas sweep */
+    Env env[2];                  /* the upper and the lower envelope */
     int64_t *pmax, *pmin;        /* (N) extremum positions */
 } Work;
 
@@ -155,52 +161,109 @@ static int64_t knots(const double *S, const Src *l, int64_t lsym, const int64_t 
 }
 
 /* §1.6 Spline: the cubic spline through n knots, not-a-knot for n > 3, natural for n == 3,
- * added into out[0..N-1] (the knots span [0, N-1]). Solved for m = M / 6 (the second
+ * evaluated at 0..len-1 (the knots span [0, len - 1]). Solved for m = M / 6 (the second
  * derivatives over 6) by the Thomas algorithm on the eliminated system of §4.6, which is
- * strictly diagonally dominant; evaluated in scipy's local power basis. */
-static void spline_add(const double *kx, const double *ky, int64_t n, int64_t len, Work *w,
-                       double *out) {
-    double *hk = w->hk, *sl = w->sl, *m = w->m, *cp = w->cp, *dp = w->dp;
+ * strictly diagonally dominant; evaluated in scipy's local power basis.
+ *
+ * The two envelopes' systems are solved side by side, row j of one beside row j of the other:
+ * each sweep is a chain of divisions, and two independent chains keep the processor busy. */
+
+/* Spacings, slopes and the ends of m; 1 when the system has rows to sweep (n > 3). */
+static int spline_setup(Env *e) {
+    const int64_t n = e->n;
+    if (n < 3) return 0;
+    for (int64_t k = 0; k < n - 1; k++) {
+        e->hk[k] = e->kx[k + 1] - e->kx[k];
+        e->sl[k] = (e->ky[k + 1] - e->ky[k]) / e->hk[k];
+    }
+    e->m[0] = e->m[n - 1] = 0.0;
+    if (n == 3) { /* natural: m0 = m2 = 0 */
+        e->m[1] = (e->sl[1] - e->sl[0]) / (2.0 * (e->hk[0] + e->hk[1]));
+        return 0;
+    }
+    return 1;
+}
+
+/* Forward sweep, row j (1 .. n-2) of h[j-1] m[j-1] + 2 (h[j-1] + h[j]) m[j] + h[j] m[j+1] =
+ * s[j] - s[j-1]; not-a-knot eliminates m[0] from row 1 and m[n-1] from row n-2. */
+static inline void sweep_row(Env *e, int64_t j) {
+    const double *hk = e->hk, *sl = e->sl;
+    const int64_t n = e->n;
+    double a = hk[j - 1], b = 2.0 * (hk[j - 1] + hk[j]), c = hk[j];
+    const double r = sl[j] - sl[j - 1];
+    if (j == 1) {
+        const double h0 = hk[0], h1 = hk[1];
+        a = 0.0;
+        b = (h0 + h1) * (h0 + 2.0 * h1) / h1;
+        c = (h1 * h1 - h0 * h0) / h1;
+    }
+    if (j == n - 2) {
+        const double hq = hk[n - 3], hl = hk[n - 2];
+        c = 0.0;
+        b = (hq + hl) * (2.0 * hq + hl) / hq;
+        a = (hq * hq - hl * hl) / hq;
+    }
+    const double den = b - (j > 1 ? a * e->cp[j - 1] : 0.0);
+    e->cp[j] = c / den;
+    e->dp[j] = (r - (j > 1 ? a * e->dp[j - 1] : 0.0)) / den;
+}
+
+/* Back substitution, row j (n-3 .. 1), after m[n-2] = dp[n-2]. */
+static inline void back_row(Env *e, int64_t j) { e->m[j] = e->dp[j] - e->cp[j] * e->m[j + 1]; }
+
+/* The not-a-knot ends of m. */
+static void spline_ends(Env *e) {
+    const int64_t n = e->n;
+    const double *hk = e->hk;
+    double *m = e->m;
+    const double h0 = hk[0], h1 = hk[1], hq = hk[n - 3], hl = hk[n - 2];
+    m[0] = ((h0 + h1) * m[1] - h0 * m[2]) / h1;            /* left */
+    m[n - 1] = ((hq + hl) * m[n - 2] - hl * m[n - 3]) / hq; /* and right */
+}
+
+/* m of both envelopes. */
+static void spline_solve(Env *u, Env *l) {
+    const int64_t ju = spline_setup(u) ? u->n - 2 : 0, jl = spline_setup(l) ? l->n - 2 : 0;
+    const int64_t both = ju < jl ? ju : jl;
+    int64_t j = 1;
+    for (; j <= both; j++) {
+        sweep_row(u, j);
+        sweep_row(l, j);
+    }
+    for (; j <= ju; j++) sweep_row(u, j);
+    for (; j <= jl; j++) sweep_row(l, j);
+    if (ju) u->m[ju] = u->dp[ju];
+    if (jl) l->m[jl] = l->dp[jl];
+    int64_t iu = ju - 1, il = jl - 1; /* n - 3 */
+    for (; iu > jl - 1 && iu >= 1; iu--) back_row(u, iu); /* the longer one's extra rows first */
+    for (; il > ju - 1 && il >= 1; il--) back_row(l, il);
+    for (; iu >= 1; iu--, il--) {
+        back_row(u, iu);
+        back_row(l, il);
+    }
+    if (ju) spline_ends(u);
+    if (jl) spline_ends(l);
+}
+
+/* The half envelopes' sum is the mean envelope, taken from h: the upper one (h == NULL) is
+ * written to out as 0 + value, the lower one (h given) is added to it and the sum subtracted
+ * from h in the same pass: the operations, in order, of a mean set to zero, both envelopes
+ * added into it, then h -= mean. */
+#define SPLINE_STORE(t, v)                                                                      \
+    do {                                                                                       \
+        if (h) h[t] -= out[t] + (v);                                                           \
+        else out[t] = 0.0 + (v);                                                               \
+    } while (0)
+static void spline_eval(const Env *e, int64_t len, double *out, double *h) {
+    const double *kx = e->kx, *ky = e->ky, *hk = e->hk, *sl = e->sl, *m = e->m;
+    const int64_t n = e->n;
     if (n < 3) { /* unreachable with > 2 extrema; a line (or a constant) keeps it defined */
         for (int64_t t = 0; t < len; t++) {
             double v = n == 0 ? 0.0 : ky[0];
             if (n == 2) v += (ky[1] - ky[0]) / (kx[1] - kx[0]) * ((double)t - kx[0]);
-            out[t] += v;
+            SPLINE_STORE(t, v);
         }
         return;
-    }
-    for (int64_t k = 0; k < n - 1; k++) {
-        hk[k] = kx[k + 1] - kx[k];
-        sl[k] = (ky[k + 1] - ky[k]) / hk[k];
-    }
-    m[0] = m[n - 1] = 0.0;
-    if (n == 3) { /* natural: m0 = m2 = 0 */
-        m[1] = (sl[1] - sl[0]) / (2.0 * (hk[0] + hk[1]));
-    } else {
-        /* rows j = 1 .. n-2: h[j-1] m[j-1] + 2 (h[j-1] + h[j]) m[j] + h[j] m[j+1] = s[j] - s[j-1];
-         * not-a-knot eliminates m[0] from row 1 and m[n-1] from row n-2. */
-        const double h0 = hk[0], h1 = hk[1], hq = hk[n - 3], hl = hk[n - 2];
-        for (int64_t j = 1; j <= n - 2; j++) {
-            double a = hk[j - 1], b = 2.0 * (hk[j - 1] + hk[j]), c = hk[j];
-            const double r = sl[j] - sl[j - 1];
-            if (j == 1) {
-                a = 0.0;
-                b = (h0 + h1) * (h0 + 2.0 * h1) / h1;
-                c = (h1 * h1 - h0 * h0) / h1;
-            }
-            if (j == n - 2) {
-                c = 0.0;
-                b = (hq + hl) * (2.0 * hq + hl) / hq;
-                a = (hq * hq - hl * hl) / hq;
-            }
-            const double den = b - (j > 1 ? a * cp[j - 1] : 0.0);
-            cp[j] = c / den;
-            dp[j] = (r - (j > 1 ? a * dp[j - 1] : 0.0)) / den;
-        }
-        m[n - 2] = dp[n - 2];
-        for (int64_t j = n - 3; j >= 1; j--) m[j] = dp[j] - cp[j] * m[j + 1];
-        m[0] = ((h0 + h1) * m[1] - h0 * m[2]) / h1;        /* not-a-knot, left */
-        m[n - 1] = ((hq + hl) * m[n - 2] - hl * m[n - 3]) / hq; /* and right */
     }
     /* sample t lies in the piece k with kx[k] <= t < kx[k + 1] (the first piece before the
      * first knot, the last one past n - 2); a piece's coefficients are computed once */
@@ -214,10 +277,11 @@ static void spline_add(const double *kx, const double *ky, int64_t n, int64_t le
             const double e = kx[k + 1] < (double)len ? kx[k + 1] : (double)len;
             end = e > (double)t ? (int64_t)ceil(e) : t;
         }
-        for (; t < end; t++) {
-            const double B = (double)t - x0;
-            out[t] += y0 + B * (c1 + B * (c2 + B * c3));
-        }
+        double B = (double)t - x0; /* whole numbers: B + 1.0 is exact */
+        if (h)
+            for (; t < end; t++, B += 1.0) h[t] -= out[t] + (y0 + B * (c1 + B * (c2 + B * c3)));
+        else
+            for (; t < end; t++, B += 1.0) out[t] = 0.0 + (y0 + B * (c1 + B * (c2 + B * c3)));
     }
 }
 
@@ -231,12 +295,12 @@ static int sift(double *h, int64_t n, Work *w) {
     Src lmax, lmin, rmax, rmin;
     int64_t lsym, rsym;
     boundary(h, n, w->pmax, a, w->pmin, b, &lmax, &lmin, &lsym, &rmax, &rmin, &rsym);
-    memset(w->mean, 0, (size_t)n * sizeof(double));
-    int64_t k = knots(h, &lmax, lsym, w->pmax, a, &rmax, rsym, w->kx, w->ky);
-    spline_add(w->kx, w->ky, k, n, w, w->mean);
-    k = knots(h, &lmin, lsym, w->pmin, b, &rmin, rsym, w->kx, w->ky);
-    spline_add(w->kx, w->ky, k, n, w, w->mean);
-    for (int64_t t = 0; t < n; t++) h[t] -= w->mean[t];
+    Env *up = &w->env[0], *lo = &w->env[1];
+    up->n = knots(h, &lmax, lsym, w->pmax, a, &rmax, rsym, up->kx, up->ky);
+    lo->n = knots(h, &lmin, lsym, w->pmin, b, &rmin, rsym, lo->kx, lo->ky);
+    spline_solve(up, lo);
+    spline_eval(up, n, w->mean, NULL);
+    spline_eval(lo, n, w->mean, h); /* h -= mean */
     return 1;
 }
 
@@ -270,22 +334,26 @@ static int64_t emd_row(const double *x, int64_t n, int n_imfs, int n_sifts, Work
 }
 
 static void work_free(Work *w) {
-    free(w->h); free(w->acc); free(w->mean); free(w->kx); free(w->ky); free(w->hk);
-    free(w->sl); free(w->m); free(w->cp); free(w->dp); free(w->pmax); free(w->pmin);
+    free(w->h); free(w->acc); free(w->mean); free(w->pmax); free(w->pmin);
+    for (int i = 0; i < 2; i++) {
+        Env *e = &w->env[i];
+        free(e->kx); free(e->ky); free(e->hk); free(e->sl); free(e->m); free(e->cp); free(e->dp);
+    }
 }
 
 static int work_alloc(Work *w, int64_t n) {
     memset(w, 0, sizeof *w);
     const size_t nn = (size_t)n + 8, nd = nn * sizeof(double), ni = nn * sizeof(int64_t);
-    w->h = malloc(nd); w->acc = malloc(nd); w->mean = malloc(nd); w->kx = malloc(nd);
-    w->ky = malloc(nd); w->hk = malloc(nd); w->sl = malloc(nd); w->m = malloc(nd);
-    w->cp = malloc(nd); w->dp = malloc(nd); w->pmax = malloc(ni); w->pmin = malloc(ni);
-    if (!w->h || !w->acc || !w->mean || !w->kx || !w->ky || !w->hk || !w->sl || !w->m ||
-        !w->cp || !w->dp || !w->pmax || !w->pmin) {
-        work_free(w);
-        return 0;
+    int ok = (w->h = malloc(nd)) && (w->acc = malloc(nd)) && (w->mean = malloc(nd)) &&
+             (w->pmax = malloc(ni)) && (w->pmin = malloc(ni));
+    for (int i = 0; i < 2 && ok; i++) {
+        Env *e = &w->env[i];
+        ok = (e->kx = malloc(nd)) && (e->ky = malloc(nd)) && (e->hk = malloc(nd)) &&
+             (e->sl = malloc(nd)) && (e->m = malloc(nd)) && (e->cp = malloc(nd)) &&
+             (e->dp = malloc(nd));
     }
-    return 1;
+    if (!ok) work_free(w);
+    return ok;
 }
 
 /* The shared body of both entry points; x, imfs, residue are float (f32) or double. */
