@@ -15,38 +15,42 @@ typedef double CORE(vd) __attribute__((vector_size(8 * CORE_VECTOR)));
 #define CORE_NV (LANES / CORE_VECTOR)
 #define CORE_NC (8 / CORE_VECTOR)
 
-/* acc (LANES) = sum_i rows[i * stride + j] * w[i], i = 0..n-1, in order */
+/* acc (width: LANES, 8 or 4) = sum_i rows[i * stride + j] * w[i], i = 0..n-1, in order */
 CORE_ATTR static inline void CORE(block_sum)(const double *rows, int64_t stride,
-                                             const double *w, int64_t n, double *acc) {
+                                             const double *w, int64_t n, double *acc,
+                                             int width) {
     CORE(vd) a[CORE_NV], d;
-    for (int v = 0; v < CORE_NV; v++) {
+    const int nv = width / CORE_VECTOR;
+    for (int v = 0; v < nv; v++) {
         memcpy(&d, rows + CORE_VECTOR * v, sizeof d);
         a[v] = d * w[0];
     }
     for (int64_t i = 1; i < n; i++) {
         const double *r = rows + i * stride;
         const double wi = w[i];
-        for (int v = 0; v < CORE_NV; v++) {
+        for (int v = 0; v < nv; v++) {
             memcpy(&d, r + CORE_VECTOR * v, sizeof d);
             a[v] += d * wi;
         }
     }
-    memcpy(acc, a, sizeof a);
+    memcpy(acc, a, (size_t)width * sizeof(double));
 }
 
-/* The correlations of CORR_ROWS rows x (F) with 8 atoms: c[r * K + j] = sum_f dt[f * K + j]
- * x_r[f], in order of f (as block_sum sums): each loaded atom serves the four rows. */
+/* The correlations of CORR_ROWS rows x (F) with width (8 or 4) atoms: c[r * K + j] =
+ * sum_f dt[f * K + j] x_r[f], in order of f (as block_sum sums): each loaded atom serves the
+ * four rows. */
 CORE_ATTR static inline void CORE(block_corr)(const double *dt, int64_t K, const double *x,
-                                              int64_t F, double *c) {
+                                              int64_t F, double *c, int width) {
     CORE(vd) a[CORR_ROWS][CORE_NC], d;
-    for (int v = 0; v < CORE_NC; v++) {
+    const int nc = width / CORE_VECTOR;
+    for (int v = 0; v < nc; v++) {
         memcpy(&d, dt + CORE_VECTOR * v, sizeof d);
         for (int r = 0; r < CORR_ROWS; r++) a[r][v] = d * x[r * F];
     }
     for (int64_t f = 1; f < F; f++) {
         const double *row = dt + f * K;
         const double x0 = x[f], x1 = x[F + f], x2 = x[2 * F + f], x3 = x[3 * F + f];
-        for (int v = 0; v < CORE_NC; v++) {
+        for (int v = 0; v < nc; v++) {
             memcpy(&d, row + CORE_VECTOR * v, sizeof d);
             a[0][v] += d * x0;
             a[1][v] += d * x1;
@@ -54,16 +58,16 @@ CORE_ATTR static inline void CORE(block_corr)(const double *dt, int64_t K, const
             a[3][v] += d * x3;
         }
     }
-    for (int r = 0; r < CORR_ROWS; r++) memcpy(c + r * K, a[r], sizeof a[r]);
+    for (int r = 0; r < CORR_ROWS; r++) memcpy(c + r * K, a[r], (size_t)width * sizeof(double));
 }
 #undef CORE_NV
 #undef CORE_NC
 #else
 CORE_ATTR static void CORE(block_sum)(const double *rows, int64_t stride, const double *w,
-                                      int64_t n, double *acc) {
-    for (int j = 0; j < LANES; j++) acc[j] = rows[j] * w[0];
+                                      int64_t n, double *acc, int width) {
+    for (int j = 0; j < width; j++) acc[j] = rows[j] * w[0];
     for (int64_t i = 1; i < n; i++)
-        for (int j = 0; j < LANES; j++) acc[j] += rows[i * stride + j] * w[i];
+        for (int j = 0; j < width; j++) acc[j] += rows[i * stride + j] * w[i];
 }
 #endif
 
@@ -74,14 +78,20 @@ CORE_ATTR static double CORE(residual)(const double *cov, const double *grow,
                                        double *alpha) {
     double m[LANES] = {0.0}, acc[LANES];
     int64_t k0 = 0;
-    for (; k0 + LANES <= K; k0 += LANES) {
-        CORE(block_sum)(grow + k0, K, gamma, n, acc);
-        for (int j = 0; j < LANES; j++) {
-            const double a = cov[k0 + j] - acc[j];
-            alpha[k0 + j] = a;
-            m[j] = fabs(a) > m[j] ? fabs(a) : m[j];
-        }
-    }
+#define CORE_RESIDUAL_BLOCK(width)                                                              \
+    do {                                                                                       \
+        CORE(block_sum)(grow + k0, K, gamma, n, acc, width);                                   \
+        for (int j = 0; j < (width); j++) {                                                    \
+            const double a = cov[k0 + j] - acc[j];                                             \
+            alpha[k0 + j] = a;                                                                 \
+            m[j] = fabs(a) > m[j] ? fabs(a) : m[j];                                            \
+        }                                                                                      \
+        k0 += (width);                                                                         \
+    } while (0)
+    while (k0 + LANES <= K) CORE_RESIDUAL_BLOCK(LANES); /* blocks of 16, then of 8 and of 4 */
+    if (k0 + 8 <= K) CORE_RESIDUAL_BLOCK(8);
+    if (k0 + 4 <= K) CORE_RESIDUAL_BLOCK(4);
+#undef CORE_RESIDUAL_BLOCK
     for (; k0 < K; k0++) {
         double a = grow[k0] * gamma[0];
         for (int64_t i = 1; i < n; i++) a += grow[i * K + k0] * gamma[i];
@@ -210,7 +220,12 @@ CORE_ATTR static void CORE(correlations)(const double *dt, const double *xr, int
 #ifdef CORE_VECTOR
     for (; b + CORR_ROWS <= nb && K >= 8; b += CORR_ROWS) {
         int64_t k0 = 0;
-        for (; k0 + 8 <= K; k0 += 8) CORE(block_corr)(dt + k0, K, xr + b * F, F, cov + b * K + k0);
+        for (; k0 + 8 <= K; k0 += 8)
+            CORE(block_corr)(dt + k0, K, xr + b * F, F, cov + b * K + k0, 8);
+        if (k0 + 4 <= K) {
+            CORE(block_corr)(dt + k0, K, xr + b * F, F, cov + b * K + k0, 4);
+            k0 += 4;
+        }
         for (; k0 < K; k0++)
             for (int64_t r = b; r < b + CORR_ROWS; r++) {
                 double a = dt[k0] * xr[r * F];
@@ -223,7 +238,15 @@ CORE_ATTR static void CORE(correlations)(const double *dt, const double *xr, int
         const double *x = xr + b * F;
         double *c = cov + b * K;
         int64_t k0 = 0;
-        for (; k0 + LANES <= K; k0 += LANES) CORE(block_sum)(dt + k0, K, x, F, c + k0);
+        for (; k0 + LANES <= K; k0 += LANES) CORE(block_sum)(dt + k0, K, x, F, c + k0, LANES);
+        if (k0 + 8 <= K) {
+            CORE(block_sum)(dt + k0, K, x, F, c + k0, 8);
+            k0 += 8;
+        }
+        if (k0 + 4 <= K) {
+            CORE(block_sum)(dt + k0, K, x, F, c + k0, 4);
+            k0 += 4;
+        }
         for (; k0 < K; k0++) {
             double a = dt[k0] * x[0];
             for (int64_t f = 1; f < F; f++) a += dt[f * K + k0] * x[f];
