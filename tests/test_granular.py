@@ -715,3 +715,26 @@ def test_training_does_not_depend_on_whether_the_kernels_are_built(toy, tmp_path
         assert torch.equal(sa[k], sb[k]), k
     for k in ("accuracy", "val_accuracy", "best_epoch"):
         assert fast[k] == slow[k], k
+
+
+@pytest.mark.parametrize("r,steps", [(22, 22), (22, 5), (1, 5), (2, 3), (5, 12), (1, 20)])
+def test_images_cut_with_slices_are_each_steps_samples(r, steps):
+    """A modality's image of step s holds the ``steps`` samples that end with frame
+    ``first + s``: cut with slices of whole frames (an image of at most MAX_SLICES frames) or
+    one gather (longer ones), each the same numbers as indexing those samples directly."""
+    window, n, k = 30, 3, 4
+    q = -(-steps // r)  # frames one image spans
+    first = q + 1  # another modality's longer images start the steps later
+    n_steps = window - first
+    start = (first + 1) * r - steps
+    x = torch.randn(2, n, k, window * r)
+    want = torch.stack([x[..., start + r * s : start + r * s + steps]
+                        for s in range(n_steps)], dim=1)  # (B, S, n, K, steps)
+    m = type("Layout", (), {"r": r, "steps": steps, "n": n, "imfs": k})()
+    pre = type("Pre", (), {"layout": [m], "steps": n_steps, "image_starts": [start],
+                           "image_0": torch.arange(0)})()
+    if q > granular.MAX_SLICES:  # the gather path reads the image positions
+        pre.image_0 = (start + r * torch.arange(n_steps)[:, None]
+                       + torch.arange(steps)).flatten()
+    got = granular.GranularPre._image(pre, x, 0)
+    assert torch.equal(got, want.reshape(2, n_steps, n * k * steps))

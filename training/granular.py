@@ -36,6 +36,9 @@ from tactile.training.model import Classifier
 from tactile.training.sparse import SparseCoder, default_n_nonzero
 
 LOG_EPS = 1e-6
+# Images spanning up to this many frames are cut from the signal with slices; longer ones with
+# one gather (fewer nodes in the exported graph)
+MAX_SLICES = 8
 GAIN_SCALE, GAIN_LOG_ENERGY, GAIN_LOG_STD = 0, 1, 2  # how a gain reaches a feature
 MODES = {"sf_rnn": "codes", "sparse_linear": "codes", "f_rnn": "images", "linear": "energy"}
 DICTIONARY_ROWS = 20_000
@@ -80,11 +83,13 @@ class GranularPre(nn.Module):
         self.steps = n_steps(self.layout, window)  # S
         self.emds = nn.ModuleList(EMD(m.imfs, emd_sifts) for m in self.layout if m.imfs > 0)
         first = max(m.frames for m in self.layout) - 1  # the frame of the first step
+        self.image_starts = []  # per modality, the first sample of the first step's image
         for k, m in enumerate(self.layout):
             self.register_buffer(f"index_{k}", torch.tensor(m.index, dtype=torch.long),
                                  persistent=False)
             # samples of each step's image at the modality's rate: (S * steps,)
             start = (first + 1) * m.r - m.steps
+            self.image_starts.append(start)
             pos = start + m.r * torch.arange(self.steps)[:, None] + torch.arange(m.steps)
             self.register_buffer(f"image_{k}", pos.flatten(), persistent=False)
         self.coders = nn.ModuleList(
@@ -159,14 +164,16 @@ class GranularPre(nn.Module):
     # --- the three stages -----------------------------------------------------------------
 
     def normalise(self, x: Tensor) -> Tensor:
-        """x (B, T, C) in units -> z (B, T, C)."""
+        """x (B, T, C) in units -> z (B, T, C); T must be the window."""
+        if not torch.jit.is_tracing() and x.shape[1] != self.window:
+            raise ValueError(f"windows of {x.shape[1]} frames, the model's are {self.window}")
         return (x - self.mean) / self.std
 
     def _units(self, z: Tensor, k: int) -> Tensor:
         """Modality k's units at its own rate: (B, T, C) -> (B, n, T * r)."""
         m = self.layout[k]
         sel = torch.index_select(z, 2, getattr(self, f"index_{k}"))  # (B, T, n * r)
-        b, t = sel.shape[0], sel.shape[1]
+        b, t = _batch(sel), self.window
         return sel.reshape(b, t, m.n, m.r).permute(0, 2, 1, 3).reshape(b, m.n, t * m.r)
 
     def emd_inputs(self, z: Tensor) -> list[Tensor]:
@@ -187,9 +194,20 @@ class GranularPre(nn.Module):
     def _image(self, s: Tensor, k: int) -> Tensor:
         """(B, n, K, L) -> (B, S, n * K * steps), feature order (unit, IMF, time)."""
         m = self.layout[k]
-        b, n, kk = s.shape[0], s.shape[1], s.shape[2]
-        img = torch.index_select(s, 3, getattr(self, f"image_{k}"))  # (B, n, K, S * steps)
-        img = img.reshape(b, n, kk, self.steps, m.steps).permute(0, 3, 1, 2, 4)
+        b, n, kk = _batch(s), m.n, max(m.imfs, 1)
+        q = -(-m.steps // m.r)  # frames an image spans
+        if q <= MAX_SLICES:  # slices of whole frames, no gather (a gather is slow on a last axis)
+            # image_k's samples, start + r * step + (0 .. steps - 1), are the last steps
+            # samples of frames step .. step + q - 1, counted from the frame at f0
+            f0 = self.image_starts[k] + m.steps - q * m.r
+            fr = s.narrow(3, f0, (self.steps + q - 1) * m.r)
+            fr = fr.reshape(b, n, kk, self.steps + q - 1, m.r)
+            img = fr.narrow(3, 0, self.steps) if q == 1 else torch.cat(
+                [fr.narrow(3, i, self.steps) for i in range(q)], dim=4)
+            img = img[..., q * m.r - m.steps :].permute(0, 3, 1, 2, 4)
+        else:  # long images: each step's samples gathered
+            img = torch.index_select(s, 3, getattr(self, f"image_{k}"))  # (B, n, K, S * steps)
+            img = img.reshape(b, n, kk, self.steps, m.steps).permute(0, 3, 1, 2, 4)
         return img.reshape(b, self.steps, n * kk * m.steps)
 
     def images_from(self, z: Tensor, imfs: list[Tensor]) -> Tensor:
@@ -202,11 +220,12 @@ class GranularPre(nn.Module):
         ``codes`` mode, the images themselves in ``images`` mode."""
         if self.mode != "codes":
             return images
-        b, s = images.shape[0], images.shape[1]
-        flat = images.reshape(b * s, images.shape[2])
+        # rows x features from the images' own shape: the coders' inputs keep unknown sizes in
+        # the graph (a SparseCode function of several coders holds every coder's body)
+        flat = images.reshape(images.shape[0] * images.shape[1], images.shape[2])
         out, at = [], 0
         for coder, f in zip(self.coders, self.image_features):
-            out.append(coder(flat[:, at : at + f]).reshape(b, s, coder.atoms))
+            out.append(coder(flat[:, at : at + f]).reshape(_batch(images), self.steps, coder.atoms))
             at += f
         return torch.cat(out, dim=2)
 
@@ -247,6 +266,12 @@ class GranularPre(nn.Module):
         self.coders = nn.ModuleList(  # each coder keeps a C-ordered copy, as a checkpoint
             SparseCoder(np.asarray(d, np.float32), self.n_nonzero(m))
             for d, m in zip(dictionaries, self.layout))
+
+
+def _batch(x: Tensor) -> int:
+    """The batch size for a reshape: x's, or -1 while the exporter traces, so that every other
+    size of the shape is a constant of the graph (no shape arithmetic at run time)."""
+    return -1 if torch.jit.is_tracing() else x.shape[0]
 
 
 def sample_rows(n_rows: int, cap: int, seed: int) -> np.ndarray:
