@@ -384,11 +384,13 @@ static int emd_batch(const void *x, int f32, int64_t batch, int64_t len, int32_t
     int status = TACTILE_OK;
     for (int64_t i = 0; i < batch; i++) {
         int finite = 1;
-        for (int64_t t = 0; t < len; t++) {
-            const int64_t at = i * len + t;
-            row[t] = f32 ? (double)((const float *)x)[at] : ((const double *)x)[at];
-            finite &= isfinite(row[t]) != 0;
+        if (f32) {
+            const float *xi = (const float *)x + i * len;
+            for (int64_t t = 0; t < len; t++) row[t] = (double)xi[t];
+        } else {
+            memcpy(row, (const double *)x + i * len, (size_t)len * sizeof(double));
         }
+        for (int64_t t = 0; t < len; t++) finite &= isfinite(row[t]) != 0;
         if (finite) {
             n_valid[i] = emd_row(row, len, n_imfs, n_sifts, &w, out, out + (int64_t)n_imfs * len);
         } else { /* no IMFs, residue = x */
@@ -398,14 +400,13 @@ static int emd_batch(const void *x, int f32, int64_t batch, int64_t len, int32_t
             memcpy(out + (int64_t)n_imfs * len, row, (size_t)len * sizeof(double));
         }
         const int64_t ni = (int64_t)n_imfs * len;
-        for (int64_t t = 0; t < ni + len; t++) {
-            if (f32) {
-                if (t < ni) ((float *)imfs)[i * ni + t] = (float)out[t];
-                else ((float *)residue)[i * len + t - ni] = (float)out[t];
-            } else {
-                if (t < ni) ((double *)imfs)[i * ni + t] = out[t];
-                else ((double *)residue)[i * len + t - ni] = out[t];
-            }
+        if (f32) {
+            float *im = (float *)imfs + i * ni, *re = (float *)residue + i * len;
+            for (int64_t t = 0; t < ni; t++) im[t] = (float)out[t];
+            for (int64_t t = 0; t < len; t++) re[t] = (float)out[ni + t];
+        } else {
+            memcpy((double *)imfs + i * ni, out, (size_t)ni * sizeof(double));
+            memcpy((double *)residue + i * len, out + ni, (size_t)len * sizeof(double));
         }
     }
     free(row); free(out); work_free(&w);
