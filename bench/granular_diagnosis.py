@@ -19,7 +19,9 @@ printed is that validation accuracy) on per-window summaries:
 * ``level``: each unit's mean over the window (the DC levels: a pressure image of IMFs
   has none, the paper drops EMD's residue);
 * the band-energy baseline's features (``bench/baselines.py``'s ``window_features`` plus
-  the vibration's bands at 2.2 kHz) on the same windows.
+  the vibration's bands at 2.2 kHz) on the same windows;
+* the linear model's own features (``model = "linear"``: the log mean energy of each IMF over
+  the window), which its trained classifier can be compared with.
 
 ``--log RUN.log`` (a ``tactile-train`` log of a run at the toolkit's budget, e.g. the config
 above) adds what each early-stopping budget would have kept of that run's validation curve:
@@ -69,15 +71,23 @@ def compute(data: Path, cfg: TrainConfig) -> dict:
     pre = model.pre
     with feature_pass.feature_pass():
         images = {k: _features(pre.images, w, log, k, dist) for k, w in parts.items()}
+        energy = {k: _features(lambda x: energy_of(pre, x), w, log, k, dist)
+                  for k, w in parts.items()}
         learn_dictionaries(pre, images["train"], prep.cfg.seed, dist)
         codes = {k: torch.cat([pre.post(c) for c in v.split(32)]) for k, v in images.items()}
-    return {"images": images, "codes": codes,
+    return {"images": images, "codes": codes, "energy": energy,
             "dicts": [c.dictionary.detach().clone() for c in pre.coders],
             "layout": [(m.name, m.features, m.atoms, list(m.index)) for m in pre.layout],
             "x": {k: torch.from_numpy(w.x) for k, w in parts.items()},
             "y": {k: torch.from_numpy(np.asarray(w.y)) for k, w in parts.items()},
             "mean": torch.from_numpy(prep.norm.mean), "std": torch.from_numpy(prep.norm.std),
             "channels": list(channels), "rate": takes[0].info.sample_rate_hz}
+
+
+def energy_of(pre, x: torch.Tensor) -> torch.Tensor:
+    """(B, 1, F): the linear model's features of windows x (its ``energy`` mode)."""
+    z = pre.normalise(x)
+    return pre._energy(z, pre.decompose(z))
 
 
 def val_accuracy(train: np.ndarray, val: np.ndarray, y: dict) -> float:
@@ -154,9 +164,8 @@ def main(argv: list[str] | None = None) -> int:
     args = ap.parse_args(argv)
     torch.set_num_threads(1)
     cfg = TrainConfig.from_toml(CONFIG).replace(threads=1)
-    if args.cache and args.cache.exists():
-        d = torch.load(args.cache, weights_only=False)
-    else:
+    d = torch.load(args.cache, weights_only=False) if args.cache and args.cache.exists() else {}
+    if "energy" not in d:  # no cache, or one from before the linear model's features
         t0 = time.process_time()
         d = compute(args.data, cfg)
         print(f"features: {time.process_time() - t0:.0f} s CPU", file=sys.stderr)
@@ -196,6 +205,9 @@ def main(argv: list[str] | None = None) -> int:
     bands = {k: signal_features(x.numpy(), [pac], d["rate"]) for k, x in d["x"].items()}
     print(f"the vibration's bands at 2.2 kHz alone: "
           f"{val_accuracy(bands['train'], bands['val'], y):.3f}")
+    e = {k: v[:, 0].double().numpy() for k, v in d["energy"].items()}
+    print(f"the linear model's features (log mean energy of each IMF, a unit's mean and log std "
+          f"without IMFs; {e['train'].shape[1]}): {val_accuracy(e['train'], e['val'], y):.3f}")
     print("energy kept by the codes (validation images): " + ", ".join(
         f"{n} {a:.3f} (median frame {m:.3f})" for n, a, m in energy_kept(d)))
     c = d["codes"]["train"].double()
