@@ -220,12 +220,14 @@ class GranularPre(nn.Module):
         ``codes`` mode, the images themselves in ``images`` mode."""
         if self.mode != "codes":
             return images
-        # rows x features from the images' own shape: the coders' inputs keep unknown sizes in
-        # the graph (a SparseCode function of several coders holds every coder's body)
-        flat = images.reshape(images.shape[0] * images.shape[1], images.shape[2])
+        # the sizes from the images' own shape, as the exporter traces them: the coders'
+        # inputs keep unknown sizes in the graph (a SparseCode function of several coders holds
+        # every coder's body) and the codes the sizes the exporter gives a pooled head
+        b, s = images.shape[0], images.shape[1]
+        flat = images.reshape(b * s, images.shape[2])
         out, at = [], 0
         for coder, f in zip(self.coders, self.image_features):
-            out.append(coder(flat[:, at : at + f]).reshape(_batch(images), self.steps, coder.atoms))
+            out.append(coder(flat[:, at : at + f]).reshape(b, s, coder.atoms))
             at += f
         return torch.cat(out, dim=2)
 
