@@ -566,6 +566,41 @@ def test_a_granular_resume_state_from_before_per_modality_gains_is_refused(toy, 
     assert load_resume(run)["config"]["augment_gain"] == 0.0
 
 
+def test_a_linear_run_resumes_its_full_batch_fit_and_refuses_an_adam_state(toy, tmp_path):
+    """The linear model's L-BFGS fit stopped by Ctrl-C after an epoch continues from its saved
+    optimiser state to the weights of an uninterrupted run; a state saved with Adam (by a
+    version that trained it so) is refused in one line."""
+    import signal
+
+    from tactile.training.checkpoint import RESUME, load_resume
+
+    def stop_after_first(phase, epoch):
+        if (phase, epoch) == ("fit", 1):
+            signal.raise_signal(signal.SIGINT)
+
+    cfg = _cfg("linear", epochs=4, patience=4)
+    whole = tmp_path / "whole"
+    train(toy, whole, cfg, progress=False)
+    run = tmp_path / "r"
+    assert train(toy, run, cfg, progress=False, on_epoch=stop_after_first)["interrupted"]
+    r = load_resume(run)
+    assert r["state"]["optimizer"] == "LBFGS"
+    saved = torch.load(run / RESUME, weights_only=True)
+    train(toy, run, TrainConfig.from_dict(r["config"]), progress=False, resume=r["state"])
+    a = torch.load(whole / "checkpoint.pt", weights_only=True)["state_dict"]
+    b = torch.load(run / "checkpoint.pt", weights_only=True)["state_dict"]
+    for k in a:
+        assert torch.equal(a[k], b[k]), k
+    del saved["state"]["optimizer"]  # as saved before the key: Adam's
+    run2 = tmp_path / "r2"
+    run2.mkdir()
+    with pytest.raises(RecordingError, match="trained this model with Adam, this one trains it "
+                       "with LBFGS: train it again") as e:
+        train(toy, run2, TrainConfig.from_dict(saved["config"]), progress=False,
+              resume=saved["state"])
+    assert "\n" not in str(e.value)
+
+
 def test_the_f_rnn_input_scale_comes_from_the_training_windows(runs, toy):
     _, _, model = runs["f_rnn"]
     takes = load_dataset(toy)
@@ -738,3 +773,78 @@ def test_images_cut_with_slices_are_each_steps_samples(r, steps):
                        + torch.arange(steps)).flatten()
     got = granular.GranularPre._image(pre, x, 0)
     assert torch.equal(got, want.reshape(2, n_steps, n * k * steps))
+
+
+def test_the_linear_model_is_fitted_to_the_optimum_of_its_objective():
+    """model = "linear" (mean-pooled features, one linear layer) trains full-batch with L-BFGS:
+    after a few epochs its weights minimise cross-entropy + weight_decay / 2 x |weights|^2 on
+    the standardised features, the optimum that scipy's L-BFGS-B finds on the same objective
+    written in numpy (an independent reference). Mini-batch Adam stops short of it."""
+    from scipy.optimize import minimize
+
+    from tactile.training.dist import Dist
+    from tactile.training.log import Log
+    from tactile.training.loop import Context, Phase, _full_batch_epoch, full_batch
+    from tactile.training.resume import Live
+
+    rng = np.random.default_rng(4)
+    n, steps, feats, classes, decay = 600, 3, 7, 4, 1e-3
+    centres = rng.standard_normal((classes, feats)) * 0.8
+    y = rng.integers(0, classes, n)
+    f = torch.tensor(centres[y][:, None, :] + rng.standard_normal((n, steps, feats)) * 1.5,
+                     dtype=torch.float32)  # (N, S, F): overlapping classes
+    torch.manual_seed(0)
+    head = granular.PooledLinearHead(feats, classes, "mean")
+    assert head.full_batch and not granular.PooledLinearHead(feats, classes, "abs_mean").full_batch
+    cfg = TrainConfig(weight_decay=decay, augment_gain=0.0)
+    model = type("M", (), {"head": head, "offset_scale": lambda self: None})()
+    assert full_batch(model, cfg, Dist())
+    pooled = head.pooled(f)
+    head.set_norm(pooled)
+    opt = torch.optim.LBFGS(head.parameters(), lr=1.0, max_iter=20, history_size=20,
+                            line_search_fn="strong_wolfe")
+    live = Live(head, opt, None, torch.Generator(), torch.Generator())
+    data = Phase(None, torch.nn.CrossEntropyLoss(), n, None, np.arange(n)[:, None], f,
+                 torch.from_numpy(y).long())
+    ctx = Context(cfg, Log(False), Dist(), torch.device("cpu"))
+    for _ in range(10):
+        _full_batch_epoch(live, data, pooled, ctx)
+
+    # the reference: the same objective in numpy, minimised by scipy
+    z = pooled.double().numpy()
+    z = (z - z.mean(0)) / np.sqrt(z.var(0, ddof=1) + head.norm.eps)
+
+    def objective(theta):
+        w, b = theta[: classes * feats].reshape(classes, feats), theta[classes * feats :]
+        logits = z @ w.T + b
+        logits -= logits.max(1, keepdims=True)
+        logp = logits - np.log(np.exp(logits).sum(1, keepdims=True))
+        p = np.exp(logp)
+        onehot = np.eye(classes)[y]
+        loss = -(logp * onehot).sum() / n + 0.5 * decay * (theta @ theta)
+        g_logits = (p - onehot) / n
+        grad = np.concatenate([(g_logits.T @ z).ravel(), g_logits.sum(0)]) + decay * theta
+        return loss, grad
+
+    ref = minimize(objective, np.zeros(classes * (feats + 1)), jac=True, method="L-BFGS-B",
+                   options={"maxiter": 5000, "gtol": 1e-10, "ftol": 1e-15})
+    ours = np.concatenate([head.out.weight.detach().double().numpy().ravel(),
+                           head.out.bias.detach().double().numpy()])
+    assert objective(ours)[0] <= ref.fun + 1e-6, (objective(ours)[0], ref.fun)
+    np.testing.assert_allclose(ours, ref.x, atol=2e-3)
+
+    # mini-batch Adam at the toolkit's rate, 10 epochs of batches of 128: short of it
+    torch.manual_seed(0)
+    adam_head = granular.PooledLinearHead(feats, classes, "mean")
+    adam_head.set_norm(pooled)
+    adam_head.norm.eval()
+    adam = torch.optim.Adam(adam_head.parameters(), lr=3e-3, weight_decay=decay)
+    for _ in range(10):
+        for rows in torch.randperm(n).split(128):
+            adam.zero_grad()
+            torch.nn.functional.cross_entropy(adam_head.classify(pooled[rows]),
+                                              torch.from_numpy(y[rows.numpy()]).long()).backward()
+            adam.step()
+    theta = np.concatenate([adam_head.out.weight.detach().double().numpy().ravel(),
+                            adam_head.out.bias.detach().double().numpy()])
+    assert objective(theta)[0] > ref.fun + 1e-3

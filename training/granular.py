@@ -441,6 +441,11 @@ class PooledLinearHead(nn.Module):
     def __init__(self, n_in: int, n_classes: int, pool: str):
         super().__init__()
         self.pool = pool
+        # the linear baseline is fitted to convergence on all its training windows at once
+        # (tactile.training.loop.full_batch): mini-batch Adam left it short of the optimum of
+        # its convex objective (docs/granular.md); the sparse linear model's 400-odd pooled
+        # codes train with Adam, whose early-stopped path regularises them
+        self.full_batch = pool == "mean"
         self.norm = nn.BatchNorm1d(n_in, affine=False)
         self.out = nn.Linear(n_in, n_classes)
 
@@ -448,9 +453,24 @@ class PooledLinearHead(nn.Module):
     def state_shape(self) -> tuple[int, int]:
         return 1, 1
 
+    def pooled(self, f: Tensor) -> Tensor:
+        """(B, S, F) features -> (B, F) pooled over the steps."""
+        return f.abs().mean(dim=1) if self.pool == "abs_mean" else f.mean(dim=1)
+
+    def set_norm(self, pooled: Tensor) -> None:
+        """The standardisation's statistics set to those of ``pooled`` (N, F) exactly (what
+        batch normalisation's running statistics approach over an epoch of batches)."""
+        with torch.no_grad():
+            self.norm.running_mean.copy_(pooled.mean(0))
+            self.norm.running_var.copy_(pooled.var(0) if len(pooled) > 1
+                                        else torch.ones_like(pooled[0]))
+
+    def classify(self, pooled: Tensor) -> Tensor:
+        """(B, F) pooled features -> logits (B, classes)."""
+        return self.out(self.norm(pooled))
+
     def forward(self, f: Tensor, h: Tensor, c: Tensor) -> tuple[Tensor, Tensor, Tensor]:
-        pooled = f.abs().mean(dim=1) if self.pool == "abs_mean" else f.mean(dim=1)
-        return self.out(self.norm(pooled)), h, c
+        return self.classify(self.pooled(f)), h, c
 
 
 class GranularModel(Classifier):

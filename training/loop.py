@@ -1,5 +1,6 @@
-"""The training loop: Adam over the features computed once, early stopping on the validation
-split, an optional refit on training + validation windows, Ctrl-C between batches.
+"""The training loop: Adam over the features computed once (L-BFGS on all windows at once for
+a linear head on pooled features: :func:`full_batch`), early stopping on the validation split,
+an optional refit on training + validation windows, Ctrl-C between batches.
 
 :func:`fit` runs the phases; :func:`train_head` one phase, epoch after epoch; each epoch ends
 with a :func:`~tactile.training.resume.snapshot` in :attr:`Context.snapshot` (what an
@@ -132,15 +133,21 @@ def fit(model: Classifier, parts: dict, feats: dict, ctx: Context,
 def train_head(model: Classifier, w: Windows, f_all: torch.Tensor, n_epochs: int,
                ctx: Context, val: tuple[Windows, torch.Tensor] | None = None,
                resume: dict | None = None) -> dict:
-    """Adam on the windows ``w`` (features ``f_all``) for at most ``n_epochs``. With ``val``:
-    early stopping on its accuracy or loss (``select``), and the best epoch's weights are kept;
+    """Adam (L-BFGS for a :func:`full_batch` head) on the windows ``w`` (features ``f_all``)
+    for at most ``n_epochs``. With ``val``: early stopping on its accuracy or loss
+    (``select``), and the best epoch's weights are kept;
     without: the last's. Returns the history (see :class:`LoopState`).
     ``resume``: continue from the state saved after an epoch (weights, optimiser, schedule,
     random generators, early-stopping counters, history)."""
     cfg, dist, head = ctx.cfg, ctx.dist, model.head
+    full = full_batch(model, cfg, dist)
     # the head unrolled over a unit's windows; under torchrun in DDP (gradients averaged)
-    step = dist.wrap(ctx.unroll(head), ctx.device)
-    opt = torch.optim.Adam(head.parameters(), lr=cfg.lr, weight_decay=cfg.weight_decay)
+    step = None if full else dist.wrap(ctx.unroll(head), ctx.device)
+    if full:  # each epoch one L-BFGS step on every training window (lr: its first step)
+        opt = torch.optim.LBFGS(head.parameters(), lr=1.0, max_iter=LBFGS_ITERATIONS,
+                                history_size=LBFGS_ITERATIONS, line_search_fn="strong_wolfe")
+    else:
+        opt = torch.optim.Adam(head.parameters(), lr=cfg.lr, weight_decay=cfg.weight_decay)
     live = Live(head, opt, scheduler(opt, cfg, n_epochs),
                 gen=torch.Generator().manual_seed(cfg.seed),  # the order: alike everywhere
                 aug=torch.Generator().manual_seed(cfg.seed + 7919 * dist.rank))  # per process
@@ -155,12 +162,17 @@ def train_head(model: Classifier, w: Windows, f_all: torch.Tensor, n_epochs: int
                    if cfg.ema else None)
     if resume is not None:
         st = restore(resume, live)
+    pooled = None
+    if full:  # the features pooled once; the standardisation fixed to the training windows'
+        pooled = head.pooled(f_all[units[:, 0]].to(ctx.device))
+        head.set_norm(pooled)
     history = st.history
     epochs = tqdm(range(st.epoch, n_epochs), desc=phase, disable=not ctx.log.bars,
                   file=sys.stderr, initial=st.epoch, total=n_epochs)
     for epoch in epochs:
         t_epoch = time.perf_counter()
-        history["train_loss"].append(_epoch(model, live, st, data, ctx, epoch))
+        history["train_loss"].append(_full_batch_epoch(live, data, pooled, ctx) if full
+                                     else _epoch(model, live, st, data, ctx, epoch))
         line = f"{phase} epoch {epoch + 1}/{n_epochs}: train loss {history['train_loss'][-1]:.3f}"
         stop = False
         if val is None:  # (a plateau schedule needs a validation loss: the rate stays)
@@ -188,6 +200,46 @@ def train_head(model: Classifier, w: Windows, f_all: torch.Tensor, n_epochs: int
     elif st.ema is not None:
         head.load_state_dict(st.ema)
     return history
+
+
+LBFGS_ITERATIONS = 20
+"""L-BFGS iterations an epoch of a full-batch fit (:func:`full_batch`)."""
+
+
+def full_batch(model: Classifier, cfg: TrainConfig, dist: Dist) -> bool:
+    """Whether the head is fitted on all training windows at once: a head marked
+    ``full_batch`` (the granular ``linear`` model: a linear map of features pooled over the
+    window), one process, and nothing that makes an epoch's data random
+    (gain or offset augmentation, a running average of the weights). Its objective is
+    convex, so L-BFGS reaches the optimum mini-batch Adam only approaches: the training loss
+    of cross-entropy plus weight decay (``weight_decay / 2`` times the squared weights, the
+    penalty Adam's ``weight_decay`` adds), with the batch normalisation fixed to the training
+    windows' statistics. Anything else trains with Adam on mini-batches."""
+    return (getattr(model.head, "full_batch", False) and dist.world == 1
+            and not cfg.augment_gain and model.offset_scale() is None and not cfg.ema)
+
+
+def _full_batch_epoch(live: Live, data: Phase, pooled: torch.Tensor, ctx: Context) -> float:
+    """One L-BFGS step (at most :data:`LBFGS_ITERATIONS` iterations) on the pooled features
+    (N, F) of every training window; returns the training loss (cross-entropy) after it.
+    Raises :class:`Interrupted` when a stop is requested."""
+    if ctx.stop is not None and ctx.stop.requested():
+        raise Interrupted
+    head, y = live.head, data.y.to(pooled.device)
+    head.train()
+    head.norm.eval()  # the statistics set_norm fixed, as evaluation uses them
+    decay = ctx.cfg.weight_decay
+
+    def objective() -> torch.Tensor:
+        live.opt.zero_grad()
+        loss = data.loss_fn(head.classify(pooled), y)
+        loss = loss + 0.5 * decay * sum(p.pow(2).sum() for p in head.parameters())
+        loss.backward()
+        return loss
+
+    live.opt.step(objective)
+    with torch.no_grad():
+        return float(data.loss_fn(head.classify(pooled), y))
 
 
 def _epoch(model: Classifier, live: Live, st: LoopState, data: Phase, ctx: Context,

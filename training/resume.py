@@ -99,7 +99,7 @@ def snapshot(phase: str, state: LoopState, live: Live, fit_history: dict | None,
     refit."""
     return copy.deepcopy({
         "phase": phase, **state.to_dict(), "head": live.head.state_dict(),
-        "opt": live.opt.state_dict(),
+        "opt": live.opt.state_dict(), "optimizer": type(live.opt).__name__,
         "sched": live.sched.state_dict() if live.sched is not None else None,
         "rng": rng_state(live.gen, live.aug), "fit_history": fit_history, "fit_best": fit_best,
         "augment_version": AUGMENT_VERSION,
@@ -109,6 +109,10 @@ def snapshot(phase: str, state: LoopState, live: Live, fit_history: dict | None,
 def restore(saved: dict, live: Live) -> LoopState:
     """Put a :func:`snapshot` back into ``live``; returns its loop state. A state that does not
     fit (edited, or from another version) is a RecordingError, not a traceback."""
+    kind = saved.get("optimizer", "Adam")  # states saved before the key: Adam's
+    if kind != type(live.opt).__name__:
+        raise RecordingError(f"{RESUME}: saved by a version that trained this model with {kind}, "
+                             f"this one trains it with {type(live.opt).__name__}: train it again")
     try:
         live.head.load_state_dict(saved["head"])
         live.opt.load_state_dict(saved["opt"])
