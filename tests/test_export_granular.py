@@ -51,7 +51,8 @@ RUNS = {  # name -> config (TOML's shapes)
     "f_rnn": {"model": "f_rnn", "modalities": {"vibration": VIB, "electrodes": ELECTRODES}},
     "sparse_linear": {"model": "sparse_linear",
                       "modalities": {"vibration": VIB, "electrodes": ELECTRODES}},
-    "linear": {"model": "linear", "modalities": {"vibration": VIB, "pressure": PRESSURE}},
+    "linear": {"model": "linear",
+               "modalities": {"vibration": VIB, "pressure": PRESSURE, "electrodes": ELECTRODES}},
 }
 
 

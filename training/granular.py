@@ -164,16 +164,14 @@ class GranularPre(nn.Module):
     # --- the three stages -----------------------------------------------------------------
 
     def normalise(self, x: Tensor) -> Tensor:
-        """x (B, T, C) in units -> z (B, T, C); T must be the window."""
-        if not torch.jit.is_tracing() and x.shape[1] != self.window:
-            raise ValueError(f"windows of {x.shape[1]} frames, the model's are {self.window}")
+        """x (B, T, C) in units -> z (B, T, C)."""
         return (x - self.mean) / self.std
 
     def _units(self, z: Tensor, k: int) -> Tensor:
         """Modality k's units at its own rate: (B, T, C) -> (B, n, T * r)."""
         m = self.layout[k]
         sel = torch.index_select(z, 2, getattr(self, f"index_{k}"))  # (B, T, n * r)
-        b, t = _batch(sel), self.window
+        b, t = sel.shape[0], sel.shape[1]
         return sel.reshape(b, t, m.n, m.r).permute(0, 2, 1, 3).reshape(b, m.n, t * m.r)
 
     def emd_inputs(self, z: Tensor) -> list[Tensor]:
