@@ -567,12 +567,17 @@ def main(argv: list[str] | None = None) -> int:
         memo = EMDMemo(args.cache / "emd")
         if not args.no_memo:
             memo.install()
-        for j in order:
-            try:
-                train_job(j, args.threads)
-            except Busy:
-                print(f"<!-- {j.row.name} seed {j.seed}: another process holds it -->",
-                      flush=True)
+        try:
+            for j in order:
+                try:
+                    train_job(j, args.threads)
+                except Busy:
+                    print(f"<!-- {j.row.name} seed {j.seed}: another process holds it -->",
+                          flush=True)
+        except KeyboardInterrupt:  # a training stopped by Ctrl-C saved its last epoch
+            print("granular_experiments: stopped; the same command continues where it stopped",
+                  file=sys.stderr)
+            return 130
         if not args.no_memo:
             print(f"<!-- EMD memo: {memo.hits} batches reused, {memo.misses} computed -->")
     figs = collect(jobs, timing=not args.no_timing)

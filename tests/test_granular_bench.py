@@ -73,6 +73,23 @@ def test_the_bench_trains_exports_times_prints_and_resumes(tmp_path, capsys, mon
                            tmp_path / "data") != runs[0].parts[-2]
 
 
+def test_ctrl_c_stops_the_bench_in_one_line_with_exit_130(tmp_path, capsys, monkeypatch):
+    """A training stopped by Ctrl-C ends the benchmark with one line (no traceback) and 130;
+    the same command continues it."""
+    args = ["--cache", str(tmp_path), "--dataset", "pen", "--models", "linear",
+            "--seeds", "1", "--pen-users", "15", "--pen-seconds", "3",
+            "--set", "epochs=1", "--set", "epoch_windows=64"]
+
+    def stopped(*a, **k):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(ge, "train_job", stopped)
+    assert ge.main(args) == 130
+    err = capsys.readouterr().err
+    assert "stopped; the same command continues where it stopped" in err
+    assert "Traceback" not in err
+
+
 def test_seed_and_choice_options():
     p = ge.build_parser()
     assert p.parse_args(["--seeds", "3"]).seeds == (0, 1, 2)
