@@ -21,6 +21,8 @@
 typedef struct {
     double *kx, *ky;               /* knot positions, half values */
     double *hk, *sl, *m, *cp, *dp; /* spacings, slopes, M / 6, the Thomas sweep */
+    double *c1, *c2, *c3;          /* each piece's power-basis coefficients */
+    unsigned char *up;             /* (N) knots at each sample (the pieces that start there) */
     int64_t n;                     /* knots */
 } Env;
 
@@ -285,6 +287,50 @@ static void spline_eval(const Env *e, int64_t len, double *out, double *h) {
     }
 }
 
+/* The pieces' coefficients and where they start: sample t lies in piece k = the number of
+ * knots 1 .. n-2 at or before t (the first piece also before the first knot, the last one
+ * past knot n - 2; knots are whole sample positions). Returns the piece of sample 0. */
+static int64_t spline_pieces(Env *e, int64_t len) {
+    const int64_t n = e->n;
+    const double *hk = e->hk, *sl = e->sl, *m = e->m;
+    for (int64_t k = 0; k <= n - 2; k++) {
+        e->c1[k] = sl[k] - hk[k] * (2.0 * m[k] + m[k + 1]);
+        e->c2[k] = 3.0 * m[k];
+        e->c3[k] = (m[k + 1] - m[k]) / hk[k];
+    }
+    memset(e->up, 0, (size_t)len);
+    int64_t first = 0;
+    for (int64_t j = 1; j <= n - 2; j++) {
+        const double p = e->kx[j];
+        if (p <= 0.0) first++;
+        else if (p < (double)len) e->up[(int64_t)p]++;
+    }
+    return first;
+}
+
+/* h -= upper + lower (the half envelopes), both evaluated at every sample in one pass, with no
+ * branch on the piece: the operations, in order, of a mean set to zero, the upper envelope
+ * then the lower added into it, then h -= mean. */
+static void subtract_mean(Env *u, Env *l, int64_t len, double *h, double *mean) {
+    if (u->n < 3 || l->n < 3) { /* unreachable with > 2 extrema; kept defined */
+        spline_eval(u, len, mean, NULL);
+        spline_eval(l, len, mean, h);
+        return;
+    }
+    int64_t ku = spline_pieces(u, len), kl = spline_pieces(l, len);
+    const double *ux = u->kx, *uy = u->ky, *u1 = u->c1, *u2 = u->c2, *u3 = u->c3;
+    const double *lx = l->kx, *ly = l->ky, *l1 = l->c1, *l2 = l->c2, *l3 = l->c3;
+    const unsigned char *uu = u->up, *lu = l->up;
+    for (int64_t t = 0; t < len; t++) {
+        ku += uu[t];
+        kl += lu[t];
+        const double bu = (double)t - ux[ku], bl = (double)t - lx[kl];
+        const double vu = uy[ku] + bu * (u1[ku] + bu * (u2[ku] + bu * u3[ku]));
+        const double vl = ly[kl] + bl * (l1[kl] + bl * (l2[kl] + bl * l3[kl]));
+        h[t] -= (0.0 + vu) + vl;
+    }
+}
+
 /* §1.3 One sift of h: h -= (upper + lower) / 2. Returns 0 when h has 2 extrema or fewer
  * (h is then left as it is: the row's decomposition is finished). */
 static int sift(double *h, int64_t n, Work *w) {
@@ -299,8 +345,7 @@ static int sift(double *h, int64_t n, Work *w) {
     up->n = knots(h, &lmax, lsym, w->pmax, a, &rmax, rsym, up->kx, up->ky);
     lo->n = knots(h, &lmin, lsym, w->pmin, b, &rmin, rsym, lo->kx, lo->ky);
     spline_solve(up, lo);
-    spline_eval(up, n, w->mean, NULL);
-    spline_eval(lo, n, w->mean, h); /* h -= mean */
+    subtract_mean(up, lo, n, h, w->mean); /* h -= mean */
     return 1;
 }
 
@@ -338,6 +383,7 @@ static void work_free(Work *w) {
     for (int i = 0; i < 2; i++) {
         Env *e = &w->env[i];
         free(e->kx); free(e->ky); free(e->hk); free(e->sl); free(e->m); free(e->cp); free(e->dp);
+        free(e->c1); free(e->c2); free(e->c3); free(e->up);
     }
 }
 
@@ -350,7 +396,8 @@ static int work_alloc(Work *w, int64_t n) {
         Env *e = &w->env[i];
         ok = (e->kx = malloc(nd)) && (e->ky = malloc(nd)) && (e->hk = malloc(nd)) &&
              (e->sl = malloc(nd)) && (e->m = malloc(nd)) && (e->cp = malloc(nd)) &&
-             (e->dp = malloc(nd));
+             (e->dp = malloc(nd)) && (e->c1 = malloc(nd)) && (e->c2 = malloc(nd)) &&
+             (e->c3 = malloc(nd)) && (e->up = malloc(nn));
     }
     if (!ok) work_free(w);
     return ok;
