@@ -28,6 +28,11 @@ the same run: the same windows in one batched call per second of data (the file'
 throughput without streaming), as a ratio.
 Targets: at most 100 ms per 1 s of data, aim 10 ms.
 
+``--profile`` adds where a window's time goes: one more pass with onnxruntime's profiler on,
+each node's kernel time per window (the EMD and sparse-code nodes by name, ``emd0``,
+``coder0``... in the order of the model's modalities; the others summed by operator type). The
+profiler adds a little to every node, so the parts add up to more than the timed passes.
+
 :func:`label_time` is the function other scripts call (e.g. the results tables).
 """
 
@@ -125,6 +130,50 @@ def label_time(model_path: str | os.PathLike, windows: np.ndarray | None = None,
     }
 
 
+def profile(model_path: str | os.PathLike, windows: np.ndarray) -> list[tuple[str, float]]:
+    """Kernel time per window of each part of ``model_path``'s graph over one pass of
+    ``windows`` (one onnxruntime thread, its profiler on): ``(part, microseconds)`` pairs,
+    largest first, a part being an ``ai.tactile`` node (``"EMD emd0"``) or an operator type
+    with its node count (``"LSTM (4 nodes)"``)."""
+    import collections
+    import tempfile
+
+    from tactile.runtime.model import Model, session_options
+
+    with tempfile.TemporaryDirectory() as tmp:
+        so = session_options(1)
+        so.enable_profiling = True
+        so.profile_file_prefix = str(Path(tmp) / "profile")
+        model = Model(model_path, options=so)
+        h, c = model.zero_state(1)
+        carry = model.contract.state_mode == "carry"
+        for w in windows:
+            _, h1, c1 = model.classify(w[None], h, c)
+            if carry:
+                h, c = h1, c1
+        events = json.loads(Path(model.session.end_profiling()).read_text())
+    # Model() runs the file once to check it: keep the nodes of the windows' runs only
+    runs = sorted(e["ts"] for e in events if e.get("name") == "model_run")
+    start = runs[-len(windows)] if len(runs) >= len(windows) else 0
+    us: collections.Counter = collections.Counter()
+    nodes: dict[str, set] = collections.defaultdict(set)
+    for e in events:
+        if (e.get("cat") != "Node" or not e["name"].endswith("_kernel_time")
+                or e["ts"] < start):
+            continue
+        op, node = e["args"].get("op_name", "?"), e["name"][: -len("_kernel_time")]
+        part = f"{op} {node}" if op in ("EMD", "SparseCode") else op
+        us[part] += e["dur"]
+        nodes[part].add(node)
+    out = []
+    for part, t in us.most_common():
+        k = len(nodes[part])
+        label = part if part.startswith(("EMD ", "SparseCode ")) else (
+            f"{part} ({k} node{'s' if k > 1 else ''})")
+        out.append((label, t / len(windows)))
+    return out
+
+
 def paper_biotac_file(fingers: str, out: Path) -> Path:
     """Write an untrained SF-RNN of the paper's sizes on BioTac ``fingers`` ("0", "1", "01")
     to ``out``, with its contract (for timing only: its parity key says so)."""
@@ -174,6 +223,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--seconds", type=float, default=2.0, help="seconds of data per pass")
     p.add_argument("--rounds", type=int, default=5, help="passes; the fastest is reported")
     p.add_argument("--json", action="store_true", help="one JSON object per model")
+    p.add_argument("--profile", action="store_true",
+                   help="also each node's kernel time per window (onnxruntime's profiler)")
     args = p.parse_args(argv)
     import tempfile
 
@@ -195,6 +246,14 @@ def main(argv: list[str] | None = None) -> int:
               f"  reference: batched, one call per second of data  {r['batched_ms_per_s']:.2f} "
               f"ms ({r['ms_per_s'] / r['batched_ms_per_s']:.2f}x)\n"
               f"  {verdict} ({TARGET_MS:g} ms limit, {AIM_MS:g} ms aim)")
+        if args.profile:
+            from tactile.runtime.model import Model
+
+            parts = profile(path, _windows(Model(path).contract, args.data, args.seconds))
+            total = sum(t for _, t in parts)
+            print(f"  profile, kernel time per window (profiler on: {total / 1e3:.3f} ms in all)")
+            for label, t in parts:
+                print(f"    {label:<32} {t / 1e3:7.3f} ms  {100 * t / total:5.1f} %")
     return 0
 
 

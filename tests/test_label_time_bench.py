@@ -1,0 +1,45 @@
+"""bench/label_time.py --profile: where a window's time goes, node by node."""
+
+from __future__ import annotations
+
+import importlib.util
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+onnx = pytest.importorskip("onnx")
+
+ROOT = Path(__file__).resolve().parents[1]
+SHIPPED = ROOT / "models" / "pen-exp2.onnx"
+
+
+def _bench():
+    spec = importlib.util.spec_from_file_location("label_time", ROOT / "bench" / "label_time.py")
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    return mod
+
+
+def test_profile_names_each_operator_type_with_its_node_count():
+    bench = _bench()
+    from tactile.runtime.model import Model
+
+    windows = bench._windows(Model(SHIPPED).contract, None, 2.0)
+    parts = dict(bench.profile(SHIPPED, windows))
+    graph = onnx.load(str(SHIPPED)).graph
+    lstms = sum(n.op_type == "LSTM" for n in graph.node)
+    assert lstms >= 1
+    label = f"LSTM ({lstms} node{'s' if lstms > 1 else ''})"
+    assert label in parts, sorted(parts)
+    assert all(t > 0 for t in parts.values())
+
+
+def test_profile_option_prints_the_parts():
+    r = subprocess.run([sys.executable, str(ROOT / "bench" / "label_time.py"), str(SHIPPED),
+                        "--profile", "--rounds", "1", "--seconds", "1"],
+                       capture_output=True, text=True, timeout=300)
+    assert r.returncode == 0, r.stderr
+    assert "profile, kernel time per window" in r.stdout
+    assert "LSTM (" in r.stdout
