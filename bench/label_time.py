@@ -78,7 +78,7 @@ def _windows(contract, data: Path | None, seconds: float, seed: int = 0) -> np.n
 
 
 def label_time(model_path: str | os.PathLike, windows: np.ndarray | None = None,
-               data: Path | None = None, seconds: float = 2.0, rounds: int = 5) -> dict:
+               data: Path | None = None, seconds: float = 20.0, rounds: int = 5) -> dict:
     """Time to label 1 s of data with the exported ``model_path`` (one onnxruntime thread).
 
     ``windows`` (N, window, channels) float32 in units, consecutive at the contract's hop, or
@@ -220,7 +220,8 @@ def main(argv: list[str] | None = None) -> int:
                    choices=("0", "1", "01"),
                    help="also an untrained SF-RNN of the paper's sizes on these fingers")
     p.add_argument("--data", type=Path, help="dataset folder: real windows (else Gaussian)")
-    p.add_argument("--seconds", type=float, default=2.0, help="seconds of data per pass")
+    p.add_argument("--seconds", type=float, default=20.0,
+                   help="seconds of data per pass (default 20: 40 windows at hop 50)")
     p.add_argument("--rounds", type=int, default=5, help="passes; the fastest is reported")
     p.add_argument("--json", action="store_true", help="one JSON object per model")
     p.add_argument("--profile", action="store_true",
