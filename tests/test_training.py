@@ -276,6 +276,49 @@ def test_refit_trains_on_train_and_validation_for_the_best_epoch_count(dataset, 
     assert len(seen) == 2 and m["refit_epochs"] == m["best_epoch"] + 1
 
 
+def test_refit_failed_judges_the_refit_by_the_first_trainings_progress():
+    from tactile.training.loop import refit_failed
+
+    fit = [1.605, 1.578, 1.50, 1.45, 1.30, 1.27]  # best epoch 5 (0-based): 1.27
+    assert refit_failed(fit, 5, [1.60, 1.50, 1.40, 1.35, 1.30, 1.28]) is None
+    assert refit_failed(fit, 5, [1.60, 1.50, 1.43]) is None  # below halfway, 1.4375
+    assert refit_failed(fit, 5, [1.60, 1.50, 1.45]) is not None
+    why = refit_failed(fit, 5, [1.607, 1.600, 1.588, 1.606])  # the units died: class priors
+    assert why is not None and "1.606" in why and "1.438" in why
+    assert refit_failed(fit, 5, [1.6, float("nan")]) is not None
+    assert refit_failed(fit, 0, [1.7]) is None  # best at the first epoch: nothing to judge by
+    assert refit_failed([1.5, 1.6], 1, [1.9]) is None  # the first training did not progress
+    assert refit_failed(fit, 5, []) is None
+
+
+def test_a_refit_that_learned_nothing_is_not_kept(dataset, tmp_path, monkeypatch, capsys):
+    """A refit whose training loss stays near where training starts (here: made so by zeroing
+    its weights) ships the first training's validated best weights, says so, and records it."""
+    import tactile.training.loop as tr
+
+    real, first = tr.train_head, {}
+
+    def sabotage(model, w, f_all, n_epochs, ctx, val=None, resume=None):
+        history = real(model, w, f_all, n_epochs, ctx, val, resume)
+        if val is not None:
+            first.update({k: v.clone() for k, v in model.head.state_dict().items()})
+            assert len(history["train_loss"]) == 4  # no early stop
+            return {**history, "train_loss": [1.6, 1.2, 1.0, 0.9], "best_epoch": 3}
+        with torch.no_grad():
+            for p in model.head.parameters():
+                p.zero_()
+        return {**history, "train_loss": [1.6] * n_epochs}
+
+    monkeypatch.setattr(tr, "train_head", sabotage)
+    cfg = TrainConfig(epochs=4, hidden=8, layers=1, threads=1, patience=10, refit="on")
+    m = train(dataset, tmp_path / "run", cfg, progress=False)
+    assert m["refit_kept"] is False and m["refit_epochs"] == 4
+    assert "refit not kept" in capsys.readouterr().err
+    model, _ = load_checkpoint(tmp_path / "run")
+    for k, v in model.head.state_dict().items():
+        torch.testing.assert_close(v, first[k], rtol=0, atol=0)
+
+
 def test_eval_recognises_the_test_split_by_content_not_by_name(trained, dataset, tmp_path,
                                                                 capsys):
     run, _ = trained

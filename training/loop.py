@@ -124,10 +124,39 @@ def fit(model: Classifier, parts: dict, feats: dict, ctx: Context,
             resume = None
         else:
             ctx.fit_best = resume["fit_best"]
-        train_head(model, concat(parts["train"], parts["val"]),
-                   torch.cat([feats["train"], feats["val"]]), epochs, ctx, resume=resume)
+        refit = train_head(model, concat(parts["train"], parts["val"]),
+                           torch.cat([feats["train"], feats["val"]]), epochs, ctx, resume=resume)
         history["refit_epochs"] = epochs
+        reason = refit_failed(history["train_loss"], history["best_epoch"], refit["train_loss"])
+        history["refit_kept"] = reason is None
+        if reason is not None:  # the validated model is the better one to keep
+            model.head.load_state_dict(ctx.fit_best)
+            acc = history["val_acc"][history["best_epoch"]]
+            ctx.log.warn(f"refit not kept: {reason}; the run's model is the first training's "
+                         f"best epoch (validation accuracy {acc:.3f})")
     return history
+
+
+def refit_failed(fit_loss: list[float], best_epoch: int, refit_loss: list[float]) -> str | None:
+    """Why a refit's model is not kept, or None when it is.
+
+    A refit trains blind (no validation), so its own training loss is the only check: the
+    refit must have come at least halfway from where the first training started (its first
+    epoch's training loss) to where it stood at its best epoch. A refit that has not (e.g. one
+    whose units all died and which predicts the class frequencies for every window) would ship
+    a model worse than the validated one. With no progress in the first training there is
+    nothing to judge by."""
+    if not refit_loss or best_epoch < 1 or best_epoch >= len(fit_loss):
+        return None
+    start, best, last = fit_loss[0], fit_loss[best_epoch], refit_loss[-1]
+    if not start > best:  # (NaN too)
+        return None
+    limit = (start + best) / 2
+    if last <= limit:  # (a NaN loss is not)
+        return None
+    return (f"its training loss after {len(refit_loss)} epochs is {last:.3f}, above "
+            f"{limit:.3f}, halfway from the first training's {start:.3f} (epoch 1) to its "
+            f"{best:.3f} (best epoch {best_epoch + 1})")
 
 
 def train_head(model: Classifier, w: Windows, f_all: torch.Tensor, n_epochs: int,

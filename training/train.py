@@ -100,6 +100,7 @@ def train(data: Path, out: Path, cfg: TrainConfig, progress: bool = True, *,
             return {"interrupted": False}
         metrics = run_metrics(model, prep, feats["test"], history, dict(
             refit_epochs=history.get("refit_epochs", 0),
+            refit_kept=history.get("refit_kept"),
             epochs_run=len(history["train_loss"]),
             centered=[channels[i] for i in norm.center_index],
             feature_seconds=round(feature_s, 1),
