@@ -848,3 +848,18 @@ def test_the_linear_model_is_fitted_to_the_optimum_of_its_objective():
     theta = np.concatenate([adam_head.out.weight.detach().double().numpy().ravel(),
                             adam_head.out.bias.detach().double().numpy()])
     assert objective(theta)[0] > ref.fun + 1e-3
+
+
+def test_only_mini_batch_refits_are_judged_by_their_loss(toy, tmp_path, monkeypatch):
+    """The linear model's refit (an L-BFGS fit of a convex objective, converged in its first
+    epochs) is kept without a look at its loss, which is over other windows than the first
+    training's; a mini-batch model's refit is judged (here by a stand-in that rejects it)."""
+    import tactile.training.loop as tr
+
+    judged = []
+    monkeypatch.setattr(tr, "refit_failed", lambda *a: judged.append(a) or "a stand-in reason")
+    m = train(toy, tmp_path / "linear", _cfg("linear", epochs=3, refit="on"), progress=False)
+    assert m["refit_kept"] is True and judged == []
+    m = train(toy, tmp_path / "sparse", _cfg("sparse_linear", epochs=2, refit="on"),
+              progress=False)
+    assert m["refit_kept"] is False and len(judged) == 1

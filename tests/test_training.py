@@ -284,11 +284,16 @@ def test_refit_failed_judges_the_refit_by_the_first_trainings_progress():
     assert refit_failed(fit, 5, [1.60, 1.50, 1.43]) is None  # below halfway, 1.4375
     assert refit_failed(fit, 5, [1.60, 1.50, 1.45]) is not None
     why = refit_failed(fit, 5, [1.607, 1.600, 1.588, 1.606])  # the units died: class priors
-    assert why is not None and "1.606" in why and "1.438" in why
+    assert why is not None and "1.6060" in why and "1.4375" in why
     assert refit_failed(fit, 5, [1.6, float("nan")]) is not None
     assert refit_failed(fit, 0, [1.7]) is None  # best at the first epoch: nothing to judge by
     assert refit_failed([1.5, 1.6], 1, [1.9]) is None  # the first training did not progress
     assert refit_failed(fit, 5, []) is None
+    # converged in its first epoch (an L-BFGS fit: 1.5102825 -> 1.5102752): a refit's loss over
+    # training + validation windows, 1.522, says nothing about it
+    assert refit_failed([1.5102825, 1.5102752], 1, [1.5220, 1.5220]) is None
+    assert refit_failed([1.60, 1.53], 1, [1.59]) is None  # 4.4 % progress: not judged
+    assert refit_failed([1.60, 1.50], 1, [1.59]) is not None  # 6.3 %: judged
 
 
 def test_a_refit_that_learned_nothing_is_not_kept(dataset, tmp_path, monkeypatch, capsys):

@@ -127,7 +127,9 @@ def fit(model: Classifier, parts: dict, feats: dict, ctx: Context,
         refit = train_head(model, concat(parts["train"], parts["val"]),
                            torch.cat([feats["train"], feats["val"]]), epochs, ctx, resume=resume)
         history["refit_epochs"] = epochs
-        reason = refit_failed(history["train_loss"], history["best_epoch"], refit["train_loss"])
+        # (a full-batch head's refit is an L-BFGS fit of a convex objective: nothing to judge)
+        reason = None if full_batch(model, cfg, ctx.dist) else refit_failed(
+            history["train_loss"], history["best_epoch"], refit["train_loss"])
         history["refit_kept"] = reason is None
         if reason is not None:  # the validated model is the better one to keep
             model.head.load_state_dict(ctx.fit_best)
@@ -144,19 +146,26 @@ def refit_failed(fit_loss: list[float], best_epoch: int, refit_loss: list[float]
     refit must have come at least halfway from where the first training started (its first
     epoch's training loss) to where it stood at its best epoch. A refit that has not (e.g. one
     whose units all died and which predicts the class frequencies for every window) would ship
-    a model worse than the validated one. With no progress in the first training there is
-    nothing to judge by."""
+    a model worse than the validated one. Judged only when the first training lowered its
+    loss by at least :data:`REFIT_PROGRESS` of it: the refit's loss is over the training and
+    validation windows, the first training's over the training windows alone, and that
+    difference must be small beside the progress the check relies on."""
     if not refit_loss or best_epoch < 1 or best_epoch >= len(fit_loss):
         return None
     start, best, last = fit_loss[0], fit_loss[best_epoch], refit_loss[-1]
-    if not start > best:  # (NaN too)
+    if not start - best >= REFIT_PROGRESS * start:  # (NaN too)
         return None
     limit = (start + best) / 2
     if last <= limit:  # (a NaN loss is not)
         return None
-    return (f"its training loss after {len(refit_loss)} epochs is {last:.3f}, above "
-            f"{limit:.3f}, halfway from the first training's {start:.3f} (epoch 1) to its "
-            f"{best:.3f} (best epoch {best_epoch + 1})")
+    return (f"its training loss after {len(refit_loss)} epochs is {last:.4f}, above "
+            f"{limit:.4f}, halfway from the first training's {start:.4f} (epoch 1) to its "
+            f"{best:.4f} (best epoch {best_epoch + 1})")
+
+
+REFIT_PROGRESS = 0.05
+"""The fall in training loss, as a fraction of the first epoch's, below which a first
+training's progress is too small to judge a refit by (:func:`refit_failed`)."""
 
 
 def train_head(model: Classifier, w: Windows, f_all: torch.Tensor, n_epochs: int,
