@@ -34,6 +34,9 @@ each node's kernel time per window (the EMD and sparse-code nodes by name, ``emd
 profiler adds a little to every node, so the parts add up to more than the timed passes.
 
 :func:`label_time` is the function other scripts call (e.g. the results tables).
+
+Exit codes: 0; 1 a bad argument or ``--data`` folder; 3 a file that is not a usable exported
+model (each one line on stderr).
 """
 
 from __future__ import annotations
@@ -214,19 +217,28 @@ def paper_biotac_file(fingers: str, out: Path) -> Path:
 
 
 def main(argv: list[str] | None = None) -> int:
-    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    from tactile.cli import Parser, float_in, int_in, run
+
+    p = Parser(prog="label_time.py", description=__doc__.split("\n\n")[0])
     p.add_argument("models", nargs="*", type=Path, help="exported .onnx files")
     p.add_argument("--paper-biotac", action="append", default=[], metavar="FINGERS",
                    choices=("0", "1", "01"),
                    help="also an untrained SF-RNN of the paper's sizes on these fingers")
     p.add_argument("--data", type=Path, help="dataset folder: real windows (else Gaussian)")
-    p.add_argument("--seconds", type=float, default=20.0,
+    p.add_argument("--seconds", type=float_in(0.0, 3600.0), default=20.0,
                    help="seconds of data per pass (default 20: 40 windows at hop 50)")
-    p.add_argument("--rounds", type=int, default=5, help="passes; the fastest is reported")
+    p.add_argument("--rounds", type=int_in(1), default=5,
+                   help="passes; the fastest is reported (default 5)")
     p.add_argument("--json", action="store_true", help="one JSON object per model")
     p.add_argument("--profile", action="store_true",
                    help="also each node's kernel time per window (onnxruntime's profiler)")
     args = p.parse_args(argv)
+    if not args.models and not args.paper_biotac:
+        p.error("give one or more .onnx files, or --paper-biotac FINGERS")
+    return run("label_time.py", _main, args)
+
+
+def _main(args) -> int:
     import tempfile
 
     tmp = tempfile.TemporaryDirectory()

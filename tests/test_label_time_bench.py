@@ -43,3 +43,18 @@ def test_profile_option_prints_the_parts():
     assert r.returncode == 0, r.stderr
     assert "profile, kernel time per window" in r.stdout
     assert "LSTM (" in r.stdout
+
+
+@pytest.mark.parametrize("args, code, says", [
+    (["missing.onnx"], 3, "missing.onnx: no such model file"),
+    (["README.md"], 3, "README.md: not a loadable ONNX model"),
+    ([str(SHIPPED), "--data", "no-such-folder"], 1, "no-such-folder: not a folder"),
+    ([str(SHIPPED), "--rounds", "0"], 1, "--rounds"),
+    ([str(SHIPPED), "--seconds", "inf"], 1, "--seconds"),
+    ([], 1, "give one or more .onnx files"),
+])
+def test_bad_input_is_one_line_and_an_exit_code(args, code, says, tmp_path):
+    r = subprocess.run([sys.executable, str(ROOT / "bench" / "label_time.py"), *args],
+                       capture_output=True, text=True, timeout=300, cwd=ROOT)
+    assert r.returncode == code, r.stderr
+    assert says in r.stderr and len(r.stderr.strip().splitlines()) == 1, r.stderr
