@@ -406,3 +406,20 @@ def test_eval_label_stream_figures(trained, dataset, capsys):
     text = capsys.readouterr().out
     assert "label stream: " in text and "post-processed with " in text
     assert "false changes per minute" in text and "raw" in text
+
+
+def test_an_out_that_cannot_be_a_folder_is_refused_before_training(dataset, tmp_path, capsys,
+                                                                   monkeypatch):
+    """--out naming a file, or a path through one, is one line and exit 1 before any work (it
+    used to fail after the whole training, losing the run)."""
+    import tactile.training.train as training
+
+    monkeypatch.setattr(training, "train", lambda *a, **k: pytest.fail("trained"))
+    afile = tmp_path / "afile"
+    afile.write_text("keep me\n")
+    for out, says in ((afile, "a file, not a folder"),
+                      (afile / "sub", f"{afile} is a file, not a folder")):
+        assert train_main([str(dataset), "--out", str(out)]) == 1
+        err = capsys.readouterr().err
+        assert says in err and len(err.strip().splitlines()) == 1, err
+    assert afile.read_text() == "keep me\n"

@@ -8,6 +8,7 @@ RUN`` continues a run that Ctrl-C stopped (exit 130), with its own settings. Und
 from __future__ import annotations
 
 import argparse
+import os
 import sys
 from pathlib import Path
 
@@ -55,6 +56,7 @@ def _settings(args: argparse.Namespace):
     cfg = TrainConfig.from_toml(args.config) if args.config else TrainConfig()
     cfg = parse_sets(args.set, cfg)
     out = args.out
+    _check_out(out)
     held = [f for f in RUN_FILES if (out / f).exists()]
     if held and not args.force:
         more = (f", or --resume {out} to continue it" if (out / RESUME).exists()
@@ -64,6 +66,22 @@ def _settings(args: argparse.Namespace):
     if args.force:
         (out / RESUME).unlink(missing_ok=True)
     return cfg, args.data, out, None
+
+
+def _check_out(out: Path) -> None:
+    """Refuse, before any training, an --out that could not be written at the end: a file, a
+    path through a file, or a folder (or the nearest existing one above it) not writable."""
+    from tactile.errors import ConfigError
+
+    if out.exists() and not out.is_dir():
+        raise ConfigError(f"--out {out}: a file, not a folder")
+    base = out
+    while not base.exists() and base != base.parent:
+        base = base.parent
+    if not base.is_dir():
+        raise ConfigError(f"--out {out}: {base} is a file, not a folder")
+    if not os.access(base, os.W_OK | os.X_OK):
+        raise ConfigError(f"--out {out}: {base} is not writable")
 
 
 def _train(args: argparse.Namespace) -> int:
