@@ -189,6 +189,11 @@ def test_other_bad_inputs(tmp_path):
     with pytest.raises(RecordingError, match=r"b.h5: trial cork_pdc100_1cm_01 also in .*a.h5"):
         import_biotac([tmp_path / "a.h5", tmp_path / "b.h5"], tmp_path / "out")
     assert not (tmp_path / "out").exists()
+    (tmp_path / "sub").mkdir()
+    for again in (tmp_path / "a.h5", tmp_path / "sub" / ".." / "a.h5"):  # any spelling
+        with pytest.raises(RecordingError, match=r"a\.h5: given twice \(also as .*a\.h5\)"):
+            import_biotac([tmp_path / "a.h5", again], tmp_path / "out")
+    assert not (tmp_path / "out").exists()
     import_biotac([tmp_path / "a.h5"], tmp_path / "out")
     with pytest.raises(RecordingError, match=r"cork_pdc100_1cm_01.csv and 1 more files already "
                        "exist: choose another folder, or --force to replace them"):

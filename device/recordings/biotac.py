@@ -178,6 +178,11 @@ def import_biotac(files: list[Path], out: Path, force: bool = False) -> list[Pat
     paths. Everything is read and checked before the first take is written; takes of the same
     names already in ``out`` are refused, or replaced with ``force``."""
     files = [Path(p) for p in files]
+    first: dict[Path, Path] = {}
+    for p in files:  # the same file twice (under any spelling) would import its trials twice
+        if p.resolve() in first:
+            raise RecordingError(f"{p}: given twice (also as {first[p.resolve()]})")
+        first[p.resolve()] = p
     handles = {p: _open(p) for p in files}
     try:
         trials: list[Trial] = []
