@@ -112,12 +112,14 @@ class Printer:
         mode."""
         if self.fmt == "jsonl":
             print(json.dumps({"event": kind, **fields}), file=self.out, flush=True)
-        elif self.fmt == "csv":
-            what = " ".join([kind, *(f"{k}={v}" for k, v in fields.items() if k != "seq")])
+            return
+        shown = {k: "" if v is None else v for k, v in fields.items()}  # JSON's null: empty
+        if self.fmt == "csv":
+            what = " ".join([kind, *(f"{k}={v}" for k, v in shown.items() if k != "seq")])
             blank = len(self.classes) + 4 + (3 if self.smoothed else 0)
             self._row(["", fields.get("seq", ""), *[""] * blank, what])
         else:
-            print(f"# {kind} " + " ".join(f"{k}={v}" for k, v in fields.items()),
+            print(f"# {kind} " + " ".join(f"{k}={v}" for k, v in shown.items()),
                   file=self.out, flush=True)
 
 
