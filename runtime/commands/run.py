@@ -74,7 +74,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--threads", type=int_in(1, CPUS), default=1,
                    help=f"onnxruntime threads, at most the {CPUS} cores (default 1)")
     p.add_argument("--status-every", type=float_in(0.0), default=5.0,
-                   help="status line period, s")
+                   help="status line period, s (default 5)")
     p.add_argument("--no-native", action="store_true",
                    help="run the portable EMD/sparse-code graphs, not the C kernels")
     add_port_options(p, "the channels, labels and link")
