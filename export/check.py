@@ -97,6 +97,7 @@ def describe(path: Path, c: ModelContract, opset: int | None = OPSET,
         *(f"  codes     {r.get('name')}: {r.get('same_atoms')}/{r.get('rows')} rows the same "
           f"atoms as scikit-learn, max |dc|/|c| {r.get('max_rel_diff')}"
           for r in c.parity.get("codes") or []),
+        *_native_parity(c.parity),
         f"  training  {_recorded(c)}",
         *_postprocess_lines(c),
         *(f"  kernels   {line}" for line in kernels),
@@ -127,6 +128,16 @@ def _paths(model) -> list[str]:
     from tactile.runtime import kernels
 
     return kernels.paths(model.contract.custom_ops, model.native)
+
+
+def _native_parity(parity: dict) -> list[str]:
+    """The kernels' path's parity, for a file with custom nodes (checked by the exporter on
+    both paths; the line above is the portable graphs')."""
+    native = parity.get("native")
+    if not isinstance(native, dict):
+        return []
+    return [f"  native    parity {'passed' if native.get('passed') else 'FAILED'} on the kernels "
+            f"(max |dp| {native.get('max_abs_prob_diff')}{_excused(native)})"]
 
 
 def _excused(parity: dict) -> str:

@@ -527,6 +527,18 @@ def test_tactile_check_names_the_excused_windows():
                               "0.0084; 1 of 256 for float32 code accuracy, max |dp| 0.00027")
 
 
+def test_tactile_check_gives_the_kernel_paths_parity_beside_the_portable_one():
+    from tactile.export.check import _native_parity
+
+    native = {"passed": True, "max_abs_prob_diff": 1.28e-05, "windows": 256,
+              "windows_excused": 1, "max_abs_prob_diff_excused": 0.003}
+    assert _native_parity({"passed": True, "native": native}) == [
+        "  native    parity passed on the kernels (max |dp| 1.28e-05; 1 of 256 windows excused "
+        "for near-tie atom flips, max |dp| 0.003)"]
+    assert _native_parity({"passed": True}) == []  # no custom nodes: one path
+    assert "FAILED" in _native_parity({"native": {**native, "passed": False}})[0]
+
+
 @pytest.mark.skipif(not native_available(), reason="the native kernels are not built")
 def test_the_kernel_path_excuses_its_near_tie_flips(tied):
     """The same near-tie on the kernel path: the library's SparseCode computes OMP in float64
