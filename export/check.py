@@ -209,6 +209,10 @@ def _reparity(path: Path, c: ModelContract, run_dir: Path, data: Path | None,
                                      f"{list(ck[key])}")
     if ck["config"]["window"] != c.window or ck["config"]["state"] != c.state_mode:
         raise ModelContractError(f"{path} and {run_dir} differ in window or state mode")
+    kind = ck["config"].get("model", "lstm")
+    if kind != c.model:
+        raise ModelContractError(f"{path} and {run_dir} differ in model: {c.model} vs {kind} "
+                                 "(is --run the run this file was exported from?)")
     crit = "strict" if c.quantization == "none" else "int8"
     p = compare(model, str(path), probe_windows(ck, data, windows), ck, criterion=crit)
     print(p.table())

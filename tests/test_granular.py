@@ -863,3 +863,18 @@ def test_only_mini_batch_refits_are_judged_by_their_loss(toy, tmp_path, monkeypa
     m = train(toy, tmp_path / "sparse", _cfg("sparse_linear", epochs=2, refit="on"),
               progress=False)
     assert m["refit_kept"] is False and len(judged) == 1
+
+
+def test_tactile_check_says_when_run_is_another_models(runs, tmp_path, capsys):
+    """A file checked against the run of another model kind (same classes and channels) is
+    one line naming both kinds, exit 3, not an error about a coder's scope in the graph."""
+    from tactile.export.commands.check import main as check_main
+    from tactile.export.commands.export import main as export_main
+
+    linear, _, _ = runs["linear"]
+    out = tmp_path / "linear.onnx"
+    assert export_main([str(linear), "-o", str(out)]) == 0
+    capsys.readouterr()
+    assert check_main([str(out), "--run", str(runs["sf_rnn"][0])]) == 3
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "differ in model: linear vs sf_rnn" in err[0], err
