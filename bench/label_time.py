@@ -41,7 +41,6 @@ model (each one line on stderr).
 
 from __future__ import annotations
 
-import argparse
 import json
 import os
 import sys
