@@ -24,7 +24,9 @@ typedef struct {
                                    * position; (K) the atom at each working position */
 } Work;
 
-/* Atoms whose sums a block of the hot loops keeps in registers; rows whose correlations are
+/* Atoms whose sums a block of the hot loops keeps in registers (16: 8 vector registers of 2
+ * doubles; the AVX2 copy below keeps 32, 8 registers of 4, enough independent additions in
+ * flight to hide their latency); rows whose correlations are
  * computed together (each row of the transposed dictionary read once for them); rows of a
  * block of 4 in the correlations' register tile. */
 #define LANES 16
@@ -47,6 +49,8 @@ typedef struct {
 
 #if (defined(__GNUC__) || defined(__clang__)) && defined(__x86_64__)
 #define CORE_VECTOR 4
+#undef LANES
+#define LANES 32
 #define CORE(name) name##_avx2
 #define CORE_ATTR __attribute__((target("avx2")))
 #include "omp_core.h"

@@ -60,9 +60,38 @@ CORE_ATTR static inline void CORE(block_corr)(const double *dt, int64_t K, const
     }
     for (int r = 0; r < CORR_ROWS; r++) memcpy(c + r * K, a[r], (size_t)width * sizeof(double));
 }
+
+/* The first block of 8 atoms, from k0 on, that holds an |alpha| equal to best (alpha = best or
+ * -best: the same test as fabs(alpha) == best), or the start of the last incomplete block. */
+CORE_ATTR static inline int64_t CORE(first_block)(const double *alpha, int64_t K, double best) {
+    typedef long long CORE(vl) __attribute__((vector_size(8 * CORE_VECTOR)));
+    const CORE(vd) zero = {0.0}, pb = zero + best, nb = zero - best;
+    int64_t k0 = 0;
+    for (; k0 + 8 <= K; k0 += 8) {
+        CORE(vl) hit = {0};
+        for (int v = 0; v < CORE_NC; v++) {
+            CORE(vd) d;
+            memcpy(&d, alpha + k0 + CORE_VECTOR * v, sizeof d);
+            hit |= (d == pb) | (d == nb);
+        }
+        long long any = 0;
+        for (int l = 0; l < CORE_VECTOR; l++) any |= hit[l];
+        if (any) break;
+    }
+    return k0;
+}
 #undef CORE_NV
 #undef CORE_NC
 #else
+CORE_ATTR static inline int64_t CORE(first_block)(const double *alpha, int64_t K, double best) {
+    int64_t k0 = 0;
+    for (; k0 + 8 <= K; k0 += 8) {
+        int hit = 0;
+        for (int j = 0; j < 8; j++) hit |= fabs(alpha[k0 + j]) == best;
+        if (hit) break;
+    }
+    return k0;
+}
 CORE_ATTR static void CORE(block_sum)(const double *rows, int64_t stride, const double *w,
                                       int64_t n, double *acc, int width) {
     for (int j = 0; j < width; j++) acc[j] = rows[j] * w[0];
@@ -120,7 +149,7 @@ CORE_ATTR static double CORE(largest_abs)(const double *alpha, int64_t K) {
  * learn's argmax over its working order. Equals are rare (duplicate atoms, an all-zero row):
  * the scan stops at the first, then counts the others before settling them by pos. */
 CORE_ATTR static int64_t CORE(atom_of)(const double *alpha, const int64_t *pos, int64_t K, double best) {
-    int64_t lam = 0;
+    int64_t lam = CORE(first_block)(alpha, K, best); /* then the atom in that block */
     while (lam < K - 1 && fabs(alpha[lam]) != best) lam++;
     int64_t more = 0;
     for (int64_t k = lam + 1; k < K; k++) more += fabs(alpha[k]) == best;
@@ -155,11 +184,22 @@ CORE_ATTR static void CORE(omp_row)(const double *cov, const void *gram, int f32
             /* new Cholesky row: solve L v = G[chosen, lam] (forward substitution) */
             double vv = 0.0;
             for (int64_t i = 0; i < n_active; i++) v[i] = grow[i * K + lam];
-            for (int64_t i = 0; i < n_active; i++) { /* column by column: a vector update */
-                const double vi = v[i] * inv[i], *lt = Lt + i * S;
+            /* column by column, a vector update each, two columns a pass (the same operations
+             * on each entry, in the same order, as one column a pass) */
+            int64_t i = 0;
+            for (; i + 1 < n_active; i += 2) {
+                const double *lt = Lt + i * S, *lu = lt + S;
+                const double vi = v[i] * inv[i];
+                const double vu = (v[i + 1] - lt[i + 1] * vi) * inv[i + 1];
                 v[i] = vi;
+                v[i + 1] = vu;
                 vv += vi * vi;
-                for (int64_t k = i + 1; k < n_active; k++) v[k] -= lt[k] * vi;
+                vv += vu * vu;
+                for (int64_t k = i + 2; k < n_active; k++) v[k] = (v[k] - lt[k] * vi) - lu[k] * vu;
+            }
+            if (i < n_active) {
+                v[i] *= inv[i];
+                vv += v[i] * v[i];
             }
             const double lkk = glam - vv;
             if (lkk <= eps) break; /* the chosen atoms are dependent */
@@ -197,15 +237,21 @@ CORE_ATTR static void CORE(omp_row)(const double *cov, const void *gram, int f32
             for (int64_t j = 0; j <= i; j++) Lt[j * S + i] = L[i * S + j];
         }
         for (int64_t i = 0; i < n_active; i++) gamma[i] = z[i];
-        for (int64_t j = n_active - 1; j >= 0; j--) { /* row by row of L: a vector update */
-            const double gj = gamma[j] * inv[j], *lj = L + j * S;
+        /* row by row of L, a vector update each, two rows a pass (as the forward sweep) */
+        int64_t j = n_active - 1;
+        for (; j >= 1; j -= 2) {
+            const double *lj = L + j * S, *lk = lj - S;
+            const double gj = gamma[j] * inv[j];
+            const double gk = (gamma[j - 1] - lj[j - 1] * gj) * inv[j - 1];
             gamma[j] = gj;
-            for (int64_t i = 0; i < j; i++) gamma[i] -= lj[i] * gj;
+            gamma[j - 1] = gk;
+            for (int64_t i = 0; i < j - 1; i++) gamma[i] = (gamma[i] - lj[i] * gj) - lk[i] * gk;
         }
+        if (j == 0) gamma[0] *= inv[0];
+        if (n_active == S) break; /* the last atom: no residual is needed */
         /* residual correlations cov - G[:, chosen] gamma, summed in the order the atoms were
          * chosen along their Gram rows (G is symmetric) */
         best = CORE(residual)(cov, grow, gamma, n_active, K, alpha);
-        if (n_active == S) break;
     }
     memset(code, 0, (size_t)K * sizeof(double));
     for (int64_t i = 0; i < n_active; i++) code[chosen[i]] = gamma[i];
