@@ -79,9 +79,10 @@ def _windows(contract, data: Path | None, seconds: float, seed: int = 0) -> np.n
     return (rng.standard_normal((n, c.window, len(mean))) * std + mean).astype(np.float32)
 
 
-def label_time(model_path: str | os.PathLike, windows: np.ndarray | None = None,
+def label_time(model_path, windows: np.ndarray | None = None,
                data: Path | None = None, seconds: float = 20.0, rounds: int = 5) -> dict:
-    """Time to label 1 s of data with the exported ``model_path`` (one onnxruntime thread).
+    """Time to label 1 s of data with the exported ``model_path`` (one onnxruntime thread), a
+    path or a :class:`~tactile.runtime.model.Model` opened with one thread.
 
     ``windows`` (N, window, channels) float32 in units, consecutive at the contract's hop, or
     ``data`` (a dataset folder), or Gaussian windows; ``seconds`` of data per pass, ``rounds``
@@ -93,7 +94,7 @@ def label_time(model_path: str | os.PathLike, windows: np.ndarray | None = None,
     """
     from tactile.runtime.model import Model
 
-    model = Model(model_path, threads=1)
+    model = model_path if isinstance(model_path, Model) else Model(model_path, threads=1)
     c = model.contract
     x = windows if windows is not None else _windows(c, data, seconds)
     x = np.ascontiguousarray(x, np.float32)
@@ -123,7 +124,7 @@ def label_time(model_path: str | os.PathLike, windows: np.ndarray | None = None,
         batched.append((time.thread_time() - t) * 1e3 / len(x))
     best = min(passes)
     return {
-        "model": str(model_path), "model_kind": c.model, "window": c.window, "hop": c.hop,
+        "model": str(model.path), "model_kind": c.model, "window": c.window, "hop": c.hop,
         "rate_hz": c.sample_rate_hz, "windows_per_s": per_s, "windows": len(x),
         "window_ms": round(best, 4), "ms_per_s": round(best * per_s, 3),
         "ms_per_s_median": round(float(np.median(passes)) * per_s, 3),
@@ -243,8 +244,12 @@ def _main(args) -> int:
     tmp = tempfile.TemporaryDirectory()
     paper = [paper_biotac_file(f, Path(tmp.name) / f"sf_rnn-paper-biotac-f{f}.onnx")
              for f in args.paper_biotac]
+    from tactile.runtime.model import Model
+
     for path in [*args.models, *paper]:
-        r = label_time(path, data=args.data, seconds=args.seconds, rounds=args.rounds)
+        model = Model(path, threads=1)
+        windows = _windows(model.contract, args.data, args.seconds)
+        r = label_time(model, windows, rounds=args.rounds)
         if args.json:
             print(json.dumps(r))
             continue
@@ -259,9 +264,7 @@ def _main(args) -> int:
               f"ms ({r['ms_per_s'] / r['batched_ms_per_s']:.2f}x)\n"
               f"  {verdict} ({TARGET_MS:g} ms limit, {AIM_MS:g} ms aim)")
         if args.profile:
-            from tactile.runtime.model import Model
-
-            parts = profile(path, _windows(Model(path).contract, args.data, args.seconds))
+            parts = profile(path, windows)
             total = sum(t for _, t in parts)
             print(f"  profile, kernel time per window (profiler on: {total / 1e3:.3f} ms in all)")
             for label, t in parts:
