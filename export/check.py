@@ -201,6 +201,7 @@ def _reparity(path: Path, c: ModelContract, run_dir: Path, data: Path | None,
     from tactile.export.parity import compare
     from tactile.export.windows import probe_windows
     from tactile.training.checkpoint import load_checkpoint
+    from tactile.training.config import TrainConfig
 
     model, ck = load_checkpoint(run_dir)
     for key, mine in (("classes", c.classes), ("channels", c.channels)):
@@ -209,7 +210,7 @@ def _reparity(path: Path, c: ModelContract, run_dir: Path, data: Path | None,
                                      f"{list(ck[key])}")
     if ck["config"]["window"] != c.window or ck["config"]["state"] != c.state_mode:
         raise ModelContractError(f"{path} and {run_dir} differ in window or state mode")
-    kind = ck["config"].get("model", "lstm")
+    kind = ck["config"].get("model", TrainConfig.model)  # its default when a config omits it
     if kind != c.model:
         raise ModelContractError(f"{path} and {run_dir} differ in model: {c.model} vs {kind} "
                                  "(is --run the run this file was exported from?)")
