@@ -578,8 +578,10 @@ def main(argv: list[str] | None = None) -> int:
             print("granular_experiments: stopped; the same command continues where it stopped",
                   file=sys.stderr)
             return 130
-        if not args.no_memo:
-            print(f"<!-- EMD memo: {memo.hits} batches reused, {memo.misses} computed -->")
+        finally:  # also when stopped: what the memo saved so far
+            if not args.no_memo:
+                print(f"<!-- EMD memo: {memo.hits} batches reused, {memo.misses} computed -->",
+                      flush=True)
     figs = collect(jobs, timing=not args.no_timing)
     for dataset in args.dataset:
         for block in BLOCKS[dataset]:
