@@ -61,8 +61,8 @@ CORE_ATTR static inline void CORE(block_corr)(const double *dt, int64_t K, const
     for (int r = 0; r < CORR_ROWS; r++) memcpy(c + r * K, a[r], (size_t)width * sizeof(double));
 }
 
-/* The first block of 8 atoms, from k0 on, that holds an |alpha| equal to best (alpha = best or
- * -best: the same test as fabs(alpha) == best), or the start of the last incomplete block. */
+/* The start of the first block of 8 atoms that holds an |alpha| equal to best (alpha = best or
+ * -best: the same test as fabs(alpha) == best), or of the incomplete block after the last. */
 CORE_ATTR static inline int64_t CORE(first_block)(const double *alpha, int64_t K, double best) {
     typedef long long CORE(vl) __attribute__((vector_size(8 * CORE_VECTOR)));
     const CORE(vd) zero = {0.0}, pb = zero + best, nb = zero - best;
