@@ -4,7 +4,8 @@
 
 Builds ``tactile/native/fuzz/fuzz_kernels.c`` with the kernels by clang
 (``-fsanitize=fuzzer,address,undefined``, every finding fatal), seeds a corpus (one input per
-kernel, array type and value mode) and runs libFuzzer for N seconds (default 600). The target
+kernel, array type and value mode, and the inputs of ``tactile/native/fuzz/regressions/``, each
+of which once found a defect) and runs libFuzzer for N seconds (default 600). The target
 checks, beyond the sanitizers, each call's status, the documented outputs (n_valid range, zero
 slots past it, non-zero count of the codes) and that a row gives the same bits alone as in its
 batch. Prints the executions, the edge coverage (libFuzzer's ``cov``), the features, the corpus
@@ -65,12 +66,19 @@ def build(clang: str, out: Path) -> Path:
     return exe
 
 
+REGRESSIONS = NATIVE / "fuzz" / "regressions"
+"""Inputs that once found a defect (named after it): part of every seed corpus."""
+
+
 def seed_corpus(corpus: Path) -> None:
-    """One small input per kernel, array type and value mode (byte 0's three bits)."""
+    """One small input per kernel, array type and value mode (byte 0's three bits), and the
+    regression inputs."""
     corpus.mkdir(parents=True, exist_ok=True)
     for sel in range(8):
         body = bytes([sel, 2, 100, 1, 3, 4]) + bytes(range(1, 200, 3))
         (corpus / f"seed-{sel}").write_bytes(body)
+    for f in sorted(REGRESSIONS.glob("*")):
+        shutil.copyfile(f, corpus / f"regression-{f.name}")
 
 
 def fuzz(exe: Path, corpus: Path, seconds: int, jobs: int = 1,

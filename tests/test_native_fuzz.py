@@ -1,6 +1,7 @@
 """A short coverage-guided fuzz run of the native kernels (``bench/fuzz_native.py``, libFuzzer
-with ASan and UBSan): about 20 s, no finding. clang is installed when missing (apt-get, as
-root); without it the test skips saying so, and fails under ``CI=true``."""
+with ASan and UBSan): about 20 s from the seed corpus, which replays first the inputs that once
+found a defect (``tactile/native/fuzz/regressions/``), no finding. clang is installed when
+missing (apt-get, as root); without it the test skips saying so, and fails under ``CI=true``."""
 
 from __future__ import annotations
 

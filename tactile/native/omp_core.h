@@ -150,6 +150,7 @@ CORE_ATTR static double CORE(largest_abs)(const double *alpha, int64_t K) {
  * the scan stops at the first, then counts the others before settling them by pos. */
 CORE_ATTR static int64_t CORE(atom_of)(const double *alpha, const int64_t *pos, int64_t K, double best) {
     int64_t lam = CORE(first_block)(alpha, K, best); /* then the atom in that block */
+    if (lam > K - 1) lam = K - 1; /* none equal (all NaN), K a multiple of 8: the last, as a scan */
     while (lam < K - 1 && fabs(alpha[lam]) != best) lam++;
     int64_t more = 0;
     for (int64_t k = lam + 1; k < K; k++) more += fabs(alpha[k]) == best;

@@ -80,10 +80,12 @@ static void emd_cases(void) {
     expect(tactile_native_abi() == TACTILE_NATIVE_ABI, "abi", 0);
 }
 
-static void omp_cases(void) {
-    enum { K = 12, F = 8, R = 4 };
-    double d[K * F], g[K * K], x[R * F], codes[R * K];
-    float df[K * F], gf[K * K], xf[R * F], cf[R * K];
+/* Every edge pattern through both entry points with K atoms (a multiple of 8 or not: the
+ * pursuit's vector blocks end at K or leave a remainder); R rows of F features. */
+static void omp_patterns(int K) {
+    enum { KMAX = 16, F = 8, R = 4 };
+    double d[KMAX * F], g[KMAX * KMAX], x[R * F], codes[R * KMAX];
+    float df[KMAX * F], gf[KMAX * KMAX], xf[R * F], cf[R * KMAX];
     unsigned seed = 7;
     for (int kind = 0; kind < 12; kind++) {
         pattern(d, K * F, kind == 6 || kind == 7 ? 0 : kind, &seed);
@@ -109,6 +111,33 @@ static void omp_cases(void) {
             expect(st == TACTILE_OK || st == TACTILE_ENONFINITE, "omp_f32 status", kind);
         }
     }
+}
+
+static void omp_cases(void) {
+    enum { K = 12, F = 8, R = 4 };
+    double d[K * F], g[K * K], x[R * F], codes[R * K];
+    float df[K * F], gf[K * K], xf[R * F], cf[R * K];
+    omp_patterns(12);
+    omp_patterns(16);
+    { /* correlations that overflow to inf, then residuals all NaN (inf - inf, 0 x inf): no
+       * atom's |alpha| equals the largest (0), with 16 atoms (no remainder block) */
+        enum { K16 = 16 };
+        double d16[K16 * F], g16[K16 * K16], x16[F], c16[K16];
+        for (int i = 0; i < K16 * F; i++) d16[i] = 1e308;
+        for (int i = 0; i < K16 * K16; i++) g16[i] = i % (K16 + 1) == 0;
+        for (int i = 0; i < F; i++) x16[i] = 1.0;
+        expect(tactile_omp_f64(x16, 1, F, d16, g16, K16, 3, c16) == TACTILE_OK, "NaN residuals", 0);
+    }
+    unsigned seed = 7;
+    pattern(d, K * F, 0, &seed);
+    for (int i = 0; i < K; i++)
+        for (int j = 0; j < K; j++) {
+            double s = 0.0;
+            for (int f = 0; f < F; f++) s += d[i * F + f] * d[j * F + f];
+            g[i * K + j] = s;
+        }
+    pattern(x, R * F, 0, &seed);
+    for (int i = 0; i < R * F; i++) xf[i] = (float)x[i];
     expect(tactile_omp_f64(x, R, F, d, g, K, 0, codes) == TACTILE_EINVAL, "n_nonzero 0", 0);
     expect(tactile_omp_f64(x, R, F, d, g, K, K + 1, codes) == TACTILE_EINVAL, "n_nonzero > K", 0);
     expect(tactile_omp_f64(NULL, R, F, d, g, K, 2, codes) == TACTILE_EINVAL, "null x", 0);
