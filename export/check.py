@@ -157,7 +157,7 @@ def _excused(parity: dict) -> str:
 def _granular_lines(c: ModelContract, emd) -> list[str]:
     """The pen's EMD line, or a granular model's signals and modalities."""
     if not c.modalities:
-        return [f"  emd       {'none' if emd is None else emd}"]
+        return [f"  emd       {_emd_text(emd)}"]
     lines = [f"  signal    {s.name}: {len(s.channels)} sub-samples per frame ({s.channels[0]}"
              f"..{s.channels[-1]}), {s.rate_hz:g} Hz" for s in c.signals]
     for m in c.modalities:
@@ -168,6 +168,16 @@ def _granular_lines(c: ModelContract, emd) -> list[str]:
                      f"{'s' if units != 1 else ''} at {m.rate_hz:g} Hz, {emd_text}, "
                      f"{m.steps} steps{codes}")
     return lines
+
+
+def _emd_text(emd) -> str:
+    """The pen's EMD setting for people: ``accel_z: 4 IMFs x 10 sifts`` (or as recorded)."""
+    if emd is None:
+        return "none"
+    try:
+        return f"{', '.join(emd['channels'])}: {emd['imfs']} IMFs x {emd['sifts']} sifts"
+    except (KeyError, TypeError):
+        return str(emd)
 
 
 def _fmt(value) -> str:
@@ -197,11 +207,15 @@ def _recorded(c: ModelContract) -> str:
 
 
 def _reparity(path: Path, c: ModelContract, run_dir: Path, data: Path | None,
-              windows: int) -> bool:
+              windows: int, native: bool) -> bool:
+    """Parity of the file against the run's PyTorch model, on the portable graph and, with
+    ``native`` (the kernels run the file's custom nodes here, as in ``tactile-run``), also on
+    the kernels (against the float64 EMD, as the exporter checks them); both must pass."""
     from tactile.export.parity import compare
     from tactile.export.windows import probe_windows
     from tactile.training.checkpoint import load_checkpoint
     from tactile.training.config import TrainConfig
+    from tactile.training.feature_pass import feature_pass
 
     model, ck = load_checkpoint(run_dir)
     for key, mine in (("classes", c.classes), ("channels", c.channels)):
@@ -215,13 +229,21 @@ def _reparity(path: Path, c: ModelContract, run_dir: Path, data: Path | None,
         raise ModelContractError(f"{path} and {run_dir} differ in model: {c.model} vs {kind} "
                                  "(is --run the run this file was exported from?)")
     crit = "strict" if c.quantization == "none" else "int8"
-    p = compare(model, str(path), probe_windows(ck, data, windows), ck, criterion=crit)
-    print(p.table())
-    return p.passed
+    probe = probe_windows(ck, data, windows)
+    p = compare(model, str(path), probe, ck, criterion=crit)
+    if not native:
+        print(p.table())
+        return p.passed
+    print("portable graph:\n" + p.table())
+    with feature_pass(emd=True, codes=False):
+        q = compare(model, str(path), probe, ck, criterion=crit, native=True)
+    print("native kernels:\n" + q.table())
+    return p.passed and q.passed
 
 
-def _accuracy(path: Path, c: ModelContract, data: Path) -> None:
-    from tactile.export.session import session
+def _accuracy(loaded, c: ModelContract, data: Path) -> None:
+    """The file's accuracy on ``data`` (its run's test split when the data holds those takes),
+    run by ``loaded`` (:class:`~tactile.runtime.model.Model`: the path ``tactile-run`` takes)."""
     from tactile.export.windows import from_dataset
 
     ck = {"classes": list(c.classes), "channels": list(c.channels),
@@ -232,7 +254,7 @@ def _accuracy(path: Path, c: ModelContract, data: Path) -> None:
         ck["test_fingerprints"] = {n: v.get("fingerprint") for n, v in takes.items()
                                    if isinstance(v, dict)}
     probe = from_dataset(ck, data)
-    sess = session(str(path))
+    sess = loaded.session
     labels = np.empty(len(probe), np.int64)
     zero = np.zeros((c.state_layers, 1, c.state_hidden), np.float32)
     for rows in probe.runs:  # each gap-free run in order, following the state mode
@@ -245,7 +267,9 @@ def _accuracy(path: Path, c: ModelContract, data: Path) -> None:
     acc = float((labels == probe.y).mean())
     same = probe.source.startswith("the run's test split")
     print(f"measured on      {probe.source}: {len(probe)} windows")
-    print(f"accuracy         {acc:.4f} (this file in onnxruntime, one window at a time)")
+    on = ("" if not c.custom_ops else
+          ", on the native kernels" if loaded.native else ", on the portable graph")
+    print(f"accuracy         {acc:.4f} (this file in onnxruntime, one window at a time{on})")
     print(f"recorded         {_recorded(c)}"
           + ("" if same else "; other windows than these, so not comparable"))
 
@@ -295,11 +319,12 @@ def check_file(path: Path, run_dir: Path | None = None, data: Path | None = None
     # checks at load) and 2 (the batch axis really dynamic)
     print(describe(path, contract, kernels=_paths(loaded)))
     if run_dir is not None:
-        if not _reparity(path, contract, run_dir, data, windows):
+        if not _reparity(path, contract, run_dir, data, windows,
+                         native=bool(contract.custom_ops) and loaded.native):
             raise ModelContractError(f"{path}: parity against {run_dir} failed "
                                      "(table above)")
     elif data is not None:
-        _accuracy(path, contract, data)
+        _accuracy(loaded, contract, data)
 
 
 __all__ = ["load_contract", "signature", "describe", "board_check", "check_file"]

@@ -60,12 +60,15 @@ def export_run(run_dir: Path, out: Path, data: Path | None = None, int8: bool = 
         q = compare(model, final.SerializeToString(), probe, ck, criterion="int8")
         log("int8:\n" + q.table())
         _require(q, "int8")
+        q_fast = None
         if custom_nodes(final) and native_available():
             q_fast = _on_kernels(model, final, probe, ck, "int8")
             log("int8, native kernels:\n" + q_fast.table())
             _require(q_fast, "int8 (native kernels)")
             report["int8_native"] = q_fast.to_dict()
         figures = {**q.to_dict(), "float32": parity.to_dict()}
+        if q_fast is not None:  # the file's figures on the kernels, as a float32 file has them
+            figures["native"] = q_fast.to_dict()
         quantization = "int8-dynamic"
         report["int8"] = _tradeoff(graph, final, parity, q, ck, model.state_shape)
         log(_tradeoff_line(report["int8"]))
@@ -118,11 +121,16 @@ def _require(p: Parity, what: str) -> None:
 
 def _tradeoff(f32: onnx.ModelProto, q: onnx.ModelProto, pf: Parity, pq: Parity, ck: dict,
               state: tuple[int, int]) -> dict:
+    """Sizes, batch-1 latency on the path ``tactile-run`` takes here (the kernels when the
+    file has custom nodes and they are built), agreement and accuracy of the two files."""
     args = (ck["config"]["window"], len(ck["channels"]), state)
+    native = bool(custom_nodes(f32)) and native_available()
     return {
         "bytes_float32": f32.ByteSize(), "bytes_int8": q.ByteSize(),
-        "latency_float32": latency_ms(f32.SerializeToString(), *args),
-        "latency_int8": latency_ms(q.SerializeToString(), *args),
+        "latency_float32": latency_ms(f32.SerializeToString(), *args, native=native),
+        "latency_int8": latency_ms(q.SerializeToString(), *args, native=native),
+        "latency_path": "native kernels" if native else (
+            "portable graph" if custom_nodes(f32) else "standard operators"),
         "label_agreement": pq.label_agreement, "max_abs_prob_diff": pq.max_abs_prob_diff,
         "accuracy_float32": pf.accuracy_onnx, "accuracy_int8": pq.accuracy_onnx,
     }
@@ -133,7 +141,7 @@ def _tradeoff_line(t: dict) -> str:
     if t["accuracy_int8"] is not None:
         acc = f"; accuracy {t['accuracy_float32']:.4f} -> {t['accuracy_int8']:.4f}"
     return (f"int8 trade-off: size {t['bytes_float32'] / 1e3:.1f} kB -> "
-            f"{t['bytes_int8'] / 1e3:.1f} kB; batch-1 latency p50 "
+            f"{t['bytes_int8'] / 1e3:.1f} kB; batch-1 latency p50 ({t['latency_path']}) "
             f"{t['latency_float32']['p50_ms']:.3f} -> {t['latency_int8']['p50_ms']:.3f} ms; "
             f"label agreement with PyTorch {t['label_agreement']:.4f}{acc}")
 

@@ -163,11 +163,41 @@ def test_the_runtime_runs_them_like_the_pens(exported, dataset):
     assert np.abs(h_o - h_t.numpy()).max() <= 1e-3
 
 
-def test_check_data_measures_a_granular_model(exported, dataset, capsys):
+@pytest.fixture
+def own_kernel_state(monkeypatch):
+    """--no-native switches the kernels off for the process: this test's switch only."""
+    from tactile.runtime import kernels
+
+    monkeypatch.setattr(kernels, "_state", {"disabled": False, "said": False})
+
+
+def test_check_data_measures_a_granular_model(exported, dataset, capsys, own_kernel_state):
+    """On the path tactile-run takes here (the kernels where built), and it says which."""
     name, root, _, _, _, _ = exported
     assert check_main([str(root / "model.onnx"), "--data", str(dataset)]) == 0
     out = capsys.readouterr().out
     assert "contract ok (format 2" in out and "accuracy" in out
+    path = "on the native kernels" if native_available() else "on the portable graph"
+    assert f"one window at a time, {path})" in out
+    assert check_main([str(root / "model.onnx"), "--data", str(dataset), "--no-native"]) == 0
+    assert "one window at a time, on the portable graph)" in capsys.readouterr().out
+
+
+@pytest.mark.skipif(not native_available(), reason="the native kernels are not built")
+def test_check_run_compares_both_paths_where_the_kernels_run(exported, capsys,
+                                                              own_kernel_state):
+    """--run on a file with custom nodes: the portable graph's table and the kernels' table,
+    both passing; --no-native: the portable graph's alone."""
+    name, root, _, _, _, _ = exported
+    model = str(root / "model.onnx")
+    assert check_main([model, "--run", str(root / "run"), "--windows", "16"]) == 0
+    out = capsys.readouterr().out
+    assert "portable graph:\nwindows checked  16" in out
+    assert "native kernels:\nwindows checked  16" in out
+    assert out.count("result           PASS") == 2
+    assert check_main([model, "--run", str(root / "run"), "--windows", "16", "--no-native"]) == 0
+    out = capsys.readouterr().out
+    assert "native kernels:" not in out and out.count("result           PASS") == 1
 
 
 # -- an SF-RNN over a replayed BioTac trial ------------------------------------------------------
@@ -287,3 +317,10 @@ def test_int8_of_a_granular_model(dataset, tmp_path_factory):
     assert custom(root / "int8.onnx")[1] == ["EMD", "SparseCode"]
     if native_available():
         assert report["int8_native"]["passed"]
+        # the file records its figures on the kernels, as a float32 file does, and its
+        # latency was timed on the path tactile-run takes here
+        assert contract.parity["native"] == report["int8_native"]
+        assert report["int8"]["latency_path"] == "native kernels"
+    else:
+        assert "native" not in contract.parity
+        assert report["int8"]["latency_path"] == "portable graph"

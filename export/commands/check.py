@@ -3,11 +3,14 @@
 Validates the contract of any ONNX file (an ONNX model at all, ``onnx.checker``, opset, input
 and output names, dtypes, ranks, the dynamic batch axis, every required metadata key) and names
 what is wrong in one line (exit code 3). With ``--run`` it re-runs the parity comparison against
-the run's PyTorch model (on ``--data``'s test windows if given, else simulated or random ones)
-and prints the table; exit 3 on failure. With ``--data`` alone it runs the file on the data's
-windows (the run's test split when the data holds its test takes, recognised by content, else
-every take, and it says which) and prints the accuracy beside the one training recorded, saying
-what that was measured on.
+the run's PyTorch model (on at most ``--windows`` of ``--data``'s test windows if given, else
+simulated or random ones) and prints the table; exit 3 on failure. A file with custom nodes
+(EMD, sparse codes) is compared on the portable graph and, where the native kernels run it,
+on the kernels too: both must pass. With ``--data`` alone it runs the file, as ``tactile-run``
+would (kernels or portable graph, as the ``kernels`` lines say), on all of the data's windows
+(the run's test split when the data holds its test takes, recognised by content, else every
+take, and it says which) and prints the accuracy beside the one training recorded, saying what
+that was measured on.
 
 On a board (no ``[train]`` extra: no onnx, no torch) it checks what the runtime will: loads the
 file with onnxruntime, validates the contract and the graph's signature as ``tactile-run`` does,
@@ -28,7 +31,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("model", type=Path, help="ONNX file to check")
     p.add_argument("--run", type=Path, help="run folder: re-run parity against its PyTorch model")
     p.add_argument("--data", type=Path, help="dataset folder: windows to check on")
-    p.add_argument("--windows", type=int_in(1), default=256, help="at most this many windows")
+    p.add_argument("--windows", type=int_in(1), default=256,
+                   help="--run: compare on at most this many windows (default: 256)")
     p.add_argument("--no-native", action="store_true",
                    help="run the portable EMD/sparse-code graphs, not the C kernels")
     add_debug(p)
