@@ -5,8 +5,9 @@ model-local function as its portable fallback (``docs/export.md``). Registered i
 options, the package's kernel library (``tactile/native``, built where the install had a C
 compiler) runs those nodes in C; without it onnxruntime runs the functions, the standard-op
 graphs, with the same results up to float32 rounding. :func:`library_path` says which:
-``TACTILE_NATIVE=0`` in the environment, or :func:`disable` (``--no-native`` on tactile-run and
-tactile-check), forces the portable graphs. No torch, no onnx: numpy and onnxruntime only.
+``TACTILE_NATIVE=0`` in the environment (or ``false``, ``off``, ``no``), or :func:`disable`
+(``--no-native`` on tactile-run and tactile-check), forces the portable graphs. No torch, no
+onnx: numpy and onnxruntime only.
 """
 
 from __future__ import annotations
@@ -26,7 +27,9 @@ def disable() -> None:
 
 
 def _disabled() -> bool:
-    return _state["disabled"] or os.environ.get("TACTILE_NATIVE", "").strip() == "0"
+    from tactile import native
+
+    return _state["disabled"] or native.disabled_by_env()
 
 
 def library_path() -> Path | None:

@@ -353,6 +353,27 @@ def test_runtime_runs_the_kernel_and_falls_back_saying_so_once(exported, fresh_k
     assert np.abs(p_fast - p_slow).max() <= 1e-4
 
 
+@pytest.mark.parametrize("value, off", [("0", True), ("false", True), ("OFF", True),
+                                        ("no", True), ("1", False), ("yes", False),
+                                        ("true", False), ("", False)])
+def test_tactile_native_off_and_on_values(fresh_kernels, monkeypatch, capsys, value, off):
+    monkeypatch.setenv("TACTILE_NATIVE", value)
+    assert (fresh_kernels.library_path() is None) is off
+    assert native.disabled_by_env() is off
+    assert capsys.readouterr().err == ""
+
+
+def test_an_unknown_tactile_native_value_keeps_the_kernels_and_says_so_once(
+        fresh_kernels, monkeypatch, capsys):
+    """A typo must not stop a board's label stream, nor pass unnoticed."""
+    monkeypatch.setattr(native, "_warned", set())
+    monkeypatch.setenv("TACTILE_NATIVE", "disable")
+    assert fresh_kernels.library_path() == native.library_path() is not None
+    native.disabled_by_env()
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "TACTILE_NATIVE='disable'" in err and "stay on" in err
+
+
 def test_disable_forces_the_portable_path(fresh_kernels):
     fresh_kernels.disable()
     assert fresh_kernels.library_path() is None

@@ -4,7 +4,7 @@ The C sources beside this file (``tactile_native.h`` gives the entry points) are
 the package's own build into one shared library, ``_kernels*.so`` here, when a C compiler is
 there; without one the package installs without it and :func:`available` is False (the
 portable path: the torch and ONNX implementations). ``TACTILE_NATIVE=0`` in the environment
-disables the library as if it were absent.
+(or ``false``, ``off``, ``no``) disables the library as if it were absent (:func:`disabled_by_env`).
 
 The kernels compute in float64 whatever the array type, row by row: a row's result does not
 depend on the batch it is in. :func:`emd` matches PyEMD ``EMD(FIXE=n_sifts)`` and the toolkit's
@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import ctypes
 import os
+import sys
 from functools import cache
 from pathlib import Path
 
@@ -23,7 +24,7 @@ import numpy as np
 
 from tactile.errors import ConfigError, TactileError
 
-__all__ = ["NativeError", "available", "emd", "library_path", "omp"]
+__all__ = ["NativeError", "available", "disabled_by_env", "emd", "library_path", "omp"]
 
 ABI = 1
 """The C library's ``tactile_native_abi()`` this wrapper speaks."""
@@ -37,9 +38,27 @@ class NativeError(TactileError):
     """The native library is missing, of another ABI, or failed (out of memory)."""
 
 
+_OFF, _ON = {"0", "false", "off", "no"}, {"", "1", "true", "on", "yes"}
+_warned: set[str] = set()
+
+
+def disabled_by_env() -> bool:
+    """Whether ``TACTILE_NATIVE`` turns the library off: ``0``, ``false``, ``off`` or ``no``
+    (any case). ``1``, ``true``, ``on``, ``yes`` or unset leave it on; any other value leaves
+    it on too, said once on stderr (a typo must not stop a board's label stream)."""
+    value = os.environ.get("TACTILE_NATIVE", "").strip()
+    if value.lower() in _OFF:
+        return True
+    if value.lower() not in _ON and value not in _warned:
+        _warned.add(value)
+        print(f"tactile: TACTILE_NATIVE={value!r} is not one of 0/false/off/no (kernels off) or "
+              "1/true/on/yes: the native kernels stay on", file=sys.stderr)
+    return False
+
+
 def library_path() -> Path | None:
-    """The built library's path, or None (not built, or ``TACTILE_NATIVE=0``)."""
-    if os.environ.get("TACTILE_NATIVE", "").strip() == "0":
+    """The built library's path, or None (not built, or turned off: :func:`disabled_by_env`)."""
+    if disabled_by_env():
         return None
     found = sorted(_HERE.glob("_kernels*.so")) + sorted(_HERE.glob("_kernels*.pyd"))
     return found[0] if found else None
