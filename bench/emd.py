@@ -35,7 +35,6 @@ what the code costs, and a slow spell of the host falls on all of them alike. In
 
 from __future__ import annotations
 
-import argparse
 import sys
 import tempfile
 import time
@@ -487,11 +486,13 @@ def _sifts_run(windows: np.ndarray, n_imfs: int = N_IMFS) -> float:
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--repeats", type=int, default=3, help="timed runs per measurement")
+    from tactile.cli import Parser, int_in
+
+    parser = Parser(prog="emd.py", description=__doc__.split("\n\n")[0])
+    parser.add_argument("--repeats", type=int_in(1), default=3, help="timed runs per measurement")
     parser.add_argument("--pieces", action="store_true",
                         help="only time each piece of one sift alone (batch 1; see --rows)")
-    parser.add_argument("--rows", type=int,
+    parser.add_argument("--rows", type=int_in(1),
                         help="rows (windows x 8 channels) for --pieces (default 8: batch 1)")
     parser.add_argument("--profile", action="store_true",
                         help="only profile the 8 x 50 graph at batch 256 (shares of kernel time)")

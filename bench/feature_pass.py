@@ -20,7 +20,6 @@ Issue target: the pass >= 10x faster with the kernel built.
 
 from __future__ import annotations
 
-import argparse
 import os
 import sys
 import time
@@ -28,11 +27,13 @@ from pathlib import Path
 
 
 def main(argv: list[str] | None = None) -> int:
-    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    from tactile.cli import Parser, int_in
+
+    p = Parser(prog="feature_pass.py", description=__doc__.split("\n\n")[0])
     p.add_argument("data", type=Path, help="take folder")
     p.add_argument("--config", type=Path, required=True, help="a tactile-train config (TOML)")
-    p.add_argument("--windows", type=int, default=200, help="training windows timed")
-    p.add_argument("--repeats", type=int, default=3, help="rounds (fastest kept)")
+    p.add_argument("--windows", type=int_in(1), default=200, help="training windows timed")
+    p.add_argument("--repeats", type=int_in(1), default=3, help="rounds (fastest kept)")
     args = p.parse_args(argv)
 
     import torch

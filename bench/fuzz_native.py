@@ -16,7 +16,6 @@ beside the corpus folder, or in the current folder).
 
 from __future__ import annotations
 
-import argparse
 import os
 import re
 import shutil
@@ -113,10 +112,12 @@ def fuzz(exe: Path, corpus: Path, seconds: int, jobs: int = 1,
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--seconds", type=int, default=600, help="fuzzing time (default 600)")
+    from tactile.cli import Parser, int_in
+
+    parser = Parser(prog="fuzz_native.py", description=__doc__.split("\n\n")[0])
+    parser.add_argument("--seconds", type=int_in(1), default=600, help="fuzzing time (default 600)")
     parser.add_argument("--corpus", type=Path, help="corpus folder (default: a temporary one)")
-    parser.add_argument("--jobs", type=int, default=1, help="libFuzzer -fork processes")
+    parser.add_argument("--jobs", type=int_in(1), default=1, help="libFuzzer -fork processes")
     parser.add_argument("--install", action="store_true", help="apt-get install clang if missing")
     args = parser.parse_args(argv)
     clang = install_clang() if args.install else find_clang()

@@ -22,7 +22,6 @@ exported graph does (float64 inside).
 
 from __future__ import annotations
 
-import argparse
 import os
 import sys
 import time
@@ -152,8 +151,10 @@ def table(title: str, ms: dict[str, float]) -> list[str]:
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--repeats", type=int, default=5, help="timed rounds (fastest kept)")
+    from tactile.cli import Parser, int_in
+
+    parser = Parser(prog="native.py", description=__doc__.split("\n\n")[0])
+    parser.add_argument("--repeats", type=int_in(1), default=5, help="timed rounds (fastest kept)")
     args = parser.parse_args(argv)
     if not native.available():
         print("the native kernels are not built (pip install -e . with a C compiler)",

@@ -16,11 +16,13 @@ Cases, batch 1, the same windows for every implementation, all measured in this 
 
 Issue targets: EMD 1 x 1,100 >= 25x PyEMD and >= 10x the portable graph; pen 8 x 50 >= 200x
 PyEMD; SparseCode >= 10x the portable graph; SF-RNN finger 0 <= 3 ms per 1 s of data at hop 50.
+
+Exit codes: 0 figures printed; 1 a bad argument, or no kernel library to time (not built, or
+turned off with ``TACTILE_NATIVE``).
 """
 
 from __future__ import annotations
 
-import argparse
 import os
 import sys
 import tempfile
@@ -122,14 +124,18 @@ def label_case(rounds: int) -> list[str]:
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--repeats", type=int, default=5, help="timed rounds (fastest kept)")
+    from tactile.cli import Parser, int_in
+
+    parser = Parser(prog="ort_kernels.py", description=__doc__.split("\n\n")[0])
+    parser.add_argument("--repeats", type=int_in(1), default=5,
+                        help="timed rounds, the fastest kept (default 5)")
     parser.add_argument("--no-label-time", action="store_true", help="skip the SF-RNN case")
     args = parser.parse_args(argv)
     if not native.available():
-        print("the native kernels are not built (pip install -e . with a C compiler)",
-              file=sys.stderr)
-        return 2
+        why = ("turned off by TACTILE_NATIVE" if native.disabled_by_env() else
+               "not built: pip install -e . with a C compiler")
+        print(f"ort_kernels.py: error: no kernel library to time ({why})", file=sys.stderr)
+        return 1
     torch.set_num_threads(1)
     warnings.simplefilter("ignore", RuntimeWarning)
     print(f"onnxruntime {ort.__version__}, library {native.library_path().name}, one thread",
