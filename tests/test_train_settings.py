@@ -108,6 +108,15 @@ def test_config_errors_name_only_the_settings_involved():
     assert str(e.value) == "dropout must be in [0, 1) (got dropout=2.0)"
 
 
+@pytest.mark.parametrize("bad", ["lr=inf", "lr=1e999", "lr=nan", "lr=0", "weight_decay=inf",
+                                 "weight_decay=nan", "weight_decay=-1e-4"])
+def test_a_rate_or_decay_that_cannot_train_is_refused(bad):
+    """An infinite or NaN learning rate trains on NaN losses to the end and exits 0; the
+    setting is refused before any work, naming both settings of the check."""
+    with pytest.raises(ConfigError, match="lr must be finite and > 0, weight_decay finite"):
+        parse_sets([bad], TrainConfig())
+
+
 
 def test_a_switch_is_set_by_on_off_true_false_1_0():
     for value, want in (("on", True), ("True", True), ("1", True),

@@ -7,6 +7,7 @@ resolved config travels in the checkpoint, so a run can always be rebuilt and ex
 from __future__ import annotations
 
 import dataclasses
+import math
 import os
 import re
 import tomllib
@@ -274,8 +275,8 @@ class TrainConfig:
             (self.ensemble >= 1, "ensemble must be >= 1 (1: one model)", ("ensemble",)),
             (self.epochs >= 1 and self.batch_size >= 1, "epochs and batch_size must be >= 1",
              ("epochs", "batch_size")),
-            (self.lr > 0 and self.weight_decay >= 0, "lr must be > 0, weight_decay >= 0",
-             ("lr", "weight_decay")),
+            (0 < self.lr < math.inf and 0 <= self.weight_decay < math.inf,  # (NaN fails too)
+             "lr must be finite and > 0, weight_decay finite and >= 0", ("lr", "weight_decay")),
             (0 < self.test_fraction < 1, "test_fraction must be in (0, 1)", ("test_fraction",)),
             (0 < self.val_fraction < 1, "val_fraction must be in (0, 1)", ("val_fraction",)),
             (1 <= self.emd_imfs <= MAX_EMD_IMFS and 1 <= self.emd_sifts <= MAX_EMD_SIFTS,

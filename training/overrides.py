@@ -11,7 +11,8 @@ def parse_sets(pairs: list[str], base: TrainConfig) -> TrainConfig:
     d = base.to_dict()
     for pair in pairs:
         key, sep, value = pair.partition("=")
-        if not sep:
+        key = key.strip()
+        if not sep or not key:
             raise ConfigError(f"--set {pair!r}: expected KEY=VALUE")
         if key not in d:
             raise ConfigError(f"--set {key}: unknown setting; allowed: {sorted(d)}")
