@@ -76,7 +76,7 @@ def seed_corpus(corpus: Path) -> None:
     for sel in range(8):
         body = bytes([sel, 2, 100, 1, 3, 4]) + bytes(range(1, 200, 3))
         (corpus / f"seed-{sel}").write_bytes(body)
-    for f in sorted(REGRESSIONS.glob("*")):
+    for f in sorted(p for p in REGRESSIONS.iterdir() if p.is_file()):
         shutil.copyfile(f, corpus / f"regression-{f.name}")
 
 

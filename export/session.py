@@ -10,7 +10,7 @@ import onnxruntime as ort
 
 
 def native_available() -> bool:
-    """Whether the kernel library is built, enabled (``TACTILE_NATIVE`` is not 0) and loads."""
+    """Whether the kernel library is built, not turned off (``TACTILE_NATIVE``) and loads."""
     from tactile import native
 
     return native.available()

@@ -34,7 +34,7 @@ def _disabled() -> bool:
 
 def library_path() -> Path | None:
     """The built kernel library's path, or None: not built (no C compiler at install time),
-    ``TACTILE_NATIVE=0``, or :func:`disable` called."""
+    ``TACTILE_NATIVE`` off (``0``, ``false``, ``off``, ``no``), or :func:`disable` called."""
     if _disabled():
         return None
     from tactile import native

@@ -39,6 +39,7 @@ def test_short_fuzz_run_finds_nothing(tmp_path):
         pytest.skip(msg)
     corpus = tmp_path / "corpus"
     bench.seed_corpus(corpus)
+    assert (corpus / "regression-omp-all-nan-residuals-16-atoms").is_file()  # replayed first
     stats = bench.fuzz(exe, corpus, SECONDS)
     assert stats["returncode"] == 0 and not stats["found"], stats["log"]
     assert stats.get("executions", 0) > 100 and stats.get("cov", 0) > 100, stats["log"]

@@ -86,7 +86,7 @@ def _lib() -> ctypes.CDLL:
     path = library_path()
     if path is None:
         raise NativeError("the native kernels are not built (no C compiler at install time) "
-                          "or are disabled (TACTILE_NATIVE=0)")
+                          "or are turned off (TACTILE_NATIVE)")
     return _load(path)
 
 

@@ -26,9 +26,9 @@ typedef struct {
 
 /* Atoms whose sums a block of the hot loops keeps in registers (16: 8 vector registers of 2
  * doubles; the AVX2 copy below keeps 32, 8 registers of 4, enough independent additions in
- * flight to hide their latency); rows whose correlations are
- * computed together (each row of the transposed dictionary read once for them); rows of a
- * block of 4 in the correlations' register tile. */
+ * flight to hide their latency); rows whose correlations are computed together (each row of
+ * the transposed dictionary read once for them); rows of a block of 4 in the correlations'
+ * register tile. */
 #define LANES 16
 #define ROW_BLOCK 8
 #define CORR_ROWS 4

@@ -83,7 +83,7 @@ CORE_ATTR static inline int64_t CORE(first_block)(const double *alpha, int64_t K
 #undef CORE_NV
 #undef CORE_NC
 #else
-CORE_ATTR static inline int64_t CORE(first_block)(const double *alpha, int64_t K, double best) {
+CORE_ATTR static int64_t CORE(first_block)(const double *alpha, int64_t K, double best) {
     int64_t k0 = 0;
     for (; k0 + 8 <= K; k0 += 8) {
         int hit = 0;
@@ -117,7 +117,8 @@ CORE_ATTR static double CORE(residual)(const double *cov, const double *grow,
         }                                                                                      \
         k0 += (width);                                                                         \
     } while (0)
-    while (k0 + LANES <= K) CORE_RESIDUAL_BLOCK(LANES); /* blocks of 16, then of 8 and of 4 */
+    while (k0 + LANES <= K) CORE_RESIDUAL_BLOCK(LANES); /* blocks of LANES, then 16, 8, 4 */
+    if (LANES > 16 && k0 + 16 <= K) CORE_RESIDUAL_BLOCK(16);
     if (k0 + 8 <= K) CORE_RESIDUAL_BLOCK(8);
     if (k0 + 4 <= K) CORE_RESIDUAL_BLOCK(4);
 #undef CORE_RESIDUAL_BLOCK
@@ -286,6 +287,10 @@ CORE_ATTR static void CORE(correlations)(const double *dt, const double *xr, int
         double *c = cov + b * K;
         int64_t k0 = 0;
         for (; k0 + LANES <= K; k0 += LANES) CORE(block_sum)(dt + k0, K, x, F, c + k0, LANES);
+        if (LANES > 16 && k0 + 16 <= K) {
+            CORE(block_sum)(dt + k0, K, x, F, c + k0, 16);
+            k0 += 16;
+        }
         if (k0 + 8 <= K) {
             CORE(block_sum)(dt + k0, K, x, F, c + k0, 8);
             k0 += 8;
