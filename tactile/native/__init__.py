@@ -85,8 +85,10 @@ def _load(path: Path) -> ctypes.CDLL:
 def _lib() -> ctypes.CDLL:
     path = library_path()
     if path is None:
-        raise NativeError("the native kernels are not built (no C compiler at install time) "
-                          "or are turned off (TACTILE_NATIVE)")
+        if disabled_by_env():
+            raise NativeError("the native kernels are turned off "
+                              f"(TACTILE_NATIVE={os.environ.get('TACTILE_NATIVE', '').strip()})")
+        raise NativeError("the native kernels are not built (no C compiler at install time)")
     return _load(path)
 
 
