@@ -92,13 +92,13 @@ def export_run(run_dir: Path, out: Path, data: Path | None = None, int8: bool = 
     return report
 
 
-def _on_kernels(model, graph: onnx.ModelProto, probe, ck: dict, criterion: str):
-    """Parity of ``graph`` on the kernel library, against PyTorch's EMD in float64: the
-    kernel's precision (in float32 a near-tie of two extrema may place a knot elsewhere) and
-    the features the model was trained on."""
+def _on_kernels(model, graph: onnx.ModelProto | str, probe, ck: dict, criterion: str):
+    """Parity of ``graph`` (or the file at that path) on the kernel library, against PyTorch's
+    EMD in float64: the kernel's precision (in float32 a near-tie of two extrema may place a
+    knot elsewhere) and the features the model was trained on."""
     with feature_pass(emd=True, codes=False):
-        return compare(model, graph.SerializeToString(), probe, ck, criterion=criterion,
-                       native=True)
+        onnx_model = graph if isinstance(graph, str) else graph.SerializeToString()
+        return compare(model, onnx_model, probe, ck, criterion=criterion, native=True)
 
 
 def output_file(out: Path) -> Path:

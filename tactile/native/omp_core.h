@@ -62,7 +62,8 @@ CORE_ATTR static inline void CORE(block_corr)(const double *dt, int64_t K, const
 }
 
 /* The start of the first block of 8 atoms that holds an |alpha| equal to best (alpha = best or
- * -best: the same test as fabs(alpha) == best), or of the incomplete block after the last. */
+ * -best: the same test as fabs(alpha) == best), or of the incomplete block after the last, at
+ * most K - 1 (where the scalar scan stops when no atom is equal: all NaN). */
 CORE_ATTR static inline int64_t CORE(first_block)(const double *alpha, int64_t K, double best) {
     typedef long long CORE(vl) __attribute__((vector_size(8 * CORE_VECTOR)));
     const CORE(vd) zero = {0.0}, pb = zero + best, nb = zero - best;
@@ -78,7 +79,7 @@ CORE_ATTR static inline int64_t CORE(first_block)(const double *alpha, int64_t K
         for (int l = 0; l < CORE_VECTOR; l++) any |= hit[l];
         if (any) break;
     }
-    return k0;
+    return k0 < K ? k0 : K - 1;
 }
 #undef CORE_NV
 #undef CORE_NC
@@ -90,7 +91,7 @@ CORE_ATTR static int64_t CORE(first_block)(const double *alpha, int64_t K, doubl
         for (int j = 0; j < 8; j++) hit |= fabs(alpha[k0 + j]) == best;
         if (hit) break;
     }
-    return k0;
+    return k0 < K ? k0 : K - 1;
 }
 CORE_ATTR static void CORE(block_sum)(const double *rows, int64_t stride, const double *w,
                                       int64_t n, double *acc, int width) {
@@ -151,7 +152,6 @@ CORE_ATTR static double CORE(largest_abs)(const double *alpha, int64_t K) {
  * the scan stops at the first, then counts the others before settling them by pos. */
 CORE_ATTR static int64_t CORE(atom_of)(const double *alpha, const int64_t *pos, int64_t K, double best) {
     int64_t lam = CORE(first_block)(alpha, K, best); /* then the atom in that block */
-    if (lam > K - 1) lam = K - 1; /* none equal (all NaN), K a multiple of 8: the last, as a scan */
     while (lam < K - 1 && fabs(alpha[lam]) != best) lam++;
     int64_t more = 0;
     for (int64_t k = lam + 1; k < K; k++) more += fabs(alpha[k]) == best;
