@@ -211,8 +211,7 @@ def _reparity(path: Path, c: ModelContract, run_dir: Path, data: Path | None,
     """Parity of the file against the run's PyTorch model, on the portable graph and, with
     ``native`` (the kernels run the file's custom nodes here, as in ``tactile-run``), also on
     the kernels (against the float64 EMD, as the exporter checks them); both must pass."""
-    from tactile.export.exporter import _on_kernels
-    from tactile.export.parity import compare
+    from tactile.export.parity import compare, compare_on_kernels
     from tactile.export.windows import probe_windows
     from tactile.training.checkpoint import load_checkpoint
     from tactile.training.config import TrainConfig
@@ -235,7 +234,7 @@ def _reparity(path: Path, c: ModelContract, run_dir: Path, data: Path | None,
         print(p.table())
         return p.passed
     print("portable graph:\n" + p.table())
-    q = _on_kernels(model, str(path), probe, ck, crit)
+    q = compare_on_kernels(model, str(path), probe, ck, crit)
     print("native kernels:\n" + q.table())
     return p.passed and q.passed
 

@@ -23,12 +23,11 @@ from tactile.export.check import load_contract
 from tactile.export.custom_ops import custom_nodes, custom_ops_key
 from tactile.export.graph import build_graph
 from tactile.export.metadata import attach, contract_for
-from tactile.export.parity import Parity, ParityError, compare
+from tactile.export.parity import Parity, ParityError, compare, compare_on_kernels
 from tactile.export.quantize import latency_ms, quantize_int8
 from tactile.export.session import native_available
 from tactile.export.windows import probe_windows
 from tactile.training.checkpoint import load_checkpoint
-from tactile.training.feature_pass import feature_pass
 
 
 def export_run(run_dir: Path, out: Path, data: Path | None = None, int8: bool = False,
@@ -50,7 +49,7 @@ def export_run(run_dir: Path, out: Path, data: Path | None = None, int8: bool = 
     final, quantization, figures = graph, "none", parity.to_dict()
     custom = custom_nodes(graph)
     if custom and native_available():  # the same file on the kernels: it must pass too
-        fast = _on_kernels(model, graph, probe, ck, "strict")
+        fast = compare_on_kernels(model, graph, probe, ck, "strict")
         log("native kernels:\n" + fast.table())
         _require(fast, "float32 (native kernels)")
         figures = {**figures, "native": fast.to_dict()}
@@ -62,7 +61,7 @@ def export_run(run_dir: Path, out: Path, data: Path | None = None, int8: bool = 
         _require(q, "int8")
         q_fast = None
         if custom_nodes(final) and native_available():
-            q_fast = _on_kernels(model, final, probe, ck, "int8")
+            q_fast = compare_on_kernels(model, final, probe, ck, "int8")
             log("int8, native kernels:\n" + q_fast.table())
             _require(q_fast, "int8 (native kernels)")
             report["int8_native"] = q_fast.to_dict()
@@ -90,15 +89,6 @@ def export_run(run_dir: Path, out: Path, data: Path | None = None, int8: bool = 
         tmp_path.unlink(missing_ok=True)
     report.update(seconds=round(time.perf_counter() - t0, 2), bytes=out.stat().st_size)
     return report
-
-
-def _on_kernels(model, graph: onnx.ModelProto | str, probe, ck: dict, criterion: str):
-    """Parity of ``graph`` (or the file at that path) on the kernel library, against PyTorch's
-    EMD in float64: the kernel's precision (in float32 a near-tie of two extrema may place a
-    knot elsewhere) and the features the model was trained on."""
-    with feature_pass(emd=True, codes=False):
-        onnx_model = graph if isinstance(graph, str) else graph.SerializeToString()
-        return compare(model, onnx_model, probe, ck, criterion=criterion, native=True)
 
 
 def output_file(out: Path) -> Path:

@@ -256,6 +256,19 @@ def compare(model: nn.Module, onnx_model: bytes | str, probe: Probe, ck: dict,
                       "max_excused": MAX_EXCUSED, "tie": TIE, "flips": examined.to_dict()}))
 
 
+def compare_on_kernels(model: nn.Module, graph: onnx.ModelProto | str, probe: Probe, ck: dict,
+                       criterion: str = "strict") -> Parity:
+    """:func:`compare` with the file's ``ai.tactile`` nodes on the kernel library (``graph``, or
+    the file at that path), against PyTorch computing its EMDs in float64: the kernel's
+    precision (in float32 a near-tie of two extrema may place a knot elsewhere) and the
+    features the model was trained on."""
+    from tactile.training.feature_pass import feature_pass
+
+    onnx_model = graph if isinstance(graph, str) else graph.SerializeToString()
+    with feature_pass(emd=True, codes=False):
+        return compare(model, onnx_model, probe, ck, criterion=criterion, native=True)
+
+
 def _window_mode(model: nn.Module, sess: ort.InferenceSession, x: np.ndarray,
                  explain: Explainer | None = None, examined: Examined | None = None):
     """Every window from a zero state: PyTorch and onnxruntime in batches of
