@@ -87,7 +87,7 @@ def compute(data: Path, cfg: TrainConfig) -> dict:
 def energy_of(pre, x: torch.Tensor) -> torch.Tensor:
     """(B, 1, F): the linear model's features of windows x (its ``energy`` mode)."""
     z = pre.normalise(x)
-    return pre._energy(z, pre.decompose(z))
+    return pre.energy(z, pre.decompose(z))
 
 
 def val_accuracy(train: np.ndarray, val: np.ndarray, y: dict) -> float:

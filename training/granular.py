@@ -229,7 +229,7 @@ class GranularPre(nn.Module):
             at += f
         return torch.cat(out, dim=2)
 
-    def _energy(self, z: Tensor, imfs: list[Tensor]) -> Tensor:
+    def energy(self, z: Tensor, imfs: list[Tensor]) -> Tensor:
         """(B, 1, F): per modality and unit, the log mean energy of each IMF over the window
         (imfs = 0: the unit's mean and log standard deviation)."""
         out = []
@@ -246,7 +246,7 @@ class GranularPre(nn.Module):
         """z (B, T, C) and imfs[k] (B, n_k, K_k, L_k) (the EMDs of :meth:`emd_inputs`) ->
         features (B, S, n_features), or (B, 1, n_features) in ``energy`` mode."""
         if self.mode == "energy":
-            return self._energy(z, imfs)
+            return self.energy(z, imfs)
         return self.post(self.images_from(z, imfs))
 
     def decompose(self, z: Tensor) -> list[Tensor]:
