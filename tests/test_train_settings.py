@@ -77,6 +77,24 @@ def test_eval_uses_the_runs_threads(dataset, tmp_path, capsys):
         torch.set_num_threads(old)
 
 
+def test_more_threads_than_cpus_is_warned_once(dataset, tmp_path, capsys, monkeypatch):
+    """A set thread count above the usable CPUs trains, with one warning line saying why it
+    is slow; a count that fits says nothing."""
+    import tactile.training.train as train_module
+
+    monkeypatch.setattr(train_module, "usable_cpus", lambda: 1)
+    old = torch.get_num_threads()
+    try:
+        train(dataset, tmp_path / "two", TrainConfig(**TINY, threads=2), progress=False)
+        err = capsys.readouterr().err
+        assert err.count("warning: threads=2 x 1 process(es) here is more than the 1 usable "
+                         "CPUs") == 1, err
+        train(dataset, tmp_path / "one", TrainConfig(**TINY, threads=1), progress=False)
+        assert "usable CPUs" not in capsys.readouterr().err
+    finally:
+        torch.set_num_threads(old)
+
+
 def test_device_resolution():
     assert resolve_device("auto", cuda_available=True) == "cuda"
     assert resolve_device("auto", cuda_available=False) == "cpu"
