@@ -50,7 +50,8 @@ def load_contract(path: str | Path) -> tuple[onnx.ModelProto, ModelContract]:
                                  f"{len(data)} bytes)")
     try:
         onnx.checker.check_model(model, full_check=True)
-    except (onnx.checker.ValidationError, onnx.shape_inference.InferenceError) as e:
+    except (onnx.checker.ValidationError, onnx.shape_inference.InferenceError,
+            UnicodeDecodeError) as e:  # the last: a name or string that is not UTF-8
         raise ModelContractError(f"{path}: fails onnx.checker: {str(e).splitlines()[0]}") from None
     opset = {o.domain: o.version for o in model.opset_import}.get("", 0)
     if opset != OPSET:

@@ -6,6 +6,8 @@ Stateless: the LSTM state lives in each :class:`~tactile.runtime.stream.Stream`,
 
 from __future__ import annotations
 
+import contextlib
+import io
 import os
 
 import numpy as np
@@ -81,11 +83,17 @@ class Model:
         # portable functions (tactile.runtime.kernels)
         self.native = kernels.register(so, path)
         try:
-            self.session = ort.InferenceSession(str(path), so, providers=["CPUExecutionProvider"])
+            # onnxruntime's Python wrapper prints an "EP Error" banner to stdout (tactile-run's
+            # label stream) when a load fails, before it retries: it goes nowhere, the error
+            # is the line below
+            with contextlib.redirect_stdout(io.StringIO()):
+                self.session = ort.InferenceSession(str(path), so,
+                                                    providers=["CPUExecutionProvider"])
+            # a damaged file may load and still hold metadata that is not UTF-8
+            meta = self.session.get_modelmeta().custom_metadata_map
         except Exception as e:  # noqa: BLE001  (onnxruntime raises its own untyped errors)
             first = str(e).strip().splitlines()[0] if str(e).strip() else type(e).__name__
             raise ModelContractError(f"{path}: not a loadable ONNX model ({first})") from None
-        meta = self.session.get_modelmeta().custom_metadata_map
         try:
             self.contract = ModelContract.from_metadata(meta)
             self.contract.check_signature(

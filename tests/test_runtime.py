@@ -702,6 +702,35 @@ def edited_take(models, tmp_path, name, edit):
     return tmp_path / f"{name}.csv"
 
 
+def not_utf8(data: bytes, text: bytes, nth: int = 0) -> bytes:
+    """``data`` with the 6th byte of the nth occurrence of ``text`` made 0xd0: a string of the
+    file that is no longer UTF-8 (a damaged copy), the file's length unchanged."""
+    at = -1
+    for _ in range(nth + 1):
+        at = data.index(text, at + 1)
+    return data[: at + 5] + b"\xd0" + data[at + 6 :]
+
+
+def test_a_damaged_model_is_one_line_and_exit_3_with_nothing_on_stdout(tmp_path):
+    """Strings that are not UTF-8 in a damaged file: a node's input name (onnxruntime's
+    message holds it, its Python wrapper prints an "EP Error" banner to stdout and retries) and
+    a metadata value (the session loads; reading the metadata fails)."""
+    data = SHIPPED.read_bytes()
+    cases = {"name": not_utf8(data, b"/pre/Sub_output_0", nth=1),
+             "metadata": not_utf8(data, b'{"', nth=data.count(b'{"') - 1)}
+    take = tmp_path / "take.csv"
+    take.write_text("t,seq,pressure_0\n")  # never read: the model fails first
+    for name, bad in cases.items():
+        path = tmp_path / f"{name}.onnx"
+        path.write_bytes(bad)
+        with pytest.raises(ModelContractError, match="not a loadable ONNX model"):
+            Model(path)
+        code, out, err = run_cli(["--model", str(path), "--replay", str(take)])
+        assert (code, out) == (3, ""), (name, code, out)
+        assert err.startswith(f"tactile-run: error: {path}: not a loadable ONNX model ("), err
+        assert len(err.strip().splitlines()) == 1, err
+
+
 def test_a_device_with_other_units_or_rate_is_refused(models, tmp_path):
     """Another unit or another rate for a channel the model reads: exit 3 before any window,
     one line naming both sides."""
