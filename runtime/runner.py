@@ -317,12 +317,17 @@ def replay(path: Path, runner: Runner, stop: dict, deadline: float = math.inf,
         say(f"{path}: its last row was cut short (the recording stopped mid-write); "
             "it is left out")
     runner.handle([Header(take.info)])
+    # the take's gap lines, as the live stream gave them (a restart stays a restart); a seq
+    # jump no line records is a drop of the samples it skips
+    recorded: dict[int, list[Gap]] = {}
+    for g in take.meta.get("gaps", []):
+        recorded.setdefault(g["row"], []).append(Gap(g["seq"], g["missing"], g["reason"]))
     for a, b in take.segments():
         if stop["flag"]:
             break
         if a > 0:
-            runner.handle([Gap(int(take.seq[a]), int(take.seq[a] - take.seq[a - 1] - 1),
-                               "recorded")])
+            runner.handle(recorded.get(a) or [
+                Gap(int(take.seq[a]), int(take.seq[a] - take.seq[a - 1] - 1), "drop")])
         for i in range(a, b, 256):
             if stop["flag"]:
                 return

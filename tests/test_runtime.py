@@ -531,6 +531,26 @@ def test_labels_and_tactile_run_give_the_same_stable_labels_on_a_replayed_take(
     assert 1 <= len(cli_changes) < raw_changes, (len(cli_changes), raw_changes)
 
 
+def test_a_replay_gives_the_recorded_gap_as_it_was(calibrated, take_with_a_gap, tmp_path):
+    """A take's gap line is replayed as the live stream gave it: a restart stays a restart
+    (the window after it says ``reset: restart``, as live), a drop keeps its count."""
+    lines = take_with_a_gap.read_text().splitlines(keepends=True)
+    at = next(i for i, ln in enumerate(lines) if ln.startswith("1250,"))
+    for reason, missing in (("restart", 0), ("drop", 50)):
+        take = tmp_path / f"{reason}.csv"
+        take.write_text("".join([*lines[:at], f"# gap seq=1250 missing={missing} "
+                                 f"reason={reason}\n", *lines[at:]]))
+        take.with_suffix(".json").write_text(take_with_a_gap.with_suffix(".json").read_text())
+        code, out, err = run_cli(["--model", str(calibrated), "--replay", str(take)])
+        assert code == 0, err
+        printed = [json.loads(ln) for ln in out.splitlines()]
+        gaps = [o for o in printed if o.get("event") == "gap"]
+        assert gaps == [{"event": "gap", "seq": 1250, "missing": missing, "reason": reason}]
+        after = printed[printed.index(gaps[0]) + 1]
+        assert after["seq"] == 1299 and after["reset"] == ("restart" if reason == "restart"
+                                                          else "gap")
+
+
 def test_the_reset_at_a_gap_shows_in_the_output(calibrated, take_with_a_gap):
     """The window after the gap starts a new average: ``reset: gap``, unsettled (hold 2); the
     stable label that forms again is announced only if it differs from the last one."""
@@ -539,7 +559,8 @@ def test_the_reset_at_a_gap_shows_in_the_output(calibrated, take_with_a_gap):
     assert "tactile-run: labels post-processed: ma:5 p_min=0.6 hold=2 (the model's)" in err
     printed = [json.loads(ln) for ln in out.splitlines()]
     at = next(i for i, o in enumerate(printed) if o.get("event") == "gap")
-    assert printed[at] == {"event": "gap", "seq": 1250, "missing": 50, "reason": "recorded"}
+    # no gap line: the jump in seq is what a live decoder reads, a drop of 50 samples
+    assert printed[at] == {"event": "gap", "seq": 1250, "missing": 50, "reason": "drop"}
     after = printed[at + 1]
     assert after["seq"] == 1299 and after["reset"] == "gap"
     assert after["stable"] is False and after["smoothed"]["label"] == UNCERTAIN
