@@ -313,7 +313,9 @@ def replay(path: Path, runner: Runner, stop: dict, deadline: float = math.inf,
     take = read_take(path)
     if len(take.seq) == 0:
         raise RecordingError(f"{path}: the take holds no samples")
-    if take.truncated:
+    if take.mismatch:
+        say(f"{path}: {take.mismatch}")
+    elif take.truncated:
         say(f"{path}: its last row was cut short (the recording stopped mid-write); "
             "it is left out")
     runner.handle([Header(take.info)])

@@ -311,6 +311,28 @@ def test_dataset_of_simulated_users(tmp_path):
         make_dataset(tmp_path, 1, ("velvet",))
 
 
+def test_a_finished_take_that_lost_rows_says_so(tmp_path, capsys):
+    """A take its writer closed whose CSV lost rows since (a copy cut at a line's end): read,
+    its rows kept, and what differs from its JSON named, by tactile-data and training."""
+    from tactile.device.commands.data import main as data_main
+
+    (path,) = make_dataset(tmp_path, takes=1, textures=("paper",), seconds=2)
+    assert read_take(path).mismatch is None  # as written: the JSON counts the rows
+    lines = path.read_text().splitlines(keepends=True)
+    path.write_text("".join(lines[:101]))  # the header and 100 of the 200 rows
+    take = read_take(path)
+    assert len(take.seq) == 100 and take.meta["complete"] and not take.truncated
+    assert take.mismatch == ("holds 100 samples up to seq 99 where its JSON says the finished "
+                             "take had 200 up to seq 199: rows were lost or added after "
+                             "recording")
+    assert data_main([str(tmp_path)]) == 0
+    err = capsys.readouterr().err
+    assert err == f"tactile-data: warning: {path}: {take.mismatch}\n"
+    meta = json.loads(path.with_suffix(".json").read_text())
+    path.with_suffix(".json").write_text(json.dumps({**meta, "complete": False}))
+    assert read_take(path).mismatch is None  # an unfinished take's JSON may lag: no claim
+
+
 def test_hapmat_import(tmp_path):
     from conftest import HAPMAT
 

@@ -1159,14 +1159,23 @@ def test_replay_refuses_an_empty_take_and_says_when_the_last_row_is_cut(models, 
     lines = take.read_text().splitlines(keepends=True)
     meta = take.with_suffix(".json")
     head = next(i for i, ln in enumerate(lines) if ln[:1].isdigit())  # first data row
-    for name, text in (("empty", "".join(lines[:head])), ("cut", "".join(lines)[:-7])):
+    killed = {**json.loads(meta.read_text()), "complete": False}  # as a killed writer leaves it
+    for name, text, info in (("empty", "".join(lines[:head]), meta.read_text()),
+                             ("cut", "".join(lines)[:-7], json.dumps(killed)),
+                             ("copied", "".join(lines)[:-7], meta.read_text())):
         (tmp_path / f"{name}.csv").write_text(text)
-        (tmp_path / f"{name}.json").write_text(meta.read_text())
+        (tmp_path / f"{name}.json").write_text(info)
     _, onnx_path = models["window"]
     code, out, err = run_cli(["--model", str(onnx_path), "--replay", str(tmp_path / "empty.csv")])
     assert code == 1 and "holds no samples" in err and out == ""
     code, out, err = run_cli(["--model", str(onnx_path), "--replay", str(tmp_path / "cut.csv")])
     assert code == 0 and "last row was cut short" in err
+    assert len([ln for ln in out.splitlines() if '"label"' in ln]) == (599 - 50) // 25 + 1
+    # the same rows under the JSON of the finished take: a file cut after recording
+    code, out, err = run_cli(["--model", str(onnx_path), "--replay", str(tmp_path / "copied.csv")])
+    assert code == 0 and (f"{tmp_path / 'copied.csv'}: holds 599 samples up to seq 598 and half "
+                          "a row where its JSON says the finished take had 600 up to seq 599: "
+                          "rows were lost or added after recording") in err, err
     assert len([ln for ln in out.splitlines() if '"label"' in ln]) == (599 - 50) // 25 + 1
 
 

@@ -95,6 +95,20 @@ def test_more_threads_than_cpus_is_warned_once(dataset, tmp_path, capsys, monkey
         torch.set_num_threads(old)
 
 
+def test_training_names_a_finished_take_that_lost_rows(dataset, tmp_path, capsys):
+    import shutil
+
+    data = tmp_path / "data"
+    shutil.copytree(dataset, data)
+    take = sorted(data.glob("*.csv"))[0]
+    lines = take.read_text().splitlines(keepends=True)
+    take.write_text("".join(lines[:-100]))  # a copy cut at a line's end
+    train(data, tmp_path / "run", TrainConfig(**TINY, threads=1), progress=False)
+    err = capsys.readouterr().err
+    assert f"warning: {take}: holds {len(lines) - 101} samples" in err, err
+    assert err.count("rows were lost or added after recording") == 1, err
+
+
 def test_device_resolution():
     assert resolve_device("auto", cuda_available=True) == "cuda"
     assert resolve_device("auto", cuda_available=False) == "cpu"

@@ -111,7 +111,24 @@ def _read_rows(csv_path: Path, meta: dict, info: DeviceInfo) -> Take:
             gaps.append({"seq": g["seq"], "missing": g["missing"], "reason": g["reason"],
                          "row": int(np.searchsorted(seq, g["seq"]))})
     meta = {**meta, "gaps": sorted(gaps, key=lambda g: g["row"])}
-    return Take(csv_path, meta, info, seq, t_us, raw.reshape(n, c), truncated)
+    mismatch = _mismatch(meta, n, int(seq[-1]) if n else None, truncated)
+    return Take(csv_path, meta, info, seq, t_us, raw.reshape(n, c), truncated, mismatch)
+
+
+def _mismatch(meta: dict, rows: int, last: int | None, truncated: bool) -> str | None:
+    """What the CSV holds against what the JSON of a take its writer closed (``complete``)
+    counts, when they differ (rows lost or added after recording: a copy cut short, an edit);
+    else None."""
+    if meta.get("complete") is not True or "samples" not in meta:
+        return None
+    want, want_last = meta["samples"], meta.get("last_seq")
+    if rows == want and not truncated and (want_last is None or last == want_last):
+        return None
+    held = f"{rows} samples" + (f" up to seq {last}" if last is not None else "")
+    cut = " and half a row" if truncated else ""
+    said = f"{want}" + (f" up to seq {want_last}" if want_last is not None else "")
+    return (f"holds {held}{cut} where its JSON says the finished take had {said}: rows were "
+            "lost or added after recording")
 
 
 def _shown_list(items: list[str]) -> str:

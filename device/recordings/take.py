@@ -47,6 +47,9 @@ class Take:
     t_us: np.ndarray
     raw: np.ndarray
     truncated: bool = False  # the last line was cut (the writer was killed mid-write)
+    # a finished take (``complete``) whose CSV holds other rows than its JSON counts: what
+    # differs, for a warning (rows lost or added after recording); None when they agree
+    mismatch: str | None = None
 
     @property
     def label(self) -> str:
