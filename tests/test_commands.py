@@ -117,6 +117,30 @@ def test_sim_dataset_neither_overwrites_nor_duplicates(tmp_path):
     assert len(list(tmp_path.glob("*.csv"))) == 4
 
 
+@pytest.mark.parametrize("args, says", [
+    (("--textures", "paper,paper"), "texture 'paper' given twice"),
+    (("--textures", ","), "no texture given: give one or more of desk, "),
+    (("--seconds", "0.001"), "--seconds 0.001 at 100 Hz: not one sample a take"),
+    (("--texture", "desk"), "--texture is not an option of --dataset"),
+    (("--link", "drop=0.5"), "--link is not an option of --dataset"),
+    (("--speed", "4"), "--speed is not an option of --dataset"),
+])
+def test_sim_dataset_refuses_what_it_would_not_do(tmp_path, args, says):
+    """Nothing written, one line, exit 1: a texture twice would be the same takes twice, and
+    a pty option would be ignored (all textures written for --texture desk)."""
+    code, out, err = cli("tactile-sim", "--dataset", str(tmp_path / "d"), "--takes", "1",
+                         "--seconds", "1", *args)
+    assert code == 1 and says in err and len(err.strip().splitlines()) == 1, err
+    assert not (tmp_path / "d").exists() or not any((tmp_path / "d").iterdir())
+
+
+@pytest.mark.parametrize("option", [("--takes", "3"), ("--textures", "paper"),
+                                    ("--first-take", "0"), ("--force",)])
+def test_sim_pty_refuses_dataset_options(option):
+    code, _, err = cli("tactile-sim", "--pty", *option)
+    assert code == 1 and f"{option[0]} is not an option of --pty" in err, err
+
+
 def _take(folder: Path, label: str, user: int, seqs: list[range]) -> None:
     """A take whose rows are the given seq ranges (the jumps between them are gaps)."""
     with TakeWriter(folder, label, pen_info(), "test", name=f"{label}-{user}",

@@ -24,24 +24,25 @@ def build_parser() -> argparse.ArgumentParser:
     mode = p.add_mutually_exclusive_group(required=True)
     mode.add_argument("--pty", action="store_true", help="serve the pen on a pseudo-terminal")
     mode.add_argument("--dataset", type=Path, metavar="OUT", help="write a synthetic dataset")
-    p.add_argument("--takes", type=int_in(1), default=10,
-                   help="takes (simulated users) per texture")
-    p.add_argument("--textures", default=",".join(TEXTURES),
-                   help=f"comma-separated subset of: {', '.join(TEXTURES)}")
+    p.add_argument("--takes", type=int_in(1), default=None,
+                   help="dataset: takes (simulated users) per texture (default 10)")
+    p.add_argument("--textures", default=None,
+                   help=f"dataset: comma-separated subset of: {', '.join(TEXTURES)} (default all)")
     p.add_argument("--seconds", type=float_in(0.0), default=None,
                    help="seconds per take (dataset, default 60) or of streaming (pty, default: "
                    "until stopped)")
     p.add_argument("--seed", type=int_in(0), default=0, help="base seed (default 0)")
     p.add_argument("--rate", type=float_in(10.0, 10_000.0, low_open=False), default=100.0,
                    help="sample rate, Hz (default 100)")
-    p.add_argument("--first-take", type=int_in(0), default=0,
-                   help="index of the first simulated user")
-    p.add_argument("--texture", default="paper", help="texture on the pty (default paper)")
-    p.add_argument("--link", default="", metavar="OPTIONS",
-                   help="more pty link options as for sim://, e.g. 'garbage=0.01&stall=5:1'")
-    p.add_argument("--speed", type=float_in(0.0), default=1.0, help="pty speed, x real time")
+    p.add_argument("--first-take", type=int_in(0), default=None,
+                   help="dataset: index of the first simulated user (default 0)")
+    p.add_argument("--texture", default=None, help="pty: the texture (default paper)")
+    p.add_argument("--link", default=None, metavar="OPTIONS",
+                   help="pty: more link options as for sim://, e.g. 'garbage=0.01&stall=5:1'")
+    p.add_argument("--speed", type=float_in(0.0), default=None,
+                   help="pty: speed, x real time (default 1)")
     p.add_argument("--force", action="store_true",
-                   help="replace takes of the same names in the --dataset folder")
+                   help="dataset: replace takes of the same names in the --dataset folder")
     add_debug(p)
     return p
 
@@ -68,9 +69,28 @@ def _main(args: argparse.Namespace) -> int:
     return 0
 
 
+# the options of one mode, with their defaults: given in the other mode they are refused (a
+# dataset asked for with --texture desk would be all textures, not the desk)
+DATASET_ONLY = {"takes": 10, "textures": None, "first_take": 0}
+PTY_ONLY = {"texture": "paper", "link": "", "speed": 1.0}
+
+
 @command("tactile-sim")
 def main(argv: list[str] | None = None) -> int:
-    args = build_parser().parse_args(argv)
+    from tactile.device.sim.textures import TEXTURES
+
+    p = build_parser()
+    args = p.parse_args(argv)
+    own, other, mode = ((DATASET_ONLY, PTY_ONLY, "--dataset") if args.dataset is not None
+                        else (PTY_ONLY, {**DATASET_ONLY, "force": False}, "--pty"))
+    for key in other:
+        if getattr(args, key) is not None and getattr(args, key) is not False:
+            p.error(f"--{key.replace('_', '-')} is not an option of {mode}")
+    for key, default in own.items():
+        if getattr(args, key) is None:
+            setattr(args, key, default)
+    if args.dataset is not None and args.textures is None:
+        args.textures = ",".join(TEXTURES)
     return run("tactile-sim", _main, args)
 
 

@@ -36,11 +36,17 @@ def make_dataset(
     (so that a second run neither overwrites nor duplicates a dataset), unless ``force``, which
     replaces those takes. Other takes in the folder are left alone (``first_take`` adds users).
     """
-    for t in textures:
+    if not textures:
+        raise ConfigError(f"no texture given: give one or more of {', '.join(TEXTURES)}")
+    for i, t in enumerate(textures):
         if t not in TEXTURES:
             raise ConfigError(f"texture {t!r}: must be one of {', '.join(TEXTURES)}")
+        if t in textures[:i]:  # its takes would be the same users' again, byte for byte
+            raise ConfigError(f"texture {t!r} given twice")
     if takes < 1 or not seconds > 0:
         raise ConfigError(f"--takes {takes} and --seconds {seconds}: must be >= 1 and > 0")
+    if round(seconds * rate_hz) < 1:
+        raise ConfigError(f"--seconds {seconds} at {rate_hz:g} Hz: not one sample a take")
     out = dataset_folder(out)
     replace_takes(out, [f"{t}-user{k:03d}" for k in range(first_take, first_take + takes)
                         for t in textures], force)
