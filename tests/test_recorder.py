@@ -438,6 +438,10 @@ def test_bad_recordings_are_refused(tmp_path):
     csv.write_text(text + "5,50000,1,1,1,nan,1,1,1,1\n")  # an integer take: refused, not cast
     with pytest.raises(RecordingError, match="NaN or inf"):
         read_take(csv)
+    csv.write_text(text + "5,50000,1,1,1,1,1,1e300,1,1\n")  # finite, but not as float32
+    with pytest.raises(RecordingError, match=r"data row 6 holds a value beyond float32's range "
+                                             r"\(3.4e38\): 1e\+300"):
+        read_take(csv)
     csv.write_text(text + "\n" + "5,50000,1,1,1,1,1,1,1,1\n6,60000,1,1,1,1,1,1,1,12")
     cut = read_take(csv)  # a blank line before the cut last row changes nothing
     assert cut.truncated and cut.seq.tolist() == [0, 1, 2, 3, 4, 5]

@@ -95,6 +95,11 @@ def _read_rows(csv_path: Path, meta: dict, info: DeviceInfo) -> Take:
     table = table.reshape(n, c + 2)
     if n and not np.all(np.isfinite(table)):  # before any cast to integers
         raise RecordingError(f"{csv_path}: holds NaN or inf values")
+    big = np.abs(table[:, 2:]) > np.finfo(np.float32).max  # the runtime's windows are float32
+    if big.any():
+        row = int(np.flatnonzero(big.any(axis=1))[0])
+        raise RecordingError(f"{csv_path}: data row {row + 1} holds a value beyond float32's "
+                             f"range (3.4e38): {table[row, 2:][big[row]][0]:g}")
     seq, t_us = table[:, 0].astype(np.int64), table[:, 1].astype(np.int64)
     if n and not (np.array_equal(seq, table[:, 0]) and np.array_equal(t_us, table[:, 1])):
         raise RecordingError(f"{csv_path}: seq and t_us must be integers")
