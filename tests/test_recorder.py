@@ -131,6 +131,9 @@ def test_recorder_over_sim_with_faults(tmp_path):
     assert jumps == {g["seq"]: g["missing"] for g in gaps}
     assert take.meta["decoder"]["crc_errors"] + take.meta["decoder"]["malformed"] > 0
     assert len(take.segments()) == len(gaps) + 1
+    # the result counts what the take holds (the decoder's counters run on past its end)
+    assert (res.samples, res.gaps, res.samples_lost) == (
+        len(take.seq), len(gaps), sum(g["missing"] for g in gaps))
 
 
 def test_recorder_survives_unplug(tmp_path):

@@ -62,8 +62,8 @@ def _main(args: argparse.Namespace) -> int:
         print(path)
     st = res.stats
     print(
-        f"tactile-record: {res.samples} samples in {len(res.takes)} take(s); gaps {st.get('gaps')}"
-        f" (lost {st.get('samples_lost')}), errors crc {st.get('crc_errors')} malformed "
+        f"tactile-record: {res.samples} samples in {len(res.takes)} take(s); gaps {res.gaps}"
+        f" (lost {res.samples_lost}), errors crc {st.get('crc_errors')} malformed "
         f"{st.get('malformed')} csv {st.get('csv_rejected')}, reconnects {res.reconnects}"
         + (f"; {res.unrecorded} before any device header, not recorded" if res.unrecorded
            else ""),

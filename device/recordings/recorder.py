@@ -35,6 +35,8 @@ of them was recorded."""
 class RecordResult:
     takes: list[Path] = field(default_factory=list)
     samples: int = 0
+    gaps: int = 0  # gap lines written into the takes
+    samples_lost: int = 0  # the samples those gaps say are missing
     reconnects: int = 0
     stats: dict = field(default_factory=dict)
     stopped_by: str | None = None  # the signal that ended the recording, if one did
@@ -114,7 +116,7 @@ class Recorder:
         if room <= 0:
             return 0
         if isinstance(ev, Gap):
-            self.writer.gap(ev)
+            self._gap(ev)
             return 0
         raw = ev.raw[: int(min(room, len(ev.raw)))]
         width = len(self.writer.info.channels)
@@ -126,11 +128,16 @@ class Recorder:
                 _say(f"tactile-record: {len(raw)} sample(s) of {raw.shape[-1]} channels do not "
                      f"fit the header's {width}: left out, recorded as a 'rejected' gap",
                      progress=True)
-            self.writer.gap(Gap(ev.seq + len(raw), len(raw), "rejected"))
+            self._gap(Gap(ev.seq + len(raw), len(raw), "rejected"))
             return 0
         self.writer.write(ev.seq, ev.t_us, raw)
         self.result.samples += len(raw)
         return len(raw)
+
+    def _gap(self, gap: Gap) -> None:
+        self.writer.gap(gap)
+        self.result.gaps += 1
+        self.result.samples_lost += gap.missing
 
     def _open(self, info: DeviceInfo) -> None:
         self.writer = TakeWriter(self.out, self.label, info, self.source, extra=self.extra)
