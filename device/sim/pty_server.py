@@ -41,7 +41,8 @@ def serve_pty(config: LinkConfig, out=sys.stdout) -> None:
                 if link.injected.stalled_samples != stalled:
                     silent_until = now + config.stall[1] / config.speed
                 try:
-                    os.write(master, data)
+                    # a full buffer takes part of the bytes or none: a UART drops the rest
+                    dropped += len(data) - os.write(master, data)
                 except BlockingIOError:  # nobody reads: a UART drops, so do we
                     dropped += len(data)
             time.sleep(0.005)
