@@ -7,6 +7,7 @@ Stateless: the LSTM state lives in each :class:`~tactile.runtime.stream.Stream`,
 from __future__ import annotations
 
 import contextlib
+import inspect
 import io
 import os
 
@@ -38,6 +39,24 @@ def session_options(threads: int = 1) -> ort.SessionOptions:
     so.add_session_config_entry("session.inter_op.allow_spinning", "0")
     so.log_severity_level = 3
     return so
+
+
+# onnxruntime's Python wrapper retries a load that failed with its fallback providers (the
+# same CPU provider here) after printing an "EP Error" banner to stdout, which is tactile-run's
+# label stream. Versions whose InferenceSession takes enable_fallback are told not to; older
+# ones (1.19) print it into a buffer instead, which swaps sys.stdout for the process while the
+# session loads.
+_NO_FALLBACK = "enable_fallback" in inspect.signature(
+    ort.capi.onnxruntime_inference_collection.Session.__init__).parameters
+
+
+def _session(path: os.PathLike, so: ort.SessionOptions) -> ort.InferenceSession:
+    """The CPU session of ``path``, nothing printed on stdout whatever the file holds."""
+    if _NO_FALLBACK:
+        return ort.InferenceSession(str(path), so, providers=["CPUExecutionProvider"],
+                                    enable_fallback=0)
+    with contextlib.redirect_stdout(io.StringIO()):
+        return ort.InferenceSession(str(path), so, providers=["CPUExecutionProvider"])
 
 
 class Model:
@@ -83,23 +102,17 @@ class Model:
         # portable functions (tactile.runtime.kernels)
         self.native = kernels.register(so, path)
         try:
-            # onnxruntime's Python wrapper prints an "EP Error" banner to stdout (tactile-run's
-            # label stream) when a load fails, before it retries: it goes nowhere, the error
-            # is the line below
-            with contextlib.redirect_stdout(io.StringIO()):
-                self.session = ort.InferenceSession(str(path), so,
-                                                    providers=["CPUExecutionProvider"])
-            # a damaged file may load and still hold metadata that is not UTF-8
+            self.session = _session(path, so)
+            # a damaged file may load and still hold names or metadata that are not UTF-8
             meta = self.session.get_modelmeta().custom_metadata_map
+            inputs = [(i.name, i.type, i.shape) for i in self.session.get_inputs()]
+            outputs = [(o.name, o.type, o.shape) for o in self.session.get_outputs()]
         except Exception as e:  # noqa: BLE001  (onnxruntime raises its own untyped errors)
             first = str(e).strip().splitlines()[0] if str(e).strip() else type(e).__name__
             raise ModelContractError(f"{path}: not a loadable ONNX model ({first})") from None
         try:
             self.contract = ModelContract.from_metadata(meta)
-            self.contract.check_signature(
-                [(i.name, i.type, i.shape) for i in self.session.get_inputs()],
-                [(o.name, o.type, o.shape) for o in self.session.get_outputs()],
-            )
+            self.contract.check_signature(inputs, outputs)
             postprocess = settings_from_metadata(meta)
         except ModelContractError as e:
             raise ModelContractError(f"{path}: {e}") from None

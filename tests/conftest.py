@@ -134,6 +134,16 @@ def page_url(stderr) -> str:
     pytest.fail("stderr ended without saying where the live page is")
 
 
+def not_utf8(data: bytes, text: bytes, nth: int = 0, offset: int = 5) -> bytes:
+    """``data`` (a file's bytes) with byte ``offset`` of the nth occurrence of ``text`` made
+    0xd0: a string of the file that is no longer UTF-8, as in a damaged copy; the length is
+    unchanged."""
+    at = -1
+    for _ in range(nth + 1):
+        at = data.index(text, at + 1)
+    return data[: at + offset] + b"\xd0" + data[at + offset + 1 :]
+
+
 def rows_in(folder: Path) -> int:
     """Complete data rows in the one CSV being written in ``folder`` (0 before it exists)."""
     csvs = list(folder.glob("*.csv"))

@@ -18,6 +18,7 @@ import numpy as np
 import onnx
 import pytest
 import torch
+from conftest import not_utf8
 
 from tactile.contract import (
     BATCH,
@@ -349,13 +350,6 @@ def _rename_x(m):
         n.input[:] = ["samples" if v == "x" else v for v in n.input]
 
 
-def _not_utf8(data: bytes, text: bytes) -> bytes:
-    """The file with a byte in the second occurrence of ``text`` (a node's input name) made
-    0xd0: a name that is not UTF-8, as a damaged copy has."""
-    at = data.index(text, data.index(text) + 1)
-    return data[: at + 5] + b"\xd0" + data[at + 6 :]
-
-
 def test_check_names_what_is_wrong(dataset, root, capsys):
     _, good, _, _, ck = _build("lstm1", GRID["lstm1"], dataset, root)
     seven = json.dumps(ck["channels"][:7])
@@ -371,7 +365,8 @@ def test_check_names_what_is_wrong(dataset, root, capsys):
         "seven_channels": (lambda p: _tamper(good, p, lambda m: (
             _set_key("channels", seven)(m), _set_key("units", json.dumps(ck["units"][:7]))(m))),
             "'mean' must be a list of 7 numbers"),
-        "not_utf8": (lambda p: p.write_bytes(_not_utf8(good.read_bytes(), b"/pre/Sub_output_0")),
+        "not_utf8": (lambda p: p.write_bytes(not_utf8(good.read_bytes(), b"/pre/Sub_output_0",
+                                                      nth=1)),  # a node input's name
                      "fails onnx.checker: 'utf-8' codec can't decode"),
         "wrong_input": (lambda p: _tamper(good, p, _rename_x),
                         "graph inputs are \\['samples', 'h', 'c'\\], expected \\['x', 'h', 'c'\\]"),

@@ -15,7 +15,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
-from conftest import REPO, listening, read_link, start_and_signal
+from conftest import REPO, listening, not_utf8, read_link, start_and_signal
 
 from tactile.device.protocol import pen_info
 from tactile.device.sim import PenSimulator, make_dataset
@@ -723,22 +723,17 @@ def edited_take(models, tmp_path, name, edit):
     return tmp_path / f"{name}.csv"
 
 
-def not_utf8(data: bytes, text: bytes, nth: int = 0) -> bytes:
-    """``data`` with the 6th byte of the nth occurrence of ``text`` made 0xd0: a string of the
-    file that is no longer UTF-8 (a damaged copy), the file's length unchanged."""
-    at = -1
-    for _ in range(nth + 1):
-        at = data.index(text, at + 1)
-    return data[: at + 5] + b"\xd0" + data[at + 6 :]
-
-
 def test_a_damaged_model_is_one_line_and_exit_3_with_nothing_on_stdout(tmp_path):
     """Strings that are not UTF-8 in a damaged file: a node's input name (onnxruntime's
-    message holds it, its Python wrapper prints an "EP Error" banner to stdout and retries) and
-    a metadata value (the session loads; reading the metadata fails)."""
+    message holds it; its Python wrapper would print an "EP Error" banner to stdout and retry),
+    a metadata value and the graph input's name (the session loads; reading them fails)."""
     data = SHIPPED.read_bytes()
     cases = {"name": not_utf8(data, b"/pre/Sub_output_0", nth=1),
-             "metadata": not_utf8(data, b'{"', nth=data.count(b'{"') - 1)}
+             "metadata": not_utf8(data, b'{"', nth=data.count(b'{"') - 1),
+             # the graph input's name (field 1 of its ValueInfoProto, before its type) and the
+             # first node's input that reads it, alike: the session loads, the name is not text
+             "input": not_utf8(not_utf8(data, b"\n\x01x\x12", offset=2),
+                               b"\n\x01x\n\x08pre.mean", offset=2)}
     take = tmp_path / "take.csv"
     take.write_text("t,seq,pressure_0\n")  # never read: the model fails first
     for name, bad in cases.items():
