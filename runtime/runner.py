@@ -314,16 +314,18 @@ def replay(path: Path, runner: Runner, stop: dict, deadline: float = math.inf,
     if len(take.seq) == 0:
         raise RecordingError(f"{path}: the take holds no samples")
     if take.mismatch:
-        say(f"{path}: {take.mismatch}")
-    elif take.truncated:
+        say(f"warning: {path}: {take.mismatch}")
+    if take.truncated:
         say(f"{path}: its last row was cut short (the recording stopped mid-write); "
             "it is left out")
     runner.handle([Header(take.info)])
-    # the take's gap lines, as the live stream gave them (a restart stays a restart); a seq
-    # jump no line records is a drop of the samples it skips
+    # the take's gap lines, as the live stream gave them (a restart stays a restart), also
+    # those before its first row and after its last; a seq jump no line records is a drop of
+    # the samples it skips
     recorded: dict[int, list[Gap]] = {}
     for g in take.meta.get("gaps", []):
         recorded.setdefault(g["row"], []).append(Gap(g["seq"], g["missing"], g["reason"]))
+    runner.handle(recorded.get(0, []))
     for a, b in take.segments():
         if stop["flag"]:
             break
@@ -339,6 +341,8 @@ def replay(path: Path, runner: Runner, stop: dict, deadline: float = math.inf,
                 return
             j = min(i + 256, b)
             runner.handle([Samples(int(take.seq[i]), int(take.t_us[i]), take.raw[i:j])])
+    if not stop["flag"]:
+        runner.handle(recorded.get(len(take.seq), []))
 
 
 def say(msg: str) -> None:

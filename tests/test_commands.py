@@ -137,7 +137,8 @@ def test_sim_dataset_refuses_what_it_would_not_do(tmp_path, args, says):
 @pytest.mark.parametrize("option", [("--takes", "3"), ("--textures", "paper"),
                                     ("--first-take", "0"), ("--force",)])
 def test_sim_pty_refuses_dataset_options(option):
-    code, _, err = cli("tactile-sim", "--pty", *option)
+    # --seconds: were an option let through, the pty would stream for 0.1 s, not forever
+    code, _, err = cli("tactile-sim", "--pty", "--seconds", "0.1", *option)
     assert code == 1 and f"{option[0]} is not an option of --pty" in err, err
 
 

@@ -443,7 +443,11 @@ def test_bad_recordings_are_refused(tmp_path):
         read_take(csv)
     csv.write_text(text + "5,50000,1,1,1,1,1,1e300,1,1\n")  # finite, but not as float32
     with pytest.raises(RecordingError, match=r"data row 6 holds a value beyond float32's range "
-                                             r"\(3.4e38\): 1e\+300"):
+                                             r"\(3.4e38\) in its unit: gyro_x = 1e\+300"):
+        read_take(csv)
+    csv.write_text(text + "5,50000,1,1,1,1,1,100000000000000000001,1,1\n")  # no int64 cast
+    with pytest.raises(RecordingError, match=r"data row 6 holds a count beyond 2\^53 \(not read "
+                                             r"exactly\): gyro_x = 1e\+20"):
         read_take(csv)
     csv.write_text(text + "\n" + "5,50000,1,1,1,1,1,1,1,1\n6,60000,1,1,1,1,1,1,1,12")
     cut = read_take(csv)  # a blank line before the cut last row changes nothing
@@ -465,6 +469,18 @@ def test_bad_recordings_are_refused(tmp_path):
         load_dataset(tmp_path)
     with pytest.raises(RecordingError, match="label"):
         TakeWriter(tmp_path, "a/b", info)
+
+
+def test_a_value_past_float32_in_its_unit_is_refused(tmp_path):
+    """The bound holds for count x scale: 1e30 counts of a channel scaled by 1e10."""
+    from tactile.device.protocol import ChannelSpec, DeviceInfo
+
+    info = DeviceInfo(100.0, (ChannelSpec("a", "N", 1.0), ChannelSpec("b", "N", 1e10)))
+    with TakeWriter(tmp_path, "x", info, name="t") as w:
+        w.write(0, 0, np.array([[1.5, 2.5], [1.5, 1e30], [3e38, 1.0]]))
+    with pytest.raises(RecordingError, match=r"data row 2 holds a value beyond float32's range "
+                                             r"\(3.4e38\) in its unit: b = 1e\+30"):
+        read_take(tmp_path / "t.csv")
 
 
 # -- crash consistency, the flush clock, hostile headers, full disks, untrusted takes ------------

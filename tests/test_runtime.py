@@ -532,21 +532,29 @@ def test_labels_and_tactile_run_give_the_same_stable_labels_on_a_replayed_take(
 
 
 def test_a_replay_gives_the_recorded_gap_as_it_was(calibrated, take_with_a_gap, tmp_path):
-    """A take's gap line is replayed as the live stream gave it: a restart stays a restart
-    (the window after it says ``reset: restart``, as live), a drop keeps its count."""
+    """A take's gap lines are replayed as the live stream gave them: a restart stays a restart
+    (the window after it says ``reset: restart``, as live), a drop keeps its count (48 here,
+    not the 50 of the jump in seq), and lines before the first row and after the last are
+    events too."""
     lines = take_with_a_gap.read_text().splitlines(keepends=True)
     at = next(i for i, ln in enumerate(lines) if ln.startswith("1250,"))
-    for reason, missing in (("restart", 0), ("drop", 50)):
+    first = next(i for i, ln in enumerate(lines) if ln[:1].isdigit())
+    for reason, missing in (("restart", 0), ("drop", 48)):
         take = tmp_path / f"{reason}.csv"
-        take.write_text("".join([*lines[:at], f"# gap seq=1250 missing={missing} "
-                                 f"reason={reason}\n", *lines[at:]]))
+        take.write_text("".join([*lines[:first], "# gap seq=0 missing=0 reason=restart\n",
+                                 *lines[first:at], f"# gap seq=1250 missing={missing} "
+                                 f"reason={reason}\n", *lines[at:],
+                                 "# gap seq=3000 missing=3 reason=rejected\n"]))
         take.with_suffix(".json").write_text(take_with_a_gap.with_suffix(".json").read_text())
         code, out, err = run_cli(["--model", str(calibrated), "--replay", str(take)])
         assert code == 0, err
         printed = [json.loads(ln) for ln in out.splitlines()]
         gaps = [o for o in printed if o.get("event") == "gap"]
-        assert gaps == [{"event": "gap", "seq": 1250, "missing": missing, "reason": reason}]
-        after = printed[printed.index(gaps[0]) + 1]
+        assert gaps == [{"event": "gap", "seq": 0, "missing": 0, "reason": "restart"},
+                        {"event": "gap", "seq": 1250, "missing": missing, "reason": reason},
+                        {"event": "gap", "seq": 3000, "missing": 3, "reason": "rejected"}]
+        assert printed[0] == gaps[0] and printed[-1] == gaps[2]  # before and after the rows
+        after = printed[printed.index(gaps[1]) + 1]
         assert after["seq"] == 1299 and after["reset"] == ("restart" if reason == "restart"
                                                           else "gap")
 

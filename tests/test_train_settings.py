@@ -87,7 +87,7 @@ def test_more_threads_than_cpus_is_warned_once(dataset, tmp_path, capsys, monkey
     try:
         train(dataset, tmp_path / "two", TrainConfig(**TINY, threads=2), progress=False)
         err = capsys.readouterr().err
-        assert err.count("warning: threads=2 x 1 process(es) here is more than the 1 usable "
+        assert err.count("warning: 2 thread(s) x 1 process(es) here is more than the 1 usable "
                          "CPUs") == 1, err
         train(dataset, tmp_path / "one", TrainConfig(**TINY, threads=1), progress=False)
         assert "usable CPUs" not in capsys.readouterr().err

@@ -71,13 +71,14 @@ def train(data: Path, out: Path, cfg: TrainConfig, progress: bool = True, *,
             log.warn(f"{t.path}: {t.mismatch}")
     # said once the data is known to fit: a bad input's error is then the only line
     job = f"; {dist.world} processes in all (rank 0 writes)" if dist.world > 1 else ""
+    cpus = usable_cpus()
     log.info(f"threads {threads} per process ({'set' if cfg.threads else 'automatic'}; "
-             f"{usable_cpus()} usable CPUs, {dist.local_world} process(es) here); device "
+             f"{cpus} usable CPUs, {dist.local_world} process(es) here); device "
              f"{device}{job}")
-    if threads * dist.local_world > usable_cpus():  # a set count, or more processes than CPUs
-        log.warn(f"threads={threads} x {dist.local_world} process(es) here is more than the "
-                 f"{usable_cpus()} usable CPUs: the threads share them and training runs "
-                 "several times slower (docs/training.md, 'Machine')")
+    if threads * dist.local_world > cpus:  # a set count, or more processes than CPUs
+        log.warn(f"{threads} thread(s) x {dist.local_world} process(es) here is more than the "
+                 f"{cpus} usable CPUs: the threads share them and training runs several "
+                 "times slower (docs/training.md, 'Machine')")
     prep = prepare(takes, classes, channels, cfg, log, dist)
     cfg, norm = prep.cfg, prep.norm
     model = build_model(cfg, len(classes), torch.from_numpy(norm.mean),

@@ -47,11 +47,24 @@ def build_parser() -> argparse.ArgumentParser:
     return p
 
 
+# the options of one mode, with their defaults: given in the other mode they are refused (a
+# dataset asked for with --texture desk would be all textures, not the desk)
+DATASET_ONLY = {"takes": 10, "textures": None, "first_take": 0}  # textures: all
+PTY_ONLY = {"texture": "paper", "link": "", "speed": 1.0}
+
+
 def _main(args: argparse.Namespace) -> int:
     from tactile.device.sim.dataset import make_dataset
     from tactile.device.sim.pty_server import serve_pty
     from tactile.device.sim.simlink import LinkConfig
+    from tactile.device.sim.textures import TEXTURES
 
+    # the parser leaves a mode's own options None when not given: their defaults
+    for key, default in {**DATASET_ONLY, **PTY_ONLY}.items():
+        if getattr(args, key) is None:
+            setattr(args, key, default)
+    if args.textures is None:
+        args.textures = ",".join(TEXTURES)
     if args.dataset is not None:
         textures = tuple(t.strip() for t in args.textures.split(",") if t.strip())
         t0 = time.perf_counter()
@@ -69,28 +82,15 @@ def _main(args: argparse.Namespace) -> int:
     return 0
 
 
-# the options of one mode, with their defaults: given in the other mode they are refused (a
-# dataset asked for with --texture desk would be all textures, not the desk)
-DATASET_ONLY = {"takes": 10, "textures": None, "first_take": 0}
-PTY_ONLY = {"texture": "paper", "link": "", "speed": 1.0}
-
-
 @command("tactile-sim")
 def main(argv: list[str] | None = None) -> int:
-    from tactile.device.sim.textures import TEXTURES
-
     p = build_parser()
     args = p.parse_args(argv)
-    own, other, mode = ((DATASET_ONLY, PTY_ONLY, "--dataset") if args.dataset is not None
-                        else (PTY_ONLY, {**DATASET_ONLY, "force": False}, "--pty"))
+    other, mode = (PTY_ONLY, "--dataset") if args.dataset is not None else (
+        {**DATASET_ONLY, "force": False}, "--pty")
     for key in other:
         if getattr(args, key) is not None and getattr(args, key) is not False:
             p.error(f"--{key.replace('_', '-')} is not an option of {mode}")
-    for key, default in own.items():
-        if getattr(args, key) is None:
-            setattr(args, key, default)
-    if args.dataset is not None and args.textures is None:
-        args.textures = ",".join(TEXTURES)
     return run("tactile-sim", _main, args)
 
 

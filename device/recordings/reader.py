@@ -95,11 +95,7 @@ def _read_rows(csv_path: Path, meta: dict, info: DeviceInfo) -> Take:
     table = table.reshape(n, c + 2)
     if n and not np.all(np.isfinite(table)):  # before any cast to integers
         raise RecordingError(f"{csv_path}: holds NaN or inf values")
-    big = np.abs(table[:, 2:]) > np.finfo(np.float32).max  # the runtime's windows are float32
-    if big.any():
-        row = int(np.flatnonzero(big.any(axis=1))[0])
-        raise RecordingError(f"{csv_path}: data row {row + 1} holds a value beyond float32's "
-                             f"range (3.4e38): {table[row, 2:][big[row]][0]:g}")
+    _check_range(csv_path, table, info, integer and n > 0)
     seq, t_us = table[:, 0].astype(np.int64), table[:, 1].astype(np.int64)
     if n and not (np.array_equal(seq, table[:, 0]) and np.array_equal(t_us, table[:, 1])):
         raise RecordingError(f"{csv_path}: seq and t_us must be integers")
@@ -118,6 +114,31 @@ def _read_rows(csv_path: Path, meta: dict, info: DeviceInfo) -> Take:
     meta = {**meta, "gaps": sorted(gaps, key=lambda g: g["row"])}
     mismatch = _mismatch(meta, n, int(seq[-1]) if n else None, truncated)
     return Take(csv_path, meta, info, seq, t_us, raw.reshape(n, c), truncated, mismatch)
+
+
+COUNT_LIMIT = 2**53
+"""The largest count an integer take holds: past it a CSV number is not read exactly."""
+
+
+def _check_range(csv_path: Path, table: np.ndarray, info: DeviceInfo, integer: bool) -> None:
+    """Every value fits where it goes: an integer take's counts read exactly (at most
+    :data:`COUNT_LIMIT`), and every value in units (count x scale + offset) within float32's
+    range, as the runtime's windows hold them and the wire protocol allows. The first row that
+    does not is an error naming it (one channel at a time: no copy of the whole table)."""
+    top, first = float(np.finfo(np.float32).max), None
+    for k, ch in enumerate(info.channels):
+        col = table[:, 2 + k]
+        for bad, what in ((np.abs(col) > COUNT_LIMIT if integer else None,
+                           "a count beyond 2^53 (not read exactly)"),
+                          (np.abs(col * ch.scale + ch.offset) > top,
+                           "a value beyond float32's range (3.4e38) in its unit")):
+            if bad is not None and bad.any():
+                row = int(np.flatnonzero(bad)[0])
+                if first is None or row < first[0]:
+                    first = (row, what, ch.name, col[row])
+    if first is not None:
+        row, what, name, v = first
+        raise RecordingError(f"{csv_path}: data row {row + 1} holds {what}: {name} = {v:g}")
 
 
 def _mismatch(meta: dict, rows: int, last: int | None, truncated: bool) -> str | None:
