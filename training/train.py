@@ -66,9 +66,6 @@ def train(data: Path, out: Path, cfg: TrainConfig, progress: bool = True, *,
     _seed(cfg.seed)
     takes = load_dataset(data)
     classes, channels = check_inputs(data, takes, cfg)
-    for t in takes:
-        if t.mismatch:
-            log.warn(f"{t.path}: {t.mismatch}")
     # said once the data is known to fit: a bad input's error is then the only line
     job = f"; {dist.world} processes in all (rank 0 writes)" if dist.world > 1 else ""
     cpus = usable_cpus()

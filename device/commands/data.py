@@ -36,11 +36,7 @@ def _main(args: argparse.Namespace) -> int:
     from tactile.device.recordings.reader import load_dataset
     from tactile.device.recordings.summary import summarise, text
 
-    takes = load_dataset(args.data)
-    for t in takes:
-        if t.mismatch:
-            print(f"tactile-data: warning: {t.path}: {t.mismatch}", file=sys.stderr)
-    s = summarise(takes, args.window, args.hop)
+    s = summarise(load_dataset(args.data), args.window, args.hop)
     print(json.dumps(s) if args.json else text(s, args.data))
     return 0
 

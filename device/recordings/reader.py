@@ -9,6 +9,7 @@ from __future__ import annotations
 import math
 import os
 import re
+import sys
 import warnings
 from collections.abc import Iterator
 from pathlib import Path
@@ -202,11 +203,20 @@ def iter_takes(folder: str | os.PathLike) -> Iterator[Path]:
     return iter(sorted(p for p in folder.rglob("*.csv") if p.with_suffix(".json").is_file()))
 
 
+_SAID: set[Path] = set()  # the takes whose mismatch a warning has named in this process
+
+
 def load_dataset(folder: str | os.PathLike) -> list[Take]:
-    """Every take in ``folder``; raises if there is none or if channel layouts disagree."""
+    """Every take in ``folder``; raises if there is none or if channel layouts disagree. A
+    finished take whose CSV holds other rows than its JSON counts (``Take.mismatch``) is
+    named on stderr, once per process, whichever command reads it."""
     takes = [read_take(p) for p in iter_takes(folder)]
     if not takes:
         raise RecordingError(f"{folder}: no takes (.csv + .json pairs) found")
+    for t in takes:
+        if t.mismatch and t.path not in _SAID:
+            _SAID.add(t.path)
+            print(f"warning: {t.path}: {t.mismatch}", file=sys.stderr, flush=True)
     first = takes[0]
     for t in takes[1:]:
         if t.channels != first.channels or not math.isclose(
