@@ -309,12 +309,12 @@ def replay(path: Path, runner: Runner, stop: dict, deadline: float = math.inf,
     or ``deadline`` (on ``clock``, from ``--seconds``: the rest of the take is left out, with a
     line that says where it stopped)."""
     from tactile.device.recordings import read_take
+    from tactile.device.recordings.reader import say_mismatch
 
     take = read_take(path)
     if len(take.seq) == 0:
         raise RecordingError(f"{path}: the take holds no samples")
-    if take.mismatch:
-        say(f"warning: {path}: {take.mismatch}")
+    say_mismatch(take, "tactile-run: ")
     if take.truncated:
         say(f"{path}: its last row was cut short (the recording stopped mid-write); "
             "it is left out")

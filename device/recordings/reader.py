@@ -206,6 +206,15 @@ def iter_takes(folder: str | os.PathLike) -> Iterator[Path]:
 _SAID: set[Path] = set()  # the takes whose mismatch a warning has named in this process
 
 
+def say_mismatch(take: Take, prefix: str = "") -> None:
+    """Name on stderr, once per process, a finished take whose CSV holds other rows than its
+    JSON counts (``Take.mismatch``): one ``warning:`` line after ``prefix`` (a command's
+    name), nothing for a take whose counts agree."""
+    if take.mismatch and take.path not in _SAID:
+        _SAID.add(take.path)
+        print(f"{prefix}warning: {take.path}: {take.mismatch}", file=sys.stderr, flush=True)
+
+
 def load_dataset(folder: str | os.PathLike) -> list[Take]:
     """Every take in ``folder``; raises if there is none or if channel layouts disagree. A
     finished take whose CSV holds other rows than its JSON counts (``Take.mismatch``) is
@@ -214,9 +223,7 @@ def load_dataset(folder: str | os.PathLike) -> list[Take]:
     if not takes:
         raise RecordingError(f"{folder}: no takes (.csv + .json pairs) found")
     for t in takes:
-        if t.mismatch and t.path not in _SAID:
-            _SAID.add(t.path)
-            print(f"warning: {t.path}: {t.mismatch}", file=sys.stderr, flush=True)
+        say_mismatch(t)
     first = takes[0]
     for t in takes[1:]:
         if t.channels != first.channels or not math.isclose(
@@ -229,4 +236,4 @@ def load_dataset(folder: str | os.PathLike) -> list[Take]:
     return takes
 
 
-__all__ = ["iter_takes", "load_dataset", "load_numbers", "read_take"]
+__all__ = ["iter_takes", "load_dataset", "load_numbers", "read_take", "say_mismatch"]
