@@ -121,6 +121,7 @@ def test_sim_dataset_neither_overwrites_nor_duplicates(tmp_path):
     (("--textures", "paper,paper"), "texture 'paper' given twice"),
     (("--textures", ","), "no texture given: give one or more of desk, "),
     (("--seconds", "0.001"), "--seconds 0.001 at 100 Hz: not one sample a take"),
+    (("--seconds", "inf"), "--seconds inf: a take needs a finite length"),
     (("--texture", "desk"), "--texture is not an option of --dataset"),
     (("--link", "drop=0.5"), "--link is not an option of --dataset"),
     (("--speed", "4"), "--speed is not an option of --dataset"),

@@ -6,6 +6,7 @@
 from __future__ import annotations
 
 import dataclasses
+import math
 import zlib
 from pathlib import Path
 
@@ -45,6 +46,8 @@ def make_dataset(
             raise ConfigError(f"texture {t!r} given twice")
     if takes < 1 or not seconds > 0:
         raise ConfigError(f"--takes {takes} and --seconds {seconds}: must be >= 1 and > 0")
+    if not math.isfinite(seconds):  # --pty streams until stopped; a take has an end
+        raise ConfigError(f"--seconds {seconds}: a take needs a finite length")
     if round(seconds * rate_hz) < 1:
         raise ConfigError(f"--seconds {seconds} at {rate_hz:g} Hz: not one sample a take")
     out = dataset_folder(out)
