@@ -6,6 +6,7 @@ import argparse
 import functools
 import math
 import os
+import re
 import signal
 import sys
 import traceback
@@ -40,12 +41,30 @@ def run(prog: str, body: Callable[[argparse.Namespace], int], args: argparse.Nam
         devnull = os.open(os.devnull, os.O_WRONLY)
         os.dup2(devnull, sys.stdout.fileno())  # so that the interpreter's final flush is quiet
         return EXIT_OK
-    except (TactileError, OSError, ValueError) as e:
+    except (TactileError, OSError, ValueError, MemoryError, RuntimeError) as e:
+        msg = _out_of_memory(e) if isinstance(e, (MemoryError, RuntimeError)) else (
+            str(e).splitlines()[0] if str(e) else type(e).__name__)
+        if msg is None:  # a RuntimeError that is not an allocation: a defect, shown as one
+            raise
         if getattr(args, "debug", False):  # the traceback, then the same line and exit code
             traceback.print_exc()
-        msg = str(e).splitlines()[0] if str(e) else type(e).__name__
         print(f"{prog}: error: {msg}", file=sys.stderr)
         return exit_code(e)
+
+
+def _out_of_memory(e: BaseException) -> str | None:
+    """The line for an allocation that failed (numpy's MemoryError, torch's "can't allocate
+    memory" RuntimeError: a setting such as hidden=1000000 asks for more than the machine
+    has), or None for any other error."""
+    text = str(e)
+    if isinstance(e, MemoryError) or "can't allocate memory" in text:
+        asked = re.search(r"allocate (\d+) bytes", text) or re.search(r"allocate ([\d.]+ \w+)",
+                                                                     text)
+        size = (f"{int(asked.group(1)) / 2**30:.1f} GiB" if asked.group(1).isdigit()
+                else asked.group(1)) if asked else None
+        return "out of memory" + (f" (an allocation of {size})" if size else "") + \
+            ": smaller settings (hidden, batch_size, window) or a smaller dataset"
+    return None
 
 
 class Parser(argparse.ArgumentParser):

@@ -141,11 +141,23 @@ def test_config_errors_name_only_the_settings_involved():
 
 
 @pytest.mark.parametrize("bad", ["lr=inf", "lr=1e999", "lr=nan", "lr=0", "weight_decay=inf",
-                                 "weight_decay=nan", "weight_decay=-1e-4"])
+                                 "weight_decay=nan", "weight_decay=-1e-4", "lr=1e308",
+                                 "weight_decay=3.5e38"])
 def test_a_rate_or_decay_that_cannot_train_is_refused(bad):
-    """An infinite or NaN learning rate trains on NaN losses to the end and exits 0; the
-    setting is refused before any work, naming both settings of the check."""
-    with pytest.raises(ConfigError, match="lr must be finite and > 0, weight_decay finite"):
+    """An infinite or NaN learning rate trains on NaN losses to the end and exits 0, and one
+    past float32's range stopped the first step with torch's overflow traceback; the setting
+    is refused before any work, naming both settings of the check."""
+    with pytest.raises(ConfigError, match="lr must be > 0 and weight_decay >= 0, each within "
+                       r"float32's range \(3.4e38\)"):
+        parse_sets([bad], TrainConfig())
+    assert parse_sets(["lr=3e38", "weight_decay=3e38"], TrainConfig()).lr == 3e38  # in range
+
+
+@pytest.mark.parametrize("bad", ["patience=0", "patience=-1"])
+def test_a_patience_below_one_is_refused(bad):
+    """patience=-1 stopped every run after its first epoch, silently."""
+    with pytest.raises(ConfigError, match=r"epochs, batch_size and patience must be >= 1 "
+                       r"\(got epochs=150, batch_size=128, patience=-?\d\)"):
         parse_sets([bad], TrainConfig())
 
 
@@ -202,6 +214,52 @@ def test_majority_vote_per_take():
     assert r["per_take"]["b"]["vote"] == 0 and r["per_take"]["c"]["vote"] == 1
     line = shifted_line({"-0.2s": 0.5, "+0.2s": 0.75, "mean": 0.625})
     assert line == "shifted windows (robustness): -0.2s 0.500, +0.2s 0.750, mean 0.625"
+
+
+def test_windows_that_cannot_shift_one_way_are_left_out_of_the_shifted_check(dataset, tmp_path,
+                                                                           capsys):
+    """With one window a segment (hop past the take's length) each window starts at its
+    segment's first sample, so no earlier-shifted window fits: the run trained to its end and
+    then failed with "no window of 50 samples fits", leaving nothing. The later shifts are
+    measured and the earlier ones left out."""
+    sets = [f"--set={k}={v}" for k, v in TINY.items()]
+    out = tmp_path / "r"
+    assert train_main([str(dataset), "--out", str(out), *sets, "--set", "hop=100000"]) == 0
+    m = json.loads((out / "metrics.json").read_text())
+    assert set(m["shifted"]) == {"+0.1s", "+0.2s", "mean"}
+    later = (m["shifted"]["+0.1s"], m["shifted"]["+0.2s"])
+    assert m["shifted"]["mean"] == pytest.approx(sum(later) / 2)
+    assert "shifted windows (robustness): +0.1s " in capsys.readouterr().out
+    assert shifted_line({}) == "shifted windows (robustness): not measured"
+
+
+def test_a_model_larger_than_memory_is_one_line(dataset, tmp_path, capsys):
+    """hidden=1000000 asks torch for 15 TB: its allocation error was a 40-line traceback."""
+    sets = [f"--set={k}={v}" for k, v in TINY.items()]
+    assert train_main([str(dataset), "--out", str(tmp_path / "r"), *sets,
+                       "--set", "hidden=1000000"]) == 1
+    err = capsys.readouterr().err
+    assert "Traceback" not in err and not (tmp_path / "r").exists()
+    assert re.fullmatch(r"tactile-train: error: out of memory \(an allocation of [\d.]+ GiB\): "
+                        r"smaller settings \(hidden, batch_size, window\) or a smaller dataset",
+                        err.strip().splitlines()[-1]), err
+
+
+def test_numpy_out_of_memory_and_other_runtime_errors():
+    """numpy's MemoryError is the same one line; a RuntimeError that is no allocation stays a
+    traceback (a defect to report, not a user's setting)."""
+    from tactile.cli import run
+
+    def huge(_):
+        return np.empty(10**15)
+
+    def broken(_):
+        raise RuntimeError("some defect")
+
+    args = type("A", (), {"debug": False})()
+    assert run("x", huge, args) == 1
+    with pytest.raises(RuntimeError, match="some defect"):
+        run("x", broken, args)
 
 
 def test_plots_mark_the_best_epoch_and_show_counts(tmp_path, monkeypatch):

@@ -7,7 +7,6 @@ resolved config travels in the checkpoint, so a run can always be rebuilt and ex
 from __future__ import annotations
 
 import dataclasses
-import math
 import os
 import re
 import tomllib
@@ -34,6 +33,7 @@ REFITS = ("auto", "on", "off")
 SELECTS = ("loss", "accuracy")
 DEVICES = ("auto", "cpu", "cuda")
 MAX_AUTO_THREADS = 4
+FLOAT32_MAX = 3.4028234663852886e38  # the largest float32: lr and weight_decay reach the weights
 # ``test`` / ``val`` selectors: FIELD:VALUE[,VALUE...] (see TrainConfig)
 SELECTOR = re.compile(r"^(?P<field>[A-Za-z_][A-Za-z0-9_]*):(?P<values>.+)$")
 # a signal's or a modality's name: it names ONNX metadata entries and run folders' tables
@@ -273,10 +273,12 @@ class TrainConfig:
              ("layers", "hidden")),
             (0 <= self.dropout < 1, "dropout must be in [0, 1)", ("dropout",)),
             (self.ensemble >= 1, "ensemble must be >= 1 (1: one model)", ("ensemble",)),
-            (self.epochs >= 1 and self.batch_size >= 1, "epochs and batch_size must be >= 1",
-             ("epochs", "batch_size")),
-            (0 < self.lr < math.inf and 0 <= self.weight_decay < math.inf,  # (NaN fails too)
-             "lr must be finite and > 0, weight_decay finite and >= 0", ("lr", "weight_decay")),
+            (self.epochs >= 1 and self.batch_size >= 1 and self.patience >= 1,
+             "epochs, batch_size and patience must be >= 1", ("epochs", "batch_size", "patience")),
+            # (NaN fails too; the weights are float32, so the factors must be too)
+            (0 < self.lr <= FLOAT32_MAX and 0 <= self.weight_decay <= FLOAT32_MAX,
+             "lr must be > 0 and weight_decay >= 0, each within float32's range (3.4e38)",
+             ("lr", "weight_decay")),
             (0 < self.test_fraction < 1, "test_fraction must be in (0, 1)", ("test_fraction",)),
             (0 < self.val_fraction < 1, "val_fraction must be in (0, 1)", ("val_fraction",)),
             (1 <= self.emd_imfs <= MAX_EMD_IMFS and 1 <= self.emd_sifts <= MAX_EMD_SIFTS,
