@@ -153,6 +153,15 @@ def test_a_rate_or_decay_that_cannot_train_is_refused(bad):
     assert parse_sets(["lr=3e38", "weight_decay=3e38"], TrainConfig()).lr == 3e38  # in range
 
 
+@pytest.mark.parametrize("bad", ["seed=-1", "seed=4294967296"])
+def test_a_seed_out_of_numpys_range_is_refused_naming_it(bad):
+    """numpy's own line ("Seed must be between 0 and 2**32 - 1") named no setting."""
+    with pytest.raises(ConfigError, match=r"^seed must be in 0\.\.4294967295 \(numpy's range\) "
+                       r"\(got seed=-?\d+\)$"):
+        parse_sets([bad], TrainConfig())
+    assert parse_sets(["seed=4294967295"], TrainConfig()).seed == 2**32 - 1
+
+
 @pytest.mark.parametrize("bad", ["patience=0", "patience=-1"])
 def test_a_patience_below_one_is_refused(bad):
     """patience=-1 stopped every run after its first epoch, silently."""

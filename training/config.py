@@ -286,6 +286,7 @@ class TrainConfig:
              ("emd_imfs", "emd_sifts")),
             (self.carry_steps >= 2, "carry_steps must be >= 2", ("carry_steps",)),
             (self.threads >= 0, "threads must be >= 0 (0: automatic)", ("threads",)),
+            (0 <= self.seed < 2**32, "seed must be in 0..4294967295 (numpy's range)", ("seed",)),
             (self.device in DEVICES, f"device must be one of {', '.join(DEVICES)}", ("device",)),
             (0 <= self.augment_gain < 1, "augment_gain must be in [0, 1)", ("augment_gain",)),
             (0 <= self.augment_offset <= 10, "augment_offset must be in [0, 10] (standard "
