@@ -245,8 +245,8 @@ def _accuracy(loaded, c: ModelContract, data: Path) -> None:
     run by ``loaded`` (:class:`~tactile.runtime.model.Model`: the path ``tactile-run`` takes)."""
     from tactile.export.windows import from_dataset
 
-    ck = {"classes": list(c.classes), "channels": list(c.channels),
-          "config": {"window": c.window, "hop": c.hop}}
+    ck = {"classes": list(c.classes), "channels": list(c.channels), "units": list(c.units),
+          "sample_rate_hz": c.sample_rate_hz, "config": {"window": c.window, "hop": c.hop}}
     takes = c.training_metrics.get("test_takes")
     if isinstance(takes, dict):  # the run's test split, recorded at export (read defensively)
         ck["test_rows"] = {n: v.get("rows") for n, v in takes.items() if isinstance(v, dict)}

@@ -17,7 +17,7 @@ from tactile.device.protocol import PEN_CHANNELS
 from tactile.device.recordings import load_dataset
 from tactile.device.sim import TEXTURES, PenSimulator
 from tactile.errors import RecordingError
-from tactile.training.data import cut, find_test_split
+from tactile.training.data import check_model_input, cut, find_test_split
 
 CARRY_STEPS = 24
 """Consecutive windows per simulated or random run (the contract asks for >= 20)."""
@@ -61,6 +61,8 @@ def from_dataset(ck: dict, data: Path) -> Probe:
     takes = [t for t in load_dataset(data) if t.label in classes]
     if not takes:
         raise RecordingError(f"{data}: no take is labelled with one of {list(classes)}")
+    check_model_input(takes, tuple(ck["channels"]), ck.get("units"), ck.get("sample_rate_hz"),
+                      data)
     rows, source, _ = find_test_split(takes, ck.get("test_rows"), ck.get("test_fingerprints"),
                                  data.name)
     w = cut(takes, classes, tuple(ck["channels"]), cfg["window"], cfg["hop"], rows)

@@ -242,6 +242,64 @@ def test_windows_that_cannot_shift_one_way_are_left_out_of_the_shifted_check(dat
     assert shifted_line({}) == "shifted windows (robustness): not measured"
 
 
+def _in_units(src, dst, unit: str, only: str | None = None) -> None:
+    """A copy of dataset ``src`` whose accelerometer channels are in ``unit`` (scale x 9.81:
+    the same values in m/s^2), in every take or only in the take named ``only``."""
+    import shutil
+
+    shutil.copytree(src, dst)
+    for js in sorted(dst.glob("*.json")):
+        if only is not None and js.stem != only:
+            continue
+        meta = json.loads(js.read_text())
+        for ch in meta["device"]["channels"]:
+            if ch["name"].startswith("accel_"):
+                ch["unit"], ch["scale"] = unit, ch["scale"] * 9.81
+        js.write_text(json.dumps(meta))
+
+
+def test_figures_on_data_the_model_would_misread_are_refused(dataset, tmp_path, capsys):
+    """Data at another rate or in other units gave tactile-eval, tactile-export --data and
+    tactile-check --data figures (exit 0) for windows tactile-run refuses (exit 3): each now
+    names the difference in one line, exit 1."""
+    from tactile.export.commands.check import main as check_main
+    from tactile.export.commands.export import main as export_main
+
+    sets = [f"--set={k}={v}" for k, v in TINY.items()]
+    run, onnx = tmp_path / "r", tmp_path / "m.onnx"
+    assert train_main([str(dataset), "--out", str(run), *sets]) == 0
+    assert export_main([str(run), "--out", str(onnx)]) == 0
+    slow = tmp_path / "slow"
+    make_dataset(slow, takes=2, textures=("non_contact", "paper"), seconds=6, seed=1,
+                 rate_hz=50.0)
+    _in_units(dataset, tmp_path / "si", "m/s^2")
+    capsys.readouterr()
+    for data, says in ((slow, f"{slow}: recorded at 50 Hz, the model reads 100 Hz"),
+                       (tmp_path / "si", "accel_x is in 'm/s^2', the model reads it in 'g' "
+                                         "(and 2 more channels)")):
+        for cmd, args in ((eval_main, [str(run), str(data)]),
+                          (export_main, [str(run), "--out", str(tmp_path / "x.onnx"),
+                                         "--data", str(data)]),
+                          (check_main, [str(onnx), "--data", str(data)]),
+                          (check_main, [str(onnx), "--run", str(run), "--data", str(data)])):
+            assert cmd(args) == 1, (cmd, data)
+            err = capsys.readouterr().err.strip().splitlines()
+            assert len(err) == 1 and err[0].endswith(says), err
+    assert not (tmp_path / "x.onnx").exists()
+    assert eval_main([str(run), str(dataset)]) == 0  # the data it was trained on
+
+
+def test_a_dataset_in_two_units_is_refused(dataset, tmp_path):
+    """Takes of one channel in g and in m/s^2 were read as one unit (training mixed them)."""
+    from tactile.device.recordings import load_dataset
+    from tactile.errors import RecordingError
+
+    _in_units(dataset, tmp_path / "mixed", "m/s^2", only="paper-user001")
+    with pytest.raises(RecordingError, match=r"paper-user001.csv: accel_x is in 'm/s\^2', in "
+                       r".*-user000.csv in 'g'$"):
+        load_dataset(tmp_path / "mixed")
+
+
 def test_a_model_larger_than_memory_is_one_line(dataset, tmp_path, capsys):
     """hidden=1000000 asks torch for 15 TB: its allocation error was a 40-line traceback."""
     sets = [f"--set={k}={v}" for k, v in TINY.items()]

@@ -7,13 +7,14 @@ user) gives windows to two splits, and normalisation statistics come from traini
 from __future__ import annotations
 
 import fnmatch
+import math
 import re
 from dataclasses import dataclass
 
 import numpy as np
 
 from tactile.device.recordings import Take
-from tactile.errors import ConfigError
+from tactile.errors import ConfigError, RecordingError
 from tactile.training.config import SELECTOR, TrainConfig
 
 
@@ -58,6 +59,30 @@ def channel_index(take: Take, channels: tuple[str, ...]) -> list[int]:
     if missing:
         raise ConfigError(f"channels {missing} not in the recordings' {list(take.channels)}")
     return [take.channels.index(c) for c in channels]
+
+
+def check_model_input(takes: list[Take], channels: tuple[str, ...], units, rate_hz,
+                      data: object) -> None:
+    """The takes carry what a trained model reads, as ``tactile-run`` checks a device: each
+    of ``channels`` (missing: :func:`channel_index`'s error), in the model's unit (``units``,
+    in ``channels``' order; None: not recorded, not checked), at the model's rate
+    (``rate_hz``; None: not checked). Else a :class:`RecordingError` naming the first
+    difference and ``data`` (the folder): a model's figures on windows it would misread."""
+    for take in takes:
+        index = channel_index(take, channels)
+        if units is not None:
+            got = [take.info.channels[i].unit for i in index]
+            bad = [k for k, (u, want) in enumerate(zip(got, units)) if u != want]
+            if bad:
+                k = bad[0]
+                raise RecordingError(
+                    f"{take.path}: {channels[k]} is in {got[k]!r}, the model reads it in "
+                    f"{units[k]!r}" + (f" (and {len(bad) - 1} more channels)" if len(bad) > 1
+                                       else ""))
+    if rate_hz is not None and takes and not math.isclose(
+            takes[0].info.sample_rate_hz, float(rate_hz), rel_tol=1e-3):
+        raise RecordingError(f"{data}: recorded at {takes[0].info.sample_rate_hz:g} Hz, the "
+                             f"model reads {float(rate_hz):g} Hz")
 
 
 def cut(

@@ -21,7 +21,7 @@ from tactile.errors import ConfigError, RecordingError
 from tactile.training import feature_pass
 from tactile.training.checkpoint import load_checkpoint
 from tactile.training.config import apply_threads, resolve_threads
-from tactile.training.data import Windows, cut, find_test_split
+from tactile.training.data import Windows, check_model_input, cut, find_test_split
 from tactile.training.label_stream import stream_figures
 from tactile.training.model import TextureModel
 
@@ -169,10 +169,11 @@ def evaluate_run(run_dir: Path, data: Path, threads: int | None = None,
     unknown = sorted({t.label for t in takes} - set(classes))
     if unknown:
         raise RecordingError(f"{data}: labels {unknown} are not among the model's {list(classes)}")
-    rows, scope, _ = find_test_split(takes, ck.get("test_rows"), ck.get("test_fingerprints"),
-                                     str(data))
     channels = tuple(ck["channels"])
     rate = float(ck["sample_rate_hz"])
+    check_model_input(takes, channels, ck.get("units"), rate, data)
+    rows, scope, _ = find_test_split(takes, ck.get("test_rows"), ck.get("test_fingerprints"),
+                                     str(data))
     w = cut(takes, classes, channels, cfg.window, cfg.hop, rows)
     probs = predict(model, w)
     s = summary(w.y, probs, classes)

@@ -233,6 +233,10 @@ def load_dataset(folder: str | os.PathLike) -> list[Take]:
                 f"{t.path}: channels/rate {t.channels}@{t.info.sample_rate_hz} Hz differ from "
                 f"{first.path}: {first.channels}@{first.info.sample_rate_hz} Hz"
             )
+        for a, b in zip(t.info.channels, first.info.channels):
+            if a.unit != b.unit:  # values in units are mixed only in one unit
+                raise RecordingError(f"{t.path}: {a.name} is in {a.unit!r}, in {first.path} "
+                                     f"in {b.unit!r}")
     return takes
 
 
