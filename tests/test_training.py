@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import shutil
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -423,3 +424,23 @@ def test_an_out_that_cannot_be_a_folder_is_refused_before_training(dataset, tmp_
         err = capsys.readouterr().err
         assert says in err and len(err.strip().splitlines()) == 1, err
     assert afile.read_text() == "keep me\n"
+
+
+@pytest.mark.skipif(not Path("/proc/self").is_dir(), reason="needs Linux's /proc")
+def test_an_out_that_cannot_be_made_is_refused_before_training(dataset, tmp_path, capsys,
+                                                               monkeypatch):
+    """/proc lets root "write" by os.access but makes no folder: the run trained to its end,
+    then failed, losing the model. The folders are tried before training and taken away
+    again, so a run that then fails leaves no empty folder."""
+    import tactile.training.train as training
+
+    seen = []
+    monkeypatch.setattr(training, "train", lambda *a, **k: pytest.fail("trained"))
+    assert train_main([str(dataset), "--out", "/proc/tactile-run/r"]) == 1
+    err = capsys.readouterr().err.strip().splitlines()
+    assert err == ["tactile-train: error: --out /proc/tactile-run/r: cannot be written "
+                   "(No such file or directory)"], err
+    monkeypatch.setattr(training, "train", lambda *a, **k: (
+        seen.append((tmp_path / "a").exists()), {"interrupted": True})[1])
+    assert train_main([str(dataset), "--out", str(tmp_path / "a" / "b" / "r")]) == 130
+    assert seen == [False]  # the check's folders gone before training

@@ -8,8 +8,8 @@ RUN`` continues a run that Ctrl-C stopped (exit 130), with its own settings. Und
 from __future__ import annotations
 
 import argparse
-import os
 import sys
+import tempfile
 from pathlib import Path
 
 from tactile.cli import Parser, add_debug, command, run
@@ -80,8 +80,25 @@ def _check_out(out: Path) -> None:
         base = base.parent
     if not base.is_dir():
         raise ConfigError(f"--out {out}: {base} is a file, not a folder")
-    if not os.access(base, os.W_OK | os.X_OK):
-        raise ConfigError(f"--out {out}: {base} is not writable")
+    # tried, not asked (os.access says yes to root, and on /proc or a read-only mount): the
+    # missing folders made and a file written in the deepest, then all of it removed again
+    missing = []
+    while not out.exists() and out != out.parent:
+        missing.append(out)
+        out = out.parent
+    made = []
+    try:
+        for d in reversed(missing):
+            d.mkdir()
+            made.append(d)
+        with tempfile.TemporaryFile(dir=made[-1] if made else base):
+            pass
+    except OSError as e:
+        raise ConfigError(f"--out {missing[0] if missing else base}: cannot be written "
+                          f"({e.strerror or e})") from None
+    finally:
+        for d in reversed(made):
+            d.rmdir()
 
 
 def _train(args: argparse.Namespace) -> int:
