@@ -74,6 +74,13 @@ def test_config_rejects_unknown_keys_and_bad_values(tmp_path):
     toml.write_text('hidden = 16\nemd_channels = ["accel_z"]\n')
     cfg = TrainConfig.from_toml(toml)
     assert cfg.hidden == 16 and cfg.emd_channels == ("accel_z",)
+    for text, says in ((b"\xff\xfehidden = 16\n", "not UTF-8 text (a TOML file is)"),
+                       (b"hiden = 16\n", "unknown config key(s) ['hiden']"),
+                       (b"hidden = \n", "Invalid value (at line 1, column 10)")):
+        (tmp_path / "bad.toml").write_bytes(text)
+        with pytest.raises(ConfigError) as e:
+            TrainConfig.from_toml(tmp_path / "bad.toml")
+        assert str(e.value).startswith(f"{tmp_path / 'bad.toml'}: {says}"), e.value
     assert parse_sets(["layers=3", "emd_channels=a,b"], cfg).emd_channels == ("a", "b")
     assert parse_sets(["refit=on", "label_smoothing=0.1"], cfg).refits
     with pytest.raises(ConfigError, match="unknown setting"):

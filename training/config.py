@@ -363,8 +363,14 @@ class TrainConfig:
     @classmethod
     def from_toml(cls, path: Path) -> TrainConfig:
         try:
-            return cls.from_dict(tomllib.loads(Path(path).read_text()))
-        except (OSError, tomllib.TOMLDecodeError) as e:
+            text = Path(path).read_text(encoding="utf-8")
+        except UnicodeDecodeError:
+            raise ConfigError(f"{path}: not UTF-8 text (a TOML file is)") from None
+        except OSError as e:
+            raise ConfigError(f"{path}: {e.strerror or e}") from None
+        try:
+            return cls.from_dict(tomllib.loads(text))
+        except (tomllib.TOMLDecodeError, ConfigError) as e:  # the file named, with the key
             raise ConfigError(f"{path}: {e}") from None
 
     def replace(self, **kw) -> TrainConfig:
