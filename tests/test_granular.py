@@ -124,8 +124,8 @@ def test_a_bad_modality_in_a_config_file_is_exit_1_and_one_line(tmp_path, capsys
     path.write_text(BIOTAC_TOML.replace("imfs = 8", "imfs = 80"))
     assert train_main([str(tmp_path), "--config", str(path), "--out", str(tmp_path / "r")]) == 1
     err = capsys.readouterr().err.strip().splitlines()
-    assert err == ["tactile-train: error: modalities.vibration.imfs=80: must be an integer "
-                   "0..16"]
+    assert err == [f"tactile-train: error: {path}: modalities.vibration.imfs=80: must be an "
+                   "integer 0..16"]
 
 
 # --- modalities and signals resolved --------------------------------------------------------
