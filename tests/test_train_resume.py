@@ -221,6 +221,33 @@ def test_a_resume_state_that_does_not_fit_is_one_line(dataset, tmp_path, capsys)
     assert "not a readable resume state" in capsys.readouterr().err
 
 
+def test_a_resume_on_other_takes_is_refused(dataset, tmp_path, capsys):
+    """DATA given to --resume was read whatever it held: takes of the same names from another
+    seed continued the run on other recordings, exit 0, mixing two datasets in one run."""
+    import shutil
+
+    run = tmp_path / "r"
+    cfg = TrainConfig(**{**SMALL, "epochs": 2, "patience": 2})
+    assert train(dataset, run, cfg, progress=False, on_epoch=sigint_after("fit", 1))[
+        "interrupted"]
+    other = tmp_path / "other"
+    make_dataset(other, takes=5, textures=("non_contact", "paper", "nonwoven_cloth"),
+                 seconds=8, seed=3)  # the same names, other recordings
+    fewer = tmp_path / "fewer"
+    shutil.copytree(dataset, fewer)
+    for f in fewer.glob("paper-user004.*"):
+        f.unlink()
+    capsys.readouterr()
+    for data, says in ((other, "other recordings in non_contact-user000.csv, "),
+                       (fewer, "missing paper-user004.csv)")):
+        assert train_main([str(data), "--resume", str(run), "--quiet"]) == 1
+        err = capsys.readouterr().err.strip().splitlines()
+        assert len(err) == 1 and f"{data}: not the takes this run started on (" in err[0], err
+        assert says in err[0] and err[0].endswith("give the dataset it was started on"), err
+    assert (run / RESUME).is_file()  # nothing lost: the right data still continues it
+    assert train_main([str(dataset), "--resume", str(run), "--quiet"]) == 0
+
+
 def test_a_state_saved_before_select_existed_keeps_stopping_on_the_loss(dataset, tmp_path):
     run = tmp_path / "r"
     cfg = TrainConfig(**{**SMALL, "epochs": 3, "patience": 3})

@@ -26,6 +26,7 @@ import numpy as np
 import torch
 
 from tactile.device.recordings import load_dataset
+from tactile.errors import RecordingError
 from tactile.training.checkpoint import (  # load_checkpoint: export reads runs through here
     CHECKPOINT,
     RESUME,
@@ -39,6 +40,7 @@ from tactile.training.config import (
     resolve_threads,
     usable_cpus,
 )
+from tactile.training.data import name_list
 from tactile.training.dist import Dist
 from tactile.training.log import Log, Stop
 from tactile.training.loop import Context, Interrupted, fit
@@ -65,6 +67,8 @@ def train(data: Path, out: Path, cfg: TrainConfig, progress: bool = True, *,
     dist.start(device)
     _seed(cfg.seed)
     takes = load_dataset(data)
+    if resume is not None:
+        same_takes(data, takes, resume.get("takes"))
     classes, channels = check_inputs(data, takes, cfg)
     # said once the data is known to fit: a bad input's error is then the only line
     job = f"; {dist.world} processes in all (rank 0 writes)" if dist.world > 1 else ""
@@ -127,6 +131,9 @@ def _save_interrupted(out: Path, data: Path, model: Classifier, ctx: Context, pr
         ctx.log.warn("interrupted before the first epoch ended: nothing to save")
         return {"interrupted": True, "epochs_run": 0}
     out.mkdir(parents=True, exist_ok=True)
+    # the takes by content: a resume on another dataset (same names, other recordings) would
+    # draw another split and mix two datasets in one run
+    snap = {**snap, "takes": {t.path.name: t.fingerprint() for t in prep.takes}}
     save_resume(out, prep.cfg, data, ctx.dist.world, snap)
     if snap["phase"] == "fit":
         best, history = snap["best_state"] or snap["head"], snap["history"]
@@ -142,6 +149,24 @@ def _save_interrupted(out: Path, data: Path, model: Classifier, ctx: Context, pr
                  f"best checkpoint so far in {out / CHECKPOINT}; continue with "
                  f"tactile-train --resume {out}")
     return metrics
+
+
+def same_takes(data: Path, takes: list, saved: object) -> None:
+    """A resumed run reads the takes it started on: ``saved`` ({file name: fingerprint}, from
+    its resume state; absent in a state saved before it was kept: not checked) against
+    ``takes`` of ``data``, else a one-line :class:`RecordingError`."""
+    if not isinstance(saved, dict):
+        return
+    now = {t.path.name: t.fingerprint() for t in takes}
+    if now == saved:
+        return
+    missing = sorted(set(saved) - set(now))
+    added = sorted(set(now) - set(saved))
+    other = sorted(n for n in set(now) & set(saved) if now[n] != saved[n])
+    said = [f"{what} {name_list(names, 3)}" for what, names in (
+        ("other recordings in", other), ("missing", missing), ("new", added)) if names]
+    raise RecordingError(f"{data}: not the takes this run started on ({'; '.join(said)}): "
+                         "give the dataset it was started on")
 
 
 def _seed(seed: int) -> None:
