@@ -40,6 +40,12 @@ def _shrink_weight(ck):
     ck["state_dict"][name] = ck["state_dict"][name][:1]
 
 
+def _nan_weight(ck):
+    w = ck["state_dict"]["head.out.weight"].clone()
+    w[0, 0] = float("nan")
+    ck["state_dict"]["head.out.weight"] = w
+
+
 CASES = [  # (change, the key the message must name)
     (_drop("config"), "'config'"),
     (_set("config", [1, 2]), "'config'"),
@@ -58,6 +64,14 @@ CASES = [  # (change, the key the message must name)
     (_set("state_dict", {"x": 1}), "'state_dict'"),
     (_drop("state_dict"), "'state_dict'"),
     (_shrink_weight, "'state_dict'"),
+    # read before as they were: eval gave figures of a NaN mean's model, or had its labels
+    # named twice; NaN weights gave an error naming neither file nor key
+    (lambda ck: ck.__setitem__("mean", [float("nan")] + list(ck["mean"])[1:]), "'mean'"),
+    (lambda ck: ck.__setitem__("std", [float("inf")] + list(ck["std"])[1:]), "'std'"),
+    (lambda ck: ck.__setitem__("classes", [ck["classes"][0]] * 2), "'classes'"),
+    (lambda ck: ck.__setitem__("channels", [ck["channels"][0]] * len(ck["channels"])),
+     "'channels'"),
+    (_nan_weight, "'state_dict': head.out.weight holds NaN or inf"),
 ]
 
 

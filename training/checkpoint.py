@@ -9,6 +9,7 @@ the key (:class:`RecordingError`, exit 1), never a traceback.
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -117,7 +118,8 @@ def _names(v, n: int | None = None, at_least: int = 0) -> bool:
 
 def _numbers(v, n: int) -> bool:
     return (isinstance(v, list) and len(v) == n and all(
-        isinstance(x, (int, float)) and not isinstance(x, bool) for x in v))
+        isinstance(x, (int, float)) and not isinstance(x, bool) and math.isfinite(x)
+        for x in v))
 
 
 def _indices(v, n: int) -> bool:
@@ -150,10 +152,12 @@ def check_checkpoint(ck: dict, path: Path) -> TrainConfig:
         cfg = TrainConfig.from_dict({**SAVED_BEFORE, **ck["config"]})
     except TactileError as e:
         raise RecordingError(f"{path}: checkpoint key 'config': {e}") from None
-    if not _names(ck.get("classes"), at_least=2):
-        raise bad("classes", "a list of at least 2 class names")
-    if not _names(ck.get("channels"), at_least=1):
-        raise bad("channels", "a list of channel names")
+    if not _names(ck.get("classes"), at_least=2) or len(set(ck["classes"])) < len(
+            ck["classes"]):
+        raise bad("classes", "a list of at least 2 distinct class names")
+    if not _names(ck.get("channels"), at_least=1) or len(set(ck["channels"])) < len(
+            ck["channels"]):
+        raise bad("channels", "a list of distinct channel names")
     n = len(ck["channels"])
     if cfg.channels and list(cfg.channels) != ck["channels"]:
         raise bad("channels", f"the config's channels {list(cfg.channels)}")
@@ -162,9 +166,9 @@ def check_checkpoint(ck: dict, path: Path) -> TrainConfig:
         ("sample_rate_hz", isinstance(ck.get("sample_rate_hz"), (int, float))
          and not isinstance(ck.get("sample_rate_hz"), bool) and ck["sample_rate_hz"] > 0,
          "a rate > 0"),
-        ("mean", _numbers(ck.get("mean"), n), f"a list of {n} numbers"),
+        ("mean", _numbers(ck.get("mean"), n), f"a list of {n} finite numbers"),
         ("std", _numbers(ck.get("std"), n) and all(x > 0 for x in ck["std"]),
-         f"a list of {n} numbers > 0"),
+         f"a list of {n} finite numbers > 0"),
         ("emd_index", _indices(ck.get("emd_index"), n), f"a list of channel indices < {n}"),
         ("center_index", _indices(ck.get("center_index"), n),
          f"a list of channel indices < {n}"),
@@ -181,6 +185,10 @@ def check_checkpoint(ck: dict, path: Path) -> TrainConfig:
     for key, ok, want in checks:
         if not ok:
             raise bad(key, want)
+    for name, t in ck["state_dict"].items():  # a model of NaN weights labels nothing
+        if t.is_floating_point() and not bool(torch.isfinite(t).all()):
+            raise RecordingError(f"{path}: checkpoint key 'state_dict': {name} holds NaN or "
+                                 "inf")
     if cfg.emd_channels and len(ck["emd_index"]) != len(cfg.emd_channels):
         raise bad("emd_index", f"{len(cfg.emd_channels)} indices (the config's emd_channels)")
     return cfg
