@@ -169,6 +169,21 @@ def test_force_overwrites_a_run(dataset, tmp_path, capsys):
     assert torch.load(run / "checkpoint.pt", weights_only=True)["config"]["seed"] == 5
 
 
+def test_a_forced_run_that_fails_leaves_the_old_run_resumable(dataset, tmp_path, capsys):
+    """--force removed resume.pt before anything else: a forced run that then failed (here on
+    data that cannot be split) left an interrupted run that --resume called finished."""
+    run = tmp_path / "r"
+    cfg = TrainConfig(**{**SMALL, "epochs": 2, "patience": 2})
+    assert train(dataset, run, cfg, progress=False, on_epoch=sigint_after("fit", 1))[
+        "interrupted"]
+    two_users = tmp_path / "two"
+    make_dataset(two_users, takes=2, textures=("non_contact", "paper"), seconds=4, seed=2)
+    assert train_main([str(two_users), "--out", str(run), "--force", "--quiet"]) == 1
+    assert "cannot be split" in capsys.readouterr().err
+    assert (run / RESUME).is_file()
+    assert train_main(["--resume", str(run), "--quiet"]) == 0
+
+
 def test_an_unhandled_ctrl_c_in_a_torch_command_is_one_line_and_130(capsys):
     from tactile.cli import command
 

@@ -63,8 +63,9 @@ def _settings(args: argparse.Namespace):
                 else " (it finished: nothing to resume)")
         raise ConfigError(f"{out}: holds a run already ({held[0]}): choose another --out "
                           f"or add --force to overwrite it{more}")
-    if args.force:
-        (out / RESUME).unlink(missing_ok=True)
+    # with --force the old run's files stay until the new run writes its own (a finished run
+    # removes resume.pt): a forced run that fails or stops before its first epoch leaves the
+    # old run as it was, resumable
     return cfg, args.data, out, None
 
 
