@@ -300,6 +300,25 @@ def test_a_dataset_in_two_units_is_refused(dataset, tmp_path):
         load_dataset(tmp_path / "mixed")
 
 
+def test_takes_of_one_name_in_two_sub_folders_are_refused(dataset, tmp_path, capsys):
+    """Runs name their test takes by file name: two sub-folders holding takes of the same
+    names trained with one of each pair lost from the split's names and the per-take vote,
+    and the run's own dataset was not recognised by tactile-eval."""
+    import shutil
+
+    from tactile.device.recordings import load_dataset
+    from tactile.errors import RecordingError
+
+    shutil.copytree(dataset, tmp_path / "d" / "a")
+    shutil.copytree(dataset, tmp_path / "d" / "b")
+    with pytest.raises(RecordingError, match=r"two takes named non_contact-user000\.csv \(.*"
+                       r"a/non_contact-user000\.csv and .*b/non_contact-user000\.csv\): "
+                       r"rename one"):
+        load_dataset(tmp_path / "d")
+    assert train_main([str(tmp_path / "d"), "--out", str(tmp_path / "r")]) == 1
+    assert "two takes named" in capsys.readouterr().err
+
+
 def test_a_model_larger_than_memory_is_one_line(dataset, tmp_path, capsys):
     """hidden=1000000 asks torch for 15 TB: its allocation error was a 40-line traceback."""
     sets = [f"--set={k}={v}" for k, v in TINY.items()]

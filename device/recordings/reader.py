@@ -222,6 +222,12 @@ def load_dataset(folder: str | os.PathLike) -> list[Take]:
     takes = [read_take(p) for p in iter_takes(folder)]
     if not takes:
         raise RecordingError(f"{folder}: no takes (.csv + .json pairs) found")
+    seen: dict[str, Path] = {}
+    for t in takes:  # runs name their split's takes by file name (sub-folders are allowed)
+        if t.path.name in seen:
+            raise RecordingError(f"{folder}: two takes named {t.path.name} ({seen[t.path.name]} "
+                                 f"and {t.path}): rename one (a dataset's take names differ)")
+        seen[t.path.name] = t.path
     for t in takes:
         say_mismatch(t)
     first = takes[0]
