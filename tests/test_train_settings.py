@@ -319,6 +319,30 @@ def test_takes_of_one_name_in_two_sub_folders_are_refused(dataset, tmp_path, cap
     assert "two takes named" in capsys.readouterr().err
 
 
+def test_a_class_without_training_windows_is_refused_and_one_without_validation_named(
+        tmp_path, capsys):
+    """A class recorded only by test or validation users trained on the others, exit 0,
+    and scored recall 0 on test without a word."""
+    sets = [f"--set={k}={v}" for k, v in TINY.items()] + ["--set", "test=user:0",
+                                                           "--set", "val=user:1"]
+    only_held_out, no_val = tmp_path / "a", tmp_path / "b"
+    for folder in (only_held_out, no_val):
+        make_dataset(folder, takes=4, textures=("non_contact",), seconds=4, seed=1)
+    make_dataset(only_held_out, takes=2, textures=("paper",), seconds=4, seed=1)  # users 0, 1
+    make_dataset(no_val, takes=1, textures=("paper",), seconds=4, seed=1)  # user 0
+    make_dataset(no_val, takes=2, textures=("paper",), seconds=4, seed=1, first_take=2)
+    assert train_main([str(only_held_out), "--out", str(tmp_path / "r1"), *sets]) == 1
+    err = capsys.readouterr().err.strip().splitlines()
+    assert err[-1] == ("tactile-train: error: class(es) ['paper'] have no training window in "
+                       "this split: each class needs takes (users) in training; record more, "
+                       "or name the test/validation takes (test=..., val=...)"), err
+    assert not (tmp_path / "r1").exists()
+    assert train_main([str(no_val), "--out", str(tmp_path / "r2"), *sets]) == 0
+    err = capsys.readouterr().err
+    assert ("warning: class(es) ['paper'] have no validation window in this split: its "
+            "figures leave them out") in err
+
+
 def test_a_model_larger_than_memory_is_one_line(dataset, tmp_path, capsys):
     """hidden=1000000 asks torch for 15 TB: its allocation error was a 40-line traceback."""
     sets = [f"--set={k}={v}" for k, v in TINY.items()]

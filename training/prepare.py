@@ -72,6 +72,23 @@ def check_inputs(data: Path, takes: list[Take],
     return classes, channels
 
 
+
+def _check_classes(parts: dict, classes: tuple[str, ...], log: Log) -> None:
+    """Every class in the training windows (else an error: the model could never say it);
+    a class missing from the validation or test windows is named in a warning (the figures
+    there leave it out)."""
+    for part in ("train", "val", "test"):
+        absent = [c for k, c in enumerate(classes) if not (parts[part].y == k).any()]
+        if not absent:
+            continue
+        if part == "train":
+            raise ConfigError(f"class(es) {absent} have no training window in this split: "
+                              "each class needs takes (users) in training; record more, or "
+                              "name the test/validation takes (test=..., val=...)")
+        log.warn(f"class(es) {absent} have no {'validation' if part == 'val' else 'test'} "
+                 f"window in this split: its figures leave them out")
+
+
 def prepare(takes: list[Take], classes: tuple[str, ...], channels: tuple[str, ...],
             cfg: TrainConfig, log: Log, dist: Dist) -> Prepared:
     """Resolve the modalities (if any), split and cut the windows, fit the normalisation on
@@ -98,6 +115,7 @@ def prepare(takes: list[Take], classes: tuple[str, ...], channels: tuple[str, ..
     split, parts = split_windows(takes, classes, channels, cfg)
     log.info(f"classes {list(classes)}; windows train {len(parts['train'])}, "
              f"val {len(parts['val'])}, test {len(parts['test'])}; split {split.description}")
+    _check_classes(parts, classes, log)
     # statistics fitted once (rank 0) and shared: every process normalises alike
     stats = (pooled_stats(parts["train"].x, channels, signals) if cfg.modalities or signals
              else channel_stats(parts["train"]))
