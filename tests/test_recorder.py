@@ -339,6 +339,31 @@ def test_a_finished_take_that_lost_rows_says_so(tmp_path, capsys):
     assert read_take(path).mismatch is None  # an unfinished take's JSON may lag: no claim
 
 
+def test_tactile_plot_of_one_take_that_lost_rows_says_so(tmp_path, capsys):
+    """tactile-plot TAKE.csv read the take by itself, without the line every dataset reader
+    gives."""
+    from tactile.device.commands.plot import main as plot_main
+
+    (path,) = make_dataset(tmp_path, takes=1, textures=("desk",), seconds=2)
+    path.write_text("".join(path.read_text().splitlines(keepends=True)[:101]))
+    assert plot_main([str(path), "-o", str(tmp_path / "p.png")]) == 0
+    err = capsys.readouterr().err
+    assert err == f"warning: {path}: {read_take(path).mismatch}\n"
+
+
+def test_a_csv_without_its_json_is_named_not_skipped_silently(tmp_path, capsys):
+    """A take whose JSON was lost (a copy that missed it) was left out of every command's
+    dataset without a word."""
+    make_dataset(tmp_path, takes=2, textures=("paper",), seconds=1)
+    (tmp_path / "paper-user000.json").unlink()
+    takes = load_dataset(tmp_path)
+    assert [t.path.name for t in takes] == ["paper-user001.csv"]
+    assert capsys.readouterr().err == (f"warning: {tmp_path / 'paper-user000.csv'}: a .csv "
+                                       "without its .json, not read as a take\n")
+    load_dataset(tmp_path)
+    assert capsys.readouterr().err == ""  # said once in a process
+
+
 def test_hapmat_import(tmp_path):
     from conftest import HAPMAT
 

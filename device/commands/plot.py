@@ -28,7 +28,7 @@ def build_parser() -> argparse.ArgumentParser:
 
 def _main(args: argparse.Namespace) -> int:
     from tactile.device.recordings.plot import image_formats, plot_summary, plot_take
-    from tactile.device.recordings.reader import read_take
+    from tactile.device.recordings.reader import read_take, say_mismatch
     from tactile.errors import ConfigError
 
     if args.out.is_dir() or not args.out.parent.is_dir():
@@ -43,6 +43,7 @@ def _main(args: argparse.Namespace) -> int:
         if args.source.is_dir():
             raise ConfigError(f"{args.source}: a folder; give a take's .csv, or add --summary")
         take = read_take(args.source)
+        say_mismatch(take)  # a finished take that lost rows, as every reader of takes says
         if len(take.seq) == 0:
             raise ConfigError(f"{args.source}: the take holds no samples")
         plot_take(take, args.out)

@@ -215,11 +215,25 @@ def say_mismatch(take: Take, prefix: str = "") -> None:
         print(f"{prefix}warning: {take.path}: {take.mismatch}", file=sys.stderr, flush=True)
 
 
+def say_orphans(folder: str | os.PathLike) -> None:
+    """Name on stderr, once per process, the ``.csv`` files of ``folder`` that have no
+    ``.json`` beside them: a take whose JSON was lost (a copy that missed it) is not read,
+    and no take's data is left out without a word."""
+    orphans = sorted(p for p in Path(folder).rglob("*.csv")
+                     if not p.with_suffix(".json").is_file() and p not in _SAID)
+    if orphans:
+        _SAID.update(orphans)
+        more = f" and {len(orphans) - 3} more" if len(orphans) > 3 else ""
+        print(f"warning: {', '.join(str(p) for p in orphans[:3])}{more}: a .csv without its "
+              ".json, not read as a take", file=sys.stderr, flush=True)
+
+
 def load_dataset(folder: str | os.PathLike) -> list[Take]:
     """Every take in ``folder``; raises if there is none or if channel layouts disagree. A
     finished take whose CSV holds other rows than its JSON counts (``Take.mismatch``) is
     named on stderr, once per process, whichever command reads it."""
     takes = [read_take(p) for p in iter_takes(folder)]
+    say_orphans(folder)
     if not takes:
         raise RecordingError(f"{folder}: no takes (.csv + .json pairs) found")
     seen: dict[str, Path] = {}
