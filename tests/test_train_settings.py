@@ -273,8 +273,12 @@ def test_figures_on_data_the_model_would_misread_are_refused(dataset, tmp_path, 
     make_dataset(slow, takes=2, textures=("non_contact", "paper"), seconds=6, seed=1,
                  rate_hz=50.0)
     _in_units(dataset, tmp_path / "si", "m/s^2")
+    more = tmp_path / "more"  # check and export measured the known classes' takes alone
+    make_dataset(more, takes=2, textures=("non_contact", "paper", "desk"), seconds=6, seed=1)
     capsys.readouterr()
     for data, says in ((slow, f"{slow}: recorded at 50 Hz, the model reads 100 Hz"),
+                       (more, f"{more}: labels ['desk'] are not among the model's "
+                              "['non_contact', 'paper']"),
                        (tmp_path / "si", "accel_x is in 'm/s^2', the model reads it in 'g' "
                                          "(and 2 more channels)")):
         for cmd, args in ((eval_main, [str(run), str(data)]),
