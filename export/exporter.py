@@ -92,11 +92,14 @@ def export_run(run_dir: Path, out: Path, data: Path | None = None, int8: bool = 
 
 
 def output_file(out: Path) -> Path:
-    """``out`` as the file to write, checked before any work: not a folder, in a folder that
-    exists (nothing is created that the user did not ask for). :class:`ConfigError` otherwise."""
+    """``out`` as the file to write, checked before any work: a name ending in ``.onnx``, not
+    a folder, in a folder that exists (nothing is created that the user did not ask for).
+    :class:`ConfigError` otherwise."""
     out = Path(out)
     if out.is_dir():
         raise ConfigError(f"-o {out}: a folder; give the file to write, e.g. {out / 'model.onnx'}")
+    if out.suffix.lower() != ".onnx":  # e.g. -o RUN/checkpoint.pt would replace the run
+        raise ConfigError(f"-o {out}: name an .onnx file, e.g. {out.with_suffix('.onnx')}")
     if not out.parent.is_dir():
         raise ConfigError(f"-o {out}: no folder {out.parent} to write it in")
     if not os.access(out.parent, os.W_OK):

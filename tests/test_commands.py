@@ -42,6 +42,13 @@ def test_export_checks_its_output_path_before_any_work(tmp_path):
                        str(tmp_path / "no" / "such" / "x.onnx"))
     assert code == 1 and "no folder" in err
     assert not (tmp_path / "no").exists()
+    # a name of another kind: -o RUN/checkpoint.pt replaced the run it exported, exit 0
+    (tmp_path / "checkpoint.pt").write_bytes(b"keep")
+    code, _, err = cli("tactile-export", str(tmp_path / "run"), "-o",
+                       str(tmp_path / "checkpoint.pt"))
+    assert code == 1 and err.strip() == (f"tactile-export: error: -o {tmp_path}/checkpoint.pt: "
+                                         f"name an .onnx file, e.g. {tmp_path}/checkpoint.onnx")
+    assert (tmp_path / "checkpoint.pt").read_bytes() == b"keep"
 
 
 @pytest.mark.parametrize("kind", ["missing", "folder"])
