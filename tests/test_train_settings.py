@@ -162,6 +162,14 @@ def test_a_seed_out_of_numpys_range_is_refused_naming_it(bad):
     assert parse_sets(["seed=4294967295"], TrainConfig()).seed == 2**32 - 1
 
 
+def test_a_channel_given_twice_is_refused():
+    """channels=accel_x,accel_x trained a run whose export then failed on the file's names."""
+    for key in ("channels", "emd_channels"):
+        with pytest.raises(ConfigError, match=rf"^{key}: 'accel_x' given twice \(got {key}="
+                           r"\['accel_x', 'gyro_x', 'accel_x'\]\)$"):
+            parse_sets([f"{key}=accel_x,gyro_x,accel_x"], TrainConfig())
+
+
 @pytest.mark.parametrize("bad", ["patience=0", "patience=-1"])
 def test_a_patience_below_one_is_refused(bad):
     """patience=-1 stopped every run after its first epoch, silently."""

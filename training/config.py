@@ -327,6 +327,11 @@ class TrainConfig:
         if self.modalities and self.model == "lstm":
             raise ConfigError("modalities are for model='sf_rnn', 'f_rnn', 'sparse_linear' or "
                               "'linear' (got model='lstm')")
+        for key in ("channels", "emd_channels"):  # a channel twice: the file cannot name it
+            seen = getattr(self, key)
+            twice = sorted({c for c in seen if seen.count(c) > 1})
+            if twice:
+                raise ConfigError(f"{key}: {twice[0]!r} given twice (got {key}={list(seen)})")
         names = [n for n, _ in self.signals]
         for what, seen in (("signal", names), ("modality", [m.name for m in self.modalities])):
             twice = sorted({n for n in seen if seen.count(n) > 1})
