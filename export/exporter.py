@@ -17,7 +17,7 @@ from pathlib import Path
 
 import onnx
 
-from tactile.errors import ConfigError
+from tactile.errors import ConfigError, ModelContractError
 from tactile.export.calibrate import calibrate_file
 from tactile.export.check import load_contract
 from tactile.export.custom_ops import custom_nodes, custom_ops_key
@@ -80,7 +80,10 @@ def export_run(run_dir: Path, out: Path, data: Path | None = None, int8: bool = 
         tmp_path = Path(tmp.name)
     try:
         onnx.save(final, tmp_path)
-        load_contract(tmp_path)  # the written file honours the contract, or nothing is written
+        try:  # the written file honours the contract, or nothing is written
+            load_contract(tmp_path)
+        except ModelContractError as e:  # named as the file it was to be, not the temp file
+            raise ModelContractError(str(e).replace(str(tmp_path), str(out))) from None
         mask = os.umask(0)
         os.umask(mask)
         os.chmod(tmp_path, 0o666 & ~mask)  # a temp file is private; the model is not

@@ -321,6 +321,26 @@ def test_export_fails_on_broken_parity(dataset, root, capsys, monkeypatch):
     assert not out.exists()
 
 
+def test_a_file_that_fails_its_contract_when_written_is_named_as_out(dataset, root, capsys,
+                                                                    monkeypatch):
+    """The last check reads the file back from a temporary name beside -o: its error named
+    that temporary file, which the user never asked for and which is gone."""
+    import tactile.export.exporter as cli
+    from tactile.errors import ModelContractError
+
+    def refuse(path):
+        raise ModelContractError(f"{path}: metadata key 'channels': names must be unique")
+
+    run, _, _, _, _ = _build("lstm1", GRID["lstm1"], dataset, root)
+    monkeypatch.setattr(cli, "load_contract", refuse)
+    out = root / "refused.onnx"
+    assert export_main([str(run), "-o", str(out)]) == 3
+    err = capsys.readouterr().err.strip().splitlines()
+    assert err[-1] == (f"tactile-export: error: {out}: metadata key 'channels': names must be "
+                       "unique"), err
+    assert not out.exists() and not list(root.glob("tmp*.onnx"))
+
+
 def _tamper(src: Path, dst: Path, edit) -> Path:
     m = onnx.load(src)
     edit(m)
