@@ -355,6 +355,29 @@ def test_a_class_without_training_windows_is_refused_and_one_without_validation_
             "figures leave them out") in err
 
 
+def test_a_user_split_over_takes_of_which_some_name_no_user_is_refused(dataset, tmp_path,
+                                                                        capsys):
+    """One take without a 'user' made split=user split by take: a test user's other takes
+    trained the model, exit 0. Takes of which none names a user are each their own user."""
+    import shutil
+
+    for name, drop in (("some", ["paper-user001"]), ("none", None)):
+        folder = tmp_path / name
+        shutil.copytree(dataset, folder)
+        for js in folder.glob("*.json"):
+            if drop is None or js.stem in drop:
+                meta = json.loads(js.read_text())
+                del meta["user"]
+                js.write_text(json.dumps(meta))
+    sets = [f"--set={k}={v}" for k, v in TINY.items()]
+    assert train_main([str(tmp_path / "some"), "--out", str(tmp_path / "r1"), *sets]) == 1
+    err = capsys.readouterr().err.strip().splitlines()
+    assert err[-1] == ("tactile-train: error: split='user': 1 of 8 takes have no 'user' field "
+                       "(e.g. paper-user001.csv): give every take one, or use split='take'"), err
+    assert train_main([str(tmp_path / "none"), "--out", str(tmp_path / "r2"), *sets]) == 0
+    assert "split user: test takes " in capsys.readouterr().err  # each take its own user
+
+
 def test_a_model_larger_than_memory_is_one_line(dataset, tmp_path, capsys):
     """hidden=1000000 asks torch for 15 TB: its allocation error was a 40-line traceback."""
     sets = [f"--set={k}={v}" for k, v in TINY.items()]

@@ -130,7 +130,13 @@ def cut(
 def groups_of(takes: list[Take], split: str) -> tuple[np.ndarray, list[str]]:
     """(n_takes,) group id and the groups' names: the user (when every take says so, for
     ``split='user'``) or the take itself (its file name without extension)."""
-    if split == "user" and all("user" in t.meta for t in takes):
+    lacking = [t for t in takes if "user" not in t.meta]
+    if split == "user" and lacking and len(lacking) < len(takes):
+        # per take, a user's other takes could land in training beside its test take
+        raise ConfigError(f"split='user': {len(lacking)} of {len(takes)} takes have no 'user' "
+                          f"field (e.g. {lacking[0].path.name}): give every take one, or use "
+                          "split='take'")
+    if split == "user" and not lacking:
         users = sorted({str(t.meta["user"]) for t in takes})
         return np.array([users.index(str(t.meta["user"])) for t in takes]), users
     return np.arange(len(takes)), [t.path.stem for t in takes]
