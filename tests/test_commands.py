@@ -34,6 +34,29 @@ def test_every_command_has_version(name):
     assert (code, out.strip()) == (0, f"{name} {__version__}"), err
 
 
+@pytest.mark.parametrize("module, body, argv", [
+    ("tactile.export.commands.export", "_export", ["RUN", "-o", "m.onnx"]),
+    ("tactile.export.commands.check", "_check", ["m.onnx"]),
+    ("tactile.device.commands.import_biotac", "_main", ["a.h5", "--out", "D"]),
+    ("tactile.device.commands.import_hapmat", "_main", ["SRC", "--out", "D"]),
+    ("tactile.device.commands.data", "_main", ["D"]),
+    ("tactile.device.commands.sim", "_main", ["--dataset", "D"]),
+])
+def test_ctrl_c_in_a_command_is_one_line_and_130(module, body, argv, monkeypatch, capsys):
+    """Ctrl-C in tactile-export --data (calibrating), say, was an 80-line traceback."""
+    import importlib
+
+    mod = importlib.import_module(module)
+
+    def interrupted(args):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(mod, body, interrupted)
+    assert mod.main(argv) == 130
+    err = capsys.readouterr().err
+    assert err.endswith(": interrupted\n") and err.count("\n") == 1, err
+
+
 def test_export_checks_its_output_path_before_any_work(tmp_path):
     # the run folder does not exist either: the output is checked first, and nothing is made
     code, _, err = cli("tactile-export", str(tmp_path / "run"), "-o", str(tmp_path))

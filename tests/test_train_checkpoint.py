@@ -90,6 +90,25 @@ def test_a_bad_key_is_one_line_naming_file_and_key(good, tmp_path, capsys, chang
     assert err.count("\n") == 1 and key in err and "Traceback" not in err
 
 
+def test_damaged_bytes_in_a_weight_are_refused(good, tmp_path, capsys):
+    """Bytes flipped inside a stored tensor loaded as other weights: evaluation gave figures
+    and export passed. The archive's checksums name the damaged entry."""
+    ck, data = good
+    path = tmp_path / "checkpoint.pt"
+    torch.save(ck, path)
+    raw = bytearray(path.read_bytes())
+    w = ck["state_dict"]["head.out.weight"].numpy().tobytes()
+    at = bytes(raw).find(w)  # the weight's bytes, stored as they are
+    assert at > 0
+    raw[at : at + 4] = bytes(b ^ 0xFF for b in raw[at : at + 4])
+    path.write_bytes(bytes(raw))
+    with pytest.raises(RecordingError, match=r"checkpoint\.pt: damaged \(checkpoint/data/\d+ "
+                       r"fails its stored checksum\): not a readable checkpoint$"):
+        load_checkpoint(path)
+    assert eval_main([str(tmp_path), str(data)]) == 1
+    assert "damaged" in capsys.readouterr().err
+
+
 def test_not_a_dict_and_not_a_checkpoint(tmp_path):
     path = tmp_path / "checkpoint.pt"
     torch.save([1, 2, 3], path)

@@ -10,6 +10,7 @@ the key (:class:`RecordingError`, exit 1), never a traceback.
 from __future__ import annotations
 
 import math
+import zipfile
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -99,6 +100,14 @@ def save_checkpoint(path: Path, cfg: TrainConfig, model: torch.nn.Module, metric
 def _read(path: Path, what: str, hint: str) -> dict:
     if not path.is_file():
         raise RecordingError(f"{path}: no {what} ({hint})")
+    try:  # torch.load does not test the archive's checksums: damaged bytes loaded as weights
+        with zipfile.ZipFile(path) as z:
+            damaged = z.testzip()
+    except (zipfile.BadZipFile, OSError):
+        damaged = None  # not an archive (or unreadable): torch.load below says what it is
+    if damaged is not None:
+        raise RecordingError(f"{path}: damaged ({damaged} fails its stored checksum): not a "
+                             f"readable {what}")
     try:
         ck = torch.load(path, weights_only=True, map_location="cpu")
     except Exception as e:  # noqa: BLE001  (any unpickling failure means "not a checkpoint")

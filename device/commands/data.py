@@ -41,7 +41,7 @@ def _main(args: argparse.Namespace) -> int:
     return 0
 
 
-@command("tactile-data")
+@command("tactile-data", interruptible=True)
 def main(argv: list[str] | None = None) -> int:
     return run("tactile-data", _main, build_parser().parse_args(argv))
 

@@ -20,7 +20,8 @@ def build_parser() -> argparse.ArgumentParser:
                "--summary a dataset's minutes and gaps per class and user.")
     p.add_argument("source", type=Path, help="a take's .csv file, or a dataset folder with "
                    "--summary")
-    p.add_argument("-o", "--out", type=Path, required=True, help="image file to write (.png)")
+    p.add_argument("-o", "--out", type=Path, required=True,
+                   help="image file to write (.png, .svg, .pdf, ...)")
     p.add_argument("--summary", action="store_true", help="plot a dataset folder's summary")
     add_debug(p)
     return p
@@ -51,7 +52,7 @@ def _main(args: argparse.Namespace) -> int:
     return 0
 
 
-@command("tactile-plot")
+@command("tactile-plot", interruptible=True)
 def main(argv: list[str] | None = None) -> int:
     return run("tactile-plot", _main, build_parser().parse_args(argv))
 

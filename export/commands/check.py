@@ -50,7 +50,7 @@ def _check(args: argparse.Namespace) -> int:
     return 0
 
 
-@command("tactile-check")
+@command("tactile-check", interruptible=True)
 def main(argv: list[str] | None = None) -> int:
     return run("tactile-check", _check, build_parser().parse_args(argv))
 
