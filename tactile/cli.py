@@ -164,8 +164,40 @@ def _guard_start() -> None:
         signal.signal(sig, note)
 
 
-def command(prog: str, *, guarded: bool = False, interruptible: bool = False
-            ) -> Callable[[Callable[..., int]], Callable[..., int]]:
+class _ReaderMayGo:
+    """stdout or stderr of a command whose work is its files (training, an export, an
+    import): when the reader of the stream goes away (``2>&1 | head``), the rest of the
+    command's lines go to the null device and the work goes on, instead of the broken pipe
+    ending it half-done with exit 0."""
+
+    def __init__(self, stream) -> None:
+        self._stream = stream
+
+    def _drop_the_rest(self) -> None:
+        devnull = os.open(os.devnull, os.O_WRONLY)
+        os.dup2(devnull, self._stream.fileno())
+        os.close(devnull)
+
+    def write(self, text: str) -> int:
+        try:
+            return self._stream.write(text)
+        except BrokenPipeError:
+            self._drop_the_rest()
+            return self._stream.write(text)
+
+    def flush(self) -> None:
+        try:
+            self._stream.flush()
+        except BrokenPipeError:
+            self._drop_the_rest()
+            self._stream.flush()
+
+    def __getattr__(self, name: str):
+        return getattr(self._stream, name)
+
+
+def command(prog: str, *, guarded: bool = False, interruptible: bool = False,
+            files: bool = False) -> Callable[[Callable[..., int]], Callable[..., int]]:
     """Decorate a command's ``main(argv=None)``, the function ``pyproject.toml`` names.
 
     A command module imports only the standard library and this module at its top; its
@@ -175,13 +207,18 @@ def command(prog: str, *, guarded: bool = False, interruptible: bool = False
     (``tactile-run``, ``tactile-record``, ``tactile-monitor``) note a signal that arrives while
     they start (:func:`_guard_start`). ``interruptible``: a Ctrl-C that the command does not
     handle itself (while torch imports, say) ends it with one line and exit 130, the shell's
-    code for SIGINT, not a traceback."""
+    code for SIGINT, not a traceback. ``files``: the command's work is the files it writes,
+    which a reader of its output that goes away does not stop (:class:`_ReaderMayGo`)."""
 
     def wrap(main: Callable[..., int]) -> Callable[..., int]:
         @functools.wraps(main)
         def entry(argv: list[str] | None = None) -> int:
             if guarded:
                 _guard_start()
+            was = (sys.stdout, sys.stderr)
+            if files:
+                sys.stdout, sys.stderr = (s if isinstance(s, _ReaderMayGo) else _ReaderMayGo(s)
+                                          for s in was)
             try:
                 return main(argv)
             except ModuleNotFoundError as e:
@@ -197,6 +234,9 @@ def command(prog: str, *, guarded: bool = False, interruptible: bool = False
                     raise
                 print(f"{prog}: interrupted", file=sys.stderr)
                 return 130
+            finally:
+                if files:
+                    sys.stdout, sys.stderr = was
 
         return entry
 

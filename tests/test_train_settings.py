@@ -378,6 +378,26 @@ def test_a_user_split_over_takes_of_which_some_name_no_user_is_refused(dataset, 
     assert "split user: test takes " in capsys.readouterr().err  # each take its own user
 
 
+def test_a_reader_that_goes_away_does_not_stop_training_or_export(dataset, tmp_path):
+    """`tactile-train ... 2>&1 | head -1` ended the training at its next line, exit 0, with
+    nothing saved; so did an export piped to head."""
+    import subprocess
+    import sys
+
+    sets = [f"--set={k}={v}" for k, v in TINY.items()]
+    run, onnx = tmp_path / "r", tmp_path / "m.onnx"
+    for module, args, made in (
+            ("tactile.training.commands.train", [str(dataset), "--out", str(run), *sets],
+             run / "checkpoint.pt"),
+            ("tactile.export.commands.export", [str(run), "-o", str(onnx)], onnx)):
+        proc = subprocess.Popen([sys.executable, "-m", module, *args], stdout=subprocess.PIPE,
+                                stderr=subprocess.STDOUT)
+        proc.stdout.readline()  # the first line, then the reader goes away
+        proc.stdout.close()
+        assert proc.wait(timeout=600) == 0, module
+        assert made.is_file(), module
+
+
 def test_a_model_larger_than_memory_is_one_line(dataset, tmp_path, capsys):
     """hidden=1000000 asks torch for 15 TB: its allocation error was a 40-line traceback."""
     sets = [f"--set={k}={v}" for k, v in TINY.items()]

@@ -41,7 +41,7 @@ def _export(args: argparse.Namespace) -> int:
     return 0
 
 
-@command("tactile-export", interruptible=True)
+@command("tactile-export", interruptible=True, files=True)
 def main(argv: list[str] | None = None) -> int:
     return run("tactile-export", _export, build_parser().parse_args(argv))
 

@@ -124,7 +124,7 @@ def _train(args: argparse.Namespace) -> int:
     return 0
 
 
-@command("tactile-train", interruptible=True)
+@command("tactile-train", interruptible=True, files=True)
 def main(argv: list[str] | None = None) -> int:
     return run("tactile-train", _train, build_parser().parse_args(argv))
 
