@@ -165,6 +165,25 @@ def test_sim_dataset_refuses_what_it_would_not_do(tmp_path, args, says):
     assert not (tmp_path / "d").exists() or not any((tmp_path / "d").iterdir())
 
 
+def test_takes_of_another_rate_or_channels_are_not_written_into_a_dataset(tmp_path):
+    """tactile-sim --rate 50 (or an importer of another sensor) into a folder of 100 Hz pen
+    takes wrote them, exit 0: every later command on the folder then failed."""
+    from tactile.device.recordings import load_dataset
+
+    d = str(tmp_path / "d")
+    assert cli("tactile-sim", "--dataset", d, "--takes", "1", "--seconds", "1",
+               "--textures", "paper")[0] == 0
+    code, _, err = cli("tactile-sim", "--dataset", d, "--takes", "1", "--seconds", "1",
+                       "--textures", "desk", "--rate", "50")
+    assert code == 1 and err.strip() == (
+        f"tactile-sim: error: {d}: holds takes of other channels or another rate "
+        "(paper-user000.json: 8 channels at 100 Hz; these: 8 at 50 Hz): a dataset's takes "
+        "share them; choose another folder"), err
+    assert [t.path.name for t in load_dataset(d)] == ["paper-user000.csv"]
+    assert cli("tactile-sim", "--dataset", d, "--takes", "1", "--seconds", "1",
+               "--textures", "desk")[0] == 0  # the same pen: added
+
+
 @pytest.mark.parametrize("option", [("--takes", "3"), ("--textures", "paper"),
                                     ("--first-take", "0"), ("--force",)])
 def test_sim_pty_refuses_dataset_options(option):

@@ -197,8 +197,8 @@ def import_biotac(files: list[Path], out: Path, force: bool = False) -> list[Pat
             read_trial(handles[t.file], t)
         # every input is valid: only now may --force delete the takes these replace
         out = dataset_folder(out)
-        replace_takes(out, [t.group for t in trials], force)
         info = DeviceInfo(RATE_HZ, channels(), device="biotac-bolt")
+        replace_takes(out, [t.group for t in trials], force, info)
         paths = []
         for t in trials:
             raw, stamps = read_trial(handles[t.file], t)

@@ -112,7 +112,7 @@ def import_hapmat(source: Path, out: Path, force: bool = False) -> list[Path]:
             raise RecordingError(f"{source}: {material} holds NaN or inf")
         takes.append((check_label(str(material).lower()), values))
     out = dataset_folder(out)
-    replace_takes(out, [f"hapmat-{label}" for label, _ in takes], force)
+    replace_takes(out, [f"hapmat-{label}" for label, _ in takes], force, info)
     paths = []
     for label, values in takes:
         extra = {

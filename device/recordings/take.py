@@ -122,10 +122,15 @@ def dataset_folder(folder: str | os.PathLike) -> Path:
     return folder
 
 
-def replace_takes(folder: Path, stems: list[str], force: bool) -> None:
+def replace_takes(folder: Path, stems: list[str], force: bool,
+                  info: DeviceInfo | None = None) -> None:
     """Before a command writes takes named ``stems`` into ``folder``: if any exists, refuse
     (:class:`RecordingError` naming the first, the command neither overwrites nor duplicates a
-    dataset by being run twice) or, with ``force``, delete them."""
+    dataset by being run twice) or, with ``force``, delete them. With ``info`` (the new takes'
+    device), a folder whose other takes have other channels, units or another rate is refused
+    too: the takes would make a dataset no command can read."""
+    if info is not None:
+        _check_joins(folder, set(stems), info)
     found = [p for s in stems for p in (folder / f"{s}.csv", folder / f"{s}.json") if p.exists()]
     if found and not force:
         more = f" and {len(found) - 1} more files" if len(found) > 1 else ""
@@ -133,6 +138,24 @@ def replace_takes(folder: Path, stems: list[str], force: bool) -> None:
                              "--force to replace them")
     for p in found:
         p.unlink()
+
+
+def _check_joins(folder: Path, stems: set[str], info: DeviceInfo) -> None:
+    from tactile.device.recordings.take_meta import read_meta
+
+    other = next((p for p in sorted(folder.rglob("*.json")) if p.stem not in stems
+                  and p.with_suffix(".csv").is_file()), None)
+    if other is None:
+        return
+    _, have = read_meta(other)
+    mine = [(c.name, c.unit) for c in info.channels]
+    theirs = [(c.name, c.unit) for c in have.channels]
+    if mine != theirs or abs(info.sample_rate_hz - have.sample_rate_hz) > 1e-6 * max(
+            info.sample_rate_hz, have.sample_rate_hz):
+        raise RecordingError(
+            f"{folder}: holds takes of other channels or another rate ({other.name}: "
+            f"{len(theirs)} channels at {have.sample_rate_hz:g} Hz; these: {len(mine)} at "
+            f"{info.sample_rate_hz:g} Hz): a dataset's takes share them; choose another folder")
 
 
 def header_cell(name: str) -> str:

@@ -52,7 +52,8 @@ def make_dataset(
         raise ConfigError(f"--seconds {seconds} at {rate_hz:g} Hz: not one sample a take")
     out = dataset_folder(out)
     replace_takes(out, [f"{t}-user{k:03d}" for k in range(first_take, first_take + takes)
-                        for t in textures], force)
+                        for t in textures], force,
+                  PenSimulator(textures[0], seed=0, rate_hz=rate_hz).info)
     paths = []
     n = round(seconds * rate_hz)
     for k in range(first_take, first_take + takes):
