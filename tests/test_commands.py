@@ -184,6 +184,27 @@ def test_takes_of_another_rate_or_channels_are_not_written_into_a_dataset(tmp_pa
                "--textures", "desk")[0] == 0  # the same pen: added
 
 
+def test_a_derived_take_stopped_half_way_is_removed(tmp_path, monkeypatch):
+    """Ctrl-C in an import (or a simulated dataset) left its last take cut, `complete: false`,
+    read later as if it were a recording. Whole takes stay; the half-written one goes."""
+    from tactile.device.recordings.writer import TakeWriter
+    from tactile.device.sim import make_dataset
+
+    real, calls = TakeWriter.write, []
+
+    def write(self, *a, **k):
+        calls.append(1)
+        if len(calls) == 3:  # the second take's first chunk: its files are open
+            raise KeyboardInterrupt
+        return real(self, *a, **k)
+
+    monkeypatch.setattr(TakeWriter, "write", write)
+    with pytest.raises(KeyboardInterrupt):
+        make_dataset(tmp_path, takes=1, textures=("paper", "desk"), seconds=70)  # 2 chunks
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["paper-user000.csv",
+                                                          "paper-user000.json"]
+
+
 @pytest.mark.parametrize("option", [("--takes", "3"), ("--textures", "paper"),
                                     ("--first-take", "0"), ("--force",)])
 def test_sim_pty_refuses_dataset_options(option):

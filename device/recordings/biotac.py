@@ -36,7 +36,12 @@ import h5py
 import numpy as np
 
 from tactile.device.protocol.info import ChannelSpec, DeviceInfo
-from tactile.device.recordings.take import check_label, dataset_folder, replace_takes
+from tactile.device.recordings.take import (
+    check_label,
+    dataset_folder,
+    replace_takes,
+    whole_take,
+)
 from tactile.device.recordings.writer import TakeWriter
 from tactile.errors import RecordingError
 
@@ -202,8 +207,9 @@ def import_biotac(files: list[Path], out: Path, force: bool = False) -> list[Pat
         paths = []
         for t in trials:
             raw, stamps = read_trial(handles[t.file], t)
-            with TakeWriter(out, t.label, info, f"biotac:{t.file.name}", name=t.group,
-                            extra=_metadata(t, stamps)) as w:
+            with whole_take(out, t.group), TakeWriter(
+                    out, t.label, info, f"biotac:{t.file.name}", name=t.group,
+                    extra=_metadata(t, stamps)) as w:
                 w.write(0, 0, raw)
             paths.append(w.csv_path)
         return paths

@@ -21,7 +21,12 @@ import numpy as np
 
 from tactile.device.protocol.info import ChannelSpec, DeviceInfo
 from tactile.device.recordings.reader import load_numbers
-from tactile.device.recordings.take import check_label, dataset_folder, replace_takes
+from tactile.device.recordings.take import (
+    check_label,
+    dataset_folder,
+    replace_takes,
+    whole_take,
+)
 from tactile.device.recordings.writer import TakeWriter
 from tactile.errors import RecordingError
 
@@ -123,8 +128,8 @@ def import_hapmat(source: Path, out: Path, force: bool = False) -> list[Path]:
             "notes": "accel has gravity removed upstream; gyro from rota_* (rad/s -> deg/s)",
         }
         name = f"hapmat-{label}"
-        with TakeWriter(out, label, info, f"hapmat:{source.name}", name=name,
-                        extra=extra) as w:
+        with whole_take(out, name), TakeWriter(out, label, info, f"hapmat:{source.name}",
+                                               name=name, extra=extra) as w:
             w.write(0, 0, values)
         paths.append(w.csv_path)
     return paths

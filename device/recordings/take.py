@@ -13,10 +13,12 @@ dataset folders, CSV header cells); :mod:`~tactile.device.recordings.writer` wri
 
 from __future__ import annotations
 
+import contextlib
 import hashlib
 import os
 import re
 import unicodedata
+from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -138,6 +140,20 @@ def replace_takes(folder: Path, stems: list[str], force: bool,
                              "--force to replace them")
     for p in found:
         p.unlink()
+
+
+@contextlib.contextmanager
+def whole_take(folder: Path, stem: str) -> Iterator[None]:
+    """Around the writing of one take that a command derives (an import, a simulated take):
+    when the writing stops half-way (Ctrl-C, a full disk), the take's files are removed, so
+    that the folder holds whole takes only (a recorder's take, which holds what was recorded,
+    is kept instead)."""
+    try:
+        yield
+    except BaseException:
+        for suffix in (".csv", ".json"):
+            (folder / f"{stem}{suffix}").unlink(missing_ok=True)
+        raise
 
 
 def _check_joins(folder: Path, stems: set[str], info: DeviceInfo) -> None:

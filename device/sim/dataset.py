@@ -10,7 +10,7 @@ import math
 import zlib
 from pathlib import Path
 
-from tactile.device.recordings.take import dataset_folder, replace_takes
+from tactile.device.recordings.take import dataset_folder, replace_takes, whole_take
 from tactile.device.recordings.writer import TakeWriter
 from tactile.device.sim.simulator import TEXTURES, PenSimulator
 from tactile.errors import ConfigError
@@ -66,7 +66,8 @@ def make_dataset(
                               "session": dataclasses.asdict(sim.session)},
             }
             name = f"{texture}-user{k:03d}"
-            with TakeWriter(out, texture, sim.info, "simulator", name=name, extra=extra) as w:
+            with whole_take(out, name), TakeWriter(out, texture, sim.info, "simulator",
+                                                   name=name, extra=extra) as w:
                 for start in range(0, n, 6000):
                     raw = sim.read(min(6000, n - start))
                     w.write(start, round(start * 1e6 / rate_hz), raw)
