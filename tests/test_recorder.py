@@ -649,6 +649,9 @@ def _meta_of(tmp_path) -> dict:
     (lambda m: {**m, "version": 3}, "not a tactile-recording file of version 1 or 2"),
     (lambda m: {k: v for k, v in m.items() if k != "device"}, "key 'device' missing"),
     (lambda m: {**m, "label": 7}, "key 'label' must be a non-empty string, got 7"),
+    # the recorder's label rule, which an edited JSON escaped (a/b trained as a class)
+    (lambda m: {**m, "label": "a/b"}, "key 'label': label 'a/b': must be 1-64 characters"),
+    (lambda m: {**m, "label": " paper"}, "key 'label': label ' paper': must be"),
     (lambda m: {**m, "gaps": "many"}, "key 'gaps' must be a list, got 'many'"),
     (lambda m: {**m, "gaps": [3]}, "gaps[0] must be an object, got 3"),
     (lambda m: {**m, "gaps": [{"seq": "x", "missing": 0, "reason": "drop"}]},

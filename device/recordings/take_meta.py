@@ -12,6 +12,7 @@ import json
 from pathlib import Path
 
 from tactile.device.protocol.info import DeviceInfo
+from tactile.device.recordings.take import check_label
 from tactile.errors import RecordingError, TactileError
 
 FORMAT = "tactile-recording"
@@ -120,6 +121,10 @@ def read_meta(json_path: Path) -> tuple[dict, DeviceInfo]:
             f"{' or '.join(map(str, READABLE_VERSIONS))} "
             f"(format={_shown(meta.get('format'))}, version={_shown(meta.get('version'))})")
     _check(meta, _META, "", json_path)
+    try:  # the recorder's rule: a label names a class and files on any card
+        check_label(meta["label"])
+    except RecordingError as e:
+        raise RecordingError(f"{json_path}: key 'label': {e}") from None
     _check(meta["device"], _DEVICE, "device", json_path)
     for i, ch in enumerate(meta["device"]["channels"]):
         _check(ch, _CHANNEL, f"device.channels[{i}]", json_path, closed=True)
