@@ -365,6 +365,32 @@ def test_a_class_named_uncertain_is_refused_before_training(tmp_path, capsys):
     assert not (tmp_path / "run" / "checkpoint.pt").exists()
 
 
+def test_eval_keeps_the_raw_stream_where_export_would(trained, dataset, capsys, monkeypatch):
+    """When the calibrated setting labels fewer validation windows right than the raw stream,
+    tactile-export leaves the file raw; tactile-eval reported the setting anyway."""
+    import dataclasses
+
+    import tactile.training.label_stream as ls_mod
+
+    real = ls_mod.calibrate
+
+    def worse(streams):  # the grid's best, made to label fewer windows right than raw
+        cal = real(streams)
+        figures = {**cal.figures, "smoothed": {**cal.figures["smoothed"],
+                                               "accuracy": cal.figures["raw"]["accuracy"] - 0.1}}
+        return dataclasses.replace(cal, figures=figures)
+
+    monkeypatch.setattr(ls_mod, "calibrate", worse)
+    monkeypatch.setattr(ls_mod, "shortfall", lambda streams: "")  # this set's 0.6 min will do
+    run, _ = trained
+    assert eval_main([str(run), str(dataset), "--json"]) == 0
+    ls = json.loads(capsys.readouterr().out)["label_stream"]
+    assert ls["source"].startswith("calibrated on the run's validation takes"), ls["source"]
+    assert ls["setting"] == "ma:1 p_min=0 hold=1", ls["setting"]
+    assert "labelled fewer windows right than the raw stream" in ls["source"]
+    assert ls["smoothed"]["accuracy"] == pytest.approx(ls["raw"]["accuracy"])
+
+
 def test_eval_label_stream_figures(trained, dataset, capsys):
     """tactile-eval's label stream: each user's test rows joined into one stream of samples and
     windowed as a pen does it (windows across the takes' boundaries, a window's truth its last
