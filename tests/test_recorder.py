@@ -364,6 +364,26 @@ def test_a_csv_without_its_json_is_named_not_skipped_silently(tmp_path, capsys):
     assert capsys.readouterr().err == ""  # said once in a process
 
 
+def test_hapmat_materials_that_differ_only_in_case_are_one_material(tmp_path):
+    """"Paper 1.csv" and "paper 1.csv" both passed the check (before labels were lower-cased)
+    and were written as hapmat-paper and hapmat-paper-2; with --force the second name's
+    files were then deleted twice, ending the import half-way."""
+    from tactile.device.recordings import import_hapmat
+
+    src = tmp_path / "src"
+    src.mkdir()
+    rows = "\n".join(f"{k * 0.01:.2f},0,0,1,0,0,0" for k in range(10))
+    for name in ("Paper 1.csv", "paper 1.csv", "Cork 1.csv"):
+        (src / name).write_text("time,accel_x,accel_y,accel_z,rota_x,rota_y,rota_z\n" + rows
+                                + "\n")
+    with pytest.raises(RecordingError, match=r"more than one recording of one material"):
+        import_hapmat(src, tmp_path / "out")
+    assert not (tmp_path / "out").exists() or not any((tmp_path / "out").iterdir())
+    (src / "paper 1.csv").unlink()
+    assert len(import_hapmat(src, tmp_path / "out")) == 2
+    assert len(import_hapmat(src, tmp_path / "out", force=True)) == 2
+
+
 def test_hapmat_import(tmp_path):
     from conftest import HAPMAT
 

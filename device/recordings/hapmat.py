@@ -87,7 +87,7 @@ def _read_csv_folder(folder: Path) -> tuple[list[str], list[np.ndarray], float, 
         classes.append(re.sub(r"\s+\d+$", "", f.stem))  # "Paper 1" -> "Paper"
         series.append(table[:, [header.index(c) for c in SOURCE_COLUMNS]])
         rates.append(1.0 / step.mean())
-    if len(set(classes)) != len(classes):
+    if len({c.lower() for c in classes}) != len(classes):  # labels are lower case
         raise RecordingError(f"{folder}: more than one recording of one material {classes}")
     if max(rates) - min(rates) > 1e-3 * max(rates):
         found = ", ".join(f"{c} {r:g} Hz" for c, r in zip(classes, rates))

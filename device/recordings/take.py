@@ -133,7 +133,8 @@ def replace_takes(folder: Path, stems: list[str], force: bool,
     too: the takes would make a dataset no command can read."""
     if info is not None:
         _check_joins(folder, set(stems), info)
-    found = [p for s in stems for p in (folder / f"{s}.csv", folder / f"{s}.json") if p.exists()]
+    found = [p for s in dict.fromkeys(stems)  # a name given twice is one take's files
+             for p in (folder / f"{s}.csv", folder / f"{s}.json") if p.exists()]
     if found and not force:
         more = f" and {len(found) - 1} more files" if len(found) > 1 else ""
         raise RecordingError(f"{found[0]}{more} already exist: choose another folder, or "
