@@ -226,11 +226,20 @@ def test_a_resume_state_that_does_not_fit_is_one_line(dataset, tmp_path, capsys)
         "interrupted"]
     capsys.readouterr()
     saved = torch.load(run / RESUME, weights_only=True)
+    good_head = saved["state"]["head"]
     saved["state"]["head"] = {"lstm.weight_ih_l0": torch.zeros(2, 2)}
     torch.save(saved, run / RESUME)
     assert train_main(["--resume", str(run), "--quiet"]) == 1
     err = capsys.readouterr().err
     assert "resume.pt: the saved state does not fit this run" in err and err.count("\n") == 1
+    for key, value in (("history", None), ("epoch", -5), ("stale", "x")):
+        # a history of None was a TypeError traceback at the next epoch; epoch -5 restarted
+        edited = torch.load(run / RESUME, weights_only=True)
+        edited["state"] = {**saved["state"], "head": good_head, key: value}
+        torch.save(edited, run / RESUME)
+        assert train_main(["--resume", str(run), "--quiet"]) == 1, key
+        err = capsys.readouterr().err
+        assert "the saved state does not fit this run" in err and err.count("\n") == 1, err
     (run / RESUME).write_bytes(b"garbage")
     assert train_main(["--resume", str(run)]) == 1
     assert "not a readable resume state" in capsys.readouterr().err

@@ -121,6 +121,13 @@ def restore(saved: dict, live: Live) -> LoopState:
         set_rng_state(saved["rng"], live.gen, live.aug)
         kept = {k: copy.deepcopy(saved[k]) for k in ("epoch", "best", "best_state", "stale",
                                                      "history", "ema")}
+        history, epoch, stale = kept["history"], kept["epoch"], kept["stale"]
+        if not (isinstance(history, dict) and set(_history()) <= set(history)
+                and all(isinstance(history[k], list) for k in _history() if k != "best_epoch")
+                and isinstance(epoch, int) and epoch >= 1 and isinstance(stale, int)
+                and stale >= 0):  # an edit the loop would meet only later, as a traceback
+            raise ValueError(f"epoch {epoch!r}, stale {stale!r} and the history must be what "
+                             "an epoch's end saves")
         # best_acc is absent from older resume files
         return LoopState(**kept, best_acc=float(saved.get("best_acc", -1.0)))
     except (KeyError, TypeError, ValueError, RuntimeError, AttributeError) as e:
