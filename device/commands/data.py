@@ -23,8 +23,8 @@ def build_parser() -> argparse.ArgumentParser:
     p = Parser(prog="tactile-data", description="Print what a dataset folder holds: classes, "
                "users, takes, minutes, windows, gaps, channels and rate.")
     p.add_argument("data", type=Path, help="dataset folder (takes: .csv + .json)")
-    p.add_argument("--window", type=int_in(1), default=WINDOW,
-                   help=f"window length in samples (default {WINDOW}, as training)")
+    p.add_argument("--window", type=int_in(4), default=WINDOW,
+                   help=f"window length in samples, >= 4 as training takes (default {WINDOW})")
     p.add_argument("--hop", type=int_in(1), default=HOP,
                    help=f"samples between windows (default {HOP}, as training)")
     p.add_argument("--json", action="store_true", help="the figures as one JSON object")
