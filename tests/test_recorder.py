@@ -364,6 +364,21 @@ def test_a_csv_without_its_json_is_named_not_skipped_silently(tmp_path, capsys):
     assert capsys.readouterr().err == ""  # said once in a process
 
 
+def test_a_take_copied_under_another_name_is_named(tmp_path, capsys):
+    """A copied take was read twice without a word (one copy could train, the other test)."""
+    import shutil
+
+    make_dataset(tmp_path, takes=2, textures=("paper",), seconds=1)
+    for suffix in (".csv", ".json"):
+        shutil.copy(tmp_path / f"paper-user000{suffix}", tmp_path / f"paper-again{suffix}")
+    assert len(load_dataset(tmp_path)) == 3  # read as it is
+    assert capsys.readouterr().err == (
+        f"warning: {tmp_path / 'paper-user000.csv'}: the same recording as "
+        f"{tmp_path / 'paper-again.csv'} (label, samples and times): it is read twice\n")
+    load_dataset(tmp_path)
+    assert capsys.readouterr().err == ""  # said once in a process
+
+
 def test_hapmat_materials_that_differ_only_in_case_are_one_material(tmp_path):
     """"Paper 1.csv" and "paper 1.csv" both passed the check (before labels were lower-cased)
     and were written as hapmat-paper and hapmat-paper-2; with --force the second name's

@@ -257,7 +257,25 @@ def load_dataset(folder: str | os.PathLike) -> list[Take]:
             if a.unit != b.unit:  # values in units are mixed only in one unit
                 raise RecordingError(f"{t.path}: {a.name} is in {a.unit!r}, in {first.path} "
                                      f"in {b.unit!r}")
+    say_copies(takes)
     return takes
+
+
+def say_copies(takes: list[Take]) -> None:
+    """Name on stderr, once per process, takes that hold the same recording under two names
+    (a copied take: read twice, it can land in training and in test). Only takes of one
+    label and length are fingerprinted, so a dataset without copies costs no hashing."""
+    alike: dict[tuple, list[Take]] = {}
+    for t in takes:
+        alike.setdefault((t.label, len(t.seq), t.raw.shape), []).append(t)
+    for group in (g for g in alike.values() if len(g) > 1):
+        by_print: dict[str, Take] = {}
+        for t in group:
+            other = by_print.setdefault(t.fingerprint(), t)
+            if other is not t and t.path not in _SAID:
+                _SAID.add(t.path)
+                print(f"warning: {t.path}: the same recording as {other.path} (label, samples "
+                      "and times): it is read twice", file=sys.stderr, flush=True)
 
 
 __all__ = ["iter_takes", "load_dataset", "load_numbers", "read_take", "say_mismatch"]
