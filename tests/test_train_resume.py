@@ -169,6 +169,25 @@ def test_force_overwrites_a_run(dataset, tmp_path, capsys):
     assert torch.load(run / "checkpoint.pt", weights_only=True)["config"]["seed"] == 5
 
 
+def test_ctrl_c_while_the_saved_run_is_printed_is_ignored(dataset, tmp_path, monkeypatch,
+                                                          capsys):
+    """The run is saved before its lines are printed: a Ctrl-C then ended the command with
+    exit 130, as if the run were lost. Python's handler is back afterwards."""
+    import tactile.training.evaluate as evaluate
+
+    real = evaluate.table
+
+    def table(*a, **k):
+        signal.raise_signal(signal.SIGINT)
+        return real(*a, **k)
+
+    monkeypatch.setattr(evaluate, "table", table)
+    sets = [f"--set={k}={v}" for k, v in {**SMALL, "epochs": 1}.items()]
+    assert train_main([str(dataset), "--out", str(tmp_path / "r"), "--quiet", *sets]) == 0
+    assert "run in " in capsys.readouterr().out
+    assert signal.getsignal(signal.SIGINT) is signal.default_int_handler
+
+
 def test_a_forced_run_that_fails_leaves_the_old_run_resumable(dataset, tmp_path, capsys):
     """--force removed resume.pt before anything else: a forced run that then failed (here on
     data that cannot be split) left an interrupted run that --resume called finished."""

@@ -8,6 +8,7 @@ RUN`` continues a run that Ctrl-C stopped (exit 130), with its own settings. Und
 from __future__ import annotations
 
 import argparse
+import signal
 import sys
 import tempfile
 from pathlib import Path
@@ -117,10 +118,14 @@ def _train(args: argparse.Namespace) -> int:
         return EXIT_INTERRUPTED
     if "accuracy" not in m:  # not rank 0 of a torchrun job: rank 0 prints
         return 0
-    print(table(m, tuple(m["classes"]), f"test split ({m['split']})"))
-    print(f"per take (majority vote): {m['take_accuracy']:.3f} over {m['takes']} takes")
-    print(shifted_line(m["shifted"]))
-    print(f"trained in {m['train_seconds']} s; run in {out}")
+    was = signal.signal(signal.SIGINT, signal.SIG_IGN)  # the run is saved: its lines, exit 0
+    try:
+        print(table(m, tuple(m["classes"]), f"test split ({m['split']})"))
+        print(f"per take (majority vote): {m['take_accuracy']:.3f} over {m['takes']} takes")
+        print(shifted_line(m["shifted"]))
+        print(f"trained in {m['train_seconds']} s; run in {out}")
+    finally:
+        signal.signal(signal.SIGINT, was)
     return 0
 
 
