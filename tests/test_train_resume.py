@@ -172,7 +172,7 @@ def test_force_overwrites_a_run(dataset, tmp_path, capsys):
 def test_ctrl_c_while_the_saved_run_is_printed_is_ignored(dataset, tmp_path, monkeypatch,
                                                           capsys):
     """The run is saved before its lines are printed: a Ctrl-C then ended the command with
-    exit 130, as if the run were lost. Python's handler is back afterwards."""
+    exit 130, as if the run were lost. The handler it found is back afterwards."""
     import tactile.training.evaluate as evaluate
 
     real = evaluate.table
@@ -182,10 +182,14 @@ def test_ctrl_c_while_the_saved_run_is_printed_is_ignored(dataset, tmp_path, mon
         return real(*a, **k)
 
     monkeypatch.setattr(evaluate, "table", table)
-    sets = [f"--set={k}={v}" for k, v in {**SMALL, "epochs": 1}.items()]
-    assert train_main([str(dataset), "--out", str(tmp_path / "r"), "--quiet", *sets]) == 0
-    assert "run in " in capsys.readouterr().out
-    assert signal.getsignal(signal.SIGINT) is signal.default_int_handler
+    found = signal.signal(signal.SIGINT, signal.default_int_handler)  # Python's, as a command has
+    try:
+        sets = [f"--set={k}={v}" for k, v in {**SMALL, "epochs": 1}.items()]
+        assert train_main([str(dataset), "--out", str(tmp_path / "r"), "--quiet", *sets]) == 0
+        assert "run in " in capsys.readouterr().out
+        assert signal.getsignal(signal.SIGINT) is signal.default_int_handler
+    finally:
+        signal.signal(signal.SIGINT, found)
 
 
 def test_a_forced_run_that_fails_leaves_the_old_run_resumable(dataset, tmp_path, capsys):

@@ -25,6 +25,7 @@ from pathlib import Path
 import numpy as np
 
 from tactile.device.protocol.info import DeviceInfo
+from tactile.device.recordings.take_meta import LABEL_RULE, check_label, read_meta
 from tactile.errors import RecordingError
 
 FIXED_COLUMNS = ("seq", "t_us")
@@ -95,22 +96,6 @@ class Take:
         return [(a, b) for a, b in zip(bounds[:-1], bounds[1:], strict=True) if b > a]
 
 
-# A label names the take's files and a class; these are refused by FAT/exFAT cards (a board's
-# usual storage) or break the CSV/JSON pair: / \ : * ? " < > | , control characters.
-_LABEL_BAD = re.compile(r'[/\\:*?"<>|,\x00-\x1f\x7f]')
-LABEL_RULE = ("1-64 characters, not starting with '.' or a space, none of "
-              "/ \\ : * ? \" < > | , tab or newline")
-
-
-def check_label(label: str) -> str:
-    """``label`` if it can name a class and a take's files anywhere, else :class:`RecordingError`
-    stating :data:`LABEL_RULE`."""
-    if (not isinstance(label, str) or not 1 <= len(label) <= 64 or label != label.strip()
-            or label.startswith(".") or _LABEL_BAD.search(label)):
-        raise RecordingError(f"label {label!r}: must be {LABEL_RULE}")
-    return label
-
-
 def dataset_folder(folder: str | os.PathLike) -> Path:
     """``folder`` as a dataset folder to write takes into, created if missing (with its parents);
     :class:`RecordingError` naming it when it is a file or cannot be made."""
@@ -158,8 +143,6 @@ def whole_take(folder: Path, stem: str) -> Iterator[None]:
 
 
 def _check_joins(folder: Path, stems: set[str], info: DeviceInfo) -> None:
-    from tactile.device.recordings.take_meta import read_meta
-
     other = next((p for p in sorted(folder.rglob("*.json")) if p.stem not in stems
                   and p.with_suffix(".csv").is_file()), None)
     if other is None:

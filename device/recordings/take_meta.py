@@ -9,10 +9,10 @@ raises one :class:`RecordingError` line naming the file and the key, never a tra
 from __future__ import annotations
 
 import json
+import re
 from pathlib import Path
 
 from tactile.device.protocol.info import DeviceInfo
-from tactile.device.recordings.take import check_label
 from tactile.errors import RecordingError, TactileError
 
 FORMAT = "tactile-recording"
@@ -101,6 +101,22 @@ def _check(obj, schema: dict, where: str, path: Path, closed: bool = False) -> N
     if closed and (extra := sorted(set(obj) - set(schema))):
         raise RecordingError(f"{path}: key '{dot}{extra[0]}' unknown; allowed: "
                              f"{', '.join(schema)}")
+
+
+# A label names the take's files and a class; these are refused by FAT/exFAT cards (a board's
+# usual storage) or break the CSV/JSON pair: / \ : * ? " < > | , control characters.
+_LABEL_BAD = re.compile(r'[/\\:*?"<>|,\x00-\x1f\x7f]')
+LABEL_RULE = ("1-64 characters, not starting with '.' or a space, none of "
+              "/ \\ : * ? \" < > | , tab or newline")
+
+
+def check_label(label: str) -> str:
+    """``label`` if it can name a class and a take's files anywhere, else :class:`RecordingError`
+    stating :data:`LABEL_RULE`."""
+    if (not isinstance(label, str) or not 1 <= len(label) <= 64 or label != label.strip()
+            or label.startswith(".") or _LABEL_BAD.search(label)):
+        raise RecordingError(f"label {label!r}: must be {LABEL_RULE}")
+    return label
 
 
 def read_meta(json_path: Path) -> tuple[dict, DeviceInfo]:
