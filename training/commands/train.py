@@ -8,6 +8,7 @@ RUN`` continues a run that Ctrl-C stopped (exit 130), with its own settings. Und
 from __future__ import annotations
 
 import argparse
+import os
 import signal
 import sys
 import tempfile
@@ -82,6 +83,8 @@ def _check_out(out: Path) -> None:
         base = base.parent
     if not base.is_dir():
         raise ConfigError(f"--out {out}: {base} is a file, not a folder")
+    if os.environ.get("RANK", "0") != "0":  # a torchrun job: rank 0 writes, and tries it
+        return
     # tried, not asked (os.access says yes to root, and on /proc or a read-only mount): the
     # missing folders made and a file written in the deepest, then all of it removed again
     missing = []
