@@ -78,8 +78,9 @@ def _check_out(out: Path) -> None:
 
     if out.exists() and not out.is_dir():
         raise ConfigError(f"--out {out}: a file, not a folder")
-    base = out
+    base, missing = out, []  # the nearest folder that exists; the ones to make, deepest first
     while not base.exists() and base != base.parent:
+        missing.append(base)
         base = base.parent
     if not base.is_dir():
         raise ConfigError(f"--out {out}: {base} is a file, not a folder")
@@ -87,10 +88,6 @@ def _check_out(out: Path) -> None:
         return
     # tried, not asked (os.access says yes to root, and on /proc or a read-only mount): the
     # missing folders made and a file written in the deepest, then all of it removed again
-    missing = []
-    while not out.exists() and out != out.parent:
-        missing.append(out)
-        out = out.parent
     made = []
     try:
         for d in reversed(missing):
@@ -99,8 +96,7 @@ def _check_out(out: Path) -> None:
         with tempfile.TemporaryFile(dir=made[-1] if made else base):
             pass
     except OSError as e:
-        raise ConfigError(f"--out {missing[0] if missing else base}: cannot be written "
-                          f"({e.strerror or e})") from None
+        raise ConfigError(f"--out {out}: cannot be written ({e.strerror or e})") from None
     finally:
         for d in reversed(made):
             d.rmdir()
