@@ -614,6 +614,38 @@ def test_hostile_channel_names_round_trip(tmp_path):
     assert head == "seq,t_us,a%2Cb,x%0Ay,q%22uote,%23hash,100%25,tab%09here,ünïcødé,雨,ok"
 
 
+def test_a_folder_of_another_devices_takes_is_refused_before_a_take(tmp_path, capsys):
+    """Recording a 3-channel device into a folder of pen takes: refused at its header, before
+    any take (exit 1, one line naming the folder and a take of it); the pen's take is
+    untouched. A device that changes mid-recording gets its take written, with a warning."""
+    from tactile.device.protocol import ChannelSpec, DeviceInfo, Header, Samples
+
+    pen = record("sim://?texture=paper&seed=1&speed=max", "paper", tmp_path, seconds=0.5,
+                 progress=False).takes[0]
+    before = pen.read_bytes()
+    other = DeviceInfo(200.0, tuple(ChannelSpec(n, "N") for n in ("a", "b", "c")))
+    rec, dec = Recorder(tmp_path, "desk", "test"), StreamDecoder()
+    with pytest.raises(RecordingError, match=rf"{tmp_path}: holds takes of other channels or "
+                       rf"another rate \({pen.stem}\.json: 8 channels at 100 Hz; these: 3 at "
+                       r"200 Hz\).*nothing recorded"):
+        rec.handle([Samples(0, 0, np.ones((4, 3), np.int16)), Header(other)], dec)
+    rec.close(dec)
+    assert rec.result.takes == [] and rec.result.unrecorded == 4
+    assert sorted(p.name for p in tmp_path.iterdir()) == [pen.name, pen.with_suffix(".json").name]
+    assert pen.read_bytes() == before
+
+    # the pen first, then the other device on the same port: both takes, one warning
+    raw = np.arange(10 * 8, dtype=np.int16).reshape(10, 8)
+    rec, dec = Recorder(tmp_path, "paper", "test"), StreamDecoder()
+    rec.handle([Header(pen_info()), Samples(0, 0, raw), Header(other, changed=True),
+                Samples(0, 0, np.ones((5, 3), np.int16))], dec)
+    rec.close(dec)
+    assert [read_take(p).raw.shape for p in rec.result.takes] == [(10, 8), (5, 3)]
+    err = capsys.readouterr().err.splitlines()
+    assert len(err) == 1 and err[0].startswith("tactile-record: warning: ") and \
+        "the new take is written all the same" in err[0]
+
+
 def test_samples_that_do_not_fit_the_header_are_a_gap_not_a_crash(tmp_path):
     """3-channel samples before the 8-channel header (and one after it): left out as a
     'rejected' gap of their size; the 8-channel samples are all kept; the take is complete."""

@@ -21,8 +21,9 @@ from tactile.cli import started
 from tactile.device.link.connection import Connection, LinkSettings, Lost, Reconnected
 from tactile.device.protocol.decoder import Gap, Header, Samples, StreamDecoder
 from tactile.device.protocol.info import DeviceInfo
+from tactile.device.recordings.take import check_joins
 from tactile.device.recordings.writer import TakeWriter
-from tactile.errors import DeviceError
+from tactile.errors import DeviceError, RecordingError
 
 MAX_EARLY = 100_000
 """Samples held while waiting for the device's first header (a binary device's samples cannot
@@ -140,6 +141,19 @@ class Recorder:
         self.result.samples_lost += gap.missing
 
     def _open(self, info: DeviceInfo) -> None:
+        mine = {p.stem for p in self.result.takes}
+        try:
+            check_joins(self.out, mine, info)
+        except RecordingError as e:
+            if not mine:  # the first header: nothing is written yet, so stop before a take
+                self.result.unrecorded += self.early_samples
+                self.early.clear()
+                self.early_samples = 0
+                raise RecordingError(f"{e}; nothing recorded") from None
+            # another device mid-recording: its take is written (no data is given up), and
+            # the user is told that it will not load with the folder's others
+            _say(f"tactile-record: warning: {e}: the new take is written all the same; move "
+                 "it or the others to a folder of their own", progress=True)
         self.writer = TakeWriter(self.out, self.label, info, self.source, extra=self.extra)
         self.unfit = 0
         self.result.takes.append(self.writer.csv_path)

@@ -117,7 +117,7 @@ def replace_takes(folder: Path, stems: list[str], force: bool,
     device), a folder whose other takes have other channels, units or another rate is refused
     too: the takes would make a dataset no command can read."""
     if info is not None:
-        _check_joins(folder, set(stems), info)
+        check_joins(folder, set(stems), info)
     found = [p for s in dict.fromkeys(stems)  # a name given twice is one take's files
              for p in (folder / f"{s}.csv", folder / f"{s}.json") if p.exists()]
     if found and not force:
@@ -142,7 +142,9 @@ def whole_take(folder: Path, stem: str) -> Iterator[None]:
         raise
 
 
-def _check_joins(folder: Path, stems: set[str], info: DeviceInfo) -> None:
+def check_joins(folder: Path, stems: set[str], info: DeviceInfo) -> None:
+    """:class:`RecordingError` naming ``folder`` and one of its takes when the takes there (but
+    those named ``stems``) have other channels, units or another rate than ``info``."""
     other = next((p for p in sorted(folder.rglob("*.json")) if p.stem not in stems
                   and p.with_suffix(".csv").is_file()), None)
     if other is None:
