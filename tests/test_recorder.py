@@ -379,6 +379,23 @@ def test_a_take_copied_under_another_name_is_named(tmp_path, capsys):
     assert capsys.readouterr().err == ""  # said once in a process
 
 
+def test_labels_that_differ_only_in_case_are_refused(tmp_path):
+    """A take labelled 'Paper' beside takes labelled 'paper' trained as two classes of one
+    surface, with no word; every command that reads the dataset now names both takes."""
+    make_dataset(tmp_path, takes=2, textures=("paper", "desk"), seconds=1)
+    meta = tmp_path / "paper-user001.json"
+    doc = json.loads(meta.read_text())
+    doc["label"] = "Paper"
+    meta.write_text(json.dumps(doc))
+    with pytest.raises(RecordingError, match=r"labels 'Paper' \(paper-user001\.csv\) and "
+                       r"'paper' \(paper-user000\.csv\) differ only in case|labels 'paper' "
+                       r"\(paper-user000\.csv\) and 'Paper' \(paper-user001\.csv\) differ"):
+        load_dataset(tmp_path)
+    doc["label"] = "paper"  # one spelling: read
+    meta.write_text(json.dumps(doc))
+    assert sorted({t.label for t in load_dataset(tmp_path)}) == ["desk", "paper"]
+
+
 def test_hapmat_materials_that_differ_only_in_case_are_one_material(tmp_path):
     """"Paper 1.csv" and "paper 1.csv" both passed the check (before labels were lower-cased)
     and were written as hapmat-paper and hapmat-paper-2; with --force the second name's

@@ -242,6 +242,14 @@ def load_dataset(folder: str | os.PathLike) -> list[Take]:
             raise RecordingError(f"{folder}: two takes named {t.path.name} ({seen[t.path.name]} "
                                  f"and {t.path}): rename one (a dataset's take names differ)")
         seen[t.path.name] = t.path
+    by_case: dict[str, Take] = {}
+    for t in takes:  # 'Paper' and 'paper' would train as two classes of one surface
+        other = by_case.setdefault(t.label.casefold(), t)
+        if other.label != t.label:
+            raise RecordingError(
+                f"{folder}: labels {other.label!r} ({other.path.name}) and {t.label!r} "
+                f"({t.path.name}) differ only in case: they would be two classes; give both "
+                "takes one spelling (the 'label' of the take's .json)")
     for t in takes:
         say_mismatch(t)
     first = takes[0]
@@ -264,7 +272,7 @@ def load_dataset(folder: str | os.PathLike) -> list[Take]:
 def say_copies(takes: list[Take]) -> None:
     """Name on stderr, once per process, takes that hold the same recording under two names
     (a copied take: read twice, it can land in training and in test). Only takes of one
-    label and length are fingerprinted, so a dataset without copies costs no hashing."""
+    label and length are fingerprinted, so most datasets cost little or no hashing."""
     alike: dict[tuple, list[Take]] = {}
     for t in takes:
         alike.setdefault((t.label, len(t.seq), t.raw.shape), []).append(t)
