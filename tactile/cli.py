@@ -159,7 +159,7 @@ def _guard_start() -> None:
             signal.signal(signum, signal.SIG_DFL)
             os.kill(os.getpid(), signum)
 
-    _start["guarded"] = True
+    _start["guarded"], _start["signal"] = True, None  # a signal of an earlier call is past
     for sig in (signal.SIGINT, signal.SIGTERM):
         signal.signal(sig, note)
 
@@ -213,7 +213,8 @@ def command(prog: str, *, guarded: bool = False, interruptible: bool = False,
     def wrap(main: Callable[..., int]) -> Callable[..., int]:
         @functools.wraps(main)
         def entry(argv: list[str] | None = None) -> int:
-            if guarded:
+            if guarded:  # the command's signal handlers last as long as the command
+                handlers = {s: signal.getsignal(s) for s in (signal.SIGINT, signal.SIGTERM)}
                 _guard_start()
             was = (sys.stdout, sys.stderr)
             if files:
@@ -237,6 +238,10 @@ def command(prog: str, *, guarded: bool = False, interruptible: bool = False,
             finally:
                 if files:
                     sys.stdout, sys.stderr = was
+                if guarded:  # called in-process (a test, a script): the caller's own again
+                    _start["guarded"] = False
+                    for s, h in handlers.items():
+                        signal.signal(s, h)
 
         return entry
 

@@ -1043,6 +1043,29 @@ def test_wait_without_a_port_ends_with_seconds(monkeypatch, capsys):
     assert '"windows": 0' in lines[2] and len(lines) == 3, err
 
 
+def test_a_command_run_in_process_gives_back_the_callers_signal_handlers(tmp_path, capsys):
+    """tactile-run and tactile-monitor called from Python (a script, a test) left their
+    SIGINT/SIGTERM handlers behind: a later Ctrl-C set the flag of a finished run and was
+    otherwise ignored. And a signal noted while one call started stopped the next call at once."""
+    from tactile import cli
+    from tactile.runtime.commands import monitor, run
+
+    (take,) = make_dataset(tmp_path, takes=1, textures=("paper",), seconds=1, seed=3)
+    mine = {signal.SIGINT: lambda *_: None, signal.SIGTERM: lambda *_: None}
+    was = {s: signal.signal(s, h) for s, h in mine.items()}
+    try:
+        cli._start["signal"] = "SIGINT"  # as if an earlier call had been stopped while starting
+        assert run.main(["--model", str(SHIPPED), "--replay", str(take)]) == 0
+        out, err = capsys.readouterr()
+        assert "while starting" not in err and len(out.splitlines()) == 3, err  # 3 windows
+        assert {s: signal.getsignal(s) for s in mine} == mine
+        assert monitor.main(["--port", "sim://?texture=paper&speed=max", "--seconds", "0.3"]) == 0
+        assert {s: signal.getsignal(s) for s in mine} == mine
+    finally:
+        for s, h in was.items():
+            signal.signal(s, h)
+
+
 @pytest.mark.skipif(not Path("/proc/self/status").exists(), reason="reads /proc")
 @pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGTERM])
 def test_a_signal_while_starting_stops_cleanly(sig):
