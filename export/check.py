@@ -22,6 +22,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
+from tactile import checksum
 from tactile.contract import OPSET, ModelContract, model_file
 from tactile.errors import ConfigError, ModelContractError
 
@@ -48,6 +49,10 @@ def load_contract(path: str | Path) -> tuple[onnx.ModelProto, ModelContract]:
     if not model.graph.node or not model.opset_import:
         raise ModelContractError(f"{path}: not an ONNX model (no graph or no opset; "
                                  f"{len(data)} bytes)")
+    try:  # first: a damaged file is named as one, whatever else its damage breaks
+        checksum.verify(data, {p.key: p.value for p in model.metadata_props})
+    except ModelContractError as e:
+        raise ModelContractError(f"{path}: {e}") from None
     try:
         onnx.checker.check_model(model, full_check=True)
     except (onnx.checker.ValidationError, onnx.shape_inference.InferenceError,
@@ -100,10 +105,20 @@ def describe(path: Path, c: ModelContract, opset: int | None = OPSET,
           for r in c.parity.get("codes") or []),
         *_native_parity(c.parity),
         f"  training  {_recorded(c)}",
+        f"  file      {_sealed(c)}",
         *_postprocess_lines(c),
         *(f"  kernels   {line}" for line in kernels),
     ]
     return "\n".join(lines)
+
+
+def _sealed(c: ModelContract) -> str:
+    """Whether the file's bytes were checked against its own digest (``describe`` is called on
+    files whose digest, where they carry one, has been verified)."""
+    if checksum.KEY in c.extra:
+        return f"sha256 {c.extra[checksum.KEY][:16]}... verified: the bytes are as exported"
+    return ("no sha256 key (exported before files carried one, or removed after an edit): a "
+            "damaged copy cannot be told")
 
 
 def _postprocess_lines(c: ModelContract) -> list[str]:

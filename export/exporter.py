@@ -17,6 +17,7 @@ from pathlib import Path
 
 import onnx
 
+from tactile import checksum
 from tactile.errors import ConfigError, ModelContractError
 from tactile.export.calibrate import calibrate_file
 from tactile.export.check import load_contract
@@ -76,10 +77,13 @@ def export_run(run_dir: Path, out: Path, data: Path | None = None, int8: bool = 
         contract = replace(contract, extra={**contract.extra, "custom_ops": custom_ops_key(final)})
     attach(final, contract)
     report["postprocess"] = calibrate_file(final, ck, model.cfg, data, log)
+    # the last key: the file's own digest, so that a damaged copy is refused (tactile.checksum)
+    onnx.helper.set_model_props(final, {**{p.key: p.value for p in final.metadata_props},
+                                        checksum.KEY: checksum.PLACEHOLDER})
     with tempfile.NamedTemporaryFile(dir=out.parent, suffix=".onnx", delete=False) as tmp:
         tmp_path = Path(tmp.name)
     try:
-        onnx.save(final, tmp_path)
+        tmp_path.write_bytes(checksum.seal(final.SerializeToString()))
         try:  # the written file honours the contract, or nothing is written
             load_contract(tmp_path)
         except ModelContractError as e:  # named as the file it was to be, not the temp file

@@ -10,10 +10,12 @@ import contextlib
 import inspect
 import io
 import os
+from pathlib import Path
 
 import numpy as np
 import onnxruntime as ort
 
+from tactile import checksum
 from tactile.contract import BATCH, ModelContract, model_file
 from tactile.errors import ConfigError, ModelContractError
 from tactile.postprocess.smoothing import settings_from_metadata
@@ -57,6 +59,14 @@ def _session(path: os.PathLike, so: ort.SessionOptions) -> ort.InferenceSession:
                                     enable_fallback=0)
     with contextlib.redirect_stdout(io.StringIO()):
         return ort.InferenceSession(str(path), so, providers=["CPUExecutionProvider"])
+
+
+def _bytes(path: os.PathLike) -> bytes:
+    try:
+        return Path(path).read_bytes()
+    except OSError as e:  # gone or unreadable since onnxruntime read it
+        raise ModelContractError(f"cannot read it again to check its sha256 ({e.strerror})"
+                                 ) from None
 
 
 class Model:
@@ -110,7 +120,8 @@ class Model:
         except Exception as e:  # noqa: BLE001  (onnxruntime raises its own untyped errors)
             first = str(e).strip().splitlines()[0] if str(e).strip() else type(e).__name__
             raise ModelContractError(f"{path}: not a loadable ONNX model ({first})") from None
-        try:
+        try:  # first: a damaged file is named as one, whatever else its damage breaks
+            checksum.verify(_bytes(path) if checksum.KEY in meta else b"", meta)
             self.contract = ModelContract.from_metadata(meta)
             self.contract.check_signature(inputs, outputs)
             postprocess = settings_from_metadata(meta)

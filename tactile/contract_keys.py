@@ -86,6 +86,9 @@ KEYS: dict[str, tuple[bool, str]] = {
                           "nodes: [{op, name, attributes}], fallback}: each runs the native "
                           "kernel where onnxruntime has the library registered, else the "
                           "model-local function of its name (the portable graph); absent: none"),
+    "sha256": (False, "SHA-256 (64 lower-case hex digits) of the file's bytes with this value "
+                      "written as 64 '0' characters: a file whose bytes give another is refused "
+                      "as damaged (tactile.checksum); absent: not checked"),
     "training_config": (False, "JSON object: the run's resolved training config"),
     "source_run": (False, "name of the run folder the model came from"),
     # the label stream's post-processing defaults (tactile.postprocess.smoothing reads them):

@@ -342,7 +342,10 @@ def test_a_file_that_fails_its_contract_when_written_is_named_as_out(dataset, ro
 
 
 def _tamper(src: Path, dst: Path, edit) -> Path:
+    """``src`` edited by hand into ``dst``: ``edit``, and its ``sha256`` key removed (which
+    would otherwise name every edit as damage)."""
     m = onnx.load(src)
+    _drop_key("sha256")(m)
     edit(m)
     onnx.save(m, dst)
     return dst
@@ -385,9 +388,12 @@ def test_check_names_what_is_wrong(dataset, root, capsys):
         "seven_channels": (lambda p: _tamper(good, p, lambda m: (
             _set_key("channels", seven)(m), _set_key("units", json.dumps(ck["units"][:7]))(m))),
             "'mean' must be a list of 7 numbers"),
-        "not_utf8": (lambda p: p.write_bytes(not_utf8(good.read_bytes(), b"/pre/Sub_output_0",
-                                                      nth=1)),  # a node input's name
-                     "fails onnx.checker: 'utf-8' codec can't decode"),
+        "not_utf8": (lambda p: p.write_bytes(not_utf8(  # a node input's name, in a file
+            _tamper(good, p, lambda m: None).read_bytes(), b"/pre/Sub_output_0", nth=1)),
+            "fails onnx.checker: 'utf-8' codec can't decode"),  # without a sha256 key
+        "damaged": (lambda p: p.write_bytes(not_utf8(good.read_bytes(), b"/pre/Sub_output_0",
+                                                     nth=1)),  # the same in the file as made
+                    "damaged: the file's bytes give sha256 "),
         "wrong_input": (lambda p: _tamper(good, p, _rename_x),
                         "graph inputs are \\['samples', 'h', 'c'\\], expected \\['x', 'h', 'c'\\]"),
     }
@@ -420,6 +426,79 @@ def test_int8_is_smaller_and_mostly_agrees(dataset, root, capsys):
     assert c.parity["float32"]["passed"] is True
     assert check_main([str(q), "--run", str(run)]) == 0
     assert "int8: agreement >= 0.9" in capsys.readouterr().out
+
+
+# -- the file's own checksum ----------------------------------------------------------------------
+
+def test_a_damaged_copy_is_refused_by_its_checksum(dataset, root, tmp_path, capsys):
+    """One flipped byte in a weight: onnxruntime loads the copy and it gives other
+    probabilities. Its bytes no longer give the sha256 the export recorded (computed here with
+    the onnx package and hashlib, not the exporter's code), so Model, tactile-check and
+    tactile-run refuse it: one line, exit 3. A file whose key was removed after an edit runs,
+    and tactile-check says it cannot tell a damaged copy."""
+    import hashlib
+
+    from tactile.runtime.commands.run import main as run_main
+    from tactile.runtime.model import Model
+
+    _, out, _, _, _ = _build("lstm1", GRID["lstm1"], dataset, root)
+    data = out.read_bytes()
+    proto = onnx.load_model_from_string(data)
+    meta = {p.key: p.value for p in proto.metadata_props}
+    assert list(meta)[-1] == "sha256" and re.fullmatch(r"[0-9a-f]{64}", meta["sha256"])
+    for p in proto.metadata_props:
+        if p.key == "sha256":
+            p.value = "0" * 64
+    assert hashlib.sha256(proto.SerializeToString()).hexdigest() == meta["sha256"]
+    assert check_main([str(out)]) == 0
+    assert f"  file      sha256 {meta['sha256'][:16]}... verified" in capsys.readouterr().out
+
+    weight = max((i for i in proto.graph.initializer if i.raw_data), key=lambda i: len(i.raw_data))
+    at = data.index(weight.raw_data) + len(weight.raw_data) // 8 * 4 + 3  # a float's top byte
+    bad = tmp_path / "damaged.onnx"
+    bad.write_bytes(data[:at] + bytes([data[at] ^ 0x40]) + data[at + 1:])
+    with pytest.raises(ModelContractError, match=r"damaged: the file's bytes give sha256 "):
+        Model(bad)
+    for prog, main, argv in [("tactile-check", check_main, [str(bad)]),
+                             ("tactile-run", run_main, ["--model", str(bad), "--port",
+                                                        "sim://?texture=paper"])]:
+        assert main(argv) == 3, prog
+        err = capsys.readouterr().err.strip().splitlines()
+        assert len(err) == 1 and err[0].startswith(f"{prog}: error: {bad}: damaged: "), err
+
+    # the same damage with the key removed (as after an edit): it runs, other probabilities
+    edited = onnx.load_model_from_string(bad.read_bytes())
+    keep = [(p.key, p.value) for p in edited.metadata_props if p.key != "sha256"]
+    del edited.metadata_props[:]
+    onnx.helper.set_model_props(edited, dict(keep))
+    unsealed = tmp_path / "unsealed.onnx"
+    onnx.save(edited, unsealed)
+    x = np.random.default_rng(0).normal(size=(1, 50, 8)).astype(np.float32)
+    good, damaged = Model(out), Model(unsealed)
+    p_good = good.classify(x, *good.zero_state())[0]
+    assert not np.allclose(p_good, damaged.classify(x, *damaged.zero_state())[0], atol=1e-6)
+    assert check_main([str(unsealed)]) == 0
+    assert "  file      no sha256 key (exported before files carried one, or removed after " \
+        "an edit): a damaged copy cannot be told" in capsys.readouterr().out
+
+
+@pytest.mark.parametrize("value, message", [
+    ("abc", r"metadata key 'sha256' is 'abc': not 64 lower-case hex digits"),
+    ("A" * 64, r"not 64 lower-case hex digits"),
+])
+def test_a_bad_checksum_value_is_named(dataset, root, tmp_path, value, message):
+    from tactile.runtime.model import Model
+
+    _, out, _, _, _ = _build("lstm1", GRID["lstm1"], dataset, root)
+    proto = onnx.load(out)
+    for p in proto.metadata_props:
+        if p.key == "sha256":
+            p.value = value
+    path = tmp_path / "bad.onnx"
+    onnx.save(proto, path)
+    for load in (Model, load_contract):
+        with pytest.raises(ModelContractError, match=message):
+            load(path)
 
 
 # -- untrusted model files: outputs that break their declared shapes ----------------------------
