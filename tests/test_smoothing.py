@@ -259,8 +259,9 @@ def test_bad_metadata_names_the_key(change, key):
 
 
 def test_metadata_in_an_onnx_file(tmp_path):
-    """Written into a copy of the shipped model and read back as the runtime reads a file;
-    the shipped model itself carries no defaults."""
+    """Written into a copy of the shipped model (its sha256 key removed, as after any edit by
+    hand) and read back as the runtime reads a file; the shipped model's own defaults are the
+    ones its export calibrated (models/README.md)."""
     import onnx
 
     from tactile.runtime.model import Model
@@ -268,14 +269,15 @@ def test_metadata_in_an_onnx_file(tmp_path):
     shipped = REPO / "models" / "pen-exp2.onnx"
     m = onnx.load(shipped)
     s = SmoothingSettings(n=None, tau=0.5, p_min=0.6, hold=3)
-    onnx.helper.set_model_props(m, {**{p.key: p.value for p in m.metadata_props},
-                                    **settings_to_metadata(s, {"x": 0.5})})
+    kept = {p.key: p.value for p in m.metadata_props if p.key != "sha256"}
+    del m.metadata_props[:]
+    onnx.helper.set_model_props(m, {**kept, **settings_to_metadata(s, {"x": 0.5})})
     onnx.save(m, tmp_path / "m.onnx")
     meta = Model(tmp_path / "m.onnx").session.get_modelmeta().custom_metadata_map
     assert settings_from_metadata(meta) == s
     assert figures_from_metadata(meta) == {"x": 0.5}
-    old = Model(shipped).session.get_modelmeta().custom_metadata_map
-    assert settings_from_metadata(old) is None
+    own = Model(shipped).session.get_modelmeta().custom_metadata_map
+    assert settings_from_metadata(own) == SmoothingSettings(n=None, tau=1.0, p_min=0.5, hold=1)
 
 
 # -- metrics -------------------------------------------------------------------------------------
