@@ -176,9 +176,9 @@ def test_takes_of_another_rate_or_channels_are_not_written_into_a_dataset(tmp_pa
     code, _, err = cli("tactile-sim", "--dataset", d, "--takes", "1", "--seconds", "1",
                        "--textures", "desk", "--rate", "50")
     assert code == 1 and err.strip() == (
-        f"tactile-sim: error: {d}: holds takes of other channels or another rate "
-        "(paper-user000.json: 8 channels at 100 Hz; these: 8 at 50 Hz): a dataset's takes "
-        "share them; choose another folder"), err
+        f"tactile-sim: error: {d}: holds takes of another device (paper-user000.json: "
+        "100 Hz, these takes 50 Hz): a dataset's takes share channels, units and rate; choose "
+        "another folder"), err
     assert [t.path.name for t in load_dataset(d)] == ["paper-user000.csv"]
     assert cli("tactile-sim", "--dataset", d, "--takes", "1", "--seconds", "1",
                "--textures", "desk")[0] == 0  # the same pen: added

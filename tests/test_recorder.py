@@ -642,12 +642,15 @@ def test_a_folder_of_another_devices_takes_is_refused_before_a_take(tmp_path, ca
     before = pen.read_bytes()
     other = DeviceInfo(200.0, tuple(ChannelSpec(n, "N") for n in ("a", "b", "c")))
     rec, dec = Recorder(tmp_path, "desk", "test"), StreamDecoder()
-    with pytest.raises(RecordingError, match=rf"{tmp_path}: holds takes of other channels or "
-                       rf"another rate \({pen.stem}\.json: 8 channels at 100 Hz; these: 3 at "
-                       r"200 Hz\).*nothing recorded"):
+    with pytest.raises(RecordingError, match=rf"{tmp_path}: holds takes of another device "
+                       rf"\({pen.stem}\.json: 8 channels, these takes 3\).*nothing recorded"):
         rec.handle([Samples(0, 0, np.ones((4, 3), np.int16)), Header(other)], dec)
     rec.close(dec)
     assert rec.result.takes == [] and rec.result.unrecorded == 4
+    volts = pen_info()
+    volts = DeviceInfo(100.0, (ChannelSpec(volts.channels[0].name, "V"), *volts.channels[1:]))
+    with pytest.raises(RecordingError, match=r"\.json: pressure_0 in 'N', these takes in 'V'\)"):
+        Recorder(tmp_path, "desk", "test").handle([Header(volts)], StreamDecoder())
     assert sorted(p.name for p in tmp_path.iterdir()) == [pen.name, pen.with_suffix(".json").name]
     assert pen.read_bytes() == before
 

@@ -143,21 +143,35 @@ def whole_take(folder: Path, stem: str) -> Iterator[None]:
 
 
 def check_joins(folder: Path, stems: set[str], info: DeviceInfo) -> None:
-    """:class:`RecordingError` naming ``folder`` and one of its takes when the takes there (but
-    those named ``stems``) have other channels, units or another rate than ``info``."""
+    """:class:`RecordingError` naming ``folder``, one of its takes and the first difference
+    when the takes there (but those named ``stems``) have other channels, units or another
+    rate than ``info``."""
     other = next((p for p in sorted(folder.rglob("*.json")) if p.stem not in stems
                   and p.with_suffix(".csv").is_file()), None)
     if other is None:
         return
     _, have = read_meta(other)
-    mine = [(c.name, c.unit) for c in info.channels]
-    theirs = [(c.name, c.unit) for c in have.channels]
-    if mine != theirs or abs(info.sample_rate_hz - have.sample_rate_hz) > 1e-6 * max(
+    why = _difference(have, info)
+    if why:
+        raise RecordingError(f"{folder}: holds takes of another device ({other.name}: {why}): "
+                             "a dataset's takes share channels, units and rate; choose another "
+                             "folder")
+
+
+def _difference(have: DeviceInfo, info: DeviceInfo) -> str | None:
+    """The first way the takes of ``info`` differ from a take of ``have``, in words."""
+    theirs, mine = have.channel_names, info.channel_names
+    if len(theirs) != len(mine):
+        return f"{len(theirs)} channels, these takes {len(mine)}"
+    for a, b in zip(have.channels, info.channels):
+        if a.name != b.name:
+            return f"channel {a.name!r} where these takes have {b.name!r}"
+        if a.unit != b.unit:
+            return f"{a.name} in {a.unit!r}, these takes in {b.unit!r}"
+    if abs(info.sample_rate_hz - have.sample_rate_hz) > 1e-6 * max(
             info.sample_rate_hz, have.sample_rate_hz):
-        raise RecordingError(
-            f"{folder}: holds takes of other channels or another rate ({other.name}: "
-            f"{len(theirs)} channels at {have.sample_rate_hz:g} Hz; these: {len(mine)} at "
-            f"{info.sample_rate_hz:g} Hz): a dataset's takes share them; choose another folder")
+        return f"{have.sample_rate_hz:g} Hz, these takes {info.sample_rate_hz:g} Hz"
+    return None
 
 
 def header_cell(name: str) -> str:
