@@ -18,7 +18,7 @@ import onnxruntime as ort
 from tactile import checksum
 from tactile.contract import BATCH, ModelContract, model_file
 from tactile.errors import ConfigError, ModelContractError
-from tactile.postprocess.smoothing import settings_from_metadata
+from tactile.postprocess.smoothing import check_classes, settings_from_metadata
 from tactile.runtime import kernels
 
 
@@ -125,6 +125,12 @@ class Model:
             self.contract = ModelContract.from_metadata(meta)
             self.contract.check_signature(inputs, outputs)
             postprocess = settings_from_metadata(meta)
+            if postprocess is not None:  # tactile-run would refuse it at its first window
+                try:
+                    check_classes(self.contract.classes)
+                except ConfigError as e:
+                    raise ModelContractError(f"{e} (the file's postprocess.* defaults turn "
+                                             "the post-processing on)") from None
         except ModelContractError as e:
             raise ModelContractError(f"{path}: {e}") from None
         self.metadata: dict[str, str] = dict(meta)

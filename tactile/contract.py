@@ -165,7 +165,7 @@ class ModelContract:
         if version > FORMAT_VERSION or version < 1:
             raise ModelContractError(f"metadata key 'tactile.format_version' is {version}; "
                                      f"this reader understands 1..{FORMAT_VERSION}")
-        return cls(
+        contract = cls(
             classes=F.names(meta, "classes"),
             channels=F.names(meta, "channels"),
             units=F.strings(meta, "units"),
@@ -187,6 +187,8 @@ class ModelContract:
             signals=_signals(meta),
             modalities=_modalities(meta),
         )
+        contract.custom_ops  # noqa: B018  (read once: a bad key is named now, on every path)
+        return contract
 
     def to_metadata(self) -> dict[str, str]:
         """The ``metadata_props`` strings; ``from_metadata(to_metadata())`` gives ``self``."""
@@ -226,10 +228,12 @@ class ModelContract:
         try:
             nodes = json.loads(raw).get("nodes", [])
         except (ValueError, AttributeError):
-            raise ModelContractError("custom_ops: not a JSON object with a 'nodes' list") from None
+            raise ModelContractError("metadata key 'custom_ops': not a JSON object with a "
+                                     "'nodes' list") from None
         if not isinstance(nodes, list) or not all(isinstance(n, dict) and "op" in n
                                                   for n in nodes):
-            raise ModelContractError("custom_ops: 'nodes' must be a list of {op, ...} objects")
+            raise ModelContractError("metadata key 'custom_ops': 'nodes' must be a list of "
+                                     "{op, ...} objects")
         return nodes
 
     # -- graph signature ---------------------------------------------------------------------

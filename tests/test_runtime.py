@@ -680,6 +680,22 @@ def test_bad_or_reserved_post_processing_metadata_is_a_contract_error(tmp_path):
     assert code == 0 and '"label"' in out  # no post-processing: runs as before
     code, out, err = run_cli(["--model", str(reserved), "--replay", str(take), "--smooth", "3"])
     assert code == 3 and out == "" and "class name 'uncertain' is reserved" in err
+    # with the file's own defaults, the file is refused as it loads: tactile-check said "ok" of
+    # a file tactile-run then refused
+    both = with_metadata(tmp_path / "both.onnx", {**settings_to_metadata(CALIBRATED),
+                                                  "classes": classes})
+    for argv in (["--model", str(both), "--port", "loop://"], ["--model", str(both), "--raw",
+                                                              "--port", "loop://"]):
+        code, out, err = run_cli(argv)
+        assert code == 3 and out == "" and len(err.strip().splitlines()) == 1, err
+        assert "class name 'uncertain' is reserved" in err and "postprocess.* defaults" in err
+    from tactile.export.commands.check import main as check_main
+    assert check_main([str(both)]) == 3
+    # a custom_ops key that is not what it says: refused on every path, naming the file
+    bogus = with_metadata(tmp_path / "bogus.onnx", {"custom_ops": "{"})
+    code, out, err = run_cli(["--model", str(bogus), "--port", "loop://"])
+    assert code == 3 and err.strip() == (f"tactile-run: error: {bogus}: metadata key "
+                                         "'custom_ops': not a JSON object with a 'nodes' list")
 
 
 def test_replay_and_csv_output(models):
