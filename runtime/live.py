@@ -34,6 +34,7 @@ from http import HTTPStatus
 from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
 from importlib import resources
 
+from tactile.cli import parse_address  # noqa: F401  (re-exported: the page's address)
 from tactile.device.protocol import DeviceInfo, Header, Samples
 from tactile.errors import ConfigError
 from tactile.runtime.stream import Label
@@ -56,21 +57,6 @@ _END = b'data: {"event":"end"}\n\n'
 _BUSY = (b"HTTP/1.1 503 Service Unavailable\r\nContent-Type: text/plain; charset=utf-8\r\n"
          b"Content-Length: 38\r\nRetry-After: 10\r\nConnection: close\r\n\r\n"
          b"busy: too many connections; try later\n")
-
-
-def parse_address(text: str) -> tuple[str, int]:
-    """``HOST:PORT``, ``[v6]:PORT`` or ``PORT`` (then host 127.0.0.1) -> (host, port); port 0
-    picks a free one. :class:`ConfigError` naming the value otherwise."""
-    host, sep, port = text.rpartition(":")
-    host = host.strip("[]") if sep else "127.0.0.1"
-    try:
-        number = int(port)
-    except ValueError:
-        number = -1
-    if not host or not 0 <= number <= 65535:
-        raise ConfigError(f"--serve {text!r}: expected HOST:PORT or PORT (0-65535), e.g. "
-                          "127.0.0.1:8000")
-    return host, number
 
 
 def link_status(stats) -> dict:

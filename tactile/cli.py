@@ -122,6 +122,31 @@ def float_in(low: float, high: float = math.inf, low_open: bool = True,
     return parse
 
 
+def parse_address(text: str) -> tuple[str, int]:
+    """``HOST:PORT``, ``[v6]:PORT`` or ``PORT`` (then host 127.0.0.1) -> (host, port); port 0
+    picks a free one. :class:`ConfigError` naming the value otherwise."""
+    host, sep, port = text.rpartition(":")
+    host = host.strip("[]") if sep else "127.0.0.1"
+    try:
+        number = int(port)
+    except ValueError:
+        number = -1
+    if not host or not 0 <= number <= 65535:
+        raise ConfigError(f"--serve {text!r}: expected HOST:PORT or PORT (0-65535), e.g. "
+                          "127.0.0.1:8000")
+    return host, number
+
+
+def _address(text: str) -> str:
+    """``--serve``'s argparse type: ``text`` when :func:`parse_address` reads it (a bad value
+    is argparse's one line, before the command loads anything)."""
+    try:
+        parse_address(text)
+    except ConfigError as e:
+        raise argparse.ArgumentTypeError(f"{text!r}: {str(e).split(': ', 1)[1]}") from None
+    return text
+
+
 # What each optional extra brings: a command that needs one says so in one line.
 _EXTRA_OF = {"torch": "train", "onnx": "train", "onnxscript": "train", "tqdm": "train",
              "matplotlib": "train", "sklearn": "train", "h5py": "biotac"}
@@ -263,11 +288,11 @@ def add_port_options(parser: argparse.ArgumentParser, page: str) -> None:
                         "the end of the input)")
     parser.add_argument("--stall-timeout", type=float_in(0.0), default=2.0,
                         help="report a stall after this many seconds without data (default 2)")
-    parser.add_argument("--serve", metavar="HOST:PORT",
+    parser.add_argument("--serve", metavar="HOST:PORT", type=_address,
                         help=f"also serve a live, read-only web page of {page} at "
                         "http://HOST:PORT/ (PORT alone: on 127.0.0.1; port 0: a free one, said "
                         "on stderr)")
 
 
 __all__ = ["ConfigError", "Parser", "run", "add_debug", "add_port_options", "exit_code",
-           "float_in", "int_in", "EXIT_DEVICE", "EXIT_USAGE"]
+           "float_in", "int_in", "parse_address", "EXIT_DEVICE", "EXIT_USAGE"]

@@ -89,6 +89,23 @@ def test_addresses_bind_to_loopback_unless_told():
             parse_address(bad)
 
 
+@pytest.mark.parametrize("prog", ["tactile-run", "tactile-monitor"])
+def test_a_bad_serve_address_is_a_usage_error_before_anything_loads(prog, tmp_path):
+    """Was checked after the model loaded (tactile-run: an info line, then the error)."""
+    import subprocess
+    import sys
+
+    module = {"tactile-run": "run", "tactile-monitor": "monitor"}[prog]
+    args = ["--port", "loop://", "--serve", "1.2.3.4:70000"]
+    if prog == "tactile-run":  # a model that does not exist: the address is refused first
+        args += ["--model", str(tmp_path / "none.onnx")]
+    proc = subprocess.run([sys.executable, "-m", f"tactile.runtime.commands.{module}", *args],
+                          capture_output=True, text=True, timeout=60)
+    assert (proc.returncode, proc.stdout) == (1, ""), proc.stderr
+    assert proc.stderr == (f"{prog}: error: argument --serve: '1.2.3.4:70000': expected "
+                           "HOST:PORT or PORT (0-65535), e.g. 127.0.0.1:8000 (see --help)\n")
+
+
 def test_port_0_picks_a_free_port_and_says_where(live):
     assert live.port != 0 and live.url == f"http://127.0.0.1:{live.port}/"
     assert live.said == [f"live page at {live.url} (read-only; at most 2 viewers)"]
