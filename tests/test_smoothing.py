@@ -239,8 +239,9 @@ def test_no_postprocess_keys_means_no_defaults():
 
 @pytest.mark.parametrize("change, key", [
     ({"postprocess.p_min": "1.5"}, "postprocess.p_min"),
-    ({"postprocess.p_min": "high"}, "postprocess.p_min"),
+    ({"postprocess.p_min": "high"}, "postprocess.p_min: 'high' is not a number"),
     ({"postprocess.hold": "0"}, "postprocess.hold"),
+    ({"postprocess.hold": "1e9"}, "postprocess.hold: '1e9' is not an integer"),
     ({"postprocess.smooth": "ma:0"}, "postprocess.smooth"),
     ({"postprocess.smooth": "median:3"}, "postprocess.smooth"),
     ({"postprocess.version": "2"}, "postprocess.version"),

@@ -325,8 +325,12 @@ def settings_from_metadata(meta: dict[str, str]) -> SmoothingSettings | None:
         key = PREFIX + name
         try:
             return parse(ours[key])
-        except (ConfigError, ValueError) as e:
+        except ConfigError as e:
             raise ModelContractError(f"metadata key {key}: {ours[key]!r} ({e})") from None
+        except ValueError:  # int() or float() of text that is none
+            raise ModelContractError(f"metadata key {key}: {ours[key]!r} is not "
+                                     f"{'an integer' if name == 'hold' else 'a number'}"
+                                     ) from None
 
     # each value checked on its own, so that the error names its key
     averaging = value("smooth", lambda v: SmoothingSettings(**parse_smooth(v)))
