@@ -29,8 +29,8 @@ def _value_at(data: bytes) -> int:
     entry is there exactly once."""
     n = data.count(_ENTRY)
     if n != 1:
-        raise ModelContractError(f"metadata key {KEY!r}: {'not found' if n == 0 else 'found'} "
-                                 f"{n} times in the file's bytes (once expected)")
+        where = "not in the file's bytes" if n == 0 else f"in the file's bytes {n} times"
+        raise ModelContractError(f"metadata key {KEY!r}: its entry is {where} (once expected)")
     return data.index(_ENTRY) + len(_ENTRY)
 
 

@@ -27,8 +27,8 @@ def build_parser() -> argparse.ArgumentParser:
                "before the port gave any data, it exits 0 and says so. Exit 2: the port cannot "
                "be opened, or it gave no usable data before the end. Exit 1: a take cannot be "
                "written (a full disk: the line names the file; the take keeps what was written "
-               "and is not marked complete), or --out holds takes of other channels or another "
-               "rate than the device's (said at its header, before any take).",
+               "and is not marked complete), or --out holds another device's takes (other "
+               "channels, units or rate; said at its header, before any take).",
     )
     p.add_argument("--port", help="/dev/ttyACM0, sim://?texture=paper, socket://...; default: "
                    "the one likely pen attached (as tactile-run; tactile-ports lists them)")
