@@ -379,6 +379,23 @@ def test_a_take_copied_under_another_name_is_named(tmp_path, capsys):
     assert capsys.readouterr().err == ""  # said once in a process
 
 
+def test_a_copied_take_that_lost_rows_gets_both_warnings(tmp_path, capsys):
+    """The warnings shared one memory of the files they had named: a take that lost rows was
+    never named as a copy too."""
+    import shutil
+
+    make_dataset(tmp_path, takes=1, textures=("paper",), seconds=1)
+    csv = tmp_path / "paper-user000.csv"
+    lines = csv.read_text().splitlines(keepends=True)
+    csv.write_text("".join(lines[:-10]))  # the last 10 rows lost
+    for suffix in (".csv", ".json"):
+        shutil.copy(tmp_path / f"paper-user000{suffix}", tmp_path / f"paper-again{suffix}")
+    load_dataset(tmp_path)
+    err = capsys.readouterr().err.splitlines()
+    assert sum("rows were lost or added after recording" in ln for ln in err) == 2, err
+    assert sum("the same recording as" in ln for ln in err) == 1, err
+
+
 def test_labels_that_differ_only_in_case_are_refused(tmp_path):
     """A take labelled 'Paper' beside takes labelled 'paper' trained as two classes of one
     surface, with no word; every command that reads the dataset now names both takes."""

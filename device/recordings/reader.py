@@ -203,15 +203,15 @@ def iter_takes(folder: str | os.PathLike) -> Iterator[Path]:
     return iter(sorted(p for p in folder.rglob("*.csv") if p.with_suffix(".json").is_file()))
 
 
-_SAID: set[Path] = set()  # the takes whose mismatch a warning has named in this process
+_SAID: set[tuple[str, Path]] = set()  # (what, file): the warnings said in this process
 
 
 def say_mismatch(take: Take, prefix: str = "") -> None:
     """Name on stderr, once per process, a finished take whose CSV holds other rows than its
     JSON counts (``Take.mismatch``): one ``warning:`` line after ``prefix`` (a command's
     name), nothing for a take whose counts agree."""
-    if take.mismatch and take.path not in _SAID:
-        _SAID.add(take.path)
+    if take.mismatch and ("mismatch", take.path) not in _SAID:
+        _SAID.add(("mismatch", take.path))
         print(f"{prefix}warning: {take.path}: {take.mismatch}", file=sys.stderr, flush=True)
 
 
@@ -220,9 +220,9 @@ def say_orphans(folder: str | os.PathLike) -> None:
     ``.json`` beside them: a take whose JSON was lost (a copy that missed it) is not read,
     and no take's data is left out without a word."""
     orphans = sorted(p for p in Path(folder).rglob("*.csv")
-                     if not p.with_suffix(".json").is_file() and p not in _SAID)
+                     if not p.with_suffix(".json").is_file() and ("orphan", p) not in _SAID)
     if orphans:
-        _SAID.update(orphans)
+        _SAID.update(("orphan", p) for p in orphans)
         more = f" and {len(orphans) - 3} more" if len(orphans) > 3 else ""
         print(f"warning: {', '.join(str(p) for p in orphans[:3])}{more}: a .csv without its "
               ".json, not read as a take", file=sys.stderr, flush=True)
@@ -280,8 +280,8 @@ def say_copies(takes: list[Take]) -> None:
         by_print: dict[str, Take] = {}
         for t in group:
             other = by_print.setdefault(t.fingerprint(), t)
-            if other is not t and t.path not in _SAID:
-                _SAID.add(t.path)
+            if other is not t and ("copy", t.path) not in _SAID:
+                _SAID.add(("copy", t.path))
                 print(f"warning: {t.path}: the same recording as {other.path} (label, samples "
                       "and times): it is read twice", file=sys.stderr, flush=True)
 
