@@ -287,6 +287,19 @@ def test_csv_auto_detected_with_names_and_rejections():
     assert stats.csv_rows == 3 and stats.csv_rejected == 5  # boot: ok!, 7,x,9, 1,2, nan, 1e39
 
 
+def test_csv_names_again_mid_run_are_no_lost_sample():
+    """A board that restarts (a reconnection) or repeats its names line: the run's own names
+    again were a rejected row, reported as one lost sample. Other names mid-run still are."""
+    text = b"ax,ay,az\n1,2,3\n4,5,6\n7,8,9\nax,ay,az\n1,1,1\nbx,by,bz\n2,2,2\n"
+    events, stats = decode(text)
+    seqs, rows = delivered(events)
+    assert seqs.tolist() == [0, 1, 2, 3, 5]  # bx,by,bz: rejected, the row after it one later
+    np.testing.assert_array_equal(rows, [[1, 2, 3], [4, 5, 6], [7, 8, 9], [1, 1, 1], [2, 2, 2]])
+    assert [e for e in events if isinstance(e, Gap)] == [Gap(5, 1, "rejected")]
+    assert stats.csv_rejected == 1 and stats.bytes_discarded == len(b"bx,by,bz\n")
+    assert sum(isinstance(e, Header) for e in events) == 1
+
+
 def test_csv_without_names_and_blank_separated():
     events, stats = decode(b"1 2\n3 4\n5 6\n", csv_rate_hz=50.0)
     header = next(e for e in events if isinstance(e, Header))

@@ -98,8 +98,10 @@ class CsvLines:
         if what == "names":
             if self.info is None and width == self._csv_width:  # the latest one before the
                 self._csv_names = values  # first row names the channels
-            else:
+            elif self.info is None or values != self.info.channel_names:
                 self._csv_reject(nbytes)
+            # else the run's own names again (a board that restarted, or one that repeats
+            # them): no sample, so not a rejected row that would count as one lost
             return
         if width != self._csv_width:
             self._csv_reject(nbytes)
