@@ -300,6 +300,20 @@ def test_csv_names_again_mid_run_are_no_lost_sample():
     assert sum(isinstance(e, Header) for e in events) == 1
 
 
+def test_csv_rows_after_a_reconnection_follow_a_restart_gap():
+    """A CSV board's lines carry no count: after the link was re-opened (a board that was
+    unplugged and restarted, printing its names again), its rows joined the earlier ones as one
+    run. The first row after it now follows a restart gap, as a binary pen's frame does."""
+    dec = StreamDecoder()
+    events = dec.feed(b"ax,ay\n1,2\n3,4\n5,6\n")
+    dec.reconnected()
+    events += dec.feed(b"ax,ay\n7,8\n9,10\n")
+    seqs, rows = delivered(events)
+    assert seqs.tolist() == [0, 1, 2, 3, 4]
+    assert [e for e in events if isinstance(e, Gap)] == [Gap(3, 0, "restart")]
+    assert (dec.stats.restarts, dec.stats.gaps, dec.stats.csv_rejected) == (1, 1, 0)
+
+
 def test_csv_without_names_and_blank_separated():
     events, stats = decode(b"1 2\n3 4\n5 6\n", csv_rate_hz=50.0)
     header = next(e for e in events if isinstance(e, Header))

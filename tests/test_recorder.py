@@ -136,9 +136,12 @@ def test_recorder_over_sim_with_faults(tmp_path):
         len(take.seq), len(gaps), sum(g["missing"] for g in gaps))
 
 
-def test_recorder_survives_unplug(tmp_path):
+@pytest.mark.parametrize("fmt", ["binary", "csv"])
+def test_recorder_survives_unplug(tmp_path, fmt):
+    """The take goes on after the unplug, after a restart gap (a CSV board's rows carry no
+    count: they joined the earlier rows as one run, without a break)."""
     forget_unplugs()
-    url = "sim://?texture=paper&seed=2&speed=max&unplug=2:0.4"
+    url = f"sim://?texture=paper&seed=2&speed=max&unplug=2:0.4&format={fmt}"
     t0 = time.monotonic()
     res = record(url, "paper", tmp_path, seconds=5, progress=False)
     assert time.monotonic() - t0 >= 0.4  # it waited for the cable

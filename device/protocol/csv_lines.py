@@ -111,6 +111,11 @@ class CsvLines:
             chans = tuple(ChannelSpec(n, "") for n in names)
             self._set_info(DeviceInfo(self.csv_rate_hz, chans, "csv"), events)
         host = self._host_next
+        if self._restart_pending:  # the first row after a reconnection (StreamDecoder.reconnected)
+            self._restart_pending = False
+            self.stats.restarts += 1
+            self.stats.gaps += 1
+            events.append(Gap(host, 0, "restart"))
         if self._csv_rejected_run:
             missing = self._csv_rejected_run
             self._csv_rejected_run = 0

@@ -143,7 +143,8 @@ class StreamDecoder(CsvLines):
         """The link was re-opened: drop partial bytes and expect the device to have restarted.
 
         The next samples frame is then reported after a ``restart`` gap whatever its sequence
-        number, since a pen that was unplugged rebooted and counts from 0 again.
+        number, since a pen that was unplugged rebooted and counts from 0 again; so is a CSV
+        board's next row (the lines carry no count: the break is known from the link alone).
         """
         self.stats.bytes_discarded += len(self._buf)
         self._buf.clear()
@@ -152,6 +153,8 @@ class StreamDecoder(CsvLines):
         if self._dev_next is not None:
             self._dev_next = None
             self._restart_pending = True
+        elif self._csv_width is not None and self.info is not None:  # a CSV board: no count
+            self._restart_pending = True  # to tell, so its next row comes after the break
 
     @property
     def next_seq(self) -> int:
