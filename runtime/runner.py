@@ -165,9 +165,13 @@ def check_device(model: Model, info: DeviceInfo) -> np.ndarray:
     where = {name: i for i, name in enumerate(got)}
     missing = [name for name in want if name not in where]
     if missing:
+        unnamed = info.device == "csv" and got == tuple(f"ch{i}" for i in range(len(got)))
         raise ModelContractError(
             f"the device sends no {', '.join(missing)}: the model reads {list(want)}, the device "
-            f"sends {list(got)}"
+            f"sends {list(got)}" + ("; a CSV device names its channels in a names line before "
+                                    "its first row, which this port did not get (opened after "
+                                    "it): restart the board with the port open" if unnamed
+                                    else "")
         )
     columns = np.array([where[name] for name in want], np.intp)
     got_units = tuple(info.channels[i].unit for i in columns)

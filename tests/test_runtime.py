@@ -1166,6 +1166,24 @@ def test_device_units_must_be_the_models():
         check_device(model, DeviceInfo(c.sample_rate_hz, tuple(chans), "pen"))
 
 
+def test_an_unnamed_csv_device_is_refused_saying_why():
+    """A CSV board whose names line this port missed (opened after the board started) sends
+    ch0...ch7: refused, and the line says what happened and what to do."""
+    from tactile.device.protocol import ChannelSpec, DeviceInfo
+    from tactile.runtime.runner import check_device
+
+    model = Model(SHIPPED)
+    unnamed = DeviceInfo(100.0, tuple(ChannelSpec(f"ch{i}", "") for i in range(8)), "csv")
+    with pytest.raises(ModelContractError, match=r"the device sends no pressure_0, .*; a CSV "
+                       r"device names its channels in a names line before its first row, "
+                       r"which this port did not get \(opened after it\): restart the board"):
+        check_device(model, unnamed)
+    other = DeviceInfo(100.0, tuple(ChannelSpec(f"x{i}", "") for i in range(8)), "csv")
+    with pytest.raises(ModelContractError) as e:
+        check_device(model, other)
+    assert "names line" not in str(e.value)  # named, just not the model's channels
+
+
 def test_csv_output_gives_events_their_own_column():
     import csv
     import io
