@@ -14,12 +14,11 @@ import typing
 from dataclasses import dataclass
 from pathlib import Path
 
-from tactile.contract import MAX_IMFS
+from tactile.contract import MAX_IMFS, MODALITY_MODELS, MODELS
 from tactile.device.recordings.summary import HOP, WINDOW
 from tactile.errors import ConfigError
 
-MODELS = ("lstm", "linear", "sf_rnn", "f_rnn", "sparse_linear")
-GRANULAR_MODELS = ("sf_rnn", "f_rnn", "sparse_linear")  # need modalities
+GRANULAR_MODELS = MODALITY_MODELS  # need modalities
 # The pen's emd_imfs / emd_sifts settings are capped below EMDConfig's own limits
 # (tactile.contract.MAX_IMFS, MAX_SIFTS): a 50-sample window holds about log2(50) ~ 6 IMFs, and
 # every sift runs on every window of every epoch, so larger values only cost training time.

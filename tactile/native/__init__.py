@@ -22,14 +22,13 @@ from pathlib import Path
 
 import numpy as np
 
+from tactile.contract_keys import MAX_IMFS, MAX_SIFTS
 from tactile.errors import ConfigError, TactileError
 
 __all__ = ["NativeError", "available", "disabled_by_env", "emd", "library_path", "omp"]
 
 ABI = 1
 """The C library's ``tactile_native_abi()`` this wrapper speaks."""
-MAX_IMFS = 16
-MAX_SIFTS = 1000
 _HERE = Path(__file__).resolve().parent
 _OK, _EINVAL, _ENOMEM, _ENONFINITE = 0, 1, 2, 3
 
