@@ -3,7 +3,9 @@
     python bench/compare_models.py A.onnx B.onnx [--rounds 15]
 
 Both files run with the runtime's options (``session_options(1)``: one thread, sequential, no
-spinning, no arena) on the same random window, in alternating rounds of 50 calls (so that a
+spinning, no arena; the native kernel library registered for a file with ``ai.tactile`` nodes,
+as ``tactile-run`` registers it, unless ``TACTILE_NATIVE=0``; the path each file takes is
+printed) on the same random window, in alternating rounds of 50 calls (so that a
 change in the machine's load reaches both alike); prints the median CPU time of this process
 per window of each and B / A. What an option of the model (``wide``, a hidden size, EMD
 features, an ensemble) costs on the board: export one run with it and one without, and
@@ -23,6 +25,7 @@ import onnxruntime as ort
 from batch_mix import alternate, feeds, per_call
 
 from tactile.cli import Parser
+from tactile.runtime import kernels
 from tactile.runtime.model import session_options
 
 
@@ -35,8 +38,7 @@ def main() -> int:
     if args.rounds < 1:
         ap.error("--rounds must be at least 1")
     try:
-        a, b = (ort.InferenceSession(m, session_options(1), providers=["CPUExecutionProvider"])
-                for m in (args.a, args.b))
+        a, b = (_session(m) for m in (args.a, args.b))
     except Exception as e:  # noqa: BLE001 - onnxruntime raises its own types: one line
         print(f"compare_models.py: {' '.join(str(e).split())[:200]}", file=sys.stderr)
         return 1
@@ -52,9 +54,19 @@ def main() -> int:
     per_call(b, feed_b, 20)
     ta, tb = alternate(args.rounds, lambda: per_call(a, feed_a, 50, time.process_time),
                        lambda: per_call(b, feed_b, 50, time.process_time))
-    print(f"A {args.a}: {1e3 * ta:.3f} ms a window; B {args.b}: {1e3 * tb:.3f} ms; "
-          f"B / A {tb / ta:.3f}")
+    print(f"A {args.a}: {1e3 * ta:.3f} ms a window ({a.path}); B {args.b}: {1e3 * tb:.3f} ms "
+          f"({b.path}); B / A {tb / ta:.3f}")
     return 0
+
+
+def _session(path: str) -> ort.InferenceSession:
+    """``path``'s session as the runtime makes it; ``.path`` says how its custom nodes run."""
+    so = session_options(1)
+    native = kernels.register(so, path)
+    sess = ort.InferenceSession(path, so, providers=["CPUExecutionProvider"])
+    sess.path = ("native kernels" if native else "portable graph" if kernels.has_custom_nodes(path)
+                 else "standard operators")
+    return sess
 
 
 if __name__ == "__main__":

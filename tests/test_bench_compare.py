@@ -65,3 +65,24 @@ def test_states_of_other_shapes_compare_windows_must_match(tmp_path):
     r = compare(one, other)
     assert r.returncode == 1 and r.stdout == "" and "take different inputs" in r.stderr
     assert "x ['batch', 50, 8]" in r.stderr and "x ['batch', 30, 8]" in r.stderr
+
+
+def test_files_run_as_the_runtime_runs_them(tmp_path):
+    """The kernels were never registered, so a file with ai.tactile nodes was timed on its
+    portable graph (5 ms a window where tactile-run takes 0.2): each file now runs the path
+    tactile-run takes, and the line says which."""
+    sys.path.insert(0, str(ROOT / "bench"))
+    try:
+        from compare_models import _session
+    finally:
+        sys.path.remove(str(ROOT / "bench"))
+    from tactile.export.emd_graph import export_emd_onnx
+    from tactile.runtime import kernels
+
+    path = tmp_path / "emd.onnx"
+    export_emd_onnx(path, n_imfs=2, n_sifts=2, n_channels=1, n_time=20, native=True)
+    assert _session(str(SHIPPED)).path == "standard operators"
+    assert _session(str(path)).path == ("native kernels" if kernels.library_path()
+                                        else "portable graph")
+    r = compare(str(SHIPPED), str(SHIPPED), "--rounds", "1")
+    assert "(standard operators); B " in r.stdout, r.stdout
