@@ -153,6 +153,12 @@ class Model:
             raise ModelContractError(f"{self.path}: fails on a zero window at batch {batch} "
                                      f"({first})") from None
         self.check_outputs(outs, batch)
+        probs = outs[0]
+        if not (np.isfinite(probs).all() and (probs >= -1e-6).all()
+                and np.allclose(probs.sum(axis=1), 1.0, atol=1e-3)):
+            raise ModelContractError(
+                f"{self.path}: output 'probs' on a zero window is {np.round(probs[0], 6).tolist()}"
+                f": not probabilities (finite, >= 0, summing to 1), as the contract declares")
 
     def check_outputs(self, outs: list, batch: int) -> None:
         """Raise :class:`ModelContractError` naming the first output whose shape or dtype is

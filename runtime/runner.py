@@ -30,7 +30,7 @@ from tactile.device.protocol import DeviceInfo, Gap, Header, Samples, StreamDeco
 from tactile.errors import ConfigError, ModelContractError, RecordingError
 from tactile.postprocess.smoothing import PostProcessor, SmoothingSettings, override
 from tactile.runtime.model import Model
-from tactile.runtime.stream import Label, Stream
+from tactile.runtime.stream import InvalidWindow, Label, Stream
 from tactile.runtime.units import to_units
 
 
@@ -44,6 +44,7 @@ class Summary:
     reconnects: int = 0
     stalls: int = 0
     before_header: int = 0  # samples that arrived before the first header (not classified)
+    invalid: int = 0  # windows whose model output was not finite: no label
     started: float = field(default_factory=time.monotonic)
     first_label_s: float | None = None
 
@@ -55,6 +56,7 @@ class Summary:
             "reconnects": self.reconnects,
             "stalls": self.stalls,
             "samples_before_header": self.before_header,
+            "invalid_windows": self.invalid,
             "first_label_s": self.first_label_s,
             "seconds": round(time.monotonic() - self.started, 3),
             "decoder": decoder_stats,
@@ -244,7 +246,15 @@ class Runner:
                 values = to_units(self.info, ev.raw)[:, self.columns]
                 self.stream.accept(values, ev.seq, ev.t_us, period)
                 while self.stream.ready():
-                    lab = self.stream.classify()
+                    try:
+                        lab = self.stream.classify()
+                    except InvalidWindow as e:  # no label; said once, counted, an event
+                        self.summary.invalid += 1
+                        if self.summary.invalid == 1:
+                            say(f"{e}; such windows are counted in the summary "
+                                "(invalid_windows) and marked by 'invalid' events")
+                        self.printer.event("invalid", seq=e.seq, t=e.t_us / 1e6)
+                        continue
                     self.summary.windows += 1
                     self.summary.labels[lab.label] += 1
                     if self.summary.first_label_s is None:

@@ -16,7 +16,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from tactile.errors import ConfigError, ModelContractError
+from tactile.errors import ConfigError, ModelContractError, TactileError
 from tactile.postprocess.smoothing import PostProcessor, Smoothed
 
 # (window (1, T, C) float32, h, c) -> (probabilities (1, K), h, c)
@@ -55,6 +55,17 @@ class Label:
             if self.smoothed.reset is not None:
                 d["reset"] = self.smoothed.reset
         return d
+
+
+class InvalidWindow(TactileError):
+    """The model's output for a window is not finite (the window's values are past what the
+    model can take): the window has no label; the stream was reset (the next window's
+    ``smoothed.reset`` is ``"invalid"``). ``seq`` and ``t_us`` are the window's last sample's."""
+
+    def __init__(self, seq: int, t_us: int) -> None:
+        super().__init__(f"window ending at seq {seq}: the model's output is not finite (its "
+                         "values are past what the model can take); no label")
+        self.seq, self.t_us = seq, t_us
 
 
 class Stream:
@@ -209,10 +220,23 @@ class Stream:
                 f"the model returned probs {np.shape(probs)}, h {np.shape(h)}, c {np.shape(c)} "
                 f"for one window; its contract declares probs {want} ({len(self.classes)} "
                 f"classes), h and c {self.h.shape}")
-        if self.carry:
-            self.h, self.c = h, c
+        if not (np.isfinite(probs).all() and (not self.carry or (np.isfinite(h).all()
+                                                                 and np.isfinite(c).all()))):
+            # values the model cannot take (a device's 1e20: finite, but past what its
+            # normalisation and LSTM hold): no label, and no state or average to carry it on;
+            # the next window starts after this one (one overlapping it holds its values)
+            self._next_end += max(self.window, self.hop)
+            self._trim()
+            self.h, self.c = np.zeros_like(self.h), np.zeros_like(self.c)
+            if self._reason is None:
+                self._reason = "invalid"
+            if self.post is not None:
+                self.post.reset(self._reason)
+            raise InvalidWindow(last_seq, last_t)
         self._next_end += self.hop
         self._trim()
+        if self.carry:
+            self.h, self.c = h, c
         p = probs[0]
         k = int(p.argmax())
         smoothed = None

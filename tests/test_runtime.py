@@ -1166,6 +1166,65 @@ def test_device_units_must_be_the_models():
         check_device(model, DeviceInfo(c.sample_rate_hz, tuple(chans), "pen"))
 
 
+def _no_nan(line: str):
+    return json.loads(line, parse_constant=lambda c: pytest.fail(f"{c} in {line}"))
+
+
+@pytest.mark.parametrize("raw", [True, False])
+def test_values_the_model_cannot_take_give_no_label_and_the_run_goes_on(tmp_path, raw):
+    """A device value of 1e20 (finite, a float32) drove the model's output to NaN: with raw
+    labels the line held NaN (not JSON) and the label was the first class; with the model's
+    post-processing the run ended, exit 1. Now such a window gets no label, one 'invalid'
+    event, and the stream starts afresh after it; the run goes on."""
+    from tactile.device.recordings.recorder import record
+
+    (take,) = record("sim://?texture=paper&seed=1&speed=max&format=csv", "paper", tmp_path,
+                     seconds=3, progress=False).takes
+    lines = take.read_text().splitlines(keepends=True)
+    rows = [i for i, ln in enumerate(lines) if ln[:1].isdigit()]
+    for i in rows[100:110]:  # pressure_0 of samples 100-109
+        cells = lines[i].split(",")
+        lines[i] = ",".join([*cells[:2], "1e20", *cells[3:]])
+    take.write_text("".join(lines))
+    code, out, err = run_cli(["--model", str(SHIPPED), "--replay", str(take),
+                              *(["--raw"] if raw else [])])
+    assert code == 0, err
+    objs = [_no_nan(ln) for ln in out.splitlines()]
+    assert [o for o in objs if "event" in o and o["event"] != "change"] == [
+        {"event": "invalid", "seq": 124, "t": 1.24}]  # the window of samples 75-124
+    seqs = [o["seq"] for o in objs if "label" in o]
+    assert seqs == [49, 74, 99, *range(174, 300, 25)]  # 149 holds 100-109 too: no window
+    after = next(o for o in objs if o.get("seq") == 174 and "label" in o)
+    assert raw or after["reset"] == "invalid"
+    assert summary_of(err)["invalid_windows"] == 1
+    assert sum("the model's output is not finite" in ln for ln in err.splitlines()) == 1
+
+
+def test_a_model_whose_output_is_not_probabilities_is_refused_at_load(tmp_path):
+    """probs * NaN, probs * -2: tactile-check said "contract ok", tactile-run printed NaN or
+    negative probabilities. The zero window the load runs now refuses them, exit 3."""
+    import onnx
+    from onnx import helper, numpy_helper
+
+    from tactile.export.commands.check import main as check_main
+
+    for name, factor in (("nan", float("nan")), ("negative", -2.0)):
+        m = onnx.load(with_metadata(tmp_path / "src.onnx", {}))
+        out = m.graph.output[0].name  # probs
+        for node in m.graph.node:
+            node.output[:] = [f"{out}_pre" if o == out else o for o in node.output]
+        m.graph.initializer.append(numpy_helper.from_array(np.float32(factor), "factor"))
+        m.graph.node.append(helper.make_node("Mul", [f"{out}_pre", "factor"], [out]))
+        path = tmp_path / f"{name}.onnx"
+        onnx.save(m, path)
+        with pytest.raises(ModelContractError, match=r"output 'probs' on a zero window is .*: "
+                           r"not probabilities \(finite, >= 0, summing to 1\)"):
+            Model(path)
+        assert check_main([str(path)]) == 3
+        code, out_, err = run_cli(["--model", str(path), "--port", "loop://"])
+        assert code == 3 and out_ == "" and "not probabilities" in err, err
+
+
 def test_an_unnamed_csv_device_is_refused_saying_why():
     """A CSV board whose names line this port missed (opened after the board started) sends
     ch0...ch7: refused, and the line says what happened and what to do."""
