@@ -869,10 +869,12 @@ SHIPPED = REPO / "models" / "pen-exp2.onnx"
 @pytest.mark.parametrize("option, value, says", [
     ("--threads", "100000", "must be in 1.."), ("--threads", "0", "must be in 1.."),
     ("--hop", "0", "must be >= 1"), ("--smooth", "-1", "expected N (a moving average"),
-    ("--smooth", "0", "n 0: must be an integer >= 1"), ("--smooth", "0s", "tau 0.0: must be"),
+    ("--smooth", "0", "n 0: must be an integer from 1 to 100000"),
+    ("--smooth", "99999999999999999999", "must be an integer from 1 to 100000"),
+    ("--smooth", "0s", "tau 0.0: must be"),
     ("--smooth", "nans", "tau nan"), ("--smooth", "ma:x", "or Ts (an exponential average"),
     ("--p-min", "1.5", "must be >= 0.0 and <= 1.0"), ("--p-min", "-0.1", "must be >= 0.0"),
-    ("--hold", "0", "must be >= 1"), ("--hold", "1.5", "'1.5' is not an integer"),
+    ("--hold", "0", "must be in 1..100000"), ("--hold", "1.5", "'1.5' is not an integer"),
     ("--seconds", "nan", "must be > 0"),
     ("--stall-timeout", "0", "must be > 0"), ("--baud", "fast", "'fast' is not an integer"),
 ])

@@ -243,6 +243,9 @@ def test_no_postprocess_keys_means_no_defaults():
     ({"postprocess.hold": "0"}, "postprocess.hold"),
     ({"postprocess.hold": "1e9"}, "postprocess.hold: '1e9' is not an integer"),
     ({"postprocess.smooth": "ma:0"}, "postprocess.smooth"),
+    # past what a moving average can hold: was an OverflowError traceback in tactile-run
+    ({"postprocess.smooth": "ma:99999999999999999999"}, "must be an integer from 1 to 100000"),
+    ({"postprocess.hold": "100001"}, "hold 100001: must be an integer from 1 to 100000"),
     ({"postprocess.smooth": "median:3"}, "postprocess.smooth"),
     ({"postprocess.version": "2"}, "postprocess.version"),
     ({"postprocess.hold": None}, "postprocess.hold"),  # None: the key removed

@@ -64,7 +64,7 @@ def build_parser() -> argparse.ArgumentParser:
     post.add_argument("--p-min", type=float_in(0.0, 1.0, low_open=False), metavar="P",
                       help="a label is stable only when its averaged probability is at least "
                       "P (0..1), else it is reported as 'uncertain'; default: the model's, else 0")
-    post.add_argument("--hold", type=int_in(1), metavar="K",
+    post.add_argument("--hold", type=int_in(1, 100_000), metavar="K",
                       help="... and only once it has led for K consecutive windows (K hops: "
                       "0.25 s each at the pen's 25 samples at 100 Hz); default: the model's, "
                       "else 1")

@@ -53,6 +53,11 @@ def check_classes(classes: tuple[str, ...] | list[str]) -> tuple[str, ...]:
     return tuple(classes)
 
 
+MAX_WINDOWS = 100_000
+"""The most windows a moving average holds or a hold asks for (7 hours at the pen's 4 windows
+a second): the average's memory is allocated from it."""
+
+
 @dataclass(frozen=True)
 class SmoothingSettings:
     """How one stream's probabilities are averaged and when a label counts as stable.
@@ -79,15 +84,17 @@ class SmoothingSettings:
         if self.n is not None and self.tau is not None:
             raise ConfigError(f"smoothing n={self.n}, tau={self.tau}: give one of n (a moving "
                               "average over n windows) or tau (an exponential one, s)")
-        if self.n is not None and not (_is_int(self.n) and self.n >= 1):
-            raise ConfigError(f"smoothing n {self.n!r}: must be an integer >= 1 (windows)")
+        if self.n is not None and not (_is_int(self.n) and 1 <= self.n <= MAX_WINDOWS):
+            raise ConfigError(f"smoothing n {self.n!r}: must be an integer from 1 to "
+                              f"{MAX_WINDOWS} (windows)")
         if self.tau is not None and not (_is_real(self.tau) and math.isfinite(self.tau)
                                          and self.tau > 0):
             raise ConfigError(f"smoothing tau {self.tau!r}: must be a finite number > 0 (s)")
         if not (_is_real(self.p_min) and 0.0 <= self.p_min <= 1.0):
             raise ConfigError(f"p_min {self.p_min!r}: must be a number from 0 to 1")
-        if not (_is_int(self.hold) and self.hold >= 1):
-            raise ConfigError(f"hold {self.hold!r}: must be an integer >= 1 (windows)")
+        if not (_is_int(self.hold) and 1 <= self.hold <= MAX_WINDOWS):
+            raise ConfigError(f"hold {self.hold!r}: must be an integer from 1 to {MAX_WINDOWS} "
+                              "(windows)")
 
     @property
     def smooth(self) -> str:
@@ -246,9 +253,11 @@ class PostProcessor:
         number (copied into an event). A wrong shape, a non-finite value or a time that goes
         back is a :class:`ConfigError`."""
         p = np.array(probs, np.float64).reshape(-1)
-        if p.shape != (len(self.classes),) or not np.isfinite(p).all():
+        if p.shape != (len(self.classes),):
             raise ConfigError(f"probabilities of shape {np.shape(probs)}: expected "
-                              f"({len(self.classes)},) finite numbers")
+                              f"({len(self.classes)},)")
+        if not np.isfinite(p).all():
+            raise ConfigError(f"probabilities {np.round(p, 6).tolist()}: not all finite")
         if not math.isfinite(t) or (self._t is not None and t < self._t):
             raise ConfigError(f"window time {t} s is before the previous one ({self._t} s): "
                               "call reset() when the stream starts over")
