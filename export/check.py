@@ -131,12 +131,16 @@ def _postprocess_lines(c: ModelContract) -> list[str]:
     if settings is None:
         return []
     figures = figures_from_metadata(c.extra)
+    alone = [f"  labels    {settings.describe()} (post-processing defaults)"]
     if not figures:
-        return [f"  labels    {settings.describe()} (post-processing defaults)"]
+        return alone
     try:
-        return [f"  labels    {summary_line(figures)}"]
+        line = summary_line(figures)
     except (KeyError, TypeError, ValueError):  # figures of another shape: the setting alone
-        return [f"  labels    {settings.describe()} (post-processing defaults)"]
+        return alone
+    if figures.get("setting") != settings.describe():  # the keys edited after the calibration
+        return [f"{alone[0][:-1]}; the calibration record names another: {line})"]
+    return [f"  labels    {line}"]
 
 
 def _paths(model) -> list[str]:

@@ -1202,6 +1202,26 @@ def test_values_the_model_cannot_take_give_no_label_and_the_run_goes_on(tmp_path
     assert sum("the model's output is not finite" in ln for ln in err.splitlines()) == 1
 
 
+def test_tactile_check_shows_the_defaults_the_run_uses(tmp_path, capsys):
+    """Keys edited after the calibration: tactile-check showed the calibration record's
+    setting, tactile-run used the keys. Both now name the keys' setting."""
+    import onnx
+
+    from tactile.export.commands.check import main as check_main
+
+    record = {p.key: p.value for p in onnx.load(SHIPPED).metadata_props}
+    path = with_metadata(tmp_path / "edited.onnx", {
+        **settings_to_metadata(SmoothingSettings(n=3, p_min=0.9, hold=4)),
+        "postprocess.calibration": record["postprocess.calibration"]})
+    assert check_main([str(path)]) == 0
+    labels = [ln for ln in capsys.readouterr().out.splitlines() if ln.startswith("  labels")]
+    assert labels[0].startswith("  labels    ma:3 p_min=0.9 hold=4 (post-processing defaults; "
+                                "the calibration record names another: ema:1.0 p_min=0.5 "
+                                "hold=1 (calibrated on 10 validation streams"), labels
+    code, _, err = run_cli(["--model", str(path), "--port", "loop://", "--seconds", "0.1"])
+    assert "labels post-processed: ma:3 p_min=0.9 hold=4 (the model's)" in err, err
+
+
 def test_a_model_whose_output_is_not_probabilities_is_refused_at_load(tmp_path):
     """probs * NaN, probs * -2: tactile-check said "contract ok", tactile-run printed NaN or
     negative probabilities. The zero window the load runs now refuses them, exit 3."""
