@@ -41,6 +41,7 @@ from tactile.contract_keys import (  # noqa: F401  (re-exported: the contract's 
     IR_VERSION,
     KEYS,
     MAX_IMFS,
+    MAX_RATE_HZ,
     MAX_SIFTS,
     MODALITY_MODELS,
     MODELS,
@@ -303,8 +304,9 @@ def _validate(c: ModelContract) -> None:
         bad("channels", "needs at least 1 channel")
     if len(c.units) != len(c.channels):
         bad("units", f"{len(c.units)} units for {len(c.channels)} channels")
-    if not (math.isfinite(c.sample_rate_hz) and c.sample_rate_hz > 0):
-        bad("sample_rate_hz", f"must be a finite number > 0, got {c.sample_rate_hz}")
+    if not (math.isfinite(c.sample_rate_hz) and 0 < c.sample_rate_hz <= MAX_RATE_HZ):
+        bad("sample_rate_hz", f"must be a number in (0, {MAX_RATE_HZ:g}], got "
+            f"{c.sample_rate_hz}")
     for key in ("window", "hop", "state_layers", "state_hidden"):
         if getattr(c, key) < 1:
             bad(key, f"must be >= 1, got {getattr(c, key)}")
@@ -341,6 +343,13 @@ def _validate(c: ModelContract) -> None:
     _validate_modalities(c, bad)
     if not isinstance(c.parity.get("passed"), bool):
         bad("parity", "needs a boolean 'passed'")
+    if c.parity["passed"] is not True or (c.parity.get("native") or {}).get("passed") is False:
+        bad("parity", "records a failed parity check (tactile-export writes no such file: it "
+            "was edited)")
+    odd = next((n for n in c.classes if any(ord(ch) < 32 or ord(ch) == 127 for ch in n)), None)
+    if odd is not None:  # a label could not hold one (recordings' label rule): an edit
+        bad("classes", f"{odd!r} holds a control character (a line break would split the "
+            "label stream's lines)")
     if not c.package_version:
         bad("package_version", "must not be empty")
 
@@ -479,6 +488,6 @@ __all__ = [
     "FLOAT", "KEYS", "REQUIRED", "OPTIONAL", "STATE_MODES", "MODELS", "RECURRENT",
     "MODALITY_MODELS", "CODED_MODELS", "QUANTIZATIONS", "TensorSpec", "SignalSpec",
     "ModalitySpec", "ModelContract", "model_file",
-    "IR_VERSION", "MAX_IMFS", "MAX_SIFTS", "POSTPROCESS_PREFIX",
+    "IR_VERSION", "MAX_IMFS", "MAX_RATE_HZ", "MAX_SIFTS", "POSTPROCESS_PREFIX",
 ]
 

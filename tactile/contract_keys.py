@@ -40,6 +40,8 @@ MODALITY_MODELS = ("sf_rnn", "f_rnn", "sparse_linear")
 """Models that need the ``modalities`` key (``linear`` may have it; ``lstm`` may not)."""
 CODED_MODELS = ("sf_rnn", "sparse_linear")
 """Models whose features are sparse codes (each modality has a dictionary: atoms, nonzero)."""
+MAX_RATE_HZ = 1e6
+"""Highest sample rate a device header or a model file may state (Hz)."""
 MAX_IMFS = 16
 """Most IMFs of one EMD (:class:`tactile.training.emd.EMDConfig`'s limit, PyEMD ``max_imf``)."""
 MAX_SIFTS = 1000
@@ -126,6 +128,7 @@ __all__ = [
     "RECURRENT",
     "MODALITY_MODELS",
     "CODED_MODELS",
+    "MAX_RATE_HZ",
     "MAX_IMFS",
     "MAX_SIFTS",
     "QUANTIZATIONS",

@@ -156,6 +156,9 @@ def test_contract_names_every_missing_key(key):
      "'center' must list channel names"),
     ({"preprocessing_version": "9"}, "'preprocessing_version'"),
     ({"parity": "{}"}, "boolean 'passed'"),
+    ({"parity": '{"passed": false}'}, "records a failed parity check"),
+    ({"classes": '["pa\\nper", "desk"]'}, "holds a control character"),
+    ({"sample_rate_hz": "2e6"}, r"must be a number in \(0, 1e\+06\], got 2000000.0"),
     ({"quantization": "fp16"}, "allowed: none, int8-dynamic"),
 ])
 def test_contract_names_bad_values(change, message):

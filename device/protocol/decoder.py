@@ -24,6 +24,7 @@ from typing import Literal
 
 import numpy as np
 
+from tactile.contract_keys import MAX_RATE_HZ
 from tactile.device.protocol.codec import (
     MAX_ENCODED,
     MIN_ENCODED,
@@ -66,8 +67,9 @@ class StreamDecoder(CsvLines):
     ) -> None:
         if mode not in ("auto", "binary", "csv"):
             raise ConfigError(f"decoder mode {mode!r}: must be one of auto, binary, csv")
-        if not (math.isfinite(csv_rate_hz) and 0 < csv_rate_hz <= 1e6):
-            raise ConfigError(f"csv rate {csv_rate_hz!r} Hz: must be a number in (0, 1e6]")
+        if not (math.isfinite(csv_rate_hz) and 0 < csv_rate_hz <= MAX_RATE_HZ):
+            raise ConfigError(f"csv rate {csv_rate_hz!r} Hz: must be a number in "
+                              f"(0, {MAX_RATE_HZ:g}]")
         self.mode: Mode = mode
         self.csv_rate_hz = float(csv_rate_hz)
         self.replay_window = int(replay_window)

@@ -9,6 +9,7 @@ import math
 import struct
 from dataclasses import dataclass
 
+from tactile.contract_keys import MAX_RATE_HZ
 from tactile.errors import FrameError
 
 FLOAT32_MAX = 3.4028234663852886e38
@@ -55,8 +56,9 @@ class DeviceInfo:
     protocol_version: int = PROTOCOL_VERSION
 
     def __post_init__(self) -> None:
-        if not (math.isfinite(self.sample_rate_hz) and 0 < self.sample_rate_hz <= 1e6):
-            raise FrameError(f"sample rate {self.sample_rate_hz!r} Hz: must be in (0, 1e6]")
+        if not (math.isfinite(self.sample_rate_hz) and 0 < self.sample_rate_hz <= MAX_RATE_HZ):
+            raise FrameError(f"sample rate {self.sample_rate_hz!r} Hz: must be in "
+                             f"(0, {MAX_RATE_HZ:g}]")
         if not 1 <= len(self.channels) <= MAX_CHANNELS:
             raise FrameError(f"{len(self.channels)} channels: must be 1..{MAX_CHANNELS}")
         names = [c.name for c in self.channels]
