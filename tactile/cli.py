@@ -11,6 +11,7 @@ import signal
 import sys
 import traceback
 from collections.abc import Callable
+from pathlib import Path
 
 from tactile.errors import ConfigError, DeviceError, ModelContractError, TactileError
 
@@ -120,6 +121,13 @@ def float_in(low: float, high: float = math.inf, low_open: bool = True,
         return value
 
     return parse
+
+
+def path_given(text: str) -> Path:
+    """An argparse type: a path that is not empty (``Path("")`` is the current folder)."""
+    if not text.strip():
+        raise argparse.ArgumentTypeError("an empty path")
+    return Path(text)
 
 
 def parse_address(text: str) -> tuple[str, int]:
@@ -295,4 +303,4 @@ def add_port_options(parser: argparse.ArgumentParser, page: str) -> None:
 
 
 __all__ = ["ConfigError", "Parser", "run", "add_debug", "add_port_options", "exit_code",
-           "float_in", "int_in", "parse_address", "EXIT_DEVICE", "EXIT_USAGE"]
+           "float_in", "int_in", "parse_address", "path_given", "EXIT_DEVICE", "EXIT_USAGE"]

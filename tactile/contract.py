@@ -475,6 +475,8 @@ def _modalities(meta: Mapping[str, str]) -> tuple[ModalitySpec, ...]:
 def model_file(path: str | Path) -> Path:
     """``path`` as a model file to load: :class:`ModelContractError` (exit 3) when it is missing
     or a folder, with the same line in every command that loads a model."""
+    if not str(path).strip():  # Path("") is "." (the current folder)
+        raise ModelContractError("the model file's path is empty")
     path = Path(path)
     if path.is_dir():
         raise ModelContractError(f"{path}: a folder, not a model file (give the .onnx file)")

@@ -1247,6 +1247,16 @@ def test_a_model_whose_output_is_not_probabilities_is_refused_at_load(tmp_path):
         assert code == 3 and out_ == "" and "not probabilities" in err, err
 
 
+def test_an_empty_model_path_and_wait_with_replay_are_usage_errors(tmp_path):
+    """--model '' named the current folder ('.: a folder'); --wait with --replay was ignored."""
+    code, out, err = run_cli(["--model", "", "--port", "loop://"])
+    assert (code, out) == (1, "") and err == ("tactile-run: error: argument --model: an empty "
+                                              "path (see --help)\n"), err
+    code, out, err = run_cli(["--model", str(SHIPPED), "--replay", str(tmp_path / "t.csv"),
+                              "--wait"])
+    assert (code, out) == (1, "") and "argument --wait: not allowed with --replay" in err, err
+
+
 def test_an_unnamed_csv_device_is_refused_saying_why():
     """A CSV board whose names line this port missed (opened after the board started) sends
     ch0...ch7: refused, and the line says what happened and what to do."""

@@ -23,12 +23,12 @@ import argparse
 import sys
 from pathlib import Path
 
-from tactile.cli import Parser, add_debug, command, int_in, run
+from tactile.cli import Parser, add_debug, command, int_in, path_given, run
 
 
 def build_parser() -> argparse.ArgumentParser:
     p = Parser(prog="tactile-check", description=__doc__.split("\n\n")[0])
-    p.add_argument("model", type=Path, help="ONNX file to check")
+    p.add_argument("model", type=path_given, help="ONNX file to check")
     p.add_argument("--run", type=Path, help="run folder: re-run parity against its PyTorch model")
     p.add_argument("--data", type=Path, help="dataset folder: windows to check on")
     p.add_argument("--windows", type=int_in(1), default=256,

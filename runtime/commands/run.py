@@ -22,7 +22,16 @@ import sys
 from pathlib import Path
 from typing import TYPE_CHECKING
 
-from tactile.cli import Parser, add_debug, add_port_options, command, float_in, int_in, run
+from tactile.cli import (
+    Parser,
+    add_debug,
+    add_port_options,
+    command,
+    float_in,
+    int_in,
+    path_given,
+    run,
+)
 
 if TYPE_CHECKING:  # the library is imported when the command runs, after its arguments
     from tactile.device.protocol import StreamDecoder
@@ -39,7 +48,8 @@ def build_parser() -> argparse.ArgumentParser:
         epilog="exit codes: 0 stopped cleanly, 1 bad arguments, 2 port cannot be opened or no "
         "pen found, 3 model or device does not honour the contract",
     )
-    p.add_argument("--model", required=True, type=Path, help="the .onnx file from tactile-export")
+    p.add_argument("--model", required=True, type=path_given,
+                   help="the .onnx file from tactile-export")
     src = p.add_mutually_exclusive_group()
     src.add_argument("--port", help="device path or pyserial URL (sim://, socket://, ...); "
                      "default: the one likely pen attached")
@@ -165,6 +175,9 @@ def _read(args: argparse.Namespace, runner: Runner, decoder: StreamDecoder, dead
 def main(argv: list[str] | None = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
+    if args.replay is not None and args.wait:
+        parser.error("argument --wait: not allowed with --replay (a take needs no port to "
+                     "wait for)")
     if args.raw and any(getattr(args, k) is not None for k in POST_OPTIONS):
         parser.error("argument --raw: not allowed with --smooth, --p-min or --hold (it turns "
                      "the post-processing off)")

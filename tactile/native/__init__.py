@@ -43,7 +43,7 @@ _warned: set[str] = set()
 
 def disabled_by_env() -> bool:
     """Whether ``TACTILE_NATIVE`` turns the library off: ``0``, ``false``, ``off`` or ``no``
-    (any case). ``1``, ``true``, ``on``, ``yes`` or unset leave it on; any other value leaves
+    (any case). ``1``, ``true``, ``on``, ``yes``, empty or unset leave it on; any other value leaves
     it on too, said once on stderr (a typo must not stop a board's label stream)."""
     value = os.environ.get("TACTILE_NATIVE", "").strip()
     if value.lower() in _OFF:
