@@ -255,3 +255,19 @@ def test_a_replug_continues_the_stream_and_its_fault_schedule(monkeypatch) -> No
     lost_fresh = [i for i, v in enumerate(fresh.delivered) if not v]
     lost_after = [i - 205 for i, v in enumerate(pen.delivered) if not v and i >= 205]
     assert lost_after and lost_after != lost_fresh[: len(lost_after)]
+
+
+def test_the_samples_after_a_stall_come_after_its_silence():
+    """One produce() call that crossed a stall also made the frames after it, so a reader got
+    the first frame after the silence before the silence (its gap event before the stall's).
+    The call now ends where the silence begins; the next one goes on after the lost samples."""
+    from tactile.device.protocol import StreamDecoder
+    from tactile.device.sim import LinkConfig, PenLink
+
+    link = PenLink(LinkConfig(texture="paper", seed=3, stall=(1.0, 0.5)))
+    dec = StreamDecoder()
+    before = [e for e in dec.feed(link.produce(1000)) if type(e).__name__ == "Samples"]
+    assert before[-1].seq + len(before[-1].raw) == 100 and link.injected.stalls == 1
+    after = [e for e in dec.feed(link.produce(100)) if type(e).__name__ in ("Samples", "Gap")]
+    assert (type(after[0]).__name__, after[0].seq, after[0].missing) == ("Gap", 150, 50)
+    assert after[1].seq == 150

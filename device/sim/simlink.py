@@ -233,9 +233,10 @@ class PenLink:
 
     def produce(self, n: int) -> bytes:
         """The bytes for up to ``n`` more samples, in whole frames of ``per_frame`` (so fewer
-        when ``n`` is not a multiple of it, or at the end of ``seconds``). A reader asks again for
-        what is due, as the ``sim://`` port and the pty server do: the bytes and the faults are
-        the same whatever the sizes asked."""
+        when ``n`` is not a multiple of it, at the end of ``seconds``, or at a stall: the call
+        ends where the silence begins). A reader asks again for what is due, as the ``sim://``
+        port and the pty server do: the bytes and the faults are the same whatever the sizes
+        asked."""
         cfg = self.config
         n = self._whole_frames(n)
         out = bytearray()
@@ -251,9 +252,7 @@ class PenLink:
                 self.injected.stalls += 1
                 self._next_stall = (self._next_stall + cfg.stall_every if cfg.stall_every
                                     else math.inf)
-                n = self._whole_frames(n)
-                if n == 0:
-                    break
+                break  # what follows the silence comes after it: the reader asks again
             if self.seq >= self._next_header:  # header at start, then once a second
                 if cfg.format == "binary":
                     out += self._frame(encode_header(self.info), 0)
