@@ -65,9 +65,24 @@ def load_contract(path: str | Path) -> tuple[onnx.ModelProto, ModelContract]:
         contract = ModelContract.from_metadata({p.key: p.value for p in model.metadata_props})
         contract.check_signature(signature(model.graph.input, model.graph.initializer),
                                  signature(model.graph.output))
+        _check_custom_ops(model, contract)
     except ModelContractError as e:
         raise ModelContractError(f"{path}: {e}") from None
     return model, contract
+
+
+def _check_custom_ops(model: onnx.ModelProto, contract: ModelContract) -> None:
+    """The ``custom_ops`` key lists the graph's ``ai.tactile`` nodes as they are (ops, names,
+    attributes, in graph order), or is absent when the graph has none."""
+    from tactile.export.custom_ops import custom_nodes
+
+    graph = json.loads(json.dumps(custom_nodes(model)))
+    if graph != contract.custom_ops:
+        def ops(nodes):
+            return ", ".join(f"{n['op']} {n.get('name', '')}".strip() for n in nodes) or "none"
+
+        raise ModelContractError(f"metadata key 'custom_ops' lists {ops(contract.custom_ops)} "
+                                 f"where the graph has {ops(graph)} (or their attributes differ)")
 
 
 def signature(values, initializers=()) -> list[tuple[str, str, list]]:

@@ -227,14 +227,14 @@ class ModelContract:
         if not raw:
             return []
         try:
-            nodes = json.loads(raw).get("nodes", [])
-        except (ValueError, AttributeError):
+            nodes = json.loads(raw)["nodes"]
+        except (ValueError, TypeError, KeyError):
             raise ModelContractError("metadata key 'custom_ops': not a JSON object with a "
                                      "'nodes' list") from None
-        if not isinstance(nodes, list) or not all(isinstance(n, dict) and "op" in n
-                                                  for n in nodes):
-            raise ModelContractError("metadata key 'custom_ops': 'nodes' must be a list of "
-                                     "{op, ...} objects")
+        if not isinstance(nodes, list) or not nodes or not all(
+                isinstance(n, dict) and "op" in n for n in nodes):
+            raise ModelContractError("metadata key 'custom_ops': 'nodes' must be a non-empty "
+                                     "list of {op, ...} objects (absent key: no custom nodes)")
         return nodes
 
     # -- graph signature ---------------------------------------------------------------------

@@ -410,6 +410,28 @@ def test_check_names_what_is_wrong(dataset, root, capsys):
         assert re.search(message, err), (name, err)
 
 
+def test_a_custom_ops_key_that_does_not_describe_the_graph_is_refused(dataset, root, capsys):
+    """The key removed, emptied, or with other attributes than the graph's EMD node: accepted
+    before (tactile-check then printed no kernels line)."""
+    _, good, _, _, _ = _build("lstm2-emd", GRID["lstm2-emd"], dataset, root)
+    key = json.loads({p.key: p.value for p in onnx.load(good).metadata_props}["custom_ops"])
+    other = json.loads(json.dumps(key))
+    other["nodes"][0]["attributes"]["n_imfs"] += 1
+    cases = {
+        "no_key": (_drop_key("custom_ops"), r"'custom_ops' lists none where the graph has EMD"),
+        "empty": (_set_key("custom_ops", json.dumps({**key, "nodes": []})),
+                  r"'nodes' must be a non-empty list"),
+        "no_nodes": (_set_key("custom_ops", "{}"), r"not a JSON object with a 'nodes' list"),
+        "attributes": (_set_key("custom_ops", json.dumps(other)),
+                       r"or their attributes differ"),
+    }
+    for name, (edit, message) in cases.items():
+        path = _tamper(good, root / f"ops_{name}.onnx", edit)
+        assert check_main([str(path)]) == 3, name
+        err = capsys.readouterr().err.strip()
+        assert len(err.splitlines()) == 1 and re.search(message, err), (name, err)
+
+
 def test_int8_is_smaller_and_mostly_agrees(dataset, root, capsys):
     run = root / "big"
     train(dataset, run, TrainConfig(**{**BASE, "hidden": 64, "layers": 2}), progress=False)
