@@ -59,8 +59,9 @@ class Label:
 
 class InvalidWindow(TactileError):
     """The model's output for a window is not finite (the window's values are past what the
-    model can take): the window has no label; the stream was reset (the next window's
-    ``smoothed.reset`` is ``"invalid"``). ``seq`` and ``t_us`` are the window's last sample's."""
+    model can take): the window has no label; the state and the post-processor's average were
+    reset (the next window's ``smoothed.reset`` is ``"invalid"``), and the next window starts
+    after this one. ``seq`` and ``t_us`` are the window's last sample's."""
 
     def __init__(self, seq: int, t_us: int) -> None:
         super().__init__(f"window ending at seq {seq}: the model's output is not finite (its "
@@ -202,7 +203,8 @@ class Stream:
         return self._base + len(self._buf) >= self._next_end
 
     def classify(self) -> Label:
-        """Run the model on the oldest due window and return its label (windows come in order)."""
+        """Run the model on the oldest due window and return its label (windows come in order);
+        :class:`InvalidWindow` when the model's output for it is not finite."""
         if not self.ready():
             raise ConfigError("no window is ready")
         end = self._next_end - self._base
