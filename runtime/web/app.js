@@ -189,7 +189,7 @@ function onStatus(s) {
 
 function onEvent(e, at = performance.now()) {
   if (e.event === "change") { onChange(e); return; }
-  if (e.event === "gap" || e.event === "reconnect" || e.event === "stall") {
+  if (e.event === "gap" || e.event === "reconnect" || e.event === "stall" || e.event === "invalid") {
     view.strip.push({ at, kind: "gap" });
     drawStrip(at);
   }
