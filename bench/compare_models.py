@@ -38,7 +38,7 @@ def main() -> int:
     if args.rounds < 1:
         ap.error("--rounds must be at least 1")
     try:
-        a, b = (_session(m) for m in (args.a, args.b))
+        (a, path_a), (b, path_b) = (_session(m) for m in (args.a, args.b))
     except Exception as e:  # noqa: BLE001 - onnxruntime raises its own types: one line
         print(f"compare_models.py: {' '.join(str(e).split())[:200]}", file=sys.stderr)
         return 1
@@ -54,19 +54,18 @@ def main() -> int:
     per_call(b, feed_b, 20)
     ta, tb = alternate(args.rounds, lambda: per_call(a, feed_a, 50, time.process_time),
                        lambda: per_call(b, feed_b, 50, time.process_time))
-    print(f"A {args.a}: {1e3 * ta:.3f} ms a window ({a.path}); B {args.b}: {1e3 * tb:.3f} ms "
-          f"({b.path}); B / A {tb / ta:.3f}")
+    print(f"A {args.a}: {1e3 * ta:.3f} ms a window ({path_a}); B {args.b}: {1e3 * tb:.3f} ms "
+          f"({path_b}); B / A {tb / ta:.3f}")
     return 0
 
 
-def _session(path: str) -> ort.InferenceSession:
-    """``path``'s session as the runtime makes it; ``.path`` says how its custom nodes run."""
+def _session(path: str) -> tuple[ort.InferenceSession, str]:
+    """``path``'s session as the runtime makes it, and how its custom nodes run."""
     so = session_options(1)
     native = kernels.register(so, path)
     sess = ort.InferenceSession(path, so, providers=["CPUExecutionProvider"])
-    sess.path = ("native kernels" if native else "portable graph" if kernels.has_custom_nodes(path)
-                 else "standard operators")
-    return sess
+    return sess, ("native kernels" if native else "portable graph"
+                  if kernels.has_custom_nodes(path) else "standard operators")
 
 
 if __name__ == "__main__":

@@ -139,6 +139,11 @@ class Stream:
         the last window, which names the cause when one fault brings several resets (a
         reconnection, then the restarted pen's gap)."""
         self._clear()
+        self._restart_average(reason)
+
+    def _restart_average(self, reason: str) -> None:
+        """The post-processor starts afresh; the next window's ``smoothed.reset`` names the
+        first ``reason`` since the last window."""
         if self._reason is None:
             self._reason = reason
         if self.post is not None:
@@ -230,10 +235,7 @@ class Stream:
             self._next_end += max(self.window, self.hop)
             self._trim()
             self.h, self.c = np.zeros_like(self.h), np.zeros_like(self.c)
-            if self._reason is None:
-                self._reason = "invalid"
-            if self.post is not None:
-                self.post.reset(self._reason)
+            self._restart_average("invalid")
             raise InvalidWindow(last_seq, last_t)
         self._next_end += self.hop
         self._trim()

@@ -38,7 +38,11 @@ def digest(data: bytes) -> str:
     """The SHA-256 of ``data`` (a serialized model) with its ``sha256`` value read as
     :data:`PLACEHOLDER`."""
     at = _value_at(data)
-    return hashlib.sha256(data[:at] + PLACEHOLDER.encode() + data[at + 64:]).hexdigest()
+    view = memoryview(data)  # the file hashed in place, not copied
+    h = hashlib.sha256(view[:at])
+    h.update(PLACEHOLDER.encode())
+    h.update(view[at + 64:])
+    return h.hexdigest()
 
 
 def seal(data: bytes) -> bytes:

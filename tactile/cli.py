@@ -130,6 +130,9 @@ def path_given(text: str) -> Path:
     return Path(text)
 
 
+_ADDRESS = "expected HOST:PORT or PORT (0-65535), e.g. 127.0.0.1:8000"
+
+
 def parse_address(text: str) -> tuple[str, int]:
     """``HOST:PORT``, ``[v6]:PORT`` or ``PORT`` (then host 127.0.0.1) -> (host, port); port 0
     picks a free one. :class:`ConfigError` naming the value otherwise."""
@@ -140,8 +143,7 @@ def parse_address(text: str) -> tuple[str, int]:
     except ValueError:
         number = -1
     if not host or not 0 <= number <= 65535:
-        raise ConfigError(f"--serve {text!r}: expected HOST:PORT or PORT (0-65535), e.g. "
-                          "127.0.0.1:8000")
+        raise ConfigError(f"--serve {text!r}: {_ADDRESS}")
     return host, number
 
 
@@ -150,8 +152,8 @@ def _address(text: str) -> str:
     is argparse's one line, before the command loads anything)."""
     try:
         parse_address(text)
-    except ConfigError as e:
-        raise argparse.ArgumentTypeError(f"{text!r}: {str(e).split(': ', 1)[1]}") from None
+    except ConfigError:
+        raise argparse.ArgumentTypeError(f"{text!r}: {_ADDRESS}") from None
     return text
 
 

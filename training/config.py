@@ -18,7 +18,6 @@ from tactile.contract import MAX_IMFS, MODALITY_MODELS, MODELS
 from tactile.device.recordings.summary import HOP, WINDOW
 from tactile.errors import ConfigError
 
-GRANULAR_MODELS = MODALITY_MODELS  # need modalities
 # The pen's emd_imfs / emd_sifts settings are capped below EMDConfig's own limits
 # (tactile.contract.MAX_IMFS, MAX_SIFTS): a 50-sample window holds about log2(50) ~ 6 IMFs, and
 # every sift runs on every window of every epoch, so larger values only cost training time.
@@ -317,7 +316,7 @@ class TrainConfig:
         if self.model == "linear" and not (self.emd_channels or self.modalities):
             raise ConfigError("model='linear' classifies EMD features: give emd_channels or "
                               "[modalities.NAME] tables")
-        if self.model in GRANULAR_MODELS and not self.modalities:
+        if self.model in MODALITY_MODELS and not self.modalities:
             raise ConfigError(f"model={self.model!r} needs modalities: give at least one "
                               "[modalities.NAME] table (channels, imfs, steps, atoms)")
         if self.modalities and self.emd_channels:
@@ -450,6 +449,6 @@ def resolve_device(device: str, cuda_available: bool | None = None) -> str:
     return device
 
 
-__all__ = ["TrainConfig", "Modality", "MODELS", "GRANULAR_MODELS", "FRONTS", "STATE_MODES",
+__all__ = ["TrainConfig", "Modality", "MODELS", "FRONTS", "STATE_MODES",
            "SPLITS", "SCHEDULES", "SELECTS", "REFITS", "DEVICES", "signals_from", "modalities_from",
            "apply_threads", "resolve_threads", "resolve_device", "usable_cpus"]

@@ -95,20 +95,25 @@ class Recorder:
         """Keep ``ev`` until the first header, at most :data:`MAX_EARLY` samples."""
         n = len(ev.raw) if isinstance(ev, Samples) else 0
         if self.early_samples + n > MAX_EARLY or len(self.early) >= MAX_EARLY:
-            self.result.unrecorded += self.early_samples + n
-            self.early.clear()
-            self.early_samples = 0
+            self._give_up_early(n)
             raise DeviceError(
                 f"no device header in the first {self.result.unrecorded} samples: none of them "
                 "is recorded (a binary pen sends its header every second)")
         self.early.append(ev)
         self.early_samples += n
 
+    def _give_up_early(self, more: int = 0) -> int:
+        """Give up the samples held for want of a header (and ``more`` that came with the last
+        event): counted in ``result.unrecorded``; returns how many."""
+        n = self.early_samples + more
+        self.early.clear()
+        self.early_samples = 0
+        self.result.unrecorded += n
+        return n
+
     def _unrecorded(self, why: str) -> None:
         """Give up the samples held for want of a header: counted, and said."""
-        n, self.early_samples = self.early_samples, 0
-        self.early.clear()
-        self.result.unrecorded += n
+        n = self._give_up_early()
         _say(f"tactile-record: {n} sample(s) that came before any device header are not "
              f"recorded: {why}", progress=True)
 
@@ -146,9 +151,7 @@ class Recorder:
             check_joins(self.out, mine, info)
         except RecordingError as e:
             if not mine:  # the first header: nothing is written yet, so stop before a take
-                self.result.unrecorded += self.early_samples
-                self.early.clear()
-                self.early_samples = 0
+                self._give_up_early()
                 raise RecordingError(f"{e}; nothing recorded") from None
             # another device mid-recording: its take is written (no data is given up), and
             # the user is told that it will not load with the folder's others
@@ -169,9 +172,7 @@ class Recorder:
         """Close the take (``complete``: False when the recording ended on an error). Samples
         still held for want of a header are counted in ``result.unrecorded``."""
         self._close(decoder, complete)
-        self.result.unrecorded += self.early_samples
-        self.early.clear()
-        self.early_samples = 0
+        self._give_up_early()
         self.result.stats = decoder.stats.as_dict()
 
 
