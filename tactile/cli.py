@@ -287,17 +287,22 @@ def add_debug(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--debug", action="store_true", help="show the full traceback on errors")
 
 
+BAUD = 115200  # --baud's default
+STALL_TIMEOUT = 2.0  # --stall-timeout's default, s
+
+
 def add_port_options(parser: argparse.ArgumentParser, page: str) -> None:
     """The options of every command that reads a pen live (``tactile-run``,
     ``tactile-monitor``): ``--baud``, ``--seconds``, ``--stall-timeout`` and ``--serve`` (the
     page's contents, ``page``, are said in its help)."""
-    parser.add_argument("--baud", type=int_in(1), default=115200,
-                        help="UART baud rate (default 115200)")
+    parser.add_argument("--baud", type=int_in(1), default=BAUD,
+                        help=f"UART baud rate (default {BAUD})")
     parser.add_argument("--seconds", type=float_in(0.0), default=math.inf,
                         help="stop after this long, s of wall time (default: until Ctrl-C or "
                         "the end of the input)")
-    parser.add_argument("--stall-timeout", type=float_in(0.0), default=2.0,
-                        help="report a stall after this many seconds without data (default 2)")
+    parser.add_argument("--stall-timeout", type=float_in(0.0), default=STALL_TIMEOUT,
+                        help="report a stall after this many seconds without data (default "
+                        f"{STALL_TIMEOUT:g})")
     parser.add_argument("--serve", metavar="HOST:PORT", type=_address,
                         help=f"also serve a live, read-only web page of {page} at "
                         "http://HOST:PORT/ (PORT alone: on 127.0.0.1; port 0: a free one, said "

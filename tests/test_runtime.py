@@ -1257,6 +1257,16 @@ def test_an_empty_model_path_and_wait_with_replay_are_usage_errors(tmp_path):
     assert (code, out) == (1, "") and "argument --wait: not allowed with --replay" in err, err
 
 
+@pytest.mark.parametrize("option", ["--baud=9600", "--stall-timeout=0.5", "--status-every=1"])
+def test_the_ports_settings_are_refused_with_replay(tmp_path, option):
+    """--baud, --stall-timeout and --status-every set the port's link; a replay reads no port
+    and printed no status line, so they were silently ignored."""
+    code, out, err = run_cli(["--model", str(SHIPPED), "--replay", str(tmp_path / "t.csv"),
+                              option])
+    name = option.split("=")[0]
+    assert (code, out) == (1, "") and f"argument {name}: not allowed with --replay" in err, err
+
+
 def test_an_unnamed_csv_device_is_refused_saying_why():
     """A CSV board whose names line this port missed (opened after the board started) sends
     ch0...ch7: refused, and the line says what happened and what to do."""

@@ -23,6 +23,8 @@ from pathlib import Path
 from typing import TYPE_CHECKING
 
 from tactile.cli import (
+    BAUD,
+    STALL_TIMEOUT,
     Parser,
     add_debug,
     add_port_options,
@@ -38,6 +40,7 @@ if TYPE_CHECKING:  # the library is imported when the command runs, after its ar
     from tactile.runtime.runner import Runner
 
 FORMATS = ("jsonl", "text", "csv")
+STATUS_EVERY = 5.0  # --status-every's default, s
 CPUS = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1
 
 
@@ -83,11 +86,13 @@ def build_parser() -> argparse.ArgumentParser:
                       "each window only")
     p.add_argument("--threads", type=int_in(1, CPUS), default=1,
                    help=f"onnxruntime threads, at most the {CPUS} cores (default 1)")
-    p.add_argument("--status-every", type=float_in(0.0), default=5.0,
-                   help="status line period, s (default 5)")
+    p.add_argument("--status-every", type=float_in(0.0),
+                   help=f"status line period, s (default {STATUS_EVERY:g})")
     p.add_argument("--no-native", action="store_true",
                    help="run the portable EMD/sparse-code graphs, not the C kernels")
     add_port_options(p, "the channels, labels and link")
+    # the port's settings are None unless given, so that --replay can refuse them
+    p.set_defaults(baud=None, stall_timeout=None)
     add_debug(p)
     return p
 
@@ -106,6 +111,7 @@ def _smooth(text: str) -> str:
 
 
 POST_OPTIONS = ("smooth", "p_min", "hold")
+PORT_OPTIONS = ("baud", "stall_timeout", "status_every")  # a port's; --replay refuses them
 
 
 def _run(args: argparse.Namespace) -> int:
@@ -163,11 +169,14 @@ def _read(args: argparse.Namespace, runner: Runner, decoder: StreamDecoder, dead
         return
     auto = args.port is None  # found by auto-detection: after an unplug, look again
     port = args.port
+    status_every = STATUS_EVERY if args.status_every is None else args.status_every
     if port is None:
-        port = wait_for_pen(stop, deadline, args.status_every) if args.wait else find_port()
+        port = wait_for_pen(stop, deadline, status_every) if args.wait else find_port()
     if port is not None:  # None: stopped while waiting for a pen
-        settings = LinkSettings(port, args.baud, auto=auto, wait=args.wait,
-                                stall_timeout=args.stall_timeout, status_every=args.status_every)
+        settings = LinkSettings(
+            port, BAUD if args.baud is None else args.baud, auto=auto, wait=args.wait,
+            stall_timeout=STALL_TIMEOUT if args.stall_timeout is None else args.stall_timeout,
+            status_every=status_every)
         read_pen(runner, decoder, settings, stop, deadline)
 
 
@@ -175,9 +184,14 @@ def _read(args: argparse.Namespace, runner: Runner, decoder: StreamDecoder, dead
 def main(argv: list[str] | None = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
-    if args.replay is not None and args.wait:
-        parser.error("argument --wait: not allowed with --replay (a take needs no port to "
-                     "wait for)")
+    if args.replay is not None:
+        if args.wait:
+            parser.error("argument --wait: not allowed with --replay (a take needs no port to "
+                         "wait for)")
+        for key in PORT_OPTIONS:
+            if getattr(args, key) is not None:
+                parser.error(f"argument --{key.replace('_', '-')}: not allowed with --replay "
+                             "(a setting of the port, which a take does not read)")
     if args.raw and any(getattr(args, k) is not None for k in POST_OPTIONS):
         parser.error("argument --raw: not allowed with --smooth, --p-min or --hold (it turns "
                      "the post-processing off)")
