@@ -235,6 +235,8 @@ def _state_text(c: ModelContract) -> str:
 def _recorded(c: ModelContract) -> str:
     """The accuracy training measured, with what it was measured on."""
     m = c.training_metrics
+    if not isinstance(m.get("accuracy"), (int, float)) or isinstance(m.get("accuracy"), bool):
+        return "none: the file's training_metrics holds no test accuracy"
     windows = m.get("windows")
     on = f"{windows} windows of the run's test split" if isinstance(windows, int) else (
         "the run's test split")

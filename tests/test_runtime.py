@@ -1202,6 +1202,20 @@ def test_values_the_model_cannot_take_give_no_label_and_the_run_goes_on(tmp_path
     assert sum("the model's output is not finite" in ln for ln in err.splitlines()) == 1
 
 
+@pytest.mark.parametrize("metrics", ["{}", '{"accuracy": null, "windows": 10}',
+                                     '{"accuracy": true}'])
+def test_tactile_check_says_when_a_file_records_no_test_accuracy(tmp_path, capsys, metrics):
+    """A file whose training_metrics holds no accuracy (edited, or a run without one) was
+    shown as 'accuracy None on the run's test split'."""
+    from tactile.export.commands.check import main as check_main
+
+    path = with_metadata(tmp_path / "no-acc.onnx", {"training_metrics": metrics})
+    assert check_main([str(path)]) == 0
+    text = capsys.readouterr().out
+    assert "  training  none: the file's training_metrics holds no test accuracy\n" in text, text
+    assert "None" not in text, text
+
+
 def test_tactile_check_shows_the_defaults_the_run_uses(tmp_path, capsys):
     """Keys edited after the calibration: tactile-check showed the calibration record's
     setting, tactile-run used the keys. Both now name the keys' setting."""
