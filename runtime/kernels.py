@@ -43,10 +43,13 @@ def library_path() -> Path | None:
 
 
 def has_custom_nodes(path: str | os.PathLike) -> bool:
-    """Whether the file names the ``ai.tactile`` domain (its custom nodes' opset import): a
-    byte search, since the runtime has no onnx package to parse the file with."""
+    """Whether a node of the file is in the ``ai.tactile`` domain: a byte search, since the
+    runtime has no onnx package to parse the file with, for the domain as a node's field 7
+    (protobuf tag 0x3a, then its length), not as an opset import or a function's domain,
+    which a file without such nodes may name too."""
+    domain = CUSTOM_DOMAIN.encode()
     try:
-        return CUSTOM_DOMAIN.encode() in Path(path).read_bytes()
+        return bytes([0x3A, len(domain)]) + domain in Path(path).read_bytes()
     except OSError:
         return False
 

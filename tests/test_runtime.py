@@ -1444,3 +1444,43 @@ def test_the_session_settings_are_the_board_defaults_and_can_be_replaced():
         Model(SHIPPED, threads=2, options=so)
     with pytest.raises(ConfigError, match="options: an onnxruntime.SessionOptions, not dict"):
         Model(SHIPPED, options={"intra_op_num_threads": 2})
+
+
+def test_custom_nodes_are_found_by_node_not_by_the_domains_name(tmp_path):
+    """The runtime registers the kernel library only for files with an ai.tactile node: a
+    file that names the domain only in its opset imports, a function or its metadata (a
+    standard-op graph) has none, and a node in a Loop's body counts."""
+    import onnx
+    from onnx import TensorProto, helper
+
+    from tactile.runtime.kernels import has_custom_nodes
+
+    vi = [helper.make_tensor_value_info(n, TensorProto.FLOAT, [2]) for n in ("x", "y")]
+    fn = helper.make_function("ai.tactile", "Twice", ["a"], ["b"],
+                              [helper.make_node("Add", ["a", "a"], ["b"])],
+                              [helper.make_opsetid("", 18)])
+    imports = [helper.make_opsetid("", 18), helper.make_opsetid("ai.tactile", 1)]
+
+    def saved(name, node, functions=()):
+        m = helper.make_model(helper.make_graph([node], "g", vi[:1], vi[1:]),
+                              opset_imports=imports, functions=list(functions))
+        helper.set_model_props(m, {"note": "ai.tactile"})
+        onnx.save(m, tmp_path / name)
+        return tmp_path / name
+
+    plain = saved("plain.onnx", helper.make_node("Relu", ["x"], ["y"]), [fn])
+    custom = saved("custom.onnx", helper.make_node("Twice", ["x"], ["y"], domain="ai.tactile"),
+                   [fn])
+    body = helper.make_graph(
+        [helper.make_node("Identity", ["c"], ["c_out"]),
+         helper.make_node("Twice", ["v"], ["v_out"], domain="ai.tactile")], "body",
+        [helper.make_tensor_value_info("i", TensorProto.INT64, []),
+         helper.make_tensor_value_info("c", TensorProto.BOOL, []),
+         helper.make_tensor_value_info("v", TensorProto.FLOAT, [2])],
+        [helper.make_tensor_value_info("c_out", TensorProto.BOOL, []),
+         helper.make_tensor_value_info("v_out", TensorProto.FLOAT, [2])])
+    looped = saved("loop.onnx", helper.make_node("Loop", ["", "", "x"], ["y"], body=body), [fn])
+    assert b"ai.tactile" in plain.read_bytes()
+    assert not has_custom_nodes(plain)
+    assert has_custom_nodes(custom) and has_custom_nodes(looped)
+    assert not has_custom_nodes(tmp_path / "absent.onnx")
