@@ -736,12 +736,28 @@ def test_a_real_trial_gives_the_designs_images(tmp_path):
 def test_training_does_not_depend_on_whether_the_kernels_are_built(toy, tmp_path, monkeypatch):
     """The feature pass (EMD and codes of every window) runs in float64 on the kernels or in
     torch: the same run twice, once with TACTILE_NATIVE=0, gives the same weights bit for bit
-    and the same figures."""
+    and the same figures; the first run's EMDs and codes come from the kernels, the second's
+    from torch."""
+    calls = {"emd": 0, "omp": 0}
+
+    def counted(name):
+        kernel = getattr(native, name)
+
+        def call(*args, **kwargs):
+            calls[name] += 1
+            return kernel(*args, **kwargs)
+        return call
+
+    for name in calls:
+        monkeypatch.setattr(native, name, counted(name))
     cfg = _cfg("sf_rnn", epochs=3, patience=3, refit="off")
     fast = train(toy, tmp_path / "kernels", cfg, progress=False)
+    assert calls["emd"] > 0 and calls["omp"] > 0, calls
     monkeypatch.setenv("TACTILE_NATIVE", "0")
     assert not native.available()
+    before = dict(calls)
     slow = train(toy, tmp_path / "torch", cfg, progress=False)
+    assert calls == before, calls
     a, _ = load_checkpoint(tmp_path / "kernels")
     b, _ = load_checkpoint(tmp_path / "torch")
     sa, sb = a.state_dict(), b.state_dict()

@@ -12,6 +12,7 @@ interpreters ``TACTILE_ORT_PYTHONS`` names (space-separated).
 
 from __future__ import annotations
 
+import json
 import os
 import subprocess
 import sys
@@ -190,9 +191,10 @@ def test_coder_node_paths_agree():
     kernel = _session(model, True).run(None, {"x": x})[0]
     np.testing.assert_array_equal(portable, _session(coder_graph(coder), False).run(
         None, {"x": x})[0])
-    same = ((portable != 0) == (kernel != 0)).all(1)  # same atoms chosen (near-ties aside)
-    assert same.mean() >= 0.95
-    assert np.abs(portable - kernel)[same].max() <= 1e-4 * max(1.0, np.abs(portable).max())
+    # the same atoms on every row: random rows hold no near-tie of correlations that float32
+    # rounding could decide (near-ties are excused against scikit-learn in test_native)
+    assert ((portable != 0) == (kernel != 0)).all()
+    assert np.abs(portable - kernel).max() <= 1e-4 * max(1.0, np.abs(portable).max())
 
 
 def test_two_emd_shapes_share_one_function():
@@ -452,6 +454,29 @@ def test_check_names_the_path_of_each_custom_op(exported, fresh_kernels, capsys,
 
     assert main([str(exported), *flag]) == 0
     assert f"kernels   {line}" in capsys.readouterr().out
+
+
+def test_tactile_run_no_native_runs_the_portable_graphs(exported, fresh_kernels, tmp_path,
+                                                       capsys):
+    """``tactile-run --no-native`` on a replayed take: the portable graphs, said once on
+    stderr, and the kernels' labels (their probabilities agree within the export's 1e-4)."""
+    from tactile.device.sim import make_dataset
+    from tactile.runtime.commands.run import main
+
+    take = make_dataset(tmp_path / "d", 1, ("paper",), seconds=3.0, seed=5)[0]
+    outs = {}
+    for flag in ([], ["--no-native"]):
+        fresh_kernels._state.update(disabled=False, said=False)
+        assert main(["--model", str(exported), "--replay", str(take), "--raw", *flag]) == 0
+        out, err = capsys.readouterr()
+        outs[bool(flag)] = [json.loads(ln) for ln in out.splitlines()]
+        said = err.count("running the portable EMD/sparse-code graphs (native kernels disabled)")
+        assert said == (1 if flag else 0), err
+    fast, slow = outs[False], outs[True]
+    assert len(fast) == len(slow) >= 20
+    for a, b in zip(fast, slow):
+        assert a["seq"] == b["seq"] and a["label"] == b["label"]
+        assert abs(a["p"] - b["p"]) <= 1e-4
 
 
 def test_without_a_built_library_the_runtime_says_so_once(exported, fresh_kernels, monkeypatch,
