@@ -1,6 +1,7 @@
 /* The small part of onnxruntime's C API that the custom-op library (ort_ops.c) uses, declared
  * here because the onnxruntime wheel ships no C headers. Checked against onnxruntime's
- * include/onnxruntime/core/session/onnxruntime_c_api.h:
+ * include/onnxruntime/core/session/onnxruntime_c_api.h (last at commit a437bfb0ed09, whose
+ * ORT_API_VERSION is 23: every position and signature below, and OrtCustomOp's field order):
  *
  * - OrtApi is a table of function pointers whose positions are append-only (ABI-stable since
  *   version 1): the library reads the entries it needs by position from the table that

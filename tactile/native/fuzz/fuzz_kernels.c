@@ -51,7 +51,7 @@ static void fill(void *out, size_t n, Bytes *b, int raw, int f32) {
 
 static void fuzz_emd(Bytes *b, int raw, int f32) {
     const int64_t batch = 1 + byte(b) % 3, len = ((int64_t)byte(b) << 1 | (byte(b) & 1)) % 400;
-    const int32_t n_imfs = 1 + byte(b) % 8, n_sifts = 1 + byte(b) % 12;
+    const int32_t n_imfs = 1 + byte(b) % TACTILE_EMD_MAX_IMFS, n_sifts = 1 + byte(b) % 12;
     const size_t es = f32 ? sizeof(float) : sizeof(double), n = (size_t)(batch * len);
     void *x = malloc(es * n + 1), *imfs = malloc(es * n * (size_t)n_imfs + 1);
     void *res = malloc(es * n + 1), *imfs1 = malloc(es * (size_t)(len * n_imfs) + 1);
