@@ -80,8 +80,12 @@ def reference(model_path: Path, texture: str, seed: int, n: int, runs):
     model = Model(model_path)
     sim = PenSimulator(texture, seed)
     raw = sim.read(n)
-    scale = np.array([c.scale for c in sim.info.channels])
-    offset = np.array([c.offset for c in sim.info.channels])
+    # the model's channels by name, in its order (as tactile-run takes them from the pen)
+    names = [c.name for c in sim.info.channels]
+    used = [names.index(name) for name in model.contract.channels]
+    raw = raw[:, used]
+    scale = np.array([sim.info.channels[i].scale for i in used])
+    offset = np.array([sim.info.channels[i].offset for i in used])
     stream = Stream.for_model(model)
     out = {}
     for a, b in runs:
