@@ -398,6 +398,14 @@ def test_contract_records_the_custom_nodes(exported):
     assert [(n["op"], n["name"]) for n in c.custom_ops] == [("EMD", "emd0")]
     assert c.custom_ops[0]["attributes"] == {"n_imfs": 2, "n_sifts": 3}
     assert c.parity["native"]["passed"]
+    # the key names the domain and the fallback, and the file holds that fallback: a
+    # model-local function of the node's domain and name
+    m = onnx.load(exported)
+    key = json.loads({p.key: p.value for p in m.metadata_props}["custom_ops"])
+    assert (key["domain"], key["version"]) == ("ai.tactile", 1)
+    assert key["fallback"].startswith("model-local function of the same domain and name")
+    assert {(f.domain, f.name) for f in m.functions} >= {("ai.tactile", "EMD")}
+    assert [(n.domain, n.op_type) for n in m.graph.node if n.domain] == [("ai.tactile", "EMD")]
 
 
 def test_runtime_runs_the_kernel_and_falls_back_saying_so_once(exported, fresh_kernels,
