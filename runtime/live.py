@@ -106,6 +106,16 @@ class _Server(ThreadingHTTPServer):
             with self.live._lock:
                 self.connections -= 1
 
+    def handle_error(self, request, client_address) -> None:
+        """A viewer that resets or drops its connection mid-request is its own business: the
+        page goes on, and stderr (the command's diagnostics) gets no traceback. Anything else
+        is one line."""
+        e = sys.exc_info()[1]
+        if isinstance(e, OSError):
+            return
+        self.live.say(f"live page: a request from {client_address[0]} failed "
+                      f"({type(e).__name__}: {e})")
+
 
 class _Server6(_Server):
     address_family = socket.AF_INET6

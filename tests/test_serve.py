@@ -409,3 +409,30 @@ def test_tactile_run_closes_the_page_when_the_port_fails(capsys):
     assert any(ln.startswith("tactile-run: live page at http://127.0.0.1:") for ln in lines)
     assert "tactile-run: live page: viewers 0 served, 0 refused; 0 messages dropped for slow " \
            "viewers" in lines
+
+
+def test_a_viewer_that_resets_its_connection_gets_no_traceback_on_stderr(live, capsys):
+    """A client that sends a request and resets the connection (SO_LINGER 0) made
+    socketserver print a traceback on the command's stderr, once per connection."""
+    import struct
+
+    for _ in range(5):
+        s = socket.create_connection(("127.0.0.1", live.port), timeout=10)
+        s.sendall(b"GET /app.js HTTP/1.1\r\nHost: 127.0.0.1\r\n\r\n")
+        s.setsockopt(socket.SOL_SOCKET, socket.SO_LINGER, struct.pack("ii", 1, 0))
+        s.close()  # a reset, not a FIN
+    wait_for(lambda: live._server.connections == 0, "the handlers to finish")
+    assert get(live, "/")[0] == 200  # the page goes on
+    # whether a reset lands while the handler reads or writes depends on timing; the handler
+    # for both is the server's, called here as socketserver calls it, inside the except
+    try:
+        raise ConnectionResetError(104, "Connection reset by peer")
+    except ConnectionResetError:
+        live._server.handle_error(None, ("127.0.0.1", 5))
+    try:
+        raise ValueError("bad")
+    except ValueError:
+        live._server.handle_error(None, ("127.0.0.1", 6))
+    err = capsys.readouterr().err
+    assert "Traceback" not in err and "Exception occurred" not in err, err
+    assert live.said[-1] == "live page: a request from 127.0.0.1 failed (ValueError: bad)"
