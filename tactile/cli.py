@@ -9,6 +9,7 @@ import os
 import re
 import signal
 import sys
+import threading
 import traceback
 from collections.abc import Callable
 from pathlib import Path
@@ -231,8 +232,19 @@ class _ReaderMayGo:
         return getattr(self._stream, name)
 
 
+class Terminated(KeyboardInterrupt):
+    """SIGTERM in a command that takes it as Ctrl-C (``command(terminable=True)``): raised
+    where the command is, so that the clean-up Ctrl-C runs (a half-written take removed) runs
+    for ``timeout``, ``kill`` and a service manager's stop too."""
+
+
+def _terminate(signum, frame) -> None:
+    raise Terminated()
+
+
 def command(prog: str, *, guarded: bool = False, interruptible: bool = False,
-            files: bool = False) -> Callable[[Callable[..., int]], Callable[..., int]]:
+            files: bool = False, terminable: bool = False
+            ) -> Callable[[Callable[..., int]], Callable[..., int]]:
     """Decorate a command's ``main(argv=None)``, the function ``pyproject.toml`` names.
 
     A command module imports only the standard library and this module at its top; its
@@ -242,8 +254,10 @@ def command(prog: str, *, guarded: bool = False, interruptible: bool = False,
     (``tactile-run``, ``tactile-record``, ``tactile-monitor``) note a signal that arrives while
     they start (:func:`_guard_start`). ``interruptible``: a Ctrl-C that the command does not
     handle itself (while torch imports, say) ends it with one line and exit 130, the shell's
-    code for SIGINT, not a traceback. ``files``: the command's work is the files it writes,
-    which a reader of its output that goes away does not stop (:class:`_ReaderMayGo`)."""
+    code for SIGINT, not a traceback; with ``terminable`` SIGTERM does the same (exit 143) where
+    its handler is the default (not in a caller that set its own, nor off the main thread).
+    ``files``: the command's work is the files it writes, which a reader of its output that
+    goes away does not stop (:class:`_ReaderMayGo`)."""
 
     def wrap(main: Callable[..., int]) -> Callable[..., int]:
         @functools.wraps(main)
@@ -251,6 +265,10 @@ def command(prog: str, *, guarded: bool = False, interruptible: bool = False,
             if guarded:  # the command's signal handlers last as long as the command
                 handlers = {s: signal.getsignal(s) for s in (signal.SIGINT, signal.SIGTERM)}
                 _guard_start()
+            term = None
+            if terminable and threading.current_thread() is threading.main_thread() and \
+                    signal.getsignal(signal.SIGTERM) == signal.SIG_DFL:
+                term = signal.signal(signal.SIGTERM, _terminate)
             was = (sys.stdout, sys.stderr)
             if files:
                 sys.stdout, sys.stderr = (s if isinstance(s, _ReaderMayGo) else _ReaderMayGo(s)
@@ -265,12 +283,17 @@ def command(prog: str, *, guarded: bool = False, interruptible: bool = False,
                 print(f"{prog}: error: needs the [{extra}] extra (no module named {top!r}): "
                       f"pip install 'tactile-pen[{extra}]'", file=sys.stderr)
                 return EXIT_USAGE
-            except KeyboardInterrupt:
+            except KeyboardInterrupt as e:
                 if not interruptible:
                     raise
+                if isinstance(e, Terminated):
+                    print(f"{prog}: terminated (SIGTERM)", file=sys.stderr)
+                    return 143
                 print(f"{prog}: interrupted", file=sys.stderr)
                 return 130
             finally:
+                if term is not None:
+                    signal.signal(signal.SIGTERM, term)
                 if files:
                     sys.stdout, sys.stderr = was
                 if guarded:  # called in-process (a test, a script): the caller's own again

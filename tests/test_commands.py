@@ -205,6 +205,33 @@ def test_a_derived_take_stopped_half_way_is_removed(tmp_path, monkeypatch):
                                                           "paper-user000.json"]
 
 
+def test_sigterm_in_a_simulated_dataset_removes_the_take_being_written(tmp_path):
+    """``timeout`` or a service manager stops with SIGTERM, which left the take being written
+    behind, cut (``complete: false``), and a rerun refused the folder; now as for Ctrl-C: the
+    half-written take goes, one line, exit 143."""
+    import signal
+    import time
+
+    out = tmp_path / "d"
+    proc = subprocess.Popen([sys.executable, "-m", "tactile.device.commands.sim", "--dataset",
+                             str(out), "--takes", "1", "--seconds", "100000", "--textures",
+                             "paper"], stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                            text=True)
+    try:
+        csv = out / "paper-user000.csv"
+        end = time.monotonic() + 120  # only turns a hang into a failure
+        while not (csv.exists() and csv.stat().st_size > 100_000):
+            assert proc.poll() is None and time.monotonic() < end, proc.communicate()
+            time.sleep(0.05)
+        proc.send_signal(signal.SIGTERM)
+        _, err = proc.communicate(timeout=120)
+    finally:
+        proc.kill()
+    assert proc.returncode == 143, err
+    assert err.splitlines()[-1] == "tactile-sim: terminated (SIGTERM)", err
+    assert list(out.iterdir()) == []
+
+
 @pytest.mark.parametrize("option", [("--takes", "3"), ("--textures", "paper"),
                                     ("--first-take", "0"), ("--force",)])
 def test_sim_pty_refuses_dataset_options(option):

@@ -33,7 +33,7 @@ def _main(args: argparse.Namespace) -> int:
     return 0
 
 
-@command("tactile-import-biotac", interruptible=True, files=True)
+@command("tactile-import-biotac", interruptible=True, files=True, terminable=True)
 def main(argv: list[str] | None = None) -> int:
     return run("tactile-import-biotac", _main, build_parser().parse_args(argv))
 

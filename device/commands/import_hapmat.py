@@ -34,7 +34,7 @@ def _main(args: argparse.Namespace) -> int:
     return 0
 
 
-@command("tactile-import-hapmat", interruptible=True, files=True)
+@command("tactile-import-hapmat", interruptible=True, files=True, terminable=True)
 def main(argv: list[str] | None = None) -> int:
     return run("tactile-import-hapmat", _main, build_parser().parse_args(argv))
 

@@ -82,7 +82,7 @@ def _main(args: argparse.Namespace) -> int:
     return 0
 
 
-@command("tactile-sim", interruptible=True, files=True)
+@command("tactile-sim", interruptible=True, files=True, terminable=True)
 def main(argv: list[str] | None = None) -> int:
     p = build_parser()
     args = p.parse_args(argv)
