@@ -205,6 +205,25 @@ def test_a_derived_take_stopped_half_way_is_removed(tmp_path, monkeypatch):
                                                           "paper-user000.json"]
 
 
+def test_a_take_of_the_same_name_in_a_sub_folder_is_refused_even_with_force(tmp_path):
+    """A second simulated dataset (or import) into the parent folder of one wrote takes of the
+    same names beside it, and no command could then read the parent as a dataset."""
+    from tactile.device.recordings import load_dataset
+
+    nest = tmp_path / "nest"
+    args = ("--takes", "1", "--seconds", "2", "--textures", "paper")
+    assert cli("tactile-sim", "--dataset", str(nest / "old"), *args)[0] == 0
+    for force in ((), ("--force",)):
+        code, _, err = cli("tactile-sim", "--dataset", str(nest), *args, *force)
+        assert code == 1 and err == (
+            f"tactile-sim: error: {nest / 'old' / 'paper-user000.csv'}: a take of that name in "
+            f"a sub-folder of {nest} (a dataset's takes need names of their own): choose "
+            "another folder\n"), err
+    assert [t.path for t in load_dataset(nest)] == [nest / "old" / "paper-user000.csv"]
+    assert cli("tactile-sim", "--dataset", str(nest), "--takes", "1", "--seconds", "2",
+               "--textures", "desk")[0] == 0  # other names: added beside it
+
+
 def test_sigterm_in_a_simulated_dataset_removes_the_take_being_written(tmp_path):
     """``timeout`` or a service manager stops with SIGTERM, which left the take being written
     behind, cut (``complete: false``), and a rerun refused the folder; now as for Ctrl-C: the

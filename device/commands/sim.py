@@ -70,7 +70,7 @@ def _main(args: argparse.Namespace) -> int:
         t0 = time.perf_counter()
         paths = make_dataset(args.dataset, args.takes, textures, args.seconds or 60.0,
                              args.seed, args.rate, args.first_take, args.force)
-        print(f"tactile-sim: {len(paths)} takes in {args.dataset} "
+        print(f"tactile-sim: {len(paths)} take{'' if len(paths) == 1 else 's'} in {args.dataset} "
               f"({time.perf_counter() - t0:.1f} s)", file=sys.stderr)
         return 0
     query = f"texture={args.texture}&seed={args.seed}&rate={args.rate}&speed={args.speed}"

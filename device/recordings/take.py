@@ -115,9 +115,16 @@ def replace_takes(folder: Path, stems: list[str], force: bool,
     (:class:`RecordingError` naming the first, the command neither overwrites nor duplicates a
     dataset by being run twice) or, with ``force``, delete them. With ``info`` (the new takes'
     device), a folder whose other takes have other channels, units or another rate is refused
-    too: the takes would make a dataset no command can read."""
+    too: the takes would make a dataset no command can read; so is a folder with a take of one
+    of those names in a sub-folder, even with ``force``."""
     if info is not None:
         check_joins(folder, set(stems), info)
+    names = set(stems)  # a dataset's readers refuse two takes of one name in its tree
+    deeper = next((p for p in sorted(folder.rglob("*.csv")) if p.parent != folder
+                   and p.stem in names), None)
+    if deeper is not None:
+        raise RecordingError(f"{deeper}: a take of that name in a sub-folder of {folder} (a "
+                             "dataset's takes need names of their own): choose another folder")
     found = [p for s in dict.fromkeys(stems)  # a name given twice is one take's files
              for p in (folder / f"{s}.csv", folder / f"{s}.json") if p.exists()]
     if found and not force:
