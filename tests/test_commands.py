@@ -251,6 +251,18 @@ def test_sigterm_in_a_simulated_dataset_removes_the_take_being_written(tmp_path)
     assert list(out.iterdir()) == []
 
 
+@pytest.mark.parametrize("link, says", [
+    ("rate=200", "--link rate=...: give --rate instead (an option of its own)"),
+    ("garbage=0.01&seconds=3", "--link seconds=...: give --seconds instead"),
+    ("garbage=0.01&garbage=0.02", "sim:// option 'garbage' given twice"),
+])
+def test_sim_pty_refuses_a_link_key_given_twice_or_with_its_own_option(link, says):
+    """--rate 300 --link rate=200 streamed at 200 Hz: the last key won, in silence."""
+    code, _, err = cli("tactile-sim", "--pty", "--rate", "300", "--seconds", "0.1",
+                       "--link", link)
+    assert code == 1 and says in err and err.count("\n") == 1, err
+
+
 @pytest.mark.parametrize("option", [("--takes", "3"), ("--textures", "paper"),
                                     ("--first-take", "0"), ("--force",)])
 def test_sim_pty_refuses_dataset_options(option):

@@ -54,10 +54,13 @@ PTY_ONLY = {"texture": "paper", "link": "", "speed": 1.0}
 
 
 def _main(args: argparse.Namespace) -> int:
+    from urllib.parse import parse_qsl
+
     from tactile.device.sim.dataset import make_dataset
     from tactile.device.sim.pty_server import serve_pty
     from tactile.device.sim.simlink import LinkConfig
     from tactile.device.sim.textures import TEXTURES
+    from tactile.errors import ConfigError
 
     # the parser leaves a mode's own options None when not given: their defaults
     for key, default in {**DATASET_ONLY, **PTY_ONLY}.items():
@@ -77,6 +80,12 @@ def _main(args: argparse.Namespace) -> int:
     if args.seconds:
         query += f"&seconds={args.seconds}"
     if args.link:
+        own = {"texture", "seed", "rate", "speed", "seconds"}  # the options of their own
+        given = next((k for k, _ in parse_qsl(args.link, keep_blank_values=True) if k in own),
+                     None)
+        if given is not None:
+            raise ConfigError(f"--link {given}=...: give --{given} instead (an option of its "
+                              "own)")
         query += "&" + args.link
     serve_pty(LinkConfig.from_query(query))
     return 0

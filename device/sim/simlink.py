@@ -87,6 +87,8 @@ class LinkConfig:
         for key, value in parse_qsl(query, keep_blank_values=True, strict_parsing=False):
             if key not in kinds:
                 raise ConfigError(f"sim:// option {key!r} unknown; allowed: {', '.join(kinds)}")
+            if key in kw:  # the last one winning would ignore the first in silence
+                raise ConfigError(f"sim:// option {key!r} given twice")
             try:
                 kw[key] = _convert(key, value)
             except ValueError:
