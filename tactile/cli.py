@@ -314,15 +314,16 @@ BAUD = 115200  # --baud's default
 STALL_TIMEOUT = 2.0  # --stall-timeout's default, s
 
 
-def add_port_options(parser: argparse.ArgumentParser, page: str) -> None:
+def add_port_options(parser: argparse.ArgumentParser, page: str,
+                     until: str = "Ctrl-C or the end of a --replay") -> None:
     """The options of every command that reads a pen live (``tactile-run``,
     ``tactile-monitor``): ``--baud``, ``--seconds``, ``--stall-timeout`` and ``--serve`` (the
-    page's contents, ``page``, are said in its help)."""
+    page's contents, ``page``, and what ends the command without ``--seconds``, ``until``, are
+    said in their help)."""
     parser.add_argument("--baud", type=int_in(1), default=BAUD,
                         help=f"UART baud rate (default {BAUD})")
     parser.add_argument("--seconds", type=float_in(0.0), default=math.inf,
-                        help="stop after this long, s of wall time (default: until Ctrl-C or "
-                        "the end of the input)")
+                        help=f"stop after this long, s of wall time (default: until {until})")
     parser.add_argument("--stall-timeout", type=float_in(0.0), default=STALL_TIMEOUT,
                         help="report a stall after this many seconds without data (default "
                         f"{STALL_TIMEOUT:g})")

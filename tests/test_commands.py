@@ -57,6 +57,27 @@ def test_ctrl_c_in_a_command_is_one_line_and_130(module, body, argv, monkeypatch
     assert err.endswith(": interrupted\n") and err.count("\n") == 1, err
 
 
+@pytest.mark.parametrize("name, args, option", [
+    ("tactile-data", [""], "data"),
+    ("tactile-sim", ["--dataset", "", "--takes", "1"], "--dataset"),
+    ("tactile-record", ["--port", "loop://", "--label", "paper", "--out", ""], "--out"),
+    ("tactile-import-hapmat", ["", "--out", "D"], "source"),
+    ("tactile-import-biotac", ["a.h5", "--out", ""], "--out"),
+    ("tactile-plot", ["", "-o", "p.png"], "source"),
+    ("tactile-train", ["", "--out", "R"], "data"),
+    ("tactile-eval", ["R", ""], "data"),
+    ("tactile-export", ["R", "-o", ""], "-o/--out"),
+    ("tactile-check", ["m.onnx", "--data", ""], "--data"),
+    ("tactile-run", ["--model", "m.onnx", "--replay", ""], "--replay"),
+])
+def test_an_empty_path_is_a_usage_error(name, args, option, tmp_path):
+    """Path("") is the current folder: `tactile-sim --dataset ''` wrote its takes there and
+    `tactile-data ''` read it."""
+    code, out, err = cli(name, *args)
+    assert (code, out) == (1, ""), err
+    assert err == f"{name}: error: argument {option}: an empty path (see --help)\n", err
+
+
 def test_export_checks_its_output_path_before_any_work(tmp_path):
     # the run folder does not exist either: the output is checked first, and nothing is made
     code, _, err = cli("tactile-export", str(tmp_path / "run"), "-o", str(tmp_path))

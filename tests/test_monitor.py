@@ -129,7 +129,12 @@ def test_no_data_is_exit_2_and_bad_options_exit_1(capsys):
                      r"decodable\)", capsys.readouterr().err)
     assert monitor_main(["--port", "sim://?nonsense=1", "--seconds", "0.3"]) == 2
     assert "nonsense" in capsys.readouterr().err
-    assert monitor_main(["--port", PEN, "--raw", "--serve", "0"]) == 1
+    for option in (["--serve", "0"], ["--every", "5"], ["--csv-rate", "50"]):
+        assert monitor_main(["--port", PEN, "--raw", *option]) == 1  # ignored, before
+        assert f"--raw shows the bytes as they arrive; {option[0]} is for decoded samples" \
+            in capsys.readouterr().err
+    assert monitor_main(["--port", "", "--seconds", "0.3"]) == 1  # was: look for a pen
+    assert "port '': must be a device path or a URL" in capsys.readouterr().err
     with pytest.raises(SystemExit) as e:
         monitor_main(["--port", PEN, "--seconds", "-1"])
     assert e.value.code == 1

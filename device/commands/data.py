@@ -12,9 +12,8 @@ from __future__ import annotations
 import argparse
 import json
 import sys
-from pathlib import Path
 
-from tactile.cli import Parser, add_debug, command, int_in, run
+from tactile.cli import Parser, add_debug, command, int_in, path_given, run
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -22,7 +21,7 @@ def build_parser() -> argparse.ArgumentParser:
 
     p = Parser(prog="tactile-data", description="Print what a dataset folder holds: classes, "
                "users, takes, minutes, windows, gaps, channels and rate.")
-    p.add_argument("data", type=Path, help="dataset folder (takes: .csv + .json)")
+    p.add_argument("data", type=path_given, help="dataset folder (takes: .csv + .json)")
     p.add_argument("--window", type=int_in(4), default=WINDOW,
                    help=f"window length in samples, >= 4 as training takes (default {WINDOW})")
     p.add_argument("--hop", type=int_in(1), default=HOP,

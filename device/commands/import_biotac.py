@@ -9,17 +9,16 @@ from __future__ import annotations
 
 import argparse
 import sys
-from pathlib import Path
 
-from tactile.cli import Parser, add_debug, command, run
+from tactile.cli import Parser, add_debug, command, path_given, run
 
 
 def build_parser() -> argparse.ArgumentParser:
     p = Parser(prog="tactile-import-biotac",
                description="Import BioTac BOLT recordings (HDF5): one take per trial.")
-    p.add_argument("files", type=Path, nargs="+", metavar="FILE.h5",
+    p.add_argument("files", type=path_given, nargs="+", metavar="FILE.h5",
                    help="one HDF5 file per object (e.g. cork.h5), one group per trial")
-    p.add_argument("--out", type=Path, required=True, help="dataset folder to write")
+    p.add_argument("--out", type=path_given, required=True, help="dataset folder to write")
     p.add_argument("--force", action="store_true", help="replace takes of the same names")
     add_debug(p)
     return p

@@ -8,19 +8,18 @@ from __future__ import annotations
 
 import argparse
 import sys
-from pathlib import Path
 
-from tactile.cli import Parser, add_debug, command, run
+from tactile.cli import Parser, add_debug, command, path_given, run
 
 
 def build_parser() -> argparse.ArgumentParser:
     p = Parser(
         prog="tactile-import-hapmat", description="Import the HapMat stick-IMU recordings."
     )
-    p.add_argument("source", type=Path,
+    p.add_argument("source", type=path_given,
                    help="the upstream 'HapMat dataset' folder of CSV files, or the bundled "
                    "hapmat_stick_imu.npz")
-    p.add_argument("--out", type=Path, required=True, help="dataset folder to write")
+    p.add_argument("--out", type=path_given, required=True, help="dataset folder to write")
     p.add_argument("--force", action="store_true", help="replace takes of the same names")
     add_debug(p)
     return p

@@ -10,17 +10,16 @@ from __future__ import annotations
 
 import argparse
 import sys
-from pathlib import Path
 
-from tactile.cli import Parser, add_debug, command, run
+from tactile.cli import Parser, add_debug, command, path_given, run
 
 
 def build_parser() -> argparse.ArgumentParser:
     p = Parser(prog="tactile-plot", description="Plot a take's channels over time, or with "
                "--summary a dataset's minutes and gaps per class and user.")
-    p.add_argument("source", type=Path, help="a take's .csv file, or a dataset folder with "
+    p.add_argument("source", type=path_given, help="a take's .csv file, or a dataset folder with "
                    "--summary")
-    p.add_argument("-o", "--out", type=Path, required=True,
+    p.add_argument("-o", "--out", type=path_given, required=True,
                    help="image file to write (.png, .svg, .pdf, ...)")
     p.add_argument("--summary", action="store_true", help="plot a dataset folder's summary")
     add_debug(p)

@@ -14,9 +14,8 @@ from __future__ import annotations
 import argparse
 import math
 import sys
-from pathlib import Path
 
-from tactile.cli import Parser, add_debug, command, float_in, int_in, run
+from tactile.cli import Parser, add_debug, command, float_in, int_in, path_given, run
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -33,7 +32,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--port", help="/dev/ttyACM0, sim://?texture=paper, socket://...; default: "
                    "the one likely pen attached (as tactile-run; tactile-ports lists them)")
     p.add_argument("--label", required=True, help="the texture being stroked, e.g. paper")
-    p.add_argument("--out", required=True, type=Path, help="dataset folder (created if missing)")
+    p.add_argument("--out", required=True, type=path_given,
+                   help="dataset folder (created if missing)")
     p.add_argument("--seconds", type=float_in(0.0), default=math.inf,
                    help="stop after this much data")
     p.add_argument("--baud", type=int_in(1), default=115200, help="UART baud rate (default 115200)")

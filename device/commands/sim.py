@@ -12,9 +12,8 @@ from __future__ import annotations
 import argparse
 import sys
 import time
-from pathlib import Path
 
-from tactile.cli import Parser, add_debug, command, float_in, int_in, run
+from tactile.cli import Parser, add_debug, command, float_in, int_in, path_given, run
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -23,7 +22,7 @@ def build_parser() -> argparse.ArgumentParser:
     p = Parser(prog="tactile-sim", description=__doc__.split("\n\n")[0])
     mode = p.add_mutually_exclusive_group(required=True)
     mode.add_argument("--pty", action="store_true", help="serve the pen on a pseudo-terminal")
-    mode.add_argument("--dataset", type=Path, metavar="OUT", help="write a synthetic dataset")
+    mode.add_argument("--dataset", type=path_given, metavar="OUT", help="write a synthetic dataset")
     p.add_argument("--takes", type=int_in(1), default=None,
                    help="dataset: takes (simulated users) per texture (default 10)")
     p.add_argument("--textures", default=None,

@@ -21,7 +21,6 @@ from __future__ import annotations
 
 import argparse
 import sys
-from pathlib import Path
 
 from tactile.cli import Parser, add_debug, command, int_in, path_given, run
 
@@ -29,8 +28,9 @@ from tactile.cli import Parser, add_debug, command, int_in, path_given, run
 def build_parser() -> argparse.ArgumentParser:
     p = Parser(prog="tactile-check", description=__doc__.split("\n\n")[0])
     p.add_argument("model", type=path_given, help="ONNX file to check")
-    p.add_argument("--run", type=Path, help="run folder: re-run parity against its PyTorch model")
-    p.add_argument("--data", type=Path, help="dataset folder: windows to check on")
+    p.add_argument("--run", type=path_given,
+                   help="run folder: re-run parity against its PyTorch model")
+    p.add_argument("--data", type=path_given, help="dataset folder: windows to check on")
     p.add_argument("--windows", type=int_in(1), default=256,
                    help="--run: compare on at most this many windows (default: 256)")
     p.add_argument("--no-native", action="store_true",

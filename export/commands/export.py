@@ -11,16 +11,15 @@ from __future__ import annotations
 
 import argparse
 import sys
-from pathlib import Path
 
-from tactile.cli import Parser, add_debug, command, int_in, run
+from tactile.cli import Parser, add_debug, command, int_in, path_given, run
 
 
 def build_parser() -> argparse.ArgumentParser:
     p = Parser(prog="tactile-export", description=__doc__.split("\n\n")[0])
-    p.add_argument("run", type=Path, help="run folder written by tactile-train")
-    p.add_argument("-o", "--out", type=Path, required=True, help="ONNX file to write")
-    p.add_argument("--data", type=Path, help="dataset folder holding the run's test takes")
+    p.add_argument("run", type=path_given, help="run folder written by tactile-train")
+    p.add_argument("-o", "--out", type=path_given, required=True, help="ONNX file to write")
+    p.add_argument("--data", type=path_given, help="dataset folder holding the run's test takes")
     p.add_argument("--int8", action="store_true",
                    help="write an onnxruntime dynamic-int8 model (default: float32)")
     p.add_argument("--windows", type=int_in(1), default=256,

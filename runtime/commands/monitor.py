@@ -25,6 +25,8 @@ import time
 
 from tactile.cli import Parser, add_debug, add_port_options, command, float_in, run
 
+CSV_RATE = 100.0  # --csv-rate's default, Hz
+
 
 def build_parser() -> argparse.ArgumentParser:
     p = Parser(
@@ -40,9 +42,9 @@ def build_parser() -> argparse.ArgumentParser:
                    help="show the bytes as they arrive, in hex (as hexdump -C), not decoded")
     p.add_argument("--every", type=float_in(0.0), default=None,
                    help="refresh period, s (default 0.5 in a terminal, 1 otherwise)")
-    p.add_argument("--csv-rate", type=float_in(0.0), default=100.0,
-                   help="rate of a CSV-line device, Hz (it declares none)")
-    add_port_options(p, "the channels and link")
+    p.add_argument("--csv-rate", type=float_in(0.0),
+                   help=f"rate of a CSV-line device, Hz (it declares none; default {CSV_RATE:g})")
+    add_port_options(p, "the channels and link", until="Ctrl-C")
     add_debug(p)
     return p
 
@@ -56,13 +58,17 @@ def _monitor(args: argparse.Namespace) -> int:
     from tactile.runtime.stop import stop_on_signals
 
     every = args.every if args.every is not None else 0.5 if sys.stdout.isatty() else 1.0
-    if args.raw and args.serve:
-        raise ConfigError("--raw shows the bytes only, --serve needs decoded samples: give one")
+    if args.raw:  # the bytes as they come: nothing decoded, nothing redrawn
+        given = next((f"--{k.replace('_', '-')}" for k in ("serve", "every", "csv_rate")
+                      if getattr(args, k) is not None), None)
+        if given is not None:
+            raise ConfigError(f"--raw shows the bytes as they arrive; {given} is for decoded "
+                              "samples: give one")
     stop = stop_on_signals(say)
     if stop is None:  # a signal while starting
         return 0
     auto = args.port is None  # found by auto-detection: after an unplug, look again
-    port = args.port or find_port()
+    port = args.port if args.port is not None else find_port()
     live = None
     if args.serve:
         from tactile.runtime.live import Live, parse_address
@@ -70,7 +76,7 @@ def _monitor(args: argparse.Namespace) -> int:
         live = Live(*parse_address(args.serve), status=dict, say=say, labels=False)
     begin = time.monotonic()
     settings = LinkSettings(port, args.baud, auto=auto, stall_timeout=args.stall_timeout)
-    decoder = StreamDecoder(csv_rate_hz=args.csv_rate)
+    decoder = StreamDecoder(csv_rate_hz=CSV_RATE if args.csv_rate is None else args.csv_rate)
     try:
         with Connection(settings, decoder, stop, say, begin + args.seconds) as conn:
             conn.open()

@@ -19,7 +19,6 @@ import argparse
 import json
 import os
 import sys
-from pathlib import Path
 from typing import TYPE_CHECKING
 
 from tactile.cli import (
@@ -56,7 +55,7 @@ def build_parser() -> argparse.ArgumentParser:
     src = p.add_mutually_exclusive_group()
     src.add_argument("--port", help="device path or pyserial URL (sim://, socket://, ...); "
                      "default: the one likely pen attached")
-    src.add_argument("--replay", type=Path, metavar="TAKE", help="a recorded take (.csv)")
+    src.add_argument("--replay", type=path_given, metavar="TAKE", help="a recorded take (.csv)")
     p.add_argument("--wait", action="store_true",
                    help="if the port is absent at start, wait for it (as after an unplug) "
                    "instead of exiting with code 2; without --port, wait until one likely pen "

@@ -14,15 +14,14 @@ from __future__ import annotations
 import argparse
 import json
 import sys
-from pathlib import Path
 
-from tactile.cli import Parser, add_debug, command, int_in, run
+from tactile.cli import Parser, add_debug, command, int_in, path_given, run
 
 
 def build_parser() -> argparse.ArgumentParser:
     p = Parser(prog="tactile-eval", description=__doc__.split("\n\n")[0])
-    p.add_argument("run", type=Path, help="run folder written by tactile-train")
-    p.add_argument("data", type=Path, help="dataset folder")
+    p.add_argument("run", type=path_given, help="run folder written by tactile-train")
+    p.add_argument("data", type=path_given, help="dataset folder")
     p.add_argument("--json", action="store_true", help="the figures as one JSON object")
     p.add_argument("--threads", type=int_in(1), metavar="N",
                    help="torch threads (default: the run's threads setting)")

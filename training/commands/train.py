@@ -14,21 +14,21 @@ import sys
 import tempfile
 from pathlib import Path
 
-from tactile.cli import Parser, add_debug, command, run
+from tactile.cli import Parser, add_debug, command, path_given, run
 
 EXIT_INTERRUPTED = 130  # the shell's code for a command ended by SIGINT
 
 
 def build_parser() -> argparse.ArgumentParser:
     p = Parser(prog="tactile-train", description=__doc__.split("\n\n")[0])
-    p.add_argument("data", type=Path, nargs="?",
+    p.add_argument("data", type=path_given, nargs="?",
                    help="dataset folder (takes: .csv + .json); with --resume, default: the "
                         "run's own")
-    p.add_argument("--out", type=Path, help="run folder to write (must not hold a run)")
-    p.add_argument("--config", type=Path, help="TOML file of settings (see TrainConfig)")
+    p.add_argument("--out", type=path_given, help="run folder to write (must not hold a run)")
+    p.add_argument("--config", type=path_given, help="TOML file of settings (see TrainConfig)")
     p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
                    help="override one setting, e.g. --set hidden=32 --set emd_channels=accel_z")
-    p.add_argument("--resume", type=Path, metavar="RUN",
+    p.add_argument("--resume", type=path_given, metavar="RUN",
                    help="continue the run that Ctrl-C stopped, with its own settings")
     p.add_argument("--force", action="store_true", help="overwrite the run in --out")
     p.add_argument("--quiet", action="store_true", help="no progress output")
