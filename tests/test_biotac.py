@@ -238,6 +238,35 @@ def test_force_deletes_nothing_when_a_later_input_is_bad(tmp_path, later):
     assert (out / "cork_pdc100_1cm_02.csv").read_bytes() == before["cork_pdc100_1cm_02.csv"]
 
 
+@pytest.mark.parametrize("frame, value", [(0, 2**62), (0, -1), (5, 4_102_444_800)])
+def test_force_keeps_the_old_takes_when_a_timestamp_is_not_a_date(tmp_path, frame, value):
+    """A timestamp of 2**62 passed the checks and failed only when the take's recorded_utc was
+    made, in the writing pass: --force had already deleted the old takes, nothing new was
+    written, and the error ('[Errno 75] Value too large...') named no file. Timestamps are
+    checked with the rest now: one line naming the file, trial and dataset; the folder holds
+    the old takes, byte for byte."""
+    write_h5(tmp_path / "old.h5", {"cork_pdc100_1cm_01": 30, "cork_pdc100_1cm_02": 30})
+    out = tmp_path / "out"
+    import_biotac([tmp_path / "old.h5"], out)
+    before = {p.name: p.read_bytes() for p in out.iterdir()}
+    new = tmp_path / "new.h5"
+    write_h5(new, {"cork_pdc100_1cm_01": 40}, seed=1)
+    with h5py.File(new, "a") as f:
+        f["cork_pdc100_1cm_01/timestamps"][frame] = value
+    code, err = _run(str(new), "--out", str(out), "--force")
+    assert code == 1 and err == [
+        f"tactile-import-biotac: error: {new}: cork_pdc100_1cm_01/timestamps: value {value} at "
+        f"frame {frame} is not a time of 1970..2099 in whole Unix seconds"], err
+    assert {p.name: p.read_bytes() for p in out.iterdir()} == before
+    with h5py.File(new, "a") as f:  # the last second of 2099 is a date
+        f["cork_pdc100_1cm_01/timestamps"][frame] = 4_102_444_799
+    assert _run(str(new), "--out", str(out), "--force")[0] == 0
+    take = read_take(out / "cork_pdc100_1cm_01.csv")
+    assert len(take.raw) == 40
+    assert take.meta["recorded_utc"] == ("2099-12-31T23:59:59Z" if frame == 0
+                                         else "2012-07-18T01:05:57Z")
+
+
 def test_without_h5py_the_command_names_its_extra():
     block = ("import sys\nclass Block:\n    def find_spec(self, name, path=None, target=None):\n"
              "        if name.split('.')[0] == 'h5py':\n"

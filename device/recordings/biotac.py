@@ -18,11 +18,13 @@ raw 12-bit ADC counts as recorded: unit ``count``, scale 1. The JSON's ``signals
 each finger's vibration channels one high-rate signal (:func:`signals`: ``f0_pac``, ``f1_pac``).
 
 Every input is checked before anything is written: a file that is not HDF5, a trial group whose
-name or datasets are not as above, lengths that disagree, values that are not 12-bit counts, or
-a trial given twice, is one line naming the file and the dataset, exit code 1. A take of the
-same name already in the output folder is refused too (importing twice would duplicate data),
-or replaced with ``--force``: the old takes are deleted only once every input has passed its
-checks, so a bad input leaves them as they were.
+name or datasets are not as above, lengths that disagree, values that are not 12-bit counts,
+timestamps that are not whole Unix seconds of 1970..2099 (:data:`FIRST_TIME` ..
+:data:`LAST_TIME`), or a trial given twice, is one line naming the file and the dataset, exit
+code 1. A take of the same name already in the output folder is refused too (importing twice
+would duplicate data), or replaced with ``--force``: the old takes are deleted only once every
+input has passed its checks (the takes' metadata included), so a bad input leaves them as they
+were.
 """
 
 from __future__ import annotations
@@ -50,6 +52,9 @@ FINGERS = (0, 1)
 PAC_SAMPLES = 22  # vibration sub-samples per 10 ms frame (2.2 kHz)
 ELECTRODES = 19
 ADC_MAX = 4095  # 12-bit counts
+# the timestamps a trial may hold, whole Unix seconds: 1970-01-01 .. 2099-12-31 UTC (the
+# recordings are of 2012; a value beyond is a damaged file, not a date)
+FIRST_TIME, LAST_TIME = 0, 4_102_444_799
 # (dataset in finger_<k>/, columns or None for a 1-D dataset, channel prefix); the order of the
 # channels in a take
 MODALITIES = (
@@ -120,7 +125,8 @@ def _trials(path: Path, f: h5py.File) -> list[Trial]:
 
 def read_trial(f: h5py.File, trial: Trial) -> tuple[np.ndarray, np.ndarray]:
     """The trial's raw counts (T, 88) int64 in :func:`channels` order and its timestamps (T,)
-    in Unix seconds. Raises :class:`RecordingError` naming the file and the dataset."""
+    in Unix seconds (:data:`FIRST_TIME` .. :data:`LAST_TIME`). Raises :class:`RecordingError`
+    naming the file and the dataset."""
     g = f[trial.group]
     where = f"{trial.file}: {trial.group}"
 
@@ -138,6 +144,12 @@ def read_trial(f: h5py.File, trial: Trial) -> tuple[np.ndarray, np.ndarray]:
     stamps = dataset("timestamps", None)[:, 0]
     if len(stamps) == 0:
         raise RecordingError(f"{where}/timestamps: no frames")
+    odd = (stamps < FIRST_TIME) | (stamps > LAST_TIME)
+    if odd.any():
+        row = int(np.argmax(odd))
+        raise RecordingError(f"{where}/timestamps: value {stamps[row]} at frame {row} is not a "
+                             "time of 1970..2099 in whole Unix seconds")
+    _utc(where, int(stamps[0]))  # the take's recorded_utc: made here, in the checking pass
     columns = []
     for k in FINGERS:
         for name, width, _ in MODALITIES:
@@ -155,6 +167,16 @@ def read_trial(f: h5py.File, trial: Trial) -> tuple[np.ndarray, np.ndarray]:
     return np.concatenate(columns, axis=1), stamps
 
 
+def _utc(where: str, seconds: int) -> str:
+    """``seconds`` (Unix time) as ``YYYY-MM-DDTHH:MM:SSZ``; :class:`RecordingError` naming
+    ``where`` (the file and trial) when this system's clock functions cannot convert it."""
+    try:
+        return time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime(seconds))
+    except (OverflowError, OSError, ValueError) as e:
+        raise RecordingError(f"{where}/timestamps: value {seconds} at frame 0 cannot be "
+                             f"converted to a date here ({e})") from None
+
+
 def _metadata(trial: Trial, stamps: np.ndarray) -> dict:
     return {
         "object": trial.label,
@@ -163,7 +185,7 @@ def _metadata(trial: Trial, stamps: np.ndarray) -> dict:
         "depth": trial.depth,
         "repetition": trial.repetition,
         "user": trial.repetition,
-        "recorded_utc": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime(int(stamps[0]))),
+        "recorded_utc": _utc(f"{trial.file}: {trial.group}", int(stamps[0])),
         "origin": ORIGIN + trial.file.name,
         "licence": LICENCE,
         "notes": "f<k>_pac_00..21 are the 22 vibration samples of each 10 ms frame in time "
@@ -218,4 +240,5 @@ def import_biotac(files: list[Path], out: Path, force: bool = False) -> list[Pat
             f.close()
 
 
-__all__ = ["FINGERS", "RATE_HZ", "Trial", "channels", "import_biotac", "read_trial", "signals"]
+__all__ = ["FINGERS", "FIRST_TIME", "LAST_TIME", "RATE_HZ", "Trial", "channels", "import_biotac",
+           "read_trial", "signals"]
