@@ -169,6 +169,55 @@ def test_a_bad_file_is_one_line_naming_file_and_dataset_and_nothing_is_written(
     assert not (tmp_path / "out").exists() or not any((tmp_path / "out").iterdir())
 
 
+@pytest.mark.parametrize("how, message", [
+    ("external", "cork_pdc100_1cm_02/finger_1/pdc: a link to /pdc in gone.h5 that cannot be "
+                 "followed ("),
+    ("soft", "cork_pdc100_1cm_02/timestamps: a link to /nowhere that cannot be followed ("),
+    ("finger", "cork_pdc100_1cm_02/finger_0/pac: finger_0 is a link to /nowhere that cannot be "
+               "followed ("),
+    ("trial", "cork_pdc100_1cm_02: a link to /cork_pdc100_1cm_02 in gone.h5 that cannot be "
+              "followed ("),
+])
+def test_a_link_that_leads_nowhere_is_one_line_naming_file_trial_and_dataset(
+        tmp_path, how, message):
+    """An HDF5 external link to a missing file, or a soft link to a path the file lacks, in
+    place of a dataset was a KeyError traceback from h5py naming neither the file nor the
+    dataset. A link that does lead to the data is followed."""
+    path = tmp_path / f"{how}.h5"
+    write_h5(path, {"cork_pdc100_1cm_01": 50, "cork_pdc100_1cm_02": 40})
+    with h5py.File(path, "a") as f:
+        g = f["cork_pdc100_1cm_02"]
+        if how == "external":
+            del g["finger_1/pdc"]
+            g["finger_1/pdc"] = h5py.ExternalLink("gone.h5", "/pdc")
+        elif how == "soft":
+            del g["timestamps"]
+            g["timestamps"] = h5py.SoftLink("/nowhere")
+        elif how == "finger":
+            del g["finger_0"]
+            g["finger_0"] = h5py.SoftLink("/nowhere")
+        else:
+            del f["cork_pdc100_1cm_02"]
+            f["cork_pdc100_1cm_02"] = h5py.ExternalLink("gone.h5", "/cork_pdc100_1cm_02")
+    code, err = _run(str(path), "--out", str(tmp_path / "out"))
+    assert code == 1 and len(err) == 1, err
+    assert err[0].startswith(f"tactile-import-biotac: error: {path}: {message}"), err
+    assert not (tmp_path / "out").exists()
+    data = write_h5(tmp_path / "data.h5", {"cork_pdc100_1cm_09": 50}, seed=3)
+    with h5py.File(path, "a") as f:  # links that lead to the data are followed
+        g = f["cork_pdc100_1cm_01"]
+        del g["finger_0/tdc"], g["timestamps"]
+        g["finger_0/tdc"] = h5py.ExternalLink(str(tmp_path / "data.h5"),
+                                              "/cork_pdc100_1cm_09/finger_0/tdc")
+        g["seconds"] = np.full(50, 1342573557)
+        g["timestamps"] = h5py.SoftLink("/cork_pdc100_1cm_01/seconds")
+        del f["cork_pdc100_1cm_02"]
+    assert _run(str(path), "--out", str(tmp_path / "out"))[0] == 0
+    take = read_take(tmp_path / "out" / "cork_pdc100_1cm_01.csv")
+    assert np.array_equal(take.raw[:, list(take.channels).index("f0_tdc")],
+                          data["cork_pdc100_1cm_09"]["finger_0/tdc"])
+
+
 def test_other_bad_inputs(tmp_path):
     text = tmp_path / "notes.h5"
     text.write_text("not hdf5\n")

@@ -18,7 +18,9 @@ raw 12-bit ADC counts as recorded: unit ``count``, scale 1. The JSON's ``signals
 each finger's vibration channels one high-rate signal (:func:`signals`: ``f0_pac``, ``f1_pac``).
 
 Every input is checked before anything is written: a file that is not HDF5, a trial group whose
-name or datasets are not as above, lengths that disagree, values that are not 12-bit counts,
+name or datasets are not as above, an HDF5 link in place of a trial or dataset that leads
+nowhere (an external link to a missing file, a soft link to a path the file lacks; links that
+lead to the data are followed), lengths that disagree, values that are not 12-bit counts,
 timestamps that are not whole Unix seconds of 1970..2099 (:data:`FIRST_TIME` ..
 :data:`LAST_TIME`), or a trial given twice, is one line naming the file and the dataset, exit
 code 1. A take of the same name already in the output folder is refused too (importing twice
@@ -103,11 +105,34 @@ def _open(path: Path) -> h5py.File:
         raise RecordingError(f"{path}: not an HDF5 file ({str(e).splitlines()[0]})") from None
 
 
+def _node(group: h5py.Group, name: str, where: str) -> h5py.HLObject | None:
+    """The object at ``name`` (a path inside ``group``, e.g. ``finger_0/pdc``), or None when
+    there is none. A link on the way that leads nowhere (a soft link to a path the file does
+    not hold, an external link to a file that is missing or lacks the path) is
+    :class:`RecordingError` ``"<where><name>: ..."`` saying which link (h5py's KeyError
+    names neither the file nor the dataset)."""
+    node, parts = group, name.split("/")
+    for i, part in enumerate(parts):
+        link = node.get(part, getlink=True) if isinstance(node, h5py.Group) else None
+        if link is None:
+            return None
+        try:
+            node = node[part]
+        except (KeyError, OSError, ValueError) as e:
+            why = str(e.args[0] if e.args else "").splitlines()[0:1] or [type(e).__name__]
+            to = (f"{link.path} in {link.filename}" if isinstance(link, h5py.ExternalLink)
+                  else link.path if isinstance(link, h5py.SoftLink) else None)
+            what = f"a link to {to} that cannot be followed" if to else "cannot be opened"
+            here = "" if i == len(parts) - 1 else f"{'/'.join(parts[: i + 1])} is "
+            raise RecordingError(f"{where}{name}: {here}{what} ({why[0]})") from None
+    return node
+
+
 def _trials(path: Path, f: h5py.File) -> list[Trial]:
     """The trial groups of an open file, named as the layout says."""
     out = []
     for name in sorted(f.keys()):
-        if not isinstance(f[name], h5py.Group):
+        if not isinstance(_node(f, name, f"{path}: "), h5py.Group):
             raise RecordingError(f"{path}: {name}: a dataset where a trial group was expected")
         m = TRIAL.match(name)
         if m is None:
@@ -131,9 +156,9 @@ def read_trial(f: h5py.File, trial: Trial) -> tuple[np.ndarray, np.ndarray]:
     where = f"{trial.file}: {trial.group}"
 
     def dataset(name: str, width: int | None) -> np.ndarray:
-        if name not in g or not isinstance(g[name], h5py.Dataset):
+        d = _node(g, name, f"{where}/")
+        if not isinstance(d, h5py.Dataset):
             raise RecordingError(f"{where}/{name}: missing")
-        d = g[name]
         shape = "(T,)" if width is None else f"(T, {width})"
         if d.ndim != (1 if width is None else 2) or (width is not None and d.shape[1] != width):
             raise RecordingError(f"{where}/{name}: shape {d.shape}, expected {shape}")
