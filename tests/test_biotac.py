@@ -218,6 +218,33 @@ def test_a_link_that_leads_nowhere_is_one_line_naming_file_trial_and_dataset(
                           data["cork_pdc100_1cm_09"]["finger_0/tdc"])
 
 
+@pytest.mark.parametrize("dataset, frame, value, rule", [
+    ("finger_0/tdc", 3, 2**63 + 5, "not a 12-bit count (0..4095)"),
+    ("timestamps", 7, 2**64 - 1, "not a time of 1970..2099 in whole Unix seconds"),
+])
+def test_a_uint64_value_out_of_range_is_reported_as_it_is(tmp_path, dataset, frame, value, rule):
+    """A uint64 count of 2**63 + 5 was converted to int64 before the range check and reported
+    as 'value -9223372036854775803'; the check is made on the values as stored now. In-range
+    uint64 datasets import, value for value."""
+    path = tmp_path / "u64.h5"
+    data = write_h5(path, {"cork_pdc100_1cm_01": 30})["cork_pdc100_1cm_01"]
+    with h5py.File(path, "a") as f:
+        g = f["cork_pdc100_1cm_01"]
+        for name in (dataset, "finger_1/pac"):
+            del g[name]
+            g.create_dataset(name, data=data[name].astype(np.uint64))
+    out = tmp_path / "out"
+    assert _run(str(path), "--out", str(out))[0] == 0
+    take = read_take(out / "cork_pdc100_1cm_01.csv")
+    assert np.array_equal(take.raw[:, 44:66], data["finger_1/pac"])
+    with h5py.File(path, "a") as f:
+        f[f"cork_pdc100_1cm_01/{dataset}"][frame] = np.uint64(value)
+    code, err = _run(str(path), "--out", str(out), "--force")
+    assert code == 1 and err == [f"tactile-import-biotac: error: {path}: cork_pdc100_1cm_01/"
+                                 f"{dataset}: value {value} at frame {frame} is {rule}"], err
+    assert len(read_take(out / "cork_pdc100_1cm_01.csv").raw) == 30
+
+
 def test_other_bad_inputs(tmp_path):
     text = tmp_path / "notes.h5"
     text.write_text("not hdf5\n")

@@ -156,6 +156,8 @@ def read_trial(f: h5py.File, trial: Trial) -> tuple[np.ndarray, np.ndarray]:
     where = f"{trial.file}: {trial.group}"
 
     def dataset(name: str, width: int | None) -> np.ndarray:
+        """The dataset's values (T, width or 1) in its own integer dtype: checked against
+        their range before any conversion (uint64 beyond int64 would wrap round)."""
         d = _node(g, name, f"{where}/")
         if not isinstance(d, h5py.Dataset):
             raise RecordingError(f"{where}/{name}: missing")
@@ -164,7 +166,7 @@ def read_trial(f: h5py.File, trial: Trial) -> tuple[np.ndarray, np.ndarray]:
             raise RecordingError(f"{where}/{name}: shape {d.shape}, expected {shape}")
         if not np.issubdtype(d.dtype, np.integer):
             raise RecordingError(f"{where}/{name}: dtype {d.dtype}, expected integer counts")
-        return d[()].astype(np.int64).reshape(d.shape[0], -1)
+        return d[()].reshape(d.shape[0], -1)
 
     stamps = dataset("timestamps", None)[:, 0]
     if len(stamps) == 0:
@@ -174,6 +176,7 @@ def read_trial(f: h5py.File, trial: Trial) -> tuple[np.ndarray, np.ndarray]:
         row = int(np.argmax(odd))
         raise RecordingError(f"{where}/timestamps: value {stamps[row]} at frame {row} is not a "
                              "time of 1970..2099 in whole Unix seconds")
+    stamps = stamps.astype(np.int64)  # in range: exact
     _utc(where, int(stamps[0]))  # the take's recorded_utc: made here, in the checking pass
     columns = []
     for k in FINGERS:
@@ -188,7 +191,7 @@ def read_trial(f: h5py.File, trial: Trial) -> tuple[np.ndarray, np.ndarray]:
                 row, col = (int(v[0]) for v in np.nonzero(bad))
                 raise RecordingError(f"{where}/{path}: value {x[row, col]} at frame {row} is "
                                      f"not a 12-bit count (0..{ADC_MAX})")
-            columns.append(x)
+            columns.append(x.astype(np.int64))  # in range: exact
     return np.concatenate(columns, axis=1), stamps
 
 
