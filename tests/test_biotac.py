@@ -245,6 +245,31 @@ def test_a_uint64_value_out_of_range_is_reported_as_it_is(tmp_path, dataset, fra
     assert len(read_take(out / "cork_pdc100_1cm_01.csv").raw) == 30
 
 
+def test_a_damaged_dataset_is_one_line_naming_file_trial_and_dataset(tmp_path):
+    """A compressed chunk that does not decompress was h5py's OSError ("Can't synchronously
+    read data (filter returned failure during read)") naming neither the file nor the dataset;
+    and with --force the old takes stay."""
+    path = tmp_path / "damaged.h5"
+    data = write_h5(path, {"cork_pdc100_1cm_01": 300})["cork_pdc100_1cm_01"]
+    out = tmp_path / "out"
+    import_biotac([path], out)
+    before = {p.name: p.read_bytes() for p in out.iterdir()}
+    with h5py.File(path, "a") as f:
+        g = f["cork_pdc100_1cm_01/finger_1"]
+        del g["electrodes"]
+        d = g.create_dataset("electrodes", data=data["finger_1/electrodes"], chunks=(100, 19),
+                             compression="gzip")
+        chunk = d.id.get_chunk_info(1)
+    with open(path, "r+b") as f:  # the second chunk's bytes overwritten
+        f.seek(chunk.byte_offset)
+        f.write(b"\xff" * chunk.size)
+    code, err = _run(str(path), "--out", str(out), "--force")
+    assert code == 1 and len(err) == 1, err
+    assert err[0].startswith(f"tactile-import-biotac: error: {path}: cork_pdc100_1cm_01/finger_1/"
+                             "electrodes: cannot be read ("), err
+    assert {p.name: p.read_bytes() for p in out.iterdir()} == before
+
+
 def test_other_bad_inputs(tmp_path):
     text = tmp_path / "notes.h5"
     text.write_text("not hdf5\n")

@@ -20,13 +20,13 @@ each finger's vibration channels one high-rate signal (:func:`signals`: ``f0_pac
 Every input is checked before anything is written: a file that is not HDF5, a trial group whose
 name or datasets are not as above, an HDF5 link in place of a trial or dataset that leads
 nowhere (an external link to a missing file, a soft link to a path the file lacks; links that
-lead to the data are followed), lengths that disagree, values that are not 12-bit counts,
-timestamps that are not whole Unix seconds of 1970..2099 (:data:`FIRST_TIME` ..
-:data:`LAST_TIME`), or a trial given twice, is one line naming the file and the dataset, exit
-code 1. A take of the same name already in the output folder is refused too (importing twice
-would duplicate data), or replaced with ``--force``: the old takes are deleted only once every
-input has passed its checks (the takes' metadata included), so a bad input leaves them as they
-were.
+lead to the data are followed), a dataset that cannot be read (a damaged chunk), lengths that
+disagree, values that are not 12-bit counts, timestamps that are not whole Unix seconds of
+1970..2099 (:data:`FIRST_TIME` .. :data:`LAST_TIME`), or a trial given twice, is one line naming
+the file and the dataset, exit code 1. A take of the same name already in the output folder is
+refused too (importing twice would duplicate data), or replaced with ``--force``: the old takes
+are deleted only once every input has passed its checks (the takes' metadata included), so a bad
+input leaves them as they were.
 """
 
 from __future__ import annotations
@@ -166,7 +166,12 @@ def read_trial(f: h5py.File, trial: Trial) -> tuple[np.ndarray, np.ndarray]:
             raise RecordingError(f"{where}/{name}: shape {d.shape}, expected {shape}")
         if not np.issubdtype(d.dtype, np.integer):
             raise RecordingError(f"{where}/{name}: dtype {d.dtype}, expected integer counts")
-        return d[()].reshape(d.shape[0], -1)
+        try:
+            values = d[()]
+        except (OSError, ValueError) as e:  # a damaged chunk, a compression filter missing
+            why = str(e).splitlines()[0] if str(e) else type(e).__name__
+            raise RecordingError(f"{where}/{name}: cannot be read ({why})") from None
+        return values.reshape(d.shape[0], -1)
 
     stamps = dataset("timestamps", None)[:, 0]
     if len(stamps) == 0:
