@@ -361,6 +361,93 @@ def test_import_force_replaces_nothing_when_an_input_is_bad(tmp_path):
     assert {p.name: p.read_bytes() for p in out.iterdir()} == before  # nothing deleted
 
 
+@pytest.mark.parametrize("classes, x_shape, message", [
+    (["Paper", "Wood", "Cork", "Felt"], (5, 300, 6), "classes has 4 names for the 5 materials "
+                                                     "of X (5, 300, 6)"),
+    (["Paper", "Wood", "Cork", "Felt", "Silk", "Wool"], (5, 300, 6),
+     "classes has 6 names for the 5 materials of X (5, 300, 6)"),
+    ([["Paper", "Wood"]], (2, 300, 6), "classes is <U5 of shape (1, 2), expected a list of "
+                                       "names (strings)"),
+    (["Paper", "Wood"], (300, 6), "X is float64 of shape (300, 6), expected real numbers of "
+                                  "shape (materials, samples, channels)"),
+    (["Paper", "Wood", "paper"], (3, 300, 6), "more than one recording of one material: "
+     "classes[0] 'Paper' and classes[2] 'paper' (one take per material; names that differ only "
+     "in case are one class)"),
+    (["Wood", "Paper", "Paper"], (3, 300, 6), "more than one recording of one material: "
+     "classes[1] 'Paper' and classes[2] 'Paper' (one take per material; names that differ only "
+     "in case are one class)"),
+])
+def test_import_hapmat_refuses_classes_that_do_not_match_x(tmp_path, classes, x_shape, message):
+    """4 names for 5 materials dropped one material without a word, 6 names were an
+    IndexError traceback, a 2-D classes wrote one take named after the array's repr, an X
+    that is not 3-D was an IndexError traceback, and 'Paper' beside 'paper' (or 'Paper'
+    twice) wrote hapmat-paper and hapmat-paper-2 of one label, and hapmat-paper-3 on a --force
+    rerun. Each is one line naming the file, exit 1, and the takes already there stay."""
+    from tactile.device.recordings.hapmat import SOURCE_COLUMNS
+
+    out = tmp_path / "out"
+    assert cli("tactile-import-hapmat", str(_hapmat_npz(tmp_path / "good.npz")), "--out",
+               str(out))[0] == 0
+    before = {p.name: p.read_bytes() for p in out.iterdir()}
+    bad = tmp_path / "bad.npz"
+    x = np.random.default_rng(1).normal(size=x_shape)
+    np.savez(bad, X=x, classes=np.array(classes), channels=np.array(SOURCE_COLUMNS),
+             fs_hz=100.0)
+    for force in ((), ("--force",)):
+        code, printed, err = cli("tactile-import-hapmat", str(bad), "--out", str(out), *force)
+        assert (code, printed, err) == (1, "", f"tactile-import-hapmat: error: {bad}: "
+                                        f"{message}\n")
+        assert {p.name: p.read_bytes() for p in out.iterdir()} == before
+
+
+@pytest.mark.parametrize("how, message", [
+    ("npy", "not the HapMat .npz (one array, not the arrays X, classes, channels and fs_hz)"),
+    ("cut", "not the HapMat .npz (File is not a zip file)"),
+    ("complex", "X is complex128 of shape (2, 30, 6), expected real numbers of shape "
+                "(materials, samples, channels)"),
+    ("empty", "X of shape (2, 0, 6) holds no samples"),
+    ("bytes", "classes is |S5 of shape (2,), expected a list of names (strings)"),
+    ("channels", "channels has 6 names for the 7 channels of X (2, 30, 7)"),
+    ("channel twice", "channels names 'accel_x' twice"),
+    ("label", "classes[1] 'Wo/od': label 'wo/od': must be 1-64 characters"),
+])
+def test_import_hapmat_refuses_an_npz_not_as_described(tmp_path, how, message):
+    """Each was a traceback (IndexError, BadZipFile), a take of a wrong name or of the wrong
+    column, or a line that did not name the file."""
+    from tactile.device.recordings import import_hapmat
+    from tactile.device.recordings.hapmat import SOURCE_COLUMNS
+
+    x = np.zeros((2, 30, 6))
+    arrays = {"X": x, "classes": np.array(["Paper", "Wood"]),
+              "channels": np.array(SOURCE_COLUMNS), "fs_hz": 100.0}
+    path = tmp_path / "bad.npz"
+    if how == "npy":
+        np.save(tmp_path / "bad.npy", x)
+        path = tmp_path / "bad.npy"
+    elif how == "cut":
+        np.savez(path, **arrays)
+        path.write_bytes(path.read_bytes()[:200])
+    else:
+        if how == "complex":
+            arrays["X"] = x + 1j
+        elif how == "empty":
+            arrays["X"] = x[:, :0]
+        elif how == "bytes":
+            arrays["classes"] = np.array([b"Paper", b"Wood"])
+        elif how == "channels":
+            arrays["X"] = np.zeros((2, 30, 7))
+        elif how == "channel twice":
+            arrays["X"] = np.zeros((2, 30, 7))
+            arrays["channels"] = np.array([*SOURCE_COLUMNS, "accel_x"])
+        elif how == "label":
+            arrays["classes"] = np.array(["Paper", "Wo/od"])
+        np.savez(path, **arrays)
+    with pytest.raises(RecordingError) as e:
+        import_hapmat(path, tmp_path / "out")
+    assert str(e.value).startswith(f"{path}: {message}"), e.value
+    assert not (tmp_path / "out").exists()
+
+
 def test_plot_groups_many_channels_into_panels():
     from tactile.device.protocol import ChannelSpec, DeviceInfo
     from tactile.device.recordings.plot import LEGEND_MAX, panels

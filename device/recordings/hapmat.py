@@ -9,12 +9,21 @@ map onto the pen's names: ``accel_x..z`` from HapMat's accelerometer (g, gravity
 removed upstream) and ``gyro_x..z`` from its calibrated rotation rate ``rota_x..z``, converted
 from rad/s to the pen's deg/s. The pen's ``pressure_0/1`` are absent (the stick has no tip
 sensor) and listed as such in each take's metadata. Values are stored as float64, scale 1.
+
+The bundled ``.npz`` holds the same: ``X`` (materials, samples, channels), ``classes`` (one
+name per material), ``channels`` (one name per channel of ``X``), ``fs_hz``. Every input is
+checked before a take is replaced or written; what is not as described (arrays of other shapes
+or lengths, a channel named twice, NaN or inf), two materials that would be one label (a name
+given twice, or names that differ only in case, ``Paper`` and ``paper``: one take per
+material) or a name that cannot be a label is one line naming the file, exit code 1.
 """
 
 from __future__ import annotations
 
 import math
 import re
+import zipfile
+import zlib
 from pathlib import Path
 
 import numpy as np
@@ -27,6 +36,7 @@ from tactile.device.recordings.take import (
     replace_takes,
     whole_take,
 )
+from tactile.device.recordings.take_meta import class_key
 from tactile.device.recordings.writer import TakeWriter
 from tactile.errors import RecordingError
 
@@ -41,23 +51,50 @@ CHANNELS = (
 SOURCE_COLUMNS = ("accel_x", "accel_y", "accel_z", "rota_x", "rota_y", "rota_z")
 
 
-def _read_npz(npz: Path) -> tuple[list[str], list[np.ndarray], float, str]:
-    """The bundled form: ``X`` (class, sample, channel), ``classes``, ``channels``, ``fs_hz``."""
+def _read_npz(npz: Path) -> tuple[list[str], list[str], list[np.ndarray], float, str]:
+    """The bundled form: ``X`` (material, sample, channel), ``classes`` (one name per material),
+    ``channels`` (one name per channel), ``fs_hz``; optional ``source``. Returns the materials,
+    how each is named in an error, their samples (n, 6) in :data:`SOURCE_COLUMNS` order, the
+    rate and the origin."""
     try:
         d = np.load(npz, allow_pickle=False)
-        x, classes, names = d["X"], d["classes"], [str(c) for c in d["channels"]]
-        rate = float(d["fs_hz"])
-        origin = str(d["source"]) if "source" in d.files else "HapMat"
-    except (OSError, KeyError, ValueError) as e:
-        raise RecordingError(f"{npz}: not the HapMat .npz ({e})") from None
+        if not isinstance(d, np.lib.npyio.NpzFile):
+            raise ValueError("one array, not the arrays X, classes, channels and fs_hz")
+        with d:
+            x, classes, channels = d["X"], d["classes"], d["channels"]
+            rate = float(d["fs_hz"])
+            origin = str(d["source"]) if "source" in d.files else "HapMat"
+    except (OSError, KeyError, ValueError, TypeError, EOFError, zipfile.BadZipFile,
+            zlib.error) as e:
+        why = str(e).splitlines()[0] if str(e) else type(e).__name__
+        raise RecordingError(f"{npz}: not the HapMat .npz ({why})") from None
+    if x.ndim != 3 or x.dtype.kind not in "iuf":
+        raise RecordingError(f"{npz}: X is {x.dtype} of shape {x.shape}, expected real numbers "
+                             "of shape (materials, samples, channels)")
+    if x.shape[0] == 0 or x.shape[1] == 0:
+        raise RecordingError(f"{npz}: X of shape {x.shape} holds no samples")
+    for key, names, axis, what in (("classes", classes, 0, "materials"),
+                                   ("channels", channels, 2, "channels")):
+        if names.ndim != 1 or names.dtype.kind != "U":
+            raise RecordingError(f"{npz}: {key} is {names.dtype} of shape {names.shape}, "
+                                 "expected a list of names (strings)")
+        if len(names) != x.shape[axis]:
+            raise RecordingError(f"{npz}: {key} has {len(names)} names for the "
+                                 f"{x.shape[axis]} {what} of X {x.shape}")
+    names = [str(c) for c in channels]
+    twice = next((c for k, c in enumerate(names) if c in names[:k]), None)
+    if twice is not None:
+        raise RecordingError(f"{npz}: channels names {twice!r} twice")
     try:
         cols = [names.index(c) for c in SOURCE_COLUMNS]
     except ValueError:
         raise RecordingError(f"{npz}: channels {names} lack one of {SOURCE_COLUMNS}") from None
-    return [str(c) for c in classes], [x[k][:, cols] for k in range(len(classes))], rate, origin
+    materials = [str(c) for c in classes]
+    shown = [f"classes[{k}] {c!r}" for k, c in enumerate(materials)]
+    return materials, shown, [x[k][:, cols] for k in range(len(materials))], rate, origin
 
 
-def _read_csv_folder(folder: Path) -> tuple[list[str], list[np.ndarray], float, str]:
+def _read_csv_folder(folder: Path) -> tuple[list[str], list[str], list[np.ndarray], float, str]:
     """The upstream form: a folder of ``<Material> 1.csv`` files (``HapMat dataset/``), each
     with a header ``time,accel_x,...,rota_z`` and one row per sample."""
     files = sorted(folder.glob("*.csv"))
@@ -87,13 +124,34 @@ def _read_csv_folder(folder: Path) -> tuple[list[str], list[np.ndarray], float, 
         classes.append(re.sub(r"\s+\d+$", "", f.stem))  # "Paper 1" -> "Paper"
         series.append(table[:, [header.index(c) for c in SOURCE_COLUMNS]])
         rates.append(1.0 / step.mean())
-    if len({c.lower() for c in classes}) != len(classes):  # labels are lower case
-        raise RecordingError(f"{folder}: more than one recording of one material {classes}")
     if max(rates) - min(rates) > 1e-3 * max(rates):
         found = ", ".join(f"{c} {r:g} Hz" for c, r in zip(classes, rates))
         raise RecordingError(f"{folder}: the files' sample rates differ ({found})")
     rate = round(float(np.mean(rates)), 6)
-    return classes, series, rate, "HapMat (haptic-kinematics repository, CSV files)"
+    return (classes, [repr(f.name) for f in files], series, rate,
+            "HapMat (haptic-kinematics repository, CSV files)")
+
+
+def _labels(source: Path, materials: list[str], shown: list[str]) -> list[str]:
+    """The takes' labels, each material in lower case; :class:`RecordingError` naming
+    ``source`` and the material (``shown``) when one cannot be a label, or when two would be
+    one class (:func:`class_key`: ``Paper`` and ``paper``, a name given twice): one take per
+    material, never two of one label."""
+    labels: list[str] = []
+    seen: dict[str, str] = {}
+    for material, what in zip(materials, shown):
+        try:
+            label = check_label(material.lower())
+        except RecordingError as e:
+            raise RecordingError(f"{source}: {what}: {e}") from None
+        key = class_key(label)
+        if key in seen:
+            raise RecordingError(f"{source}: more than one recording of one material: "
+                                 f"{seen[key]} and {what} (one take per material; names that "
+                                 "differ only in case are one class)")
+        seen[key] = what
+        labels.append(label)
+    return labels
 
 
 def import_hapmat(source: Path, out: Path, force: bool = False) -> list[Path]:
@@ -105,17 +163,18 @@ def import_hapmat(source: Path, out: Path, force: bool = False) -> list[Path]:
         raise RecordingError(f"{source}: no such file or folder (give the 'HapMat dataset' "
                              "folder of CSV files or hapmat_stick_imu.npz)")
     if source.is_dir():
-        classes, series, rate, origin = _read_csv_folder(source)
+        classes, shown, series, rate, origin = _read_csv_folder(source)
     else:
-        classes, series, rate, origin = _read_npz(source)
+        classes, shown, series, rate, origin = _read_npz(source)
+    labels = _labels(source, classes, shown)
     info = DeviceInfo(rate, CHANNELS, device="hapmat-stick-imu")
     to_deg = np.array([1, 1, 1, 180 / math.pi, 180 / math.pi, 180 / math.pi])
     takes = []  # every input checked before any take is replaced or written
-    for material, x in zip(classes, series):
+    for material, label, x in zip(classes, labels, series):
         values = x.astype(np.float64) * to_deg  # (n, 6)
         if not np.all(np.isfinite(values)):
             raise RecordingError(f"{source}: {material} holds NaN or inf")
-        takes.append((check_label(str(material).lower()), values))
+        takes.append((label, values))
     out = dataset_folder(out)
     replace_takes(out, [f"hapmat-{label}" for label, _ in takes], force, info)
     paths = []

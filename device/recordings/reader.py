@@ -18,7 +18,7 @@ import numpy as np
 
 from tactile.device.protocol.info import DeviceInfo
 from tactile.device.recordings.take import FIXED_COLUMNS, GAP_LINE, Take, _why, header_cell
-from tactile.device.recordings.take_meta import read_meta
+from tactile.device.recordings.take_meta import class_key, read_meta
 from tactile.errors import RecordingError
 
 
@@ -244,7 +244,7 @@ def load_dataset(folder: str | os.PathLike) -> list[Take]:
         seen[t.path.name] = t.path
     by_case: dict[str, Take] = {}
     for t in takes:  # 'Paper' and 'paper' would train as two classes of one surface
-        other = by_case.setdefault(t.label.casefold(), t)
+        other = by_case.setdefault(class_key(t.label), t)
         if other.label != t.label:
             raise RecordingError(
                 f"{folder}: labels {other.label!r} ({other.path.name}) and {t.label!r} "

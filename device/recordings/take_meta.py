@@ -119,6 +119,13 @@ def check_label(label: str) -> str:
     return label
 
 
+def class_key(label: str) -> str:
+    """What makes two labels one class: labels equal once case-folded (``Paper``, ``paper``)
+    would train as two classes of one surface, so a dataset's readers refuse them spelled two
+    ways, and an importer refuses two materials that would give them."""
+    return label.casefold()
+
+
 def read_meta(json_path: Path) -> tuple[dict, DeviceInfo]:
     """A take's JSON, checked key by key: (metadata, device header). Raises
     :class:`RecordingError` naming the file and the key."""
