@@ -448,6 +448,55 @@ def test_import_hapmat_refuses_an_npz_not_as_described(tmp_path, how, message):
     assert not (tmp_path / "out").exists()
 
 
+@pytest.mark.parametrize("fs_hz, message", [
+    (0.0, "fs_hz 0: the sample rate must be in (0, 1e+06] Hz"),
+    (-5.0, "fs_hz -5: the sample rate must be in (0, 1e+06] Hz"),
+    (float("nan"), "fs_hz nan: the sample rate must be in (0, 1e+06] Hz"),
+    (float("inf"), "fs_hz inf: the sample rate must be in (0, 1e+06] Hz"),
+    (2e6, "fs_hz 2e+06: the sample rate must be in (0, 1e+06] Hz"),
+    (np.array([100.0, 50.0]), "fs_hz is float64 of shape (2,), expected one number (the sample "
+                              "rate, Hz)"),
+])
+def test_import_hapmat_refuses_a_bad_rate_as_a_bad_file(tmp_path, fs_hz, message):
+    """An fs_hz of 0, -5 or NaN was the device's FrameError, exit code 2 (kept for ports and
+    pens) and a line without the file; two rates were a TypeError traceback. Now exit 1, one
+    line naming the file, and --force replaces nothing."""
+    from tactile.device.recordings.hapmat import SOURCE_COLUMNS
+
+    out = tmp_path / "out"
+    assert cli("tactile-import-hapmat", str(_hapmat_npz(tmp_path / "good.npz")), "--out",
+               str(out))[0] == 0
+    before = {p.name: p.read_bytes() for p in out.iterdir()}
+    bad = tmp_path / "bad.npz"
+    np.savez(bad, X=np.zeros((2, 30, 6)), classes=np.array(["Paper", "Wood"]),
+             channels=np.array(SOURCE_COLUMNS), fs_hz=fs_hz)
+    code, printed, err = cli("tactile-import-hapmat", str(bad), "--out", str(out), "--force")
+    assert (code, printed, err) == (1, "", f"tactile-import-hapmat: error: {bad}: {message}\n")
+    assert {p.name: p.read_bytes() for p in out.iterdir()} == before
+
+
+@pytest.mark.parametrize("times, message", [
+    ([0.0] * 10, "Paper 1.csv: time column does not rise (0 then 0 at line 3)"),
+    ([1 - k / 100 for k in range(10)], "Paper 1.csv: time column does not rise (1 then 0.99 at "
+                                       "line 3)"),
+    ([k * 1e-7 for k in range(10)], "sample rate 10000000.0 Hz: must be in (0, 1e+06]"),
+])
+def test_import_hapmat_refuses_a_csv_whose_time_gives_no_rate(tmp_path, times, message):
+    """A time column that stands still gave an infinite rate, the device's FrameError and exit
+    code 2; one that falls gave a negative rate ('sample rates differ (Paper -100 Hz)'); one
+    that gives a rate above the toolkit's limit, exit 2 too. Now one line naming the file (the
+    folder for the rate), exit 1."""
+    folder = tmp_path / "HapMat dataset"
+    folder.mkdir()
+    rows = "".join(f"{t!r},0,0,1,0,0,0\n" for t in times)
+    (folder / "Paper 1.csv").write_text("time,accel_x,accel_y,accel_z,rota_x,rota_y,rota_z\n"
+                                        + rows)
+    code, printed, err = cli("tactile-import-hapmat", str(folder), "--out", str(tmp_path / "o"))
+    assert (code, printed, err) == (1, "", f"tactile-import-hapmat: error: {folder}"
+                                           f"{'/' if 'Paper' in message else ': '}{message}\n")
+    assert not (tmp_path / "o").exists()
+
+
 def test_plot_groups_many_channels_into_panels():
     from tactile.device.protocol import ChannelSpec, DeviceInfo
     from tactile.device.recordings.plot import LEGEND_MAX, panels

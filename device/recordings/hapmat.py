@@ -11,11 +11,12 @@ from rad/s to the pen's deg/s. The pen's ``pressure_0/1`` are absent (the stick 
 sensor) and listed as such in each take's metadata. Values are stored as float64, scale 1.
 
 The bundled ``.npz`` holds the same: ``X`` (materials, samples, channels), ``classes`` (one
-name per material), ``channels`` (one name per channel of ``X``), ``fs_hz``. Every input is
-checked before a take is replaced or written; what is not as described (arrays of other shapes
-or lengths, a channel named twice, NaN or inf), two materials that would be one label (a name
-given twice, or names that differ only in case, ``Paper`` and ``paper``: one take per
-material) or a name that cannot be a label is one line naming the file, exit code 1.
+name per material), ``channels`` (one name per channel of ``X``), ``fs_hz`` (the rate, Hz).
+Every input is checked before a take is replaced or written; what is not as described (arrays
+of other shapes or lengths, a channel named twice, NaN or inf, a rate that is not one number in
+(0, 1e6] Hz, a CSV's time column that does not rise evenly), two materials that would be one
+label (a name given twice, or names that differ only in case, ``Paper`` and ``paper``: one
+take per material) or a name that cannot be a label is one line naming the file, exit code 1.
 """
 
 from __future__ import annotations
@@ -28,6 +29,7 @@ from pathlib import Path
 
 import numpy as np
 
+from tactile.contract_keys import MAX_RATE_HZ
 from tactile.device.protocol.info import ChannelSpec, DeviceInfo
 from tactile.device.recordings.reader import load_numbers
 from tactile.device.recordings.take import (
@@ -38,7 +40,7 @@ from tactile.device.recordings.take import (
 )
 from tactile.device.recordings.take_meta import class_key
 from tactile.device.recordings.writer import TakeWriter
-from tactile.errors import RecordingError
+from tactile.errors import FrameError, RecordingError
 
 CHANNELS = (
     ChannelSpec("accel_x", "g"),
@@ -61,13 +63,18 @@ def _read_npz(npz: Path) -> tuple[list[str], list[str], list[np.ndarray], float,
         if not isinstance(d, np.lib.npyio.NpzFile):
             raise ValueError("one array, not the arrays X, classes, channels and fs_hz")
         with d:
-            x, classes, channels = d["X"], d["classes"], d["channels"]
-            rate = float(d["fs_hz"])
+            x, classes, channels, fs = d["X"], d["classes"], d["channels"], d["fs_hz"]
             origin = str(d["source"]) if "source" in d.files else "HapMat"
-    except (OSError, KeyError, ValueError, TypeError, EOFError, zipfile.BadZipFile,
-            zlib.error) as e:
+    except (OSError, KeyError, ValueError, EOFError, zipfile.BadZipFile, zlib.error) as e:
         why = str(e).splitlines()[0] if str(e) else type(e).__name__
         raise RecordingError(f"{npz}: not the HapMat .npz ({why})") from None
+    if fs.ndim != 0 or fs.dtype.kind not in "iuf":
+        raise RecordingError(f"{npz}: fs_hz is {fs.dtype} of shape {fs.shape}, expected one "
+                             "number (the sample rate, Hz)")
+    rate = float(fs)
+    if not (math.isfinite(rate) and 0 < rate <= MAX_RATE_HZ):
+        raise RecordingError(f"{npz}: fs_hz {rate:g}: the sample rate must be in "
+                             f"(0, {MAX_RATE_HZ:g}] Hz")
     if x.ndim != 3 or x.dtype.kind not in "iuf":
         raise RecordingError(f"{npz}: X is {x.dtype} of shape {x.shape}, expected real numbers "
                              "of shape (materials, samples, channels)")
@@ -96,7 +103,8 @@ def _read_npz(npz: Path) -> tuple[list[str], list[str], list[np.ndarray], float,
 
 def _read_csv_folder(folder: Path) -> tuple[list[str], list[str], list[np.ndarray], float, str]:
     """The upstream form: a folder of ``<Material> 1.csv`` files (``HapMat dataset/``), each
-    with a header ``time,accel_x,...,rota_z`` and one row per sample."""
+    with a header ``time,accel_x,...,rota_z`` and one row per sample; the rate is that of the
+    time column (seconds), which rises in even steps."""
     files = sorted(folder.glob("*.csv"))
     if not files:
         raise RecordingError(f"{folder}: no .csv files (expected the HapMat dataset folder)")
@@ -119,6 +127,10 @@ def _read_csv_folder(folder: Path) -> tuple[list[str], list[str], list[np.ndarra
                                  f"{len(header)} columns")
         t = table[:, header.index("time")]
         step = np.diff(t)
+        if not np.all(step > 0):
+            i = int(np.argmin(step > 0))  # the first step that is not > 0 (NaN included)
+            raise RecordingError(f"{f}: time column does not rise ({t[i]:g} then {t[i + 1]:g} "
+                                 f"at line {i + 3})")
         if not np.allclose(step, step.mean(), rtol=0.01, atol=1e-6):
             raise RecordingError(f"{f}: time column is not evenly spaced")
         classes.append(re.sub(r"\s+\d+$", "", f.stem))  # "Paper 1" -> "Paper"
@@ -167,7 +179,10 @@ def import_hapmat(source: Path, out: Path, force: bool = False) -> list[Path]:
     else:
         classes, shown, series, rate, origin = _read_npz(source)
     labels = _labels(source, classes, shown)
-    info = DeviceInfo(rate, CHANNELS, device="hapmat-stick-imu")
+    try:
+        info = DeviceInfo(rate, CHANNELS, device="hapmat-stick-imu")
+    except FrameError as e:  # a device's error (exit code 2); here the input file's
+        raise RecordingError(f"{source}: {e}") from None
     to_deg = np.array([1, 1, 1, 180 / math.pi, 180 / math.pi, 180 / math.pi])
     takes = []  # every input checked before any take is replaced or written
     for material, label, x in zip(classes, labels, series):
