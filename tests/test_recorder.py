@@ -523,6 +523,38 @@ def test_hapmat_csv_folder_import_without_the_shared_data(tmp_path):
         import_hapmat(short, tmp_path / "out4")
 
 
+def test_hapmat_csv_folder_reads_csv_in_any_case(tmp_path):
+    """'Paper 1.CSV' was skipped without a word (the folder was globbed for '*.csv'): that
+    material was lost. It is read now, and refused when it and 'Paper 1.csv' would both be the
+    paper take."""
+    folder = tmp_path / "HapMat dataset"
+    data = _hapmat_folder(folder, {"Paper": 100.0, "Wood": 100.0})
+    (folder / "Paper 1.csv").rename(folder / "Paper 1.CSV")
+    assert [p.name for p in import_hapmat(folder, tmp_path / "out")] == [
+        "hapmat-paper.csv", "hapmat-wood.csv"]
+    takes = {t.label: t for t in load_dataset(tmp_path / "out")}
+    np.testing.assert_allclose(takes["paper"].values()[:, :3], data["paper"][:, :3], rtol=0,
+                               atol=1e-12)
+    (folder / "Paper 1.csv").write_text((folder / "Paper 1.CSV").read_text())
+    with pytest.raises(RecordingError, match=r"more than one recording of one material: "
+                       r"'Paper 1\.CSV' and 'Paper 1\.csv'"):
+        import_hapmat(folder, tmp_path / "out2")
+    assert not (tmp_path / "out2").exists()
+
+
+def test_hapmat_csv_folder_refuses_a_column_twice(tmp_path):
+    """A header with a second accel_x had its first copy imported without a word."""
+    folder = tmp_path / "HapMat dataset"
+    _hapmat_folder(folder, {"Paper": 100.0, "Wood": 100.0})
+    text = (folder / "Wood 1.csv").read_text().splitlines()
+    (folder / "Wood 1.csv").write_text("\n".join(
+        [text[0] + ",accel_x", *(row + ",5.0" for row in text[1:])]) + "\n")
+    with pytest.raises(RecordingError) as e:
+        import_hapmat(folder, tmp_path / "out3")
+    assert str(e.value) == f"{folder / 'Wood 1.csv'}: column 'accel_x' appears twice in the header"
+    assert not (tmp_path / "out3").exists()
+
+
 def test_bad_recordings_are_refused(tmp_path):
     info = PenSimulator("paper").info
     with TakeWriter(tmp_path, "paper", info, name="t") as w:

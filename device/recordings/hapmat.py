@@ -2,7 +2,8 @@
 (``tactile-import-hapmat``).
 
 The recordings come from https://github.com/henryyantq/haptic-kinematics (MIT licence), folder
-``HapMat dataset``: one ``<Material> 1.csv`` per material with a ``time`` column.
+``HapMat dataset``: one ``<Material> 1.csv`` per material with a ``time`` column (the suffix
+in any case: ``Paper 1.CSV`` is read too).
 
 Each material's 60 s session becomes one take labelled with the material in lower case. Channels
 map onto the pen's names: ``accel_x..z`` from HapMat's accelerometer (g, gravity already
@@ -10,13 +11,14 @@ removed upstream) and ``gyro_x..z`` from its calibrated rotation rate ``rota_x..
 from rad/s to the pen's deg/s. The pen's ``pressure_0/1`` are absent (the stick has no tip
 sensor) and listed as such in each take's metadata. Values are stored as float64, scale 1.
 
-The bundled ``.npz`` holds the same: ``X`` (materials, samples, channels), ``classes`` (one
-name per material), ``channels`` (one name per channel of ``X``), ``fs_hz`` (the rate, Hz).
-Every input is checked before a take is replaced or written; what is not as described (arrays
-of other shapes or lengths, a channel named twice, NaN or inf, a rate that is not one number in
-(0, 1e6] Hz, a CSV's time column that does not rise evenly), two materials that would be one
-label (a name given twice, or names that differ only in case, ``Paper`` and ``paper``: one
-take per material) or a name that cannot be a label is one line naming the file, exit code 1.
+The bundled ``.npz`` holds the same: ``X`` (materials, samples, channels), ``classes`` (one name
+per material), ``channels`` (one name per channel of ``X``), ``fs_hz`` (the rate, Hz). Every
+input is checked before a take is replaced or written; what is not as described (arrays of other
+shapes or lengths, a channel named twice, NaN or inf, a rate that is not one number in (0, 1e6]
+Hz, a CSV's time column that does not rise evenly, a CSV column named twice), two materials that
+would be one label (a name given twice, or names that differ only in case, ``Paper`` and
+``paper``: one take per material) or a name that cannot be a label is one line naming the file,
+exit code 1.
 """
 
 from __future__ import annotations
@@ -102,16 +104,20 @@ def _read_npz(npz: Path) -> tuple[list[str], list[str], list[np.ndarray], float,
 
 
 def _read_csv_folder(folder: Path) -> tuple[list[str], list[str], list[np.ndarray], float, str]:
-    """The upstream form: a folder of ``<Material> 1.csv`` files (``HapMat dataset/``), each
-    with a header ``time,accel_x,...,rota_z`` and one row per sample; the rate is that of the
-    time column (seconds), which rises in even steps."""
-    files = sorted(folder.glob("*.csv"))
+    """The upstream form: a folder of ``<Material> 1.csv`` files (``HapMat dataset/``; ``.CSV``
+    or any case of the suffix too), each with a header ``time,accel_x,...,rota_z`` (each column
+    once) and one row per sample; the rate is that of the time column (seconds), which rises in
+    even steps."""
+    files = sorted(p for p in folder.iterdir() if p.suffix.lower() == ".csv" and p.is_file())
     if not files:
         raise RecordingError(f"{folder}: no .csv files (expected the HapMat dataset folder)")
     classes, series, rates = [], [], []
     for f in files:
         with open(f, encoding="ascii", errors="replace") as fh:
             header = fh.readline().strip().split(",")
+        twice = next((c for k, c in enumerate(header) if c in header[:k]), None)
+        if twice is not None:  # which of the two would be the data?
+            raise RecordingError(f"{f}: column {twice!r} appears twice in the header")
         missing = [c for c in ("time", *SOURCE_COLUMNS) if c not in header]
         if missing:
             raise RecordingError(f"{f}: not a HapMat recording (no column {missing[0]!r})")
