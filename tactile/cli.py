@@ -234,8 +234,8 @@ class _ReaderMayGo:
 
 class Terminated(KeyboardInterrupt):
     """SIGTERM in a command that takes it as Ctrl-C (``command(terminable=True)``): raised
-    where the command is, so that the clean-up Ctrl-C runs (a half-written take removed) runs
-    for ``timeout``, ``kill`` and a service manager's stop too."""
+    where the command is, so that what a Ctrl-C cleans up (a half-written take) is cleaned up
+    after ``timeout``, ``kill`` and a service manager's stop too."""
 
 
 def _terminate(signum, frame) -> None:
