@@ -37,7 +37,6 @@ from tactile.training.sparse import SparseCoder
 pytestmark = pytest.mark.skipif(not native.available(), reason="native kernels not built")
 
 
-
 def _session(model: onnx.ModelProto, library: bool) -> ort.InferenceSession:
     so = ort.SessionOptions()
     so.intra_op_num_threads = 1
