@@ -72,8 +72,14 @@ update-binfmts --enable qemu-aarch64 2>/dev/null || true
 step "arm64 root (debootstrap)"
 mkdir -p "$CACHE"
 if [ ! -f "$ROOT/.tactile-root" ]; then
-  mirror=${DEBIAN_MIRROR:-$(grep -hoE '^(URIs:|deb) +https?://[^ ]+/debian/?' \
-    /etc/apt/sources.list.d/*.sources /etc/apt/sources.list 2>/dev/null | head -1 | awk '{print $2}')}
+  # the host's own Debian mirror, from whichever of the two source formats it has (a file that
+  # is not there, or holds no mirror, is no error)
+  mirror=${DEBIAN_MIRROR:-}
+  for f in /etc/apt/sources.list.d/*.sources /etc/apt/sources.list; do
+    [ -z "$mirror" ] && [ -f "$f" ] || continue
+    mirror=$({ grep -hoE '^(URIs:|deb) +https?://[^ ]+/debian/?' "$f" || true; } \
+      | awk 'NR == 1 {print $2}')
+  done
   mirror=${mirror:-http://deb.debian.org/debian}
   rm -rf "$ROOT.tmp"
   say "debootstrap $SUITE from $mirror (about 5 minutes)"
