@@ -49,6 +49,7 @@ cleanup() {
   exit "$rc"
 }
 trap cleanup EXIT
+trap 'say "error: a command at line $LINENO failed (exit $?)"' ERR  # set -e ends the script
 trap 'say "interrupted"; exit 130' INT
 trap 'say "terminated"; exit 143' TERM
 
