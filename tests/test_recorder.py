@@ -542,6 +542,19 @@ def test_hapmat_csv_folder_reads_csv_in_any_case(tmp_path):
     assert not (tmp_path / "out2").exists()
 
 
+def test_hapmat_csv_header_with_a_byte_order_mark_and_spaces(tmp_path):
+    """A spreadsheet's CSV ('\ufefftime, accel_x, ...') was 'not a HapMat recording (no column
+    'time')'."""
+    folder = tmp_path / "HapMat dataset"
+    data = _hapmat_folder(folder, {"Paper": 100.0})
+    text = (folder / "Paper 1.csv").read_text().splitlines()
+    (folder / "Paper 1.csv").write_bytes(
+        "\n".join(["\ufeff" + ", ".join(text[0].split(",")), *text[1:]]).encode() + b"\n")
+    import_hapmat(folder, tmp_path / "out")
+    take = load_dataset(tmp_path / "out")[0]
+    np.testing.assert_allclose(take.values()[:, :3], data["paper"][:, :3], rtol=0, atol=1e-12)
+
+
 def test_hapmat_csv_folder_refuses_a_column_twice(tmp_path):
     """A header with a second accel_x had its first copy imported without a word."""
     folder = tmp_path / "HapMat dataset"

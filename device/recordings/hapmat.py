@@ -113,8 +113,9 @@ def _read_csv_folder(folder: Path) -> tuple[list[str], list[str], list[np.ndarra
         raise RecordingError(f"{folder}: no .csv files (expected the HapMat dataset folder)")
     classes, series, rates = [], [], []
     for f in files:
-        with open(f, encoding="ascii", errors="replace") as fh:
-            header = fh.readline().strip().split(",")
+        # a spreadsheet's export may start with a UTF-8 byte-order mark and pad the names
+        with open(f, encoding="utf-8-sig", errors="replace") as fh:
+            header = [c.strip() for c in fh.readline().split(",")]
         twice = next((c for k, c in enumerate(header) if c in header[:k]), None)
         if twice is not None:  # which of the two would be the data?
             raise RecordingError(f"{f}: column {twice!r} appears twice in the header")
