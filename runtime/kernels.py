@@ -43,11 +43,13 @@ def library_path() -> Path | None:
 
 
 def has_custom_nodes(path: str | os.PathLike) -> bool:
-    """Whether a node of the file is in the ``ai.tactile`` domain: a byte search, since the
-    runtime has no onnx package to parse the file with, for the domain as a node's field 7
-    (protobuf tag 0x3a, then its length), not as an opset import or a function's domain,
-    which a file without such nodes may name too."""
-    domain = CUSTOM_DOMAIN.encode()
+    """Whether a node of the file (in its graph, a subgraph or a function's body) is in the
+    ``ai.tactile`` domain: a byte search, since the runtime has no onnx package to parse the
+    file with, for the domain as a node's field 7 (protobuf tag 0x3a, then its length), not as
+    an opset import or a function's domain, which a file without such nodes may name too. A
+    text field holding ``":\nai.tactile"`` would match as well: the library is then
+    registered for nothing, and no result changes."""
+    domain = CUSTOM_DOMAIN.encode()  # under 128 bytes: its length is one varint byte
     try:
         return bytes([0x3A, len(domain)]) + domain in Path(path).read_bytes()
     except OSError:

@@ -107,11 +107,11 @@ class _Server(ThreadingHTTPServer):
                 self.connections -= 1
 
     def handle_error(self, request, client_address) -> None:
-        """A viewer that resets or drops its connection mid-request is its own business: the
-        page goes on, and stderr (the command's diagnostics) gets no traceback. Anything else
-        is one line."""
+        """A viewer that resets, drops or stalls its connection mid-request is its own
+        business: the page goes on, and stderr (the command's diagnostics) gets no traceback.
+        Anything else (a page file that cannot be read, say) is one line."""
         e = sys.exc_info()[1]
-        if isinstance(e, OSError):
+        if isinstance(e, (ConnectionError, TimeoutError)):
             return
         self.live.say(f"live page: a request from {client_address[0]} failed "
                       f"({type(e).__name__}: {e})")

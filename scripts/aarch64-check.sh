@@ -14,7 +14,7 @@
 # Nothing outside the cache folder changes except the Debian packages it installs when missing
 # (qemu-user-static, binfmt-support, debootstrap) and the mounts, which it undoes on exit, on
 # failure and on Ctrl-C. Exit 0 when every step passed; else the failing step's code.
-set -euo pipefail
+set -Eeuo pipefail  # -E: the ERR trap below in functions too
 cd "$(dirname "$0")/.."
 REPO=$PWD
 CACHE=${TACTILE_AARCH64_CACHE:-${XDG_CACHE_HOME:-$HOME/.cache}/tactile-aarch64}

@@ -18,6 +18,7 @@ from tactile.errors import ConfigError, DeviceError, ModelContractError, Tactile
 
 # Exit codes, documented in README.md: 0 ok, 1 bad input, 2 device/port, 3 model contract.
 EXIT_OK, EXIT_USAGE, EXIT_DEVICE, EXIT_CONTRACT = 0, 1, 2, 3
+EXIT_INTERRUPTED, EXIT_TERMINATED = 130, 143  # the shell's codes for an end by SIGINT, SIGTERM
 
 
 def exit_code(err: BaseException) -> int:
@@ -125,8 +126,9 @@ def float_in(low: float, high: float = math.inf, low_open: bool = True,
 
 
 def path_given(text: str) -> Path:
-    """An argparse type: a path that is not empty (``Path("")`` is the current folder)."""
-    if not text.strip():
+    """An argparse type: a path that is not empty (``Path("")`` is the current folder; a
+    name of spaces is a name)."""
+    if text == "":
         raise argparse.ArgumentTypeError("an empty path")
     return Path(text)
 
@@ -288,9 +290,9 @@ def command(prog: str, *, guarded: bool = False, interruptible: bool = False,
                     raise
                 if isinstance(e, Terminated):
                     print(f"{prog}: terminated (SIGTERM)", file=sys.stderr)
-                    return 143
+                    return EXIT_TERMINATED
                 print(f"{prog}: interrupted", file=sys.stderr)
-                return 130
+                return EXIT_INTERRUPTED
             finally:
                 if term is not None:
                     signal.signal(signal.SIGTERM, term)

@@ -429,10 +429,14 @@ def test_a_viewer_that_resets_its_connection_gets_no_traceback_on_stderr(live, c
         raise ConnectionResetError(104, "Connection reset by peer")
     except ConnectionResetError:
         live._server.handle_error(None, ("127.0.0.1", 5))
-    try:
-        raise ValueError("bad")
-    except ValueError:
-        live._server.handle_error(None, ("127.0.0.1", 6))
+    for e in (ValueError("bad"), FileNotFoundError(2, "No such file", "app.js")):
+        try:
+            raise e
+        except Exception:
+            live._server.handle_error(None, ("127.0.0.1", 6))
     err = capsys.readouterr().err
     assert "Traceback" not in err and "Exception occurred" not in err, err
-    assert live.said[-1] == "live page: a request from 127.0.0.1 failed (ValueError: bad)"
+    assert live.said[-2:] == [
+        "live page: a request from 127.0.0.1 failed (ValueError: bad)",
+        "live page: a request from 127.0.0.1 failed (FileNotFoundError: [Errno 2] No such "
+        "file: 'app.js')"]

@@ -75,11 +75,10 @@ def _main(args: argparse.Namespace) -> int:
         print(f"tactile-sim: {len(paths)} take{'' if len(paths) == 1 else 's'} in {args.dataset} "
               f"({time.perf_counter() - t0:.1f} s)", file=sys.stderr)
         return 0
-    query = f"texture={args.texture}&seed={args.seed}&rate={args.rate}&speed={args.speed}"
-    if args.seconds:
-        query += f"&seconds={args.seconds}"
+    own = ("texture", "seed", "rate", "speed", "seconds")  # the link keys with an option
+    query = "&".join(f"{k}={getattr(args, k)}" for k in own
+                     if k != "seconds" or args.seconds)  # no --seconds: until stopped
     if args.link:
-        own = {"texture", "seed", "rate", "speed", "seconds"}  # the options of their own
         given = next((k for k, _ in parse_qsl(args.link, keep_blank_values=True) if k in own),
                      None)
         if given is not None:

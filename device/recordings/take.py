@@ -119,9 +119,9 @@ def replace_takes(folder: Path, stems: list[str], force: bool,
     of those names in a sub-folder, even with ``force``."""
     if info is not None:
         check_joins(folder, set(stems), info)
-    names = set(stems)  # a dataset's readers refuse two takes of one name in its tree
-    deeper = next((p for p in sorted(folder.rglob("*.csv")) if p.parent != folder
-                   and p.stem in names), None)
+    names = set(stems)  # a dataset's readers refuse two takes (.csv + .json) of one name
+    deeper = min((p.with_suffix(".csv") for p in folder.rglob("*.json") if p.stem in names
+                  and p.parent != folder and p.with_suffix(".csv").is_file()), default=None)
     if deeper is not None:
         raise RecordingError(f"{deeper}: a take of that name in a sub-folder of {folder} (a "
                              "dataset's takes need names of their own): choose another folder")

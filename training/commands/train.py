@@ -14,9 +14,7 @@ import sys
 import tempfile
 from pathlib import Path
 
-from tactile.cli import Parser, add_debug, command, path_given, run
-
-EXIT_INTERRUPTED = 130  # the shell's code for a command ended by SIGINT
+from tactile.cli import EXIT_INTERRUPTED, Parser, add_debug, command, path_given, run
 
 
 def build_parser() -> argparse.ArgumentParser:
