@@ -321,12 +321,14 @@ def add_port_options(parser: argparse.ArgumentParser, page: str,
     """The options of every command that reads a pen live (``tactile-run``,
     ``tactile-monitor``): ``--baud``, ``--seconds``, ``--stall-timeout`` and ``--serve`` (the
     page's contents, ``page``, and what ends the command without ``--seconds``, ``until``, are
-    said in their help)."""
-    parser.add_argument("--baud", type=int_in(1), default=BAUD,
+    said in their help). ``--baud`` and ``--stall-timeout`` stay None unless given, so that a
+    command can tell (``tactile-run --replay`` refuses them): :func:`link_values` gives them
+    with their defaults."""
+    parser.add_argument("--baud", type=int_in(1),
                         help=f"UART baud rate (default {BAUD})")
     parser.add_argument("--seconds", type=float_in(0.0), default=math.inf,
                         help=f"stop after this long, s of wall time (default: until {until})")
-    parser.add_argument("--stall-timeout", type=float_in(0.0), default=STALL_TIMEOUT,
+    parser.add_argument("--stall-timeout", type=float_in(0.0),
                         help="report a stall after this many seconds without data (default "
                         f"{STALL_TIMEOUT:g})")
     parser.add_argument("--serve", metavar="HOST:PORT", type=_address,
@@ -335,5 +337,13 @@ def add_port_options(parser: argparse.ArgumentParser, page: str,
                         "on stderr)")
 
 
+def link_values(args: argparse.Namespace) -> tuple[int, float]:
+    """``--baud`` and ``--stall-timeout`` of :func:`add_port_options`, their defaults where
+    not given."""
+    return (BAUD if args.baud is None else args.baud,
+            STALL_TIMEOUT if args.stall_timeout is None else args.stall_timeout)
+
+
 __all__ = ["ConfigError", "Parser", "run", "add_debug", "add_port_options", "exit_code",
-           "float_in", "int_in", "parse_address", "path_given", "EXIT_DEVICE", "EXIT_USAGE"]
+           "float_in", "int_in", "link_values", "parse_address", "path_given", "EXIT_DEVICE",
+           "EXIT_USAGE"]

@@ -147,6 +147,18 @@ def _broken(tmp_path: Path, how: str) -> Path:
             g["finger_0/electrodes"][7, 3] = 4096
         elif how == "name":
             f.move("cork_pdc100_1cm_02", "cork_trial_2")
+        elif how == "external":  # links that lead nowhere
+            del g["finger_1/pdc"]
+            g["finger_1/pdc"] = h5py.ExternalLink("gone.h5", "/pdc")
+        elif how == "soft":
+            del g["timestamps"]
+            g["timestamps"] = h5py.SoftLink("/nowhere")
+        elif how == "finger":
+            del g["finger_0"]
+            g["finger_0"] = h5py.SoftLink("/nowhere")
+        elif how == "trial":
+            del f["cork_pdc100_1cm_02"]
+            f["cork_pdc100_1cm_02"] = h5py.ExternalLink("gone.h5", "/cork_pdc100_1cm_02")
     return path
 
 
@@ -183,22 +195,7 @@ def test_a_link_that_leads_nowhere_is_one_line_naming_file_trial_and_dataset(
     """An HDF5 external link to a missing file, or a soft link to a path the file lacks, in
     place of a dataset was a KeyError traceback from h5py naming neither the file nor the
     dataset. A link that does lead to the data is followed."""
-    path = tmp_path / f"{how}.h5"
-    write_h5(path, {"cork_pdc100_1cm_01": 50, "cork_pdc100_1cm_02": 40})
-    with h5py.File(path, "a") as f:
-        g = f["cork_pdc100_1cm_02"]
-        if how == "external":
-            del g["finger_1/pdc"]
-            g["finger_1/pdc"] = h5py.ExternalLink("gone.h5", "/pdc")
-        elif how == "soft":
-            del g["timestamps"]
-            g["timestamps"] = h5py.SoftLink("/nowhere")
-        elif how == "finger":
-            del g["finger_0"]
-            g["finger_0"] = h5py.SoftLink("/nowhere")
-        else:
-            del f["cork_pdc100_1cm_02"]
-            f["cork_pdc100_1cm_02"] = h5py.ExternalLink("gone.h5", "/cork_pdc100_1cm_02")
+    path = _broken(tmp_path, how)
     code, err = _run(str(path), "--out", str(tmp_path / "out"))
     assert code == 1 and len(err) == 1, err
     assert err[0].startswith(f"tactile-import-biotac: error: {path}: {message}"), err

@@ -15,7 +15,7 @@ import argparse
 import math
 import sys
 
-from tactile.cli import Parser, add_debug, command, float_in, int_in, path_given, run
+from tactile.cli import BAUD, Parser, add_debug, command, float_in, int_in, path_given, run
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -36,7 +36,7 @@ def build_parser() -> argparse.ArgumentParser:
                    help="dataset folder (created if missing)")
     p.add_argument("--seconds", type=float_in(0.0), default=math.inf,
                    help="stop after this much data")
-    p.add_argument("--baud", type=int_in(1), default=115200, help="UART baud rate (default 115200)")
+    p.add_argument("--baud", type=int_in(1), default=BAUD, help=f"UART baud rate (default {BAUD})")
     p.add_argument("--csv-rate", type=float_in(0.0), default=100.0,
                    help="rate of CSV-mode devices, Hz")
     p.add_argument("--quiet", action="store_true", help="no progress lines on stderr")

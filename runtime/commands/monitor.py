@@ -23,7 +23,15 @@ import argparse
 import sys
 import time
 
-from tactile.cli import Parser, add_debug, add_port_options, command, float_in, run
+from tactile.cli import (
+    Parser,
+    add_debug,
+    add_port_options,
+    command,
+    float_in,
+    link_values,
+    run,
+)
 
 CSV_RATE = 100.0  # --csv-rate's default, Hz
 
@@ -75,7 +83,8 @@ def _monitor(args: argparse.Namespace) -> int:
 
         live = Live(*parse_address(args.serve), status=dict, say=say, labels=False)
     begin = time.monotonic()
-    settings = LinkSettings(port, args.baud, auto=auto, stall_timeout=args.stall_timeout)
+    baud, stall_timeout = link_values(args)
+    settings = LinkSettings(port, baud, auto=auto, stall_timeout=stall_timeout)
     decoder = StreamDecoder(csv_rate_hz=CSV_RATE if args.csv_rate is None else args.csv_rate)
     try:
         with Connection(settings, decoder, stop, say, begin + args.seconds) as conn:

@@ -22,14 +22,13 @@ import sys
 from typing import TYPE_CHECKING
 
 from tactile.cli import (
-    BAUD,
-    STALL_TIMEOUT,
     Parser,
     add_debug,
     add_port_options,
     command,
     float_in,
     int_in,
+    link_values,
     path_given,
     run,
 )
@@ -90,8 +89,6 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--no-native", action="store_true",
                    help="run the portable EMD/sparse-code graphs, not the C kernels")
     add_port_options(p, "the channels, labels and link")
-    # the port's settings are None unless given, so that --replay can refuse them
-    p.set_defaults(baud=None, stall_timeout=None)
     add_debug(p)
     return p
 
@@ -172,10 +169,9 @@ def _read(args: argparse.Namespace, runner: Runner, decoder: StreamDecoder, dead
     if port is None:
         port = wait_for_pen(stop, deadline, status_every) if args.wait else find_port()
     if port is not None:  # None: stopped while waiting for a pen
-        settings = LinkSettings(
-            port, BAUD if args.baud is None else args.baud, auto=auto, wait=args.wait,
-            stall_timeout=STALL_TIMEOUT if args.stall_timeout is None else args.stall_timeout,
-            status_every=status_every)
+        baud, stall_timeout = link_values(args)
+        settings = LinkSettings(port, baud, auto=auto, wait=args.wait,
+                                stall_timeout=stall_timeout, status_every=status_every)
         read_pen(runner, decoder, settings, stop, deadline)
 
 
