@@ -173,6 +173,8 @@ def test_sim_dataset_neither_overwrites_nor_duplicates(tmp_path):
     (("--textures", ","), "no texture given: give one or more of desk, "),
     (("--seconds", "0.001"), "--seconds 0.001 at 100 Hz: not one sample a take"),
     (("--seconds", "inf"), "--seconds inf: a take needs a finite length"),
+    (("--seconds", "1e300"), "--seconds 1e+300 x 7 takes at 100 Hz: at least 4.52e+290 PB, "
+                             "and the disk of "),  # not a disk filled a take at a time
     (("--texture", "desk"), "--texture is not an option of --dataset"),
     (("--link", "drop=0.5"), "--link is not an option of --dataset"),
     (("--speed", "4"), "--speed is not an option of --dataset"),
@@ -282,6 +284,17 @@ def test_sim_pty_refuses_a_link_key_given_twice_or_with_its_own_option(link, say
     code, _, err = cli("tactile-sim", "--pty", "--rate", "300", "--seconds", "0.1",
                        "--link", link)
     assert code == 1 and says in err and err.count("\n") == 1, err
+
+
+def test_sim_pty_passes_a_number_with_an_exponent_to_the_link():
+    """--seconds 1e20 reached the link as '1e 20' (a + in a query is a space): exit 1."""
+    from tactile.device.commands.sim import PTY_ONLY, build_parser, link_query
+    from tactile.device.sim.simlink import LinkConfig
+
+    args = build_parser().parse_args(["--pty", "--seconds", "1e20", "--link", "garbage=0.01"])
+    args.texture, args.speed = PTY_ONLY["texture"], PTY_ONLY["speed"]  # as main() fills them
+    cfg = LinkConfig.from_query(link_query(args))
+    assert (cfg.seconds, cfg.garbage, cfg.rate) == (1e20, 0.01, 100.0)
 
 
 @pytest.mark.parametrize("option", [("--takes", "3"), ("--textures", "paper"),

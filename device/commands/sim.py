@@ -53,13 +53,10 @@ PTY_ONLY = {"texture": "paper", "link": "", "speed": 1.0}
 
 
 def _main(args: argparse.Namespace) -> int:
-    from urllib.parse import parse_qsl
-
     from tactile.device.sim.dataset import make_dataset
     from tactile.device.sim.pty_server import serve_pty
     from tactile.device.sim.simlink import LinkConfig
     from tactile.device.sim.textures import TEXTURES
-    from tactile.errors import ConfigError
 
     # the parser leaves a mode's own options None when not given: their defaults
     for key, default in {**DATASET_ONLY, **PTY_ONLY}.items():
@@ -75,18 +72,31 @@ def _main(args: argparse.Namespace) -> int:
         print(f"tactile-sim: {len(paths)} take{'' if len(paths) == 1 else 's'} in {args.dataset} "
               f"({time.perf_counter() - t0:.1f} s)", file=sys.stderr)
         return 0
-    own = ("texture", "seed", "rate", "speed", "seconds")  # the link keys with an option
-    query = "&".join(f"{k}={getattr(args, k)}" for k in own
-                     if k != "seconds" or args.seconds)  # no --seconds: until stopped
+    serve_pty(LinkConfig.from_query(link_query(args)))
+    return 0
+
+
+OWN = ("texture", "seed", "rate", "speed", "seconds")  # the link keys with an option
+
+
+def link_query(args: argparse.Namespace) -> str:
+    """The ``sim://`` query of ``--pty``'s options and ``--link`` (a ``--link`` key that has an
+    option of its own is refused: one of the two would be ignored)."""
+    from urllib.parse import parse_qsl, urlencode
+
+    from tactile.errors import ConfigError
+
+    # encoded: --seconds 1e20 is 1e+20, and a + in a query is a space
+    query = urlencode([(k, getattr(args, k)) for k in OWN
+                       if k != "seconds" or args.seconds])  # no --seconds: until stopped
     if args.link:
-        given = next((k for k, _ in parse_qsl(args.link, keep_blank_values=True) if k in own),
+        given = next((k for k, _ in parse_qsl(args.link, keep_blank_values=True) if k in OWN),
                      None)
         if given is not None:
             raise ConfigError(f"--link {given}=...: give --{given} instead (an option of its "
                               "own)")
         query += "&" + args.link
-    serve_pty(LinkConfig.from_query(query))
-    return 0
+    return query
 
 
 @command("tactile-sim", interruptible=True, files=True, terminable=True)

@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import shutil
 import zlib
 from pathlib import Path
 
@@ -50,12 +51,21 @@ def make_dataset(
         raise ConfigError(f"--seconds {seconds}: a take needs a finite length")
     if round(seconds * rate_hz) < 1:
         raise ConfigError(f"--seconds {seconds} at {rate_hz:g} Hz: not one sample a take")
+    n = round(seconds * rate_hz)
+    # a CSV row is at least its two counters and ~35 bytes of samples: refuse a dataset that
+    # cannot fit before writing any of it (--seconds 1e300 would fill the disk, a take at a time)
+    need = takes * len(textures) * n * (35 + len(f"{n},{round(n * 1e6 / rate_hz)}"))
+    there = next((p for p in (Path(out), *Path(out).parents) if p.is_dir()), Path("."))
+    free = shutil.disk_usage(there).free
+    if need > free:
+        raise ConfigError(f"--seconds {seconds:g} x {takes * len(textures)} takes at "
+                          f"{rate_hz:g} Hz: at least {_size(need)}, and the disk of {out} has "
+                          f"{_size(free)} free")
     out = dataset_folder(out)
     replace_takes(out, [f"{t}-user{k:03d}" for k in range(first_take, first_take + takes)
                         for t in textures], force,
                   PenSimulator(textures[0], seed=0, rate_hz=rate_hz).info)
     paths = []
-    n = round(seconds * rate_hz)
     for k in range(first_take, first_take + takes):
         for texture in textures:
             s = take_seed(seed, texture, k)
@@ -73,6 +83,15 @@ def make_dataset(
                     w.write(start, round(start * 1e6 / rate_hz), raw)
             paths.append(w.csv_path)
     return paths
+
+
+def _size(n: float) -> str:
+    """``n`` bytes in the largest unit that keeps it >= 1 (``12.3 GB``)."""
+    for unit in ("bytes", "kB", "MB", "GB", "TB", "PB"):
+        if n < 1000 or unit == "PB":
+            return f"{n:.3g} {unit}" if unit != "bytes" else f"{n:.0f} bytes"
+        n /= 1000
+    raise AssertionError
 
 
 __all__ = ["make_dataset", "take_seed"]
