@@ -323,3 +323,26 @@ def test_a_state_saved_before_the_wide_path_and_ensembles_goes_on_as_one_plain_m
     model, ck = load_checkpoint(run)
     assert model.head.wide is None and ck["config"]["wide"] is False
     assert ck["config"]["ensemble"] == 1 and model.state_shape == (2, 12)
+
+
+def test_a_second_training_into_a_folder_being_written_is_refused(dataset, tmp_path, capsys):
+    """Two trainings started into one --out both found no run there, and their files mixed
+    (one's config beside the other's weights). The folder is held while a training writes."""
+    import fcntl
+    import os
+
+    run = tmp_path / "run"
+    run.mkdir()
+    fd = os.open(run, os.O_RDONLY)  # as the first training holds it
+    try:
+        fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        sets = [f"--set={k}={v}" for k, v in {**SMALL, "epochs": 1}.items()]
+        assert train_main([str(dataset), "--out", str(run), "--quiet", *sets]) == 1
+        assert capsys.readouterr().err == (f"tactile-train: error: --out {run}: another "
+                                           "tactile-train is writing into it now: choose "
+                                           "another --out\n")
+        assert list(run.iterdir()) == []
+    finally:
+        os.close(fd)  # the first one ends: the folder is free again
+    assert train_main([str(dataset), "--out", str(run), "--quiet", *sets]) == 0
+    assert (run / "checkpoint.pt").is_file()

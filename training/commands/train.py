@@ -8,6 +8,7 @@ RUN`` continues a run that Ctrl-C stopped (exit 130), with its own settings. Und
 from __future__ import annotations
 
 import argparse
+import contextlib
 import os
 import signal
 import sys
@@ -100,13 +101,47 @@ def _check_out(out: Path) -> None:
             d.rmdir()
 
 
+@contextlib.contextmanager
+def _held(out: Path):
+    """Hold the run folder ``out`` while training writes it: a second ``tactile-train`` into
+    it at the same time is refused (both passed the check for a run there, and the two runs'
+    files would mix). The hold is an advisory lock on the folder, which ends with the process
+    however it ends; a folder made here and left empty is removed again."""
+    try:
+        import fcntl
+    except ImportError:  # no advisory locks (Windows): not held
+        yield
+        return
+    if os.environ.get("RANK", "0") != "0":  # a torchrun job: rank 0 holds the folder
+        yield
+        return
+    from tactile.errors import ConfigError
+
+    made = not out.exists()
+    out.mkdir(parents=True, exist_ok=True)
+    fd = os.open(out, os.O_RDONLY)
+    try:
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            raise ConfigError(f"--out {out}: another tactile-train is writing into it now: "
+                              "choose another --out") from None
+        yield
+    finally:
+        os.close(fd)
+        if made:
+            with contextlib.suppress(OSError):  # only when nothing was written
+                out.rmdir()
+
+
 def _train(args: argparse.Namespace) -> int:
     from tactile.training.evaluate import shifted_line, table
     from tactile.training.train import train
 
     cfg, data, out, resume = _settings(args)
     try:
-        m = train(data, out, cfg, progress=not args.quiet, resume=resume)
+        with _held(out):
+            m = train(data, out, cfg, progress=not args.quiet, resume=resume)
     except KeyboardInterrupt:  # before the first epoch (loading, EMD features): nothing to keep
         print("tactile-train: interrupted before training started: nothing saved",
               file=sys.stderr)
