@@ -15,9 +15,9 @@ import sys
 import pytest
 import torch
 
+from tactile.cli import EXIT_INTERRUPTED, EXIT_TERMINATED, Terminated
 from tactile.device.sim import make_dataset
 from tactile.training.checkpoint import RESUME, load_checkpoint, load_resume
-from tactile.training.commands.train import EXIT_INTERRUPTED
 from tactile.training.commands.train import main as train_main
 from tactile.training.config import TrainConfig
 from tactile.training.log import Stop
@@ -110,22 +110,27 @@ def test_a_stop_in_mid_epoch_rolls_back_to_the_last_finished_epoch(dataset, tmp_
     assert_same_run(tmp_path / "full", tmp_path / "cut", full, resumed)
 
 
-def test_ctrl_c_in_the_command_exits_130_without_a_traceback_and_resume_finishes(
-        dataset, tmp_path, capsys):
+@pytest.mark.parametrize("sig, exit_code", [("SIGINT", EXIT_INTERRUPTED),
+                                             ("SIGTERM", EXIT_TERMINATED)])
+def test_ctrl_c_or_sigterm_in_the_command_saves_without_a_traceback_and_resume_finishes(
+        dataset, tmp_path, capsys, sig, exit_code):
+    """SIGTERM (timeout, kill, systemd, a batch scheduler) killed the training at once, with
+    nothing saved; it now stops and saves as Ctrl-C does, and exits 143."""
     run = tmp_path / "run"
     sets = [f"--set={k}={v}" for k, v in {**SMALL, "epochs": 3}.items()]
     code = ("import functools, signal, sys\n"
             "import tactile.training.train as t\n"
             "from tactile.training.commands.train import main\n"
             "def hook(phase, epoch):\n"
-            "    if epoch == 1: signal.raise_signal(signal.SIGINT)\n"
+            f"    if epoch == 1: signal.raise_signal(signal.{sig})\n"
             "t.train = functools.partial(t.train, on_epoch=hook)\n"
             "sys.exit(main(sys.argv[1:]))\n")
     proc = subprocess.run([sys.executable, "-c", code, str(dataset), "--out", str(run), *sets],
                           capture_output=True, text=True, timeout=600)
-    assert proc.returncode == EXIT_INTERRUPTED, proc.stderr
+    assert proc.returncode == exit_code, proc.stderr
     assert "Traceback" not in proc.stderr and "KeyboardInterrupt" not in proc.stderr
-    assert "interrupted" in proc.stderr and f"--resume {run}" in proc.stderr
+    assert f"interrupted ({sig}): fit epoch 1 was the last finished" in proc.stderr
+    assert f"--resume {run}" in proc.stderr
     assert json.loads((run / "metrics.json").read_text())["interrupted"] is True
     # the folder holds a run: a new training refuses it, --resume continues it
     assert train_main([str(dataset), "--out", str(run), "--quiet"]) == 1
@@ -142,15 +147,20 @@ def test_ctrl_c_in_the_command_exits_130_without_a_traceback_and_resume_finishes
     assert "nothing to resume" in capsys.readouterr().err
 
 
-def test_sigint_before_the_first_epoch_saves_nothing(dataset, tmp_path, monkeypatch, capsys):
+@pytest.mark.parametrize("stop, exit_code, says", [
+    (KeyboardInterrupt, EXIT_INTERRUPTED, "interrupted"),
+    (Terminated, EXIT_TERMINATED, "terminated (SIGTERM)")])
+def test_sigint_or_sigterm_before_the_first_epoch_saves_nothing(
+        dataset, tmp_path, monkeypatch, capsys, stop, exit_code, says):
     import tactile.training.train as t
 
     def interrupted(*a, **k):
-        raise KeyboardInterrupt  # as SIGINT does while the takes load or EMD runs
+        raise stop  # as SIGINT (SIGTERM) does while the takes load or EMD runs
 
     monkeypatch.setattr(t, "load_dataset", interrupted)
-    assert train_main([str(dataset), "--out", str(tmp_path / "r")]) == EXIT_INTERRUPTED
-    assert "nothing saved" in capsys.readouterr().err
+    assert train_main([str(dataset), "--out", str(tmp_path / "r")]) == exit_code
+    assert capsys.readouterr().err == f"tactile-train: {says} before training started: " \
+        "nothing saved\n"
     assert not (tmp_path / "r").exists()
 
 

@@ -1,9 +1,11 @@
-"""What training says and hears: diagnostics on stderr (:class:`Log`) and Ctrl-C (:class:`Stop`)."""
+"""What training says and hears: diagnostics on stderr (:class:`Log`), and Ctrl-C and SIGTERM
+(:class:`Stop`)."""
 
 from __future__ import annotations
 
 import signal
 import sys
+import threading
 
 from tactile.training.dist import Dist
 
@@ -29,20 +31,29 @@ class Log:
 class Stop:
     """SIGINT while training: noted, and the loop stops at the next batch (``requested``),
     rolls back to the last finished epoch and saves. Used as a context manager around the
-    epochs; outside it SIGINT is Python's KeyboardInterrupt."""
+    epochs; outside it SIGINT is Python's KeyboardInterrupt. SIGTERM (``timeout``, ``kill``,
+    a service manager or a batch scheduler stopping the job) does the same in a training of
+    one process; under torchrun it is how the agent ends the workers, so it is left to them.
+    ``signal``: the name of the signal that stopped it (None: none did)."""
 
     def __init__(self, dist: Dist) -> None:
-        self.dist, self.flag, self._old = dist, False, None
+        self.dist, self.flag, self.signal = dist, False, None
+        self._old: dict = {}
 
     def __enter__(self) -> Stop:
-        self._old = signal.signal(signal.SIGINT, self._note)
+        kinds = [signal.SIGINT]
+        if self.dist.world == 1 and threading.current_thread() is threading.main_thread():
+            kinds.append(signal.SIGTERM)
+        self._old = {s: signal.signal(s, self._note) for s in kinds}
         return self
 
     def __exit__(self, *exc) -> None:
-        signal.signal(signal.SIGINT, self._old)
+        for s, handler in self._old.items():
+            signal.signal(s, handler)
 
     def _note(self, signum, frame) -> None:
         self.flag = True
+        self.signal = self.signal or signal.Signals(signum).name
 
     def requested(self) -> bool:
         """Whether to stop now; under DDP every process agrees (any one's SIGINT stops all)."""

@@ -53,8 +53,9 @@ from tactile.training.run_files import run_metrics, write_run
 def train(data: Path, out: Path, cfg: TrainConfig, progress: bool = True, *,
           resume: dict | None = None,
           on_epoch: Callable[[str, int], None] | None = None) -> dict:
-    """Train, evaluate and save a run; returns the metrics (``interrupted`` True when SIGINT
-    stopped it: RUN/ then holds the best checkpoint so far and ``resume.pt``).
+    """Train, evaluate and save a run; returns the metrics (``interrupted`` True when SIGINT,
+    or SIGTERM in a training of one process, stopped it: RUN/ then holds the best checkpoint so
+    far and ``resume.pt``, and ``stopped_by`` names the signal).
 
     ``resume``: the state :func:`~tactile.training.checkpoint.load_resume` read, to continue an
     interrupted run (``cfg`` must be its config). ``on_epoch(phase, epoch)``: called after each
@@ -92,7 +93,8 @@ def train(data: Path, out: Path, cfg: TrainConfig, progress: bool = True, *,
     feature_s = time.perf_counter() - t0
     model.to(device)
     ctx = Context(cfg, log, dist, device, None, on_epoch)
-    # Ctrl-C stops at the next batch; after the last epoch it is only noted (the run is saved)
+    # Ctrl-C (SIGTERM) stops at the next batch; after the last epoch it is only noted (the run
+    # is saved)
     with Stop(dist) as ctx.stop:
         try:
             history = fit(model, prep.parts, feats, ctx, resume)
@@ -100,6 +102,7 @@ def train(data: Path, out: Path, cfg: TrainConfig, progress: bool = True, *,
             model.to("cpu")
             saved = (_save_interrupted(out, data, model, ctx, prep, feats) if dist.is_main
                      else {"interrupted": True})
+            saved = {**saved, "stopped_by": ctx.stop.signal or "SIGINT"}  # not in the files
             dist.barrier()  # the others wait for rank 0's files: torchrun ends a failed job
             dist.finish()
             return saved
@@ -145,7 +148,8 @@ def _save_interrupted(out: Path, data: Path, model: Classifier, ctx: Context, pr
         shifted=None, seed=prep.cfg.seed,
     ), robustness=False)
     write_run(out, prep.cfg, model, metrics, history, prep)
-    ctx.log.warn(f"interrupted: {snap['phase']} epoch {snap['epoch']} was the last finished; "
+    ctx.log.warn(f"interrupted ({ctx.stop.signal or 'SIGINT'}): {snap['phase']} epoch "
+                 f"{snap['epoch']} was the last finished; "
                  f"best checkpoint so far in {out / CHECKPOINT}; continue with "
                  f"tactile-train --resume {out}")
     return metrics

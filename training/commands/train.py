@@ -15,7 +15,16 @@ import sys
 import tempfile
 from pathlib import Path
 
-from tactile.cli import EXIT_INTERRUPTED, Parser, add_debug, command, path_given, run
+from tactile.cli import (
+    EXIT_INTERRUPTED,
+    EXIT_TERMINATED,
+    Parser,
+    Terminated,
+    add_debug,
+    command,
+    path_given,
+    run,
+)
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -142,12 +151,15 @@ def _train(args: argparse.Namespace) -> int:
     try:
         with _held(out):
             m = train(data, out, cfg, progress=not args.quiet, resume=resume)
-    except KeyboardInterrupt:  # before the first epoch (loading, EMD features): nothing to keep
-        print("tactile-train: interrupted before training started: nothing saved",
-              file=sys.stderr)
-        return EXIT_INTERRUPTED
+    except KeyboardInterrupt as e:  # before the first epoch (loading, EMD features), or
+        # SIGTERM under torchrun: nothing to keep
+        term = isinstance(e, Terminated)
+        what = "terminated (SIGTERM)" if term else "interrupted"
+        when = "" if os.environ.get("RANK") else " before training started"
+        print(f"tactile-train: {what}{when}: nothing saved", file=sys.stderr)
+        return EXIT_TERMINATED if term else EXIT_INTERRUPTED
     if m.get("interrupted"):
-        return EXIT_INTERRUPTED
+        return EXIT_TERMINATED if m.get("stopped_by") == "SIGTERM" else EXIT_INTERRUPTED
     if "accuracy" not in m:  # not rank 0 of a torchrun job: rank 0 prints
         return 0
     was = signal.signal(signal.SIGINT, signal.SIG_IGN)  # the run is saved: its lines, exit 0
@@ -161,7 +173,7 @@ def _train(args: argparse.Namespace) -> int:
     return 0
 
 
-@command("tactile-train", interruptible=True, files=True)
+@command("tactile-train", interruptible=True, files=True, terminable=True)
 def main(argv: list[str] | None = None) -> int:
     return run("tactile-train", _train, build_parser().parse_args(argv))
 
