@@ -244,6 +244,13 @@ def _terminate(signum, frame) -> None:
     raise Terminated()
 
 
+def terminable_here() -> bool:
+    """Whether SIGTERM here is a command's own (``command(terminable=True)``), which a
+    library function may then take over as Ctrl-C (training saves its run); not in a caller
+    that kept Python's default or set a handler of its own."""
+    return signal.getsignal(signal.SIGTERM) is _terminate
+
+
 def command(prog: str, *, guarded: bool = False, interruptible: bool = False,
             files: bool = False, terminable: bool = False
             ) -> Callable[[Callable[..., int]], Callable[..., int]]:

@@ -173,8 +173,10 @@ def test_sim_dataset_neither_overwrites_nor_duplicates(tmp_path):
     (("--textures", ","), "no texture given: give one or more of desk, "),
     (("--seconds", "0.001"), "--seconds 0.001 at 100 Hz: not one sample a take"),
     (("--seconds", "inf"), "--seconds inf: a take needs a finite length"),
-    (("--seconds", "1e300"), "--seconds 1e+300 x 7 takes at 100 Hz: at least 4.52e+290 PB, "
-                             "and the disk of "),  # not a disk filled a take at a time
+    # not a disk filled a take at a time: 7 x 1e302 rows of at least 30 + 302 + 306 bytes
+    (("--seconds", "1e300"), "--seconds 1e+300 x 7 takes at 100 Hz: at least 4.47e+290 PB, "
+                             "and the disk of "),
+    (("--seconds", "1e307"), "--seconds 1e+307 at 100 Hz: more samples than a take can count"),
     (("--texture", "desk"), "--texture is not an option of --dataset"),
     (("--link", "drop=0.5"), "--link is not an option of --dataset"),
     (("--speed", "4"), "--speed is not an option of --dataset"),
@@ -186,6 +188,20 @@ def test_sim_dataset_refuses_what_it_would_not_do(tmp_path, args, says):
                          "--seconds", "1", *args)
     assert code == 1 and says in err and len(err.strip().splitlines()) == 1, err
     assert not (tmp_path / "d").exists() or not any((tmp_path / "d").iterdir())
+
+
+@pytest.mark.parametrize("seconds, rate", [(60, 100.0), (0.5, 100.0), (20, 1000.0)])
+def test_the_disk_check_counts_fewer_bytes_than_a_take_writes(tmp_path, seconds, rate):
+    """A dataset that fits is never refused: the check's count is below every texture's take
+    (the quietest, non_contact, writes the shortest rows)."""
+    from tactile.device.sim.dataset import least_take_bytes
+
+    assert cli("tactile-sim", "--dataset", str(tmp_path), "--takes", "1", "--seconds",
+               str(seconds), "--rate", str(rate))[0] == 0
+    sizes = {p.stem: p.stat().st_size for p in tmp_path.glob("*.csv")}
+    assert len(sizes) == 7
+    least = least_take_bytes(seconds, rate)
+    assert least < min(sizes.values()) < 1.5 * least, (least, sizes)
 
 
 def test_takes_of_another_rate_or_channels_are_not_written_into_a_dataset(tmp_path):

@@ -7,7 +7,10 @@ chosen batch. No timer anywhere.
 
 from __future__ import annotations
 
+import contextlib
+import fcntl
 import json
+import os
 import signal
 import subprocess
 import sys
@@ -132,6 +135,11 @@ def test_ctrl_c_or_sigterm_in_the_command_saves_without_a_traceback_and_resume_f
     assert f"interrupted ({sig}): fit epoch 1 was the last finished" in proc.stderr
     assert f"--resume {run}" in proc.stderr
     assert json.loads((run / "metrics.json").read_text())["interrupted"] is True
+    with _holding(run):  # as a training that writes it now does: --resume waits for it
+        assert train_main(["--resume", str(run), "--quiet"]) == 1
+        assert capsys.readouterr().err == (f"tactile-train: error: --resume {run}: another "
+                                           "tactile-train is writing into it now: wait for it "
+                                           "to end\n")
     # the folder holds a run: a new training refuses it, --resume continues it
     assert train_main([str(dataset), "--out", str(run), "--quiet"]) == 1
     assert f"holds a run already (checkpoint.pt): choose another --out or add --force to " \
@@ -158,10 +166,28 @@ def test_sigint_or_sigterm_before_the_first_epoch_saves_nothing(
         raise stop  # as SIGINT (SIGTERM) does while the takes load or EMD runs
 
     monkeypatch.setattr(t, "load_dataset", interrupted)
-    assert train_main([str(dataset), "--out", str(tmp_path / "r")]) == exit_code
+    assert train_main([str(dataset), "--out", str(tmp_path / "a" / "b" / "r")]) == exit_code
     assert capsys.readouterr().err == f"tactile-train: {says} before training started: " \
         "nothing saved\n"
-    assert not (tmp_path / "r").exists()
+    assert list(tmp_path.iterdir()) == []  # no folder made for the run is left
+
+
+def test_train_called_from_a_script_leaves_sigterm_to_the_script(dataset, tmp_path):
+    """Only the command takes SIGTERM as Ctrl-C: a script that calls train() and kept
+    Python's default is ended by it, and does not go on as if the run had finished."""
+    code = ("import signal, sys\n"
+            "from pathlib import Path\n"
+            "from tactile.training.config import TrainConfig\n"
+            "from tactile.training.train import train\n"
+            "def hook(phase, epoch):\n"
+            "    if epoch == 1: signal.raise_signal(signal.SIGTERM)\n"
+            f"cfg = TrainConfig(**{ {**SMALL, 'epochs': 3}!r})\n"
+            "train(Path(sys.argv[1]), Path(sys.argv[2]), cfg, progress=False, on_epoch=hook)\n"
+            "print('carried on')\n")
+    proc = subprocess.run([sys.executable, "-c", code, str(dataset), str(tmp_path / "run")],
+                          capture_output=True, text=True, timeout=600)
+    assert proc.returncode == -signal.SIGTERM, (proc.returncode, proc.stderr)
+    assert "carried on" not in proc.stdout and not (tmp_path / "run" / RESUME).exists()
 
 
 def test_force_overwrites_a_run(dataset, tmp_path, capsys):
@@ -335,24 +361,30 @@ def test_a_state_saved_before_the_wide_path_and_ensembles_goes_on_as_one_plain_m
     assert ck["config"]["ensemble"] == 1 and model.state_shape == (2, 12)
 
 
+@contextlib.contextmanager
+def _holding(folder):
+    """Hold ``folder`` as a training that writes it does (an advisory lock on it)."""
+    fd = os.open(folder, os.O_RDONLY)
+    try:
+        fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        yield
+    finally:
+        os.close(fd)
+
+
 def test_a_second_training_into_a_folder_being_written_is_refused(dataset, tmp_path, capsys):
     """Two trainings started into one --out both found no run there, and their files mixed
     (one's config beside the other's weights). The folder is held while a training writes."""
-    import fcntl
-    import os
-
     run = tmp_path / "run"
     run.mkdir()
-    fd = os.open(run, os.O_RDONLY)  # as the first training holds it
-    try:
-        fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
-        sets = [f"--set={k}={v}" for k, v in {**SMALL, "epochs": 1}.items()]
-        assert train_main([str(dataset), "--out", str(run), "--quiet", *sets]) == 1
-        assert capsys.readouterr().err == (f"tactile-train: error: --out {run}: another "
-                                           "tactile-train is writing into it now: choose "
-                                           "another --out\n")
-        assert list(run.iterdir()) == []
-    finally:
-        os.close(fd)  # the first one ends: the folder is free again
+    sets = [f"--set={k}={v}" for k, v in {**SMALL, "epochs": 1}.items()]
+    for force in ([], ["--force"]):
+        with _holding(run):  # as the first training holds it
+            assert train_main([str(dataset), "--out", str(run), "--quiet", *sets, *force]) == 1
+            assert capsys.readouterr().err == (f"tactile-train: error: --out {run}: another "
+                                               "tactile-train is writing into it now: choose "
+                                               "another --out\n")
+            assert list(run.iterdir()) == []
+    # the first one ended: the folder is free again
     assert train_main([str(dataset), "--out", str(run), "--quiet", *sets]) == 0
     assert (run / "checkpoint.pt").is_file()

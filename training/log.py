@@ -7,6 +7,7 @@ import signal
 import sys
 import threading
 
+from tactile.cli import terminable_here
 from tactile.training.dist import Dist
 
 
@@ -32,9 +33,10 @@ class Stop:
     """SIGINT while training: noted, and the loop stops at the next batch (``requested``),
     rolls back to the last finished epoch and saves. Used as a context manager around the
     epochs; outside it SIGINT is Python's KeyboardInterrupt. SIGTERM (``timeout``, ``kill``,
-    a service manager or a batch scheduler stopping the job) does the same in a training of
-    one process; under torchrun it is how the agent ends the workers, so it is left to them.
-    ``signal``: the name of the signal that stopped it (None: none did)."""
+    a service manager or a batch scheduler stopping the job) does the same where the command
+    took it (:func:`tactile.cli.terminable_here`: ``tactile-train`` of one process; under
+    torchrun SIGTERM is how the agent ends the workers, and a script calling ``train`` keeps
+    its own). ``signal``: the name of the signal that stopped it (None: none did)."""
 
     def __init__(self, dist: Dist) -> None:
         self.dist, self.flag, self.signal = dist, False, None
@@ -42,7 +44,7 @@ class Stop:
 
     def __enter__(self) -> Stop:
         kinds = [signal.SIGINT]
-        if self.dist.world == 1 and threading.current_thread() is threading.main_thread():
+        if threading.current_thread() is threading.main_thread() and terminable_here():
             kinds.append(signal.SIGTERM)
         self._old = {s: signal.signal(s, self._note) for s in kinds}
         return self

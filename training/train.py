@@ -9,7 +9,7 @@ evaluate on the test split -> write RUN/ (:mod:`~tactile.training.run_files`):
                       test rows and metrics (torch.load(weights_only=True) reads it)
     metrics.json      the figures; confusion.txt the paper-style table;
     curves.png, confusion.png
-    resume.pt         only after Ctrl-C: the state to continue from (tactile-train --resume RUN)
+    resume.pt         only after Ctrl-C or SIGTERM: the state to continue from (--resume RUN)
 
 Under ``torchrun`` the same command trains data-parallel (:mod:`tactile.training.dist`): every
 process takes its share of each epoch's windows, rank 0 alone prints and writes RUN/.
@@ -127,11 +127,12 @@ def train(data: Path, out: Path, cfg: TrainConfig, progress: bool = True, *,
 
 def _save_interrupted(out: Path, data: Path, model: Classifier, ctx: Context, prep: Prepared,
                       feats: dict) -> dict:
-    """After SIGINT: RUN/resume.pt (the state after the last finished epoch), and the best
+    """After SIGINT (SIGTERM): RUN/resume.pt (the state after the last finished epoch), and the best
     weights so far as an ordinary run (checkpoint, test metrics marked ``interrupted``)."""
     snap = ctx.snapshot
     if snap is None:
-        ctx.log.warn("interrupted before the first epoch ended: nothing to save")
+        ctx.log.warn(f"interrupted ({ctx.stop.signal or 'SIGINT'}) before the first epoch "
+                     "ended: nothing to save")
         return {"interrupted": True, "epochs_run": 0}
     out.mkdir(parents=True, exist_ok=True)
     # the takes by content: a resume on another dataset (same names, other recordings) would

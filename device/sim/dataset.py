@@ -49,12 +49,16 @@ def make_dataset(
         raise ConfigError(f"--takes {takes} and --seconds {seconds}: must be >= 1 and > 0")
     if not math.isfinite(seconds):  # --pty streams until stopped; a take has an end
         raise ConfigError(f"--seconds {seconds}: a take needs a finite length")
-    if round(seconds * rate_hz) < 1:
+    samples = seconds * rate_hz
+    if not math.isfinite(samples):
+        raise ConfigError(f"--seconds {seconds:g} at {rate_hz:g} Hz: more samples than a take "
+                          "can count")
+    if round(samples) < 1:
         raise ConfigError(f"--seconds {seconds} at {rate_hz:g} Hz: not one sample a take")
-    n = round(seconds * rate_hz)
-    # a CSV row is at least its two counters and ~35 bytes of samples: refuse a dataset that
-    # cannot fit before writing any of it (--seconds 1e300 would fill the disk, a take at a time)
-    need = takes * len(textures) * n * (35 + len(f"{n},{round(n * 1e6 / rate_hz)}"))
+    n = round(samples)
+    # refuse a dataset that cannot fit before writing any of it (--seconds 1e300 would fill
+    # the disk a take at a time)
+    need = min(takes * len(textures) * least_take_bytes(seconds, rate_hz), 1e308)  # not inf
     there = next((p for p in (Path(out), *Path(out).parents) if p.is_dir()), Path("."))
     free = shutil.disk_usage(there).free
     if need > free:
@@ -85,13 +89,22 @@ def make_dataset(
     return paths
 
 
+def least_take_bytes(seconds: float, rate_hz: float) -> float:
+    """Fewer bytes than a simulated take of ``seconds`` at ``rate_hz`` writes: each CSV row
+    holds at least 30 bytes of samples and the digits of its counters, here those of the last
+    row (seq and t_us) less one each. A float: inf for a take too long to write."""
+    samples = seconds * rate_hz
+    digits = math.floor(math.log10(samples)) + math.floor(math.log10(seconds) + 6)
+    return samples * (30 + digits)
+
+
 def _size(n: float) -> str:
     """``n`` bytes in the largest unit that keeps it >= 1 (``12.3 GB``)."""
-    for unit in ("bytes", "kB", "MB", "GB", "TB", "PB"):
-        if n < 1000 or unit == "PB":
-            return f"{n:.3g} {unit}" if unit != "bytes" else f"{n:.0f} bytes"
-        n /= 1000
-    raise AssertionError
+    units = ("bytes", "kB", "MB", "GB", "TB", "PB")
+    k = 0
+    while n >= 1000 and k < len(units) - 1:
+        n, k = n / 1000, k + 1
+    return f"{n:.0f} bytes" if k == 0 else f"{n:.3g} {units[k]}"
 
 
-__all__ = ["make_dataset", "take_seed"]
+__all__ = ["least_take_bytes", "make_dataset", "take_seed"]

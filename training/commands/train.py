@@ -48,7 +48,7 @@ def _settings(args: argparse.Namespace):
     """(config, dataset folder, run folder, resume state or None) of the command line; the
     run folder is checked first (a run in it is refused unless ``--force``)."""
     from tactile.errors import ConfigError
-    from tactile.training.checkpoint import RESUME, RUN_FILES, load_resume
+    from tactile.training.checkpoint import load_resume
     from tactile.training.config import TrainConfig
     from tactile.training.overrides import parse_sets
 
@@ -67,12 +67,8 @@ def _settings(args: argparse.Namespace):
     cfg = parse_sets(args.set, cfg)
     out = args.out
     _check_out(out)
-    held = [f for f in RUN_FILES if (out / f).exists()]
-    if held and not args.force:
-        more = (f", or --resume {out} to continue it" if (out / RESUME).exists()
-                else " (it finished: nothing to resume)")
-        raise ConfigError(f"{out}: holds a run already ({held[0]}): choose another --out "
-                          f"or add --force to overwrite it{more}")
+    if not args.force:
+        _refuse_a_run(out)
     # with --force the old run's files stay until the new run writes its own (a finished run
     # removes resume.pt): a forced run that fails or stops before its first epoch leaves the
     # old run as it was, resumable
@@ -111,11 +107,14 @@ def _check_out(out: Path) -> None:
 
 
 @contextlib.contextmanager
-def _held(out: Path):
-    """Hold the run folder ``out`` while training writes it: a second ``tactile-train`` into
-    it at the same time is refused (both passed the check for a run there, and the two runs'
-    files would mix). The hold is an advisory lock on the folder, which ends with the process
-    however it ends; a folder made here and left empty is removed again."""
+def _held(out: Path, option: str, force: bool):
+    """Hold the run folder ``out`` (given as ``option``) while training writes it: a second
+    ``tactile-train`` into it at the same time is refused (both found no run there, and the two
+    runs' files would mix), and a run that another finished meanwhile is refused as any run
+    there is (:func:`_refuse_a_run`) unless ``force``. The hold is an advisory lock on the
+    folder, which ends with the process however it ends; a file system without locks (NFS
+    without a lock daemon, some FUSE mounts) or Windows holds nothing. Folders made here and
+    left empty are removed again."""
     try:
         import fcntl
     except ImportError:  # no advisory locks (Windows): not held
@@ -126,21 +125,50 @@ def _held(out: Path):
         return
     from tactile.errors import ConfigError
 
-    made = not out.exists()
-    out.mkdir(parents=True, exist_ok=True)
-    fd = os.open(out, os.O_RDONLY)
+    missing, base = [], out  # the folders to make, deepest first
+    while not base.exists() and base != base.parent:
+        missing.append(base)
+        base = base.parent
+    made = []
+    fd = None
     try:
+        for d in reversed(missing):
+            d.mkdir(exist_ok=True)
+            made.append(d)
+        fd = os.open(out, os.O_RDONLY)
         try:
             fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
         except BlockingIOError:
-            raise ConfigError(f"--out {out}: another tactile-train is writing into it now: "
-                              "choose another --out") from None
+            wait = ("wait for it to end" if option == "--resume" else
+                    "choose another --out")
+            raise ConfigError(f"{option} {out}: another tactile-train is writing into it now: "
+                              f"{wait}") from None
+        except OSError:  # no locks on this file system: not held
+            pass
+        if option == "--out" and not force:
+            _refuse_a_run(out)
         yield
     finally:
-        os.close(fd)
-        if made:
-            with contextlib.suppress(OSError):  # only when nothing was written
-                out.rmdir()
+        for d in reversed(made):  # before the lock ends: no other training holds them yet
+            try:
+                d.rmdir()  # only when nothing was written
+            except OSError:
+                break
+        if fd is not None:
+            os.close(fd)
+
+
+def _refuse_a_run(out: Path) -> None:
+    """A :class:`ConfigError` when ``out`` holds a run (without ``--force``)."""
+    from tactile.errors import ConfigError
+    from tactile.training.checkpoint import RESUME, RUN_FILES
+
+    held = [f for f in RUN_FILES if (out / f).exists()]
+    if held:
+        more = (f", or --resume {out} to continue it" if (out / RESUME).exists()
+                else " (it finished: nothing to resume)")
+        raise ConfigError(f"{out}: holds a run already ({held[0]}): choose another --out "
+                          f"or add --force to overwrite it{more}")
 
 
 def _train(args: argparse.Namespace) -> int:
@@ -149,32 +177,36 @@ def _train(args: argparse.Namespace) -> int:
 
     cfg, data, out, resume = _settings(args)
     try:
-        with _held(out):
+        with _held(out, "--resume" if args.resume is not None else "--out", args.force):
             m = train(data, out, cfg, progress=not args.quiet, resume=resume)
-    except KeyboardInterrupt as e:  # before the first epoch (loading, EMD features), or
-        # SIGTERM under torchrun: nothing to keep
+    except KeyboardInterrupt as e:  # before the first epoch (loading, EMD features)
         term = isinstance(e, Terminated)
-        what = "terminated (SIGTERM)" if term else "interrupted"
-        when = "" if os.environ.get("RANK") else " before training started"
-        print(f"tactile-train: {what}{when}: nothing saved", file=sys.stderr)
+        print(f"tactile-train: {'terminated (SIGTERM)' if term else 'interrupted'} before "
+              "training started: nothing saved", file=sys.stderr)
         return EXIT_TERMINATED if term else EXIT_INTERRUPTED
     if m.get("interrupted"):
         return EXIT_TERMINATED if m.get("stopped_by") == "SIGTERM" else EXIT_INTERRUPTED
     if "accuracy" not in m:  # not rank 0 of a torchrun job: rank 0 prints
         return 0
-    was = signal.signal(signal.SIGINT, signal.SIG_IGN)  # the run is saved: its lines, exit 0
+    # the run is saved: its lines, exit 0, whatever signal comes now
+    was = {s: signal.signal(s, signal.SIG_IGN) for s in (signal.SIGINT, signal.SIGTERM)}
     try:
         print(table(m, tuple(m["classes"]), f"test split ({m['split']})"))
         print(f"per take (majority vote): {m['take_accuracy']:.3f} over {m['takes']} takes")
         print(shifted_line(m["shifted"]))
         print(f"trained in {m['train_seconds']} s; run in {out}")
     finally:
-        signal.signal(signal.SIGINT, was)
+        for s, handler in was.items():
+            signal.signal(s, handler)
     return 0
 
 
 @command("tactile-train", interruptible=True, files=True, terminable=True)
 def main(argv: list[str] | None = None) -> int:
+    if int(os.environ.get("WORLD_SIZE", "1")) > 1:
+        # torchrun's agent ends the workers with SIGTERM: Python's default, which also ends a
+        # worker that waits in C for a peer that is gone (a handler would wait with it)
+        signal.signal(signal.SIGTERM, signal.SIG_DFL)
     return run("tactile-train", _train, build_parser().parse_args(argv))
 
 
