@@ -332,6 +332,7 @@ def run_dataset(name: str, data: Path, takes: list[Take], out: Path, seeds: tupl
     each seed's split trained with seed ``seed + reinit`` (:func:`same_split`). ``given``: the
     settings the command line gave (:func:`dataset_settings`)."""
     ours, base_runs = [], []
+    by_split: dict[str, dict] = {}  # a baseline per split: one the seed does not change is one
     for seed in seeds:
         cfg = base.replace(seed=seed, **dataset_settings(name, given))
         if reinit:
@@ -348,18 +349,42 @@ def run_dataset(name: str, data: Path, takes: list[Take], out: Path, seeds: tupl
         if curves and (run / "val-curves.npz").exists():
             # the rules with the default patience (a recording run may wait longer)
             m["rules"] = selection_rules(run / "val-curves.npz", TrainConfig.patience)
+        key = split_key(takes, cfg)
         b = cached_baseline((baselines or out / "baseline") / f"{name}-seed{seed}.json", cfg,
-                            lambda c=cfg: band_logistic(takes, c))
+                            lambda c=cfg, k=key, s=seed: by_split.get(k) or {
+                                **band_logistic(takes, c), "split_seed": s})
+        by_split.setdefault(key, {"split_seed": seed, **{
+            k: v for k, v in b.items() if k != "settings"}})
         rules = "".join(f"; select={r}: held-out val {v['held_out']:.3f}, epoch {v['epoch']}, "
                         f"val {v['val_accuracy']:.3f}" for r, v in m.get("rules", {}).items())
         print(f"<!-- {name} seed {seed}: {label} {m['accuracy']:.3f} (val "
               f"{m['val_accuracy']:.3f}, best epoch {m['best_epoch'] + 1}, "
               f"{m['wall_seconds']:.0f} s wall, {m['cpu_seconds']:.0f} s CPU{rules}); baseline "
               f"{b['accuracy']:.3f} (val {b['val_accuracy']:.3f}, C={b['C']:g}, "
-              f"{b['cpu_seconds']:.1f} s CPU){_high_rate_note(b)} -->", flush=True)
+              f"{_baseline_cost(b, seed)}){_high_rate_note(b)} -->", flush=True)
         ours.append(m)
         base_runs.append(b)
     return {"ours": ours, "baseline": base_runs}
+
+
+def split_key(takes: list[Take], cfg: TrainConfig) -> str:
+    """What a baseline depends on: the windows of each part (the split's takes and rows) and
+    the data settings but the seed, which draws the split only where ``test``/``val`` leave it
+    to chance (named repetitions, ``split=time``: every seed's split is the same)."""
+    try:
+        split = split_takes(takes, cfg)
+    except ConfigError:  # training says what is wrong with the split: its own key per seed
+        return json.dumps(_data_settings(cfg))
+    settings = {k: v for k, v in _data_settings(cfg).items() if k not in ("seed", "test", "val")}
+    return json.dumps([settings, *(sorted(part.items()) for part in (
+        split.train, split.val, split.test))])
+
+
+def _baseline_cost(b: dict, seed: int) -> str:
+    """The baseline's CPU time, or the seed whose identical split computed it."""
+    first = b.get("split_seed", seed)
+    return (f"{b['cpu_seconds']:.1f} s CPU" if first == seed else
+            f"the same split as seed {first}: computed once")
 
 
 def _high_rate_note(b: dict) -> str:

@@ -324,6 +324,48 @@ def test_a_grid_with_reinit_keeps_each_splits_baseline_apart(tmp_path, monkeypat
     assert "x, seed + 1000" in capsys.readouterr().out
 
 
+@pytest.mark.parametrize("sets, computed", [
+    ([], [0, 1, 2]),  # the validation user drawn from each seed: three splits
+    (["--set", "val=user:1", "--set", "test=user:0"], [0])])  # named: one split
+def test_a_baseline_is_computed_once_per_split(tmp_path, monkeypatch, capsys, sets, computed):
+    """With the test and validation takes named every seed has the same windows, and the
+    baseline (which has no seed of its own) was fitted again for each: 160 s of CPU a seed on
+    BioTac finger 0. Each seed still gets its file, with its own settings."""
+    from tactile.device.recordings import load_dataset
+    from tactile.device.sim import make_dataset
+
+    b = _bench()
+    make_dataset(tmp_path / "d", 8, ("paper", "mouse_pad"), 1.0, seed=0)
+    takes = load_dataset(tmp_path / "d")
+    monkeypatch.setattr(b, "prepare", lambda name, out, cache: (tmp_path / "d", takes))
+
+    def fake_train(data, run, cfg, progress=True):
+        run.mkdir(parents=True, exist_ok=True)
+        return {"accuracy": 0.5, "val_accuracy": 0.5, "best_epoch": 0, "take_accuracy": 0.5,
+                "split_windows": {"train": 1, "val": 1, "test": 1}}
+
+    fitted = []
+
+    def fake_baseline(takes, cfg):
+        fitted.append(cfg.seed)
+        return {"accuracy": 0.4 + cfg.seed / 100, "val_accuracy": 0.4, "C": 1.0,
+                "take_accuracy": 0.5, "cpu_seconds": 0.0,
+                "split_windows": {"train": 1, "val": 1, "test": 1}}
+
+    monkeypatch.setattr(b.train_module, "train", fake_train)
+    monkeypatch.setattr(b, "band_logistic", fake_baseline)
+    out = tmp_path / "out"
+    assert b.main(["--out", str(out), "--only", "small", "--seeds", "0,1,2", *sets]) == 0
+    assert fitted == computed
+    kept = [json.loads((out / "baseline" / f"small-seed{s}.json").read_text())
+            for s in range(3)]
+    assert [k["settings"]["seed"] for k in kept] == [0, 1, 2]
+    assert [k["accuracy"] for k in kept] == [0.4 + (s if len(computed) == 3 else 0) / 100
+                                             for s in range(3)]
+    said = capsys.readouterr().out.count("the same split as seed 0: computed once")
+    assert said == (0 if len(computed) == 3 else 2)
+
+
 def test_biotac_channels_are_vibration_pressure_and_electrodes():
     """The bench's BioTac channels are the issue's plain channels, pressure + vibration +
     electrodes, in the importer's order: every channel of both fingers but the temperatures."""
