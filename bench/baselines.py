@@ -39,7 +39,9 @@ The baseline: per window and channel the mean, the log standard deviation and th
 the mean-free, Hann-tapered window in :data:`N_BANDS` equal bands from 0 Hz to the Nyquist
 frequency; standardised on the training windows; scikit-learn's multinomial
 ``LogisticRegression``, its ``C`` picked from :data:`CS` on the validation windows (and, when the
-defaults refit on training + validation windows, refitted on them too). For takes that declare
+defaults refit on training + validation windows, refitted on them too): fitted once per split
+(seeds whose split is the same, e.g. with the test and validation takes named, share it, each
+with its own file in ``OUT/baseline/``). For takes that declare
 high-rate signals a second one adds each signal's log band energies at its true rate
 (:func:`signal_features`), ``C`` also chosen on validation. The defaults train with
 ``tactile.training.train.train`` and one thread; each run's wall time and its CPU time (user +
