@@ -5,6 +5,9 @@
 # 3 s stall and an unplug), printing one label per window and an event line for each gap, stall
 # and reconnect. Extra arguments go to tactile-run.
 set -euo pipefail
+# tactile-run stops cleanly on Ctrl-C (exit 0, its summary printed): the script stops with it
+trap 'exit 130' INT
+trap 'exit 143' TERM
 cd "$(dirname "$0")/.."
 ./scripts/setup.sh
 model=models/pen-exp2.onnx

@@ -91,6 +91,9 @@ def _monitor(args: argparse.Namespace) -> int:
             conn.open()
             if args.raw:
                 if raw_loop(conn) == 0:
+                    if stop.get("by"):  # stopped before the port said anything
+                        say(f"stopped by {stop['by']} before any data")
+                        return 0
                     raise DeviceError(f"no data from {port} in {time.monotonic() - begin:.1f} s")
                 return 0
             watch = watch_loop(conn, every, live)
@@ -100,6 +103,9 @@ def _monitor(args: argparse.Namespace) -> int:
             live.close()
     if decoder.stats.samples == 0:
         st = decoder.stats
+        if stop.get("by"):  # stopped before a sample came: as tactile-record, not an error
+            say(f"stopped by {stop['by']} before any sample ({st.bytes_in} bytes read)")
+            return 0
         raise DeviceError(f"no samples from {port} in {end - begin:.1f} s ({st.bytes_in} bytes "
                           f"read; {st.bytes_discarded} not decodable)")
     say(verdict(watch, decoder, end))
