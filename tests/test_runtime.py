@@ -993,6 +993,22 @@ class _FakePort:
         self.device, self.vid, self.description = device, vid, description
 
 
+def test_no_likely_pen_is_said_before_a_live_page_is_announced(monkeypatch, capsys):
+    """--serve without --port on a machine with no pen announced the page and its viewers,
+    then gave the port error: the error now comes first, and no page is opened."""
+    from serial.tools import list_ports
+
+    from tactile.runtime.commands.run import main
+
+    monkeypatch.setattr(list_ports, "comports", lambda: [])
+    assert main(["--model", str(REPO / "models" / "pen-exp2.onnx"), "--serve",
+                 "127.0.0.1:0"]) == 2
+    err = capsys.readouterr().err
+    assert err.splitlines()[-1] == ("tactile-run: error: no likely pen found; give --port "
+                                    "(serial devices: none)"), err
+    assert "live page" not in err, err
+
+
 def test_with_no_port_it_takes_the_one_likely_pen_or_lists_the_candidates(monkeypatch):
     from serial.tools import list_ports
 

@@ -133,13 +133,18 @@ def _run(args: argparse.Namespace) -> int:
     runner = Runner(model, stream, Printer(args.format, c.classes, smoothed=post is not None),
                     summary)
     decoder = StreamDecoder(csv_rate_hz=c.sample_rate_hz)
+    found = None
+    if args.serve and args.replay is None and args.port is None and not args.wait:
+        from tactile.device.link.portlist import find_port
+
+        found = find_port()  # no likely pen: its error, before a page is announced
     live = None
     if args.serve:
         from tactile.runtime.live import serve_runner
 
         live = serve_runner(args.serve, runner, decoder, say)
     try:
-        _read(args, runner, decoder, summary.started + args.seconds)
+        _read(args, runner, decoder, summary.started + args.seconds, found)
     finally:  # the page gets its end, stderr its last line, whatever stopped the run
         if live is not None:
             live.close()
@@ -148,10 +153,10 @@ def _run(args: argparse.Namespace) -> int:
     return 0
 
 
-def _read(args: argparse.Namespace, runner: Runner, decoder: StreamDecoder, deadline: float
-          ) -> None:
-    """Until stopped or ``deadline`` (monotonic s): the replay, or the pen (found, or waited
-    for, first)."""
+def _read(args: argparse.Namespace, runner: Runner, decoder: StreamDecoder, deadline: float,
+          found: str | None = None) -> None:
+    """Until stopped or ``deadline`` (monotonic s): the replay, or the pen (``found`` already,
+    else found, or waited for, first)."""
     from tactile.device.link.connection import LinkSettings
     from tactile.device.link.portlist import find_port
     from tactile.runtime.runner import read_pen, replay, say, wait_for_pen
@@ -167,7 +172,8 @@ def _read(args: argparse.Namespace, runner: Runner, decoder: StreamDecoder, dead
     port = args.port
     status_every = STATUS_EVERY if args.status_every is None else args.status_every
     if port is None:
-        port = wait_for_pen(stop, deadline, status_every) if args.wait else find_port()
+        port = (wait_for_pen(stop, deadline, status_every) if args.wait else
+                found or find_port())
     if port is not None:  # None: stopped while waiting for a pen
         baud, stall_timeout = link_values(args)
         settings = LinkSettings(port, baud, auto=auto, wait=args.wait,
