@@ -463,8 +463,9 @@ def test_an_out_that_cannot_be_a_folder_is_refused_before_training(dataset, tmp_
 def test_an_out_that_cannot_be_made_is_refused_before_training(dataset, tmp_path, capsys,
                                                                monkeypatch):
     """/proc lets root "write" by os.access but makes no folder: the run trained to its end,
-    then failed, losing the model. The folders are tried before training and taken away
-    again, so a run that then fails leaves no empty folder."""
+    then failed, losing the model. The folders are tried before training; the run folder is
+    then made and held while training runs, and a run that writes nothing leaves no empty
+    folder behind."""
     import tactile.training.train as training
 
     seen = []
@@ -476,4 +477,5 @@ def test_an_out_that_cannot_be_made_is_refused_before_training(dataset, tmp_path
     monkeypatch.setattr(training, "train", lambda *a, **k: (
         seen.append((tmp_path / "a").exists()), {"interrupted": True})[1])
     assert train_main([str(dataset), "--out", str(tmp_path / "a" / "b" / "r")]) == 130
-    assert seen == [False]  # the check's folders gone before training
+    assert seen == [True]  # held while training
+    assert list(tmp_path.iterdir()) == []  # nothing written: every folder made is gone
