@@ -140,6 +140,16 @@ def test_ctrl_c_or_sigterm_in_the_command_saves_without_a_traceback_and_resume_f
         assert capsys.readouterr().err == (f"tactile-train: error: --resume {run}: another "
                                            "tactile-train is writing into it now: wait for it "
                                            "to end\n")
+    # the dataset moved: --resume says to give it
+    moved = tmp_path / "moved"
+    dataset.rename(moved)
+    try:
+        assert train_main(["--resume", str(run), "--quiet"]) == 1
+        assert capsys.readouterr().err == (
+            f"tactile-train: error: {dataset}: the run's dataset is not there (moved?): give "
+            f"it, tactile-train DATA --resume {run}\n")
+    finally:
+        moved.rename(dataset)
     # the folder holds a run: a new training refuses it, --resume continues it
     assert train_main([str(dataset), "--out", str(run), "--quiet"]) == 1
     assert f"holds a run already (checkpoint.pt): choose another --out or add --force to " \

@@ -60,6 +60,9 @@ def _settings(args: argparse.Namespace):
             raise ConfigError(f"--resume writes into its run folder {args.resume}: drop --out")
         resume = load_resume(args.resume)
         data = args.data if args.data is not None else Path(resume["data"])
+        if args.data is None and not data.is_dir():
+            raise ConfigError(f"{data}: the run's dataset is not there (moved?): give it, "
+                              f"tactile-train DATA --resume {args.resume}")
         return TrainConfig.from_dict(resume["config"]), data, args.resume, resume["state"]
     if args.data is None or args.out is None:
         raise ConfigError("give DATA and --out RUN (or --resume RUN)")
