@@ -61,10 +61,10 @@ def _read_npz(npz: Path) -> tuple[list[str], list[str], list[np.ndarray], float,
     how each is named in an error, their samples (n, 6) in :data:`SOURCE_COLUMNS` order, the
     rate and the origin."""
     try:
-        d = np.load(npz, allow_pickle=False)
-        if not isinstance(d, np.lib.npyio.NpzFile):
-            raise ValueError("one array, not the arrays X, classes, channels and fs_hz")
-        with d:
+        with open(npz, "rb") as f:
+            if f.read(4) != b"PK\x03\x04":  # numpy's own error advises unpickling it
+                raise ValueError("not a .npz file: a .npz is a zip of numpy arrays")
+        with np.load(npz, allow_pickle=False) as d:  # a zip: an NpzFile
             x, classes, channels, fs = d["X"], d["classes"], d["channels"], d["fs_hz"]
             origin = str(d["source"]) if "source" in d.files else "HapMat"
     except (OSError, KeyError, ValueError, EOFError, zipfile.BadZipFile, zlib.error) as e:
