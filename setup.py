@@ -2,8 +2,8 @@
 library loaded through ctypes and, as a custom-op library, by onnxruntime. Everything
 else is declared in ``pyproject.toml``.
 
-``optional=True``: where no C compiler works, the build says so and the package installs
-without the library (``tactile.native.available()`` is then False).
+``optional=True``: where no C compiler works, the build warns (pip shows it with ``-v``) and the
+package installs without the library (``tactile.native.available()`` is then False).
 """
 
 import sys

@@ -38,15 +38,16 @@ the training and validation takes; with ``split=time`` copies cut before the tes
 The baseline: per window and channel the mean, the log standard deviation and the log energy of
 the mean-free, Hann-tapered window in :data:`N_BANDS` equal bands from 0 Hz to the Nyquist
 frequency; standardised on the training windows; scikit-learn's multinomial
-``LogisticRegression``, its ``C`` picked from :data:`CS` on the validation windows (and, when the
-defaults refit on training + validation windows, refitted on them too): fitted once per split
-(seeds whose split is the same, e.g. with the test and validation takes named, share it, each
-with its own file in ``OUT/baseline/``). For takes that declare
-high-rate signals a second one adds each signal's log band energies at its true rate
-(:func:`signal_features`), ``C`` also chosen on validation. The defaults train with
-``tactile.training.train.train`` and one thread; each run's wall time and its CPU time (user +
-sys of this process) are printed. Beside the window accuracy, the table gives both models'
-majority vote per test take (``tactile-eval``'s ``per_take``), what trial-based datasets report.
+``LogisticRegression``, its ``C`` picked from :data:`CS` on the validation windows (and, when
+the defaults refit on training + validation windows, refitted on them too): fitted once per
+split in a pass over the seeds (seeds whose split is the same, e.g. with the test and validation
+takes named, share it, each with its own file in ``OUT/baseline/``; ``--reinit``'s pass fits its
+own). For takes that declare high-rate signals a second one adds each signal's log band energies
+at its true rate (:func:`signal_features`), ``C`` also chosen on validation. The defaults train
+with ``tactile.training.train.train`` and one thread; each run's wall time and its CPU time
+(user + sys of this process) are printed. Beside the window accuracy, the table gives both
+models' majority vote per test take (``tactile-eval``'s ``per_take``), what trial-based datasets
+report.
 """
 
 from __future__ import annotations

@@ -18,7 +18,7 @@ def stop_on_signals(say: Callable[[str], None]) -> dict | None:
     command stops without reading."""
     stop: dict = {"flag": False}
 
-    def note(signum: int = signal.SIGINT, frame=None) -> None:
+    def note(signum, frame) -> None:
         stop["flag"] = True
         stop.setdefault("by", signal.Signals(signum).name)
 

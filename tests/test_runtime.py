@@ -1055,7 +1055,7 @@ def test_wait_without_a_port_waits_for_the_one_likely_pen(monkeypatch, capsys):
         label(self, lab)
         printed.append(lab.seq)
         if len(printed) == 7:  # 2 s of pen: 7 windows
-            handlers[signal.SIGINT]()
+            handlers[signal.SIGINT](signal.SIGINT, None)
 
     monkeypatch.setattr(list_ports, "comports", comports)
     monkeypatch.setattr(runner, "PEN_POLL_S", 0.01)

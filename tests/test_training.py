@@ -475,7 +475,7 @@ def test_an_out_that_cannot_be_made_is_refused_before_training(dataset, tmp_path
     assert err == ["tactile-train: error: --out /proc/tactile-run/r: cannot be written "
                    "(No such file or directory)"], err
     monkeypatch.setattr(training, "train", lambda *a, **k: (
-        seen.append((tmp_path / "a").exists()), {"interrupted": True})[1])
+        seen.append((tmp_path / "a" / "b" / "r").is_dir()), {"interrupted": True})[1])
     assert train_main([str(dataset), "--out", str(tmp_path / "a" / "b" / "r")]) == 130
     assert seen == [True]  # held while training
     assert list(tmp_path.iterdir()) == []  # nothing written: every folder made is gone

@@ -13,8 +13,9 @@ it is printed again every ``--every`` seconds, with no escape codes. At the end 
 says whether the pen was alive (data at its declared rate within 10%,
 :data:`~tactile.runtime.monitor.RATE_TOLERANCE`, from the first bytes to the end; otherwise ``too
 slow`` or ``too fast``) and sane (no channel flat or pinned at its limit, no errors). Exit codes:
-0 data came (whatever the verdict), 1 bad arguments, 2 the port cannot be opened, or no data
-(no decodable samples) came.
+0 data came (whatever the verdict), or Ctrl-C or SIGTERM stopped it before the port sent any
+byte; 1 bad arguments; 2 the port cannot be opened, or bytes but no decodable samples came, or
+nothing came by ``--seconds``.
 """
 
 from __future__ import annotations
@@ -41,8 +42,8 @@ def build_parser() -> argparse.ArgumentParser:
         prog="tactile-monitor",
         description="Show a pen's header and live values (no model needed): per channel the "
         "last value in units and min/max/RMS over the last second, and the link's figures.",
-        epilog="exit codes: 0 data came, 1 bad arguments, 2 port cannot be opened, no pen "
-        "found, or no data came",
+        epilog="exit codes: 0 data came, or Ctrl-C/SIGTERM before any byte; 1 bad arguments; "
+        "2 port cannot be opened, no pen found, or no samples came",
     )
     p.add_argument("--port", help="device path or pyserial URL (sim://, socket://, ...); "
                    "default: the one likely pen attached (tactile-ports lists them)")
@@ -103,8 +104,8 @@ def _monitor(args: argparse.Namespace) -> int:
             live.close()
     if decoder.stats.samples == 0:
         st = decoder.stats
-        if stop.get("by"):  # stopped before a sample came: as tactile-record, not an error
-            say(f"stopped by {stop['by']} before any sample ({st.bytes_in} bytes read)")
+        if stop.get("by") and not st.bytes_in:  # a silent port, stopped: as tactile-record
+            say(f"stopped by {stop['by']} before any data")
             return 0
         raise DeviceError(f"no samples from {port} in {end - begin:.1f} s ({st.bytes_in} bytes "
                           f"read; {st.bytes_discarded} not decodable)")
