@@ -1,8 +1,8 @@
 """Train a classifier on a dataset folder and write an evaluated run: tactile-train DATA --out RUN.
 
 The run's folder and the steps are those of :func:`tactile.training.train.train`; ``--resume
-RUN`` continues a run that Ctrl-C stopped (exit 130), with its own settings. Under ``torchrun
-... -m tactile.training.commands.train`` the same command trains data-parallel.
+RUN`` continues a run that Ctrl-C (exit 130) or SIGTERM (143) stopped, with its own settings.
+Under ``torchrun ... -m tactile.training.commands.train`` the same command trains data-parallel.
 """
 
 from __future__ import annotations
@@ -37,7 +37,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
                    help="override one setting, e.g. --set hidden=32 --set emd_channels=accel_z")
     p.add_argument("--resume", type=path_given, metavar="RUN",
-                   help="continue the run that Ctrl-C stopped, with its own settings")
+                   help="continue the run that Ctrl-C or SIGTERM stopped, with its own "
+                   "settings")
     p.add_argument("--force", action="store_true", help="overwrite the run in --out")
     p.add_argument("--quiet", action="store_true", help="no progress output")
     add_debug(p)
