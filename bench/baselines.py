@@ -40,9 +40,9 @@ the mean-free, Hann-tapered window in :data:`N_BANDS` equal bands from 0 Hz to t
 frequency; standardised on the training windows; scikit-learn's multinomial
 ``LogisticRegression``, its ``C`` picked from :data:`CS` on the validation windows (and, when
 the defaults refit on training + validation windows, refitted on them too): fitted once per
-split in a pass over the seeds (seeds whose split is the same, e.g. with the test and validation
-takes named, share it, each with its own file in ``OUT/baseline/``; ``--reinit``'s pass fits its
-own). For takes that declare high-rate signals a second one adds each signal's log band energies
+split in a command (seeds whose split is the same, e.g. with the test and validation takes
+named, and ``--reinit``'s pass, which names each seed's split, share it; each keeps its own
+file). For takes that declare high-rate signals a second one adds each signal's log band energies
 at its true rate (:func:`signal_features`), ``C`` also chosen on validation. The defaults train
 with ``tactile.training.train.train`` and one thread; each run's wall time and its CPU time
 (user + sys of this process) are printed. Beside the window accuracy, the table gives both
@@ -328,14 +328,16 @@ def selection_rules(path: Path, patience: int) -> dict:
 def run_dataset(name: str, data: Path, takes: list[Take], out: Path, seeds: tuple[int, ...],
                 base: TrainConfig, curves: bool = False, label: str = "defaults",
                 baselines: Path | None = None, reinit: int = 0,
-                given: frozenset[str] = frozenset()) -> dict:
+                given: frozenset[str] = frozenset(), fitted: dict | None = None) -> dict:
     """The defaults (``base``) and the baseline on every seed. A run this script finished in
     its folder is read, not trained again (so is a stored baseline); one made with other
     settings is a :class:`StaleRun` (:func:`finished`, :func:`cached_baseline`). ``reinit``:
     each seed's split trained with seed ``seed + reinit`` (:func:`same_split`). ``given``: the
-    settings the command line gave (:func:`dataset_settings`)."""
+    settings the command line gave (:func:`dataset_settings`). ``fitted``: the baselines fitted
+    so far, by :func:`split_key` (one the seed does not change is fitted once; shared by the
+    calls of one command)."""
     ours, base_runs = [], []
-    by_split: dict[str, dict] = {}  # a baseline per split: one the seed does not change is one
+    by_split = {} if fitted is None else fitted
     for seed in seeds:
         cfg = base.replace(seed=seed, **dataset_settings(name, given))
         if reinit:
@@ -715,25 +717,26 @@ def main(argv: list[str] | None = None) -> int:
                                     _keys(args.set))]
         print(nested_table(rows))
         return 0
+    fitted: dict = {}  # the baselines fitted, by split: each once in this command
     if args.candidate:
         grid = {}
         for label, cfg, sets in candidates:
             given = _keys(args.set) | _keys(sets)
             grid[label] = {name: run_dataset(name, *got, args.out / label, seeds, cfg,
                                              args.curves, label, args.out / "baseline",
-                                             given=given)
+                                             given=given, fitted=fitted)
                            for name, got in data.items()}
             if args.reinit:  # the same candidate and splits, other initial weights
                 grid[f"{label}, seed + {args.reinit}"] = {
                     name: run_dataset(name, *got, args.out / f"{label}-reinit{args.reinit}",
                                       seeds, cfg, args.curves, f"{label} reinit",
                                       args.out / f"baseline-reinit{args.reinit}", args.reinit,
-                                      given)
+                                      given, fitted)
                     for name, got in data.items()}
         print(grid_table(grid, seeds))
         return 0
     results = {name: run_dataset(name, *got, args.out, seeds, base, args.curves,
-                                 given=_keys(args.set))
+                                 given=_keys(args.set), fitted=fitted)
                for name, got in data.items()}
     print(f"\n| dataset | windows train/val/test | defaults: test accuracy (seed "
           f"{', '.join(map(str, seeds))}) | mean +/- sd | baseline: test accuracy | "

@@ -309,13 +309,15 @@ def test_a_grid_with_reinit_keeps_each_splits_baseline_apart(tmp_path, monkeypat
         run.mkdir(parents=True, exist_ok=True)
         return {"accuracy": 0.5, "val_accuracy": 0.5, "best_epoch": 0}
 
+    fitted = []
     monkeypatch.setattr(b.train_module, "train", fake_train)
-    monkeypatch.setattr(b, "band_logistic", lambda takes, cfg: {
+    monkeypatch.setattr(b, "band_logistic", lambda takes, cfg: fitted.append(cfg.seed) or {
         "accuracy": 0.4, "val_accuracy": 0.4, "C": 1.0, "cpu_seconds": 0.0})
     out = tmp_path / "out"
     assert b.main(["--out", str(out), "--only", "small", "--seeds", "0,1",
                    "--candidate", "x", "--reinit", "1000"]) == 0
     assert seeds == [0, 1, 1000, 1001]
+    assert fitted == [0, 1]  # the reinit pass has the seeds' splits: fitted once each
     kept = {p.parent.name + "/" + p.name: json.loads(p.read_text())["settings"]["seed"]
             for p in out.glob("baseline*/*.json")}
     assert kept == {"baseline/small-seed0.json": 0, "baseline/small-seed1.json": 1,
