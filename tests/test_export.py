@@ -302,6 +302,11 @@ def test_export_cli_and_check_cli(dataset, root, capsys):
     assert "contract ok" in text and "label agreement" in text and "PASS" in text
     assert check_main([str(out), "--data", str(dataset)]) == 0
     assert "accuracy" in capsys.readouterr().out
+    with pytest.raises(SystemExit) as stop:  # --windows without --run: it did nothing
+        check_main([str(out), "--data", str(dataset), "--windows", "5"])
+    assert stop.value.code == 1
+    assert capsys.readouterr().err == ("tactile-check: error: argument --windows: only with "
+                                       "--run (the windows of the parity check) (see --help)\n")
 
 
 def test_export_fails_on_broken_parity(dataset, root, capsys, monkeypatch):

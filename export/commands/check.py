@@ -31,7 +31,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--run", type=path_given,
                    help="run folder: re-run parity against its PyTorch model")
     p.add_argument("--data", type=path_given, help="dataset folder: windows to check on")
-    p.add_argument("--windows", type=int_in(1), default=256,
+    p.add_argument("--windows", type=int_in(1), default=None,
                    help="--run: compare on at most this many windows (default: 256)")
     p.add_argument("--no-native", action="store_true",
                    help="run the portable EMD/sparse-code graphs, not the C kernels")
@@ -52,7 +52,12 @@ def _check(args: argparse.Namespace) -> int:
 
 @command("tactile-check", interruptible=True)
 def main(argv: list[str] | None = None) -> int:
-    return run("tactile-check", _check, build_parser().parse_args(argv))
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    if args.windows is not None and args.run is None:  # it would be ignored in silence
+        parser.error("argument --windows: only with --run (the windows of the parity check)")
+    args.windows = 256 if args.windows is None else args.windows
+    return run("tactile-check", _check, args)
 
 
 if __name__ == "__main__":
