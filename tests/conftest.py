@@ -134,6 +134,18 @@ def page_url(stderr) -> str:
     pytest.fail("stderr ended without saying where the live page is")
 
 
+def line_starting(stderr, prefix: str, most: int = 20) -> str:
+    """The first of at most ``most`` lines of a subprocess's stderr (a text pipe) that starts
+    with ``prefix``; else the last line read ('' at its end), which the caller's assertion
+    shows. Reading waits for the line, not for a time."""
+    line = ""
+    for _ in range(most):
+        line = stderr.readline()
+        if not line or line.startswith(prefix):
+            break
+    return line
+
+
 def not_utf8(data: bytes, text: bytes, nth: int = 0, offset: int = 5) -> bytes:
     """``data`` (a file's bytes) with byte ``offset`` of the nth occurrence of ``text`` made
     0xd0: a string of the file that is no longer UTF-8, as in a damaged copy; the length is

@@ -13,7 +13,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import serial
-from conftest import listening, read_link, rows_in, start_and_signal
+from conftest import line_starting, listening, read_link, rows_in, start_and_signal
 
 import tactile.device  # noqa: F401  (registers sim://)
 from tactile.device.commands.record import main as record_main
@@ -279,10 +279,8 @@ def test_ctrl_c_before_any_data_is_a_stop_not_a_device_error(tmp_path, reap):
         [sys.executable, "-m", "tactile.device.commands.record", "--port", "loop://", "--label",
          "desk", "--out", str(tmp_path)],
         stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True))
-    for _ in range(20):  # progress lines, then the stall message after 2 s without data
-        line = proc.stderr.readline()
-        if not line or line.startswith("tactile-record: no data for"):
-            break
+    # progress lines, then the stall message after 2 s without data
+    line = line_starting(proc.stderr, "tactile-record: no data for")
     proc.send_signal(signal.SIGINT)
     out, err = proc.communicate(timeout=20)
     assert line.startswith("tactile-record: no data for"), line

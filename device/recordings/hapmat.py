@@ -55,6 +55,11 @@ CHANNELS = (
 SOURCE_COLUMNS = ("accel_x", "accel_y", "accel_z", "rota_x", "rota_y", "rota_z")
 
 
+def _first_twice(names: list[str]) -> str | None:
+    """The first name that ``names`` gives a second time, or None."""
+    return next((c for k, c in enumerate(names) if c in names[:k]), None)
+
+
 def _read_npz(npz: Path) -> tuple[list[str], list[str], list[np.ndarray], float, str]:
     """The bundled form: ``X`` (material, sample, channel), ``classes`` (one name per material),
     ``channels`` (one name per channel), ``fs_hz``; optional ``source``. Returns the materials,
@@ -91,7 +96,7 @@ def _read_npz(npz: Path) -> tuple[list[str], list[str], list[np.ndarray], float,
             raise RecordingError(f"{npz}: {key} has {len(names)} names for the "
                                  f"{x.shape[axis]} {what} of X {x.shape}")
     names = [str(c) for c in channels]
-    twice = next((c for k, c in enumerate(names) if c in names[:k]), None)
+    twice = _first_twice(names)
     if twice is not None:
         raise RecordingError(f"{npz}: channels names {twice!r} twice")
     try:
@@ -116,7 +121,7 @@ def _read_csv_folder(folder: Path) -> tuple[list[str], list[str], list[np.ndarra
         # a spreadsheet's export may start with a UTF-8 byte-order mark and pad the names
         with open(f, encoding="utf-8-sig", errors="replace") as fh:
             header = [c.strip() for c in fh.readline().split(",")]
-        twice = next((c for k, c in enumerate(header) if c in header[:k]), None)
+        twice = _first_twice(header)
         if twice is not None:  # which of the two would be the data?
             raise RecordingError(f"{f}: column {twice!r} appears twice in the header")
         missing = [c for c in ("time", *SOURCE_COLUMNS) if c not in header]
