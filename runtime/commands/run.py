@@ -133,11 +133,12 @@ def _run(args: argparse.Namespace) -> int:
     runner = Runner(model, stream, Printer(args.format, c.classes, smoothed=post is not None),
                     summary)
     decoder = StreamDecoder(csv_rate_hz=c.sample_rate_hz)
-    found = None
-    if args.serve and args.replay is None and args.port is None and not args.wait:
+    found = None  # the one likely pen, looked for now: no pen is its error alone, before a
+    # live page is announced (--wait looks for it while the page runs)
+    if args.replay is None and args.port is None and not args.wait:
         from tactile.device.link.portlist import find_port
 
-        found = find_port()  # no likely pen: its error, before a page is announced
+        found = find_port()
     live = None
     if args.serve:
         from tactile.runtime.live import serve_runner
@@ -155,10 +156,9 @@ def _run(args: argparse.Namespace) -> int:
 
 def _read(args: argparse.Namespace, runner: Runner, decoder: StreamDecoder, deadline: float,
           found: str | None = None) -> None:
-    """Until stopped or ``deadline`` (monotonic s): the replay, or the pen (``found`` already,
-    else found, or waited for, first)."""
+    """Until stopped or ``deadline`` (monotonic s): the replay, or the pen (``--port``, the
+    one ``found``, or the one waited for)."""
     from tactile.device.link.connection import LinkSettings
-    from tactile.device.link.portlist import find_port
     from tactile.runtime.runner import read_pen, replay, say, wait_for_pen
     from tactile.runtime.stop import stop_on_signals
 
@@ -169,11 +169,10 @@ def _read(args: argparse.Namespace, runner: Runner, decoder: StreamDecoder, dead
         replay(args.replay, runner, stop, deadline)
         return
     auto = args.port is None  # found by auto-detection: after an unplug, look again
-    port = args.port
+    port = args.port if args.port is not None else found
     status_every = STATUS_EVERY if args.status_every is None else args.status_every
-    if port is None:
-        port = (wait_for_pen(stop, deadline, status_every) if args.wait else
-                found or find_port())
+    if port is None:  # --wait
+        port = wait_for_pen(stop, deadline, status_every)
     if port is not None:  # None: stopped while waiting for a pen
         baud, stall_timeout = link_values(args)
         settings = LinkSettings(port, baud, auto=auto, wait=args.wait,

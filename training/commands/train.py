@@ -80,51 +80,31 @@ def _settings(args: argparse.Namespace):
 
 
 def _check_out(out: Path) -> None:
-    """Refuse, before any training, an --out that could not be written at the end: a file, a
-    path through a file, or a folder (or the nearest existing one above it) not writable."""
+    """Refuse, before any work, an --out that is a file or a path through one (whether the
+    folder can be written is tried when the training takes it: :func:`_held`)."""
     from tactile.errors import ConfigError
 
     if out.exists() and not out.is_dir():
         raise ConfigError(f"--out {out}: a file, not a folder")
-    base, missing = out, []  # the nearest folder that exists; the ones to make, deepest first
+    base = out  # the nearest folder that exists
     while not base.exists() and base != base.parent:
-        missing.append(base)
         base = base.parent
     if not base.is_dir():
         raise ConfigError(f"--out {out}: {base} is a file, not a folder")
-    if os.environ.get("RANK", "0") != "0":  # a torchrun job: rank 0 writes, and tries it
-        return
-    # tried, not asked (os.access says yes to root, and on /proc or a read-only mount): the
-    # missing folders made and a file written in the deepest, then all of it removed again
-    made = []
-    try:
-        for d in reversed(missing):
-            d.mkdir()
-            made.append(d)
-        with tempfile.TemporaryFile(dir=made[-1] if made else base):
-            pass
-    except OSError as e:
-        raise ConfigError(f"--out {out}: cannot be written ({e.strerror or e})") from None
-    finally:
-        for d in reversed(made):
-            d.rmdir()
 
 
 @contextlib.contextmanager
 def _held(out: Path, option: str, force: bool):
-    """Hold the run folder ``out`` (given as ``option``) while training writes it: a second
-    ``tactile-train`` into it at the same time is refused (both found no run there, and the two
-    runs' files would mix), and a run that another finished meanwhile is refused as any run
-    there is (:func:`_refuse_a_run`) unless ``force``. The hold is an advisory lock on the
-    folder, which ends with the process however it ends; a file system without locks (NFS
-    without a lock daemon, some FUSE mounts) or Windows holds nothing. Folders made here and
-    left empty are removed again."""
-    try:
-        import fcntl
-    except ImportError:  # no advisory locks (Windows): not held
-        yield
-        return
-    if os.environ.get("RANK", "0") != "0":  # a torchrun job: rank 0 holds the folder
+    """The run folder ``out`` (given as ``option``) made, tried and held while training writes
+    it, before any training: a folder that cannot be written is refused (tried, not asked:
+    ``os.access`` says yes to root, and on /proc or a read-only mount), and so is a second
+    ``tactile-train`` into it at the same time (both found no run there, and the two runs'
+    files would mix), and a run that another finished meanwhile, as any run there is
+    (:func:`_refuse_a_run`) unless ``force``. The hold is an advisory lock on the folder, which
+    ends with the process however it ends; a file system without locks (NFS without a lock
+    daemon, some FUSE mounts) or Windows holds nothing. Folders made here and left empty are
+    removed again. In a torchrun job rank 0 does all of it."""
+    if os.environ.get("RANK", "0") != "0":
         yield
         return
     from tactile.errors import ConfigError
@@ -136,19 +116,20 @@ def _held(out: Path, option: str, force: bool):
     made = []
     fd = None
     try:
-        for d in reversed(missing):
-            d.mkdir(exist_ok=True)
-            made.append(d)
-        fd = os.open(out, os.O_RDONLY)
         try:
-            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+            for d in reversed(missing):
+                d.mkdir(exist_ok=True)
+                made.append(d)
+            with tempfile.TemporaryFile(dir=out):
+                pass
+        except OSError as e:
+            raise ConfigError(f"{option} {out}: cannot be written ({e.strerror or e})") from None
+        try:
+            fd = _lock(out)
         except BlockingIOError:
-            wait = ("wait for it to end" if option == "--resume" else
-                    "choose another --out")
+            wait = "wait for it to end" if option == "--resume" else "choose another --out"
             raise ConfigError(f"{option} {out}: another tactile-train is writing into it now: "
                               f"{wait}") from None
-        except OSError:  # no locks on this file system: not held
-            pass
         if option == "--out" and not force:
             _refuse_a_run(out)
         yield
@@ -160,6 +141,25 @@ def _held(out: Path, option: str, force: bool):
                 break
         if fd is not None:
             os.close(fd)
+
+
+def _lock(folder: Path) -> int | None:
+    """An open descriptor of ``folder`` holding its advisory lock, or None where nothing can be
+    held (Windows, a file system without locks); :class:`BlockingIOError` when another process
+    holds it."""
+    try:
+        import fcntl
+    except ImportError:
+        return None
+    fd = os.open(folder, os.O_RDONLY)
+    try:
+        fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+    except OSError as e:
+        os.close(fd)
+        if isinstance(e, BlockingIOError):
+            raise
+        return None
+    return fd
 
 
 def _refuse_a_run(out: Path) -> None:
