@@ -28,7 +28,7 @@ from tactile.device.protocol import (
     encode_header,
 )
 from tactile.device.recordings import TakeWriter, load_dataset, read_take
-from tactile.device.recordings.biotac import channels, import_biotac
+from tactile.device.recordings.biotac import channels, import_biotac, irregular
 from tactile.errors import FrameError, RecordingError
 
 BOLT = SHARED / "datasets" / "biotac-bolt"
@@ -363,6 +363,43 @@ def test_force_keeps_the_old_takes_when_a_timestamp_is_not_a_date(tmp_path, fram
     assert len(take.raw) == 40
     assert take.meta["recorded_utc"] == ("2099-12-31T23:59:59Z" if frame == 0
                                          else "2012-07-18T01:05:57Z")
+
+
+@pytest.mark.parametrize("stamps, said", [
+    ([10, 10, 11, 11, 12], None),
+    ([10, 11, 10, 11, 12], "go back from 11 to 10 at frame 2"),
+    ([10, 11, 14, 14, 15], "jump from 11 to 14 at frame 2"),
+    ([10, 9, 12, 11, 12], "go back from 10 to 9 at frame 1 (and 1 more); jump from 9 to "
+                          "12 at frame 2"),
+])
+def test_irregular_names_where_timestamps_first_go_back_or_jump(stamps, said):
+    assert irregular(np.array(stamps, np.int64)) == said
+
+
+def test_timestamps_that_go_back_or_jump_import_in_file_order_with_a_warning(tmp_path):
+    """Timestamps were checked for range only: a trial whose clock went back or skipped
+    (frames lost, or the clock set) imported with no word. It imports as before, its frames
+    in file order, and the command says which trial and frame, one line per trial."""
+    path = tmp_path / "odd.h5"
+    data = write_h5(path, {"cork_pdc100_1cm_01": 300, "cork_pdc100_1cm_02": 300})
+    with h5py.File(path, "a") as f:
+        stamps = f["cork_pdc100_1cm_02/timestamps"]
+        stamps[150:] = stamps[150:] - 2  # the clock set back two seconds at frame 150
+    out = tmp_path / "out"
+    result = subprocess.run(
+        [sys.executable, "-m", "tactile.device.commands.import_biotac", str(path), "--out",
+         str(out)], capture_output=True, text=True)
+    assert result.returncode == 0, result.stderr
+    assert result.stderr.splitlines() == [
+        f"tactile-import-biotac: warning: {path}: cork_pdc100_1cm_02/timestamps: go back from "
+        "1342573558 to 1342573556 at frame 150 (imported in file order)"]
+    for name in ("cork_pdc100_1cm_01", "cork_pdc100_1cm_02"):
+        take = read_take(out / f"{name}.csv")
+        assert np.array_equal(take.raw[:, list(take.channels).index("f0_pdc")],
+                              data[name]["finger_0/pdc"])
+    said = []
+    import_biotac([path], tmp_path / "out2", warn=said.append)
+    assert len(said) == 1 and said[0].startswith(f"{path}: cork_pdc100_1cm_02/timestamps: go ")
 
 
 def test_without_h5py_the_command_names_its_extra():

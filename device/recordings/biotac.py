@@ -23,7 +23,10 @@ nowhere (an external link to a missing file, a soft link to a path the file lack
 lead to the data are followed), a dataset that cannot be read (a damaged chunk), lengths that
 disagree, values that are not 12-bit counts, timestamps that are not whole Unix seconds of
 1970..2099 (:data:`FIRST_TIME` .. :data:`LAST_TIME`), or a trial given twice, is one line naming
-the file and the dataset, exit code 1. A take of the same name already in the output folder is
+the file and the dataset, exit code 1. Timestamps that go back, or jump by more than a second
+between two frames (frames lost, or the recording computer's clock set), are imported all the
+same, in file order (the order the frames were recorded in), with one ``warning:`` line per
+trial naming the first such frame. A take of the same name already in the output folder is
 refused too (importing twice would duplicate data), or replaced with ``--force``: the old takes
 are deleted only once every input has passed its checks (the takes' metadata included), so a bad
 input leaves them as they were.
@@ -32,7 +35,9 @@ input leaves them as they were.
 from __future__ import annotations
 
 import re
+import sys
 import time
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -200,6 +205,25 @@ def read_trial(f: h5py.File, trial: Trial) -> tuple[np.ndarray, np.ndarray]:
     return np.concatenate(columns, axis=1), stamps
 
 
+def irregular(stamps: np.ndarray) -> str | None:
+    """What is odd in a trial's timestamps (T,) Unix seconds, frame by frame: where they first
+    go back, and where they first jump by more than a second (about 100 frames share a
+    second). None when they are neither."""
+    step = np.diff(stamps)
+    said = []
+    for odd, what in ((step < 0, "go back"), (step > 1, "jump")):
+        rows = np.flatnonzero(odd)
+        if rows.size:
+            i = int(rows[0])
+            times = "" if rows.size == 1 else f" (and {rows.size - 1} more)"
+            said.append(f"{what} from {stamps[i]} to {stamps[i + 1]} at frame {i + 1}{times}")
+    return "; ".join(said) or None
+
+
+def _warn(line: str) -> None:
+    print(f"warning: {line}", file=sys.stderr, flush=True)
+
+
 def _utc(where: str, seconds: int) -> str:
     """``seconds`` (Unix time) as ``YYYY-MM-DDTHH:MM:SSZ``; :class:`RecordingError` naming
     ``where`` (the file and trial) when this system's clock functions cannot convert it."""
@@ -233,10 +257,13 @@ def signals(fingers: tuple[int, ...] = FINGERS) -> dict[str, list[str]]:
     return {f"f{k}_pac": [f"f{k}_pac_{i:02d}" for i in range(PAC_SAMPLES)] for k in fingers}
 
 
-def import_biotac(files: list[Path], out: Path, force: bool = False) -> list[Path]:
+def import_biotac(files: list[Path], out: Path, force: bool = False,
+                  warn: Callable[[str], None] = _warn) -> list[Path]:
     """Write one take per trial of ``files`` into the dataset folder ``out``; returns the CSV
     paths. Everything is read and checked before the first take is written; takes of the same
-    names already in ``out`` are refused, or replaced with ``force``."""
+    names already in ``out`` are refused, or replaced with ``force``. Timestamps that go back
+    or jump (:func:`irregular`) are ``warn``-ed, one line per trial, before any take is
+    written; the frames are imported in file order all the same."""
     files = [Path(p) for p in files]
     first: dict[Path, Path] = {}
     for p in files:  # the same file twice (under any spelling) would import its trials twice
@@ -254,7 +281,9 @@ def import_biotac(files: list[Path], out: Path, force: bool = False) -> list[Pat
                 raise RecordingError(f"{t.file}: trial {t.group} also in {seen[t.group]}")
             seen[t.group] = t.file
         for t in trials:  # check every trial (no data kept) before writing any
-            read_trial(handles[t.file], t)
+            odd = irregular(read_trial(handles[t.file], t)[1])
+            if odd is not None:
+                warn(f"{t.file}: {t.group}/timestamps: {odd} (imported in file order)")
         # every input is valid: only now may --force delete the takes these replace
         out = dataset_folder(out)
         info = DeviceInfo(RATE_HZ, channels(), device="biotac-bolt")
@@ -274,4 +303,4 @@ def import_biotac(files: list[Path], out: Path, force: bool = False) -> list[Pat
 
 
 __all__ = ["FINGERS", "FIRST_TIME", "LAST_TIME", "RATE_HZ", "Trial", "channels", "import_biotac",
-           "read_trial", "signals"]
+           "irregular", "read_trial", "signals"]
