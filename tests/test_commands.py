@@ -151,6 +151,17 @@ def test_recorder_refuses_a_bad_label_before_opening_the_port(tmp_path):
     assert code == 1 and "label 'a:b'" in err and ": * ?" in err
 
 
+def test_recorder_refuses_the_label_the_label_stream_reserves(tmp_path):
+    """``--label uncertain`` recorded a take that training then refused (the label stream
+    reports ``uncertain`` for no stable label); it is refused before the port opens."""
+    code, _, err = cli("tactile-record", "--port", "/dev/no-such-pen", "--label", "uncertain",
+                       "--out", str(tmp_path))
+    assert code == 1 and err.strip() == (
+        "tactile-record: error: label 'uncertain': the label stream reserves it for no stable "
+        "label, so a model cannot have that class: choose another"), err
+    assert not list(tmp_path.iterdir())
+
+
 def test_sim_dataset_neither_overwrites_nor_duplicates(tmp_path):
     args = ("--dataset", str(tmp_path), "--takes", "1", "--seconds", "1", "--textures",
             "paper,desk")

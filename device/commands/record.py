@@ -48,9 +48,13 @@ def _main(args: argparse.Namespace) -> int:
     from tactile.device.link.portlist import find_port
     from tactile.device.recordings.recorder import record
     from tactile.device.recordings.take import check_label, dataset_folder
-    from tactile.errors import DeviceError
+    from tactile.errors import DeviceError, RecordingError
+    from tactile.postprocess.smoothing import UNCERTAIN
 
     check_label(args.label)  # before the port opens: a mistake costs no take
+    if args.label == UNCERTAIN:  # a take training would refuse
+        raise RecordingError(f"label {UNCERTAIN!r}: the label stream reserves it for no stable "
+                             "label, so a model cannot have that class: choose another")
     dataset_folder(args.out)
     auto = args.port is None  # found by auto-detection: after an unplug, look again
     if auto:
