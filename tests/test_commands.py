@@ -16,6 +16,7 @@ from conftest import REPO
 from tactile import __version__
 from tactile.device.protocol import pen_info
 from tactile.device.recordings import TakeWriter, check_label
+from tactile.device.recordings.summary import natural
 from tactile.errors import RecordingError
 
 SCRIPTS = sorted(tomllib.loads((REPO / "pyproject.toml").read_text())["project"]["scripts"])
@@ -359,6 +360,23 @@ def test_data_summary_counts_takes_minutes_windows_and_gaps(tmp_path):
     assert code == 0 and "3 takes, 2 classes, 2 users" in out and "8 windows" in out
     code, _, err = cli("tactile-data", str(tmp_path / "none"))
     assert code == 1 and "not a folder" in err
+
+
+def test_data_summary_lists_users_in_number_order(tmp_path):
+    """Users were sorted as text (10 before 2, user10 before user2) in ``tactile-data`` and
+    ``tactile-plot --summary``; runs of digits now sort as numbers."""
+    for user in (10, 2, 1):
+        _take(tmp_path, "paper", user, [range(0, 60)])
+    code, out, err = cli("tactile-data", str(tmp_path), "--json")
+    assert code == 0, err
+    s = json.loads(out)
+    assert s["users"] == list(s["per_user"]) == ["1", "2", "10"]
+    code, out, _ = cli("tactile-data", str(tmp_path))
+    rows = [line.split()[0] for line in out.splitlines()[out.splitlines().index(
+        next(line for line in out.splitlines() if line.startswith("user "))) + 1:]]
+    assert rows[:3] == ["1", "2", "10"], out
+    assert sorted(["user10", "user2", "b", "a3", "a10"], key=natural) == [
+        "a3", "a10", "b", "user2", "user10"]
 
 
 def test_plot_writes_pictures_and_refuses_what_it_cannot_plot(tmp_path):

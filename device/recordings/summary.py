@@ -7,6 +7,7 @@ training defaults' window and hop (:data:`WINDOW`, :data:`HOP`). Needs numpy onl
 
 from __future__ import annotations
 
+import re
 from collections import defaultdict
 from pathlib import Path
 
@@ -21,6 +22,13 @@ HOP = 10  # samples from one window's start to the next
 def user_of(take: Take) -> str:
     """The take's ``user`` field as text, or ``-`` when the take does not say."""
     return str(take.meta["user"]) if "user" in take.meta else "-"
+
+
+def natural(name: str) -> tuple:
+    """A sort key that puts ``user2`` before ``user10`` and ``9`` before ``10``: the name's runs
+    of digits compare as numbers, the rest as text (the name itself breaks ties: ``07``, ``7``)."""
+    parts = re.split(r"(\d+)", name)
+    return (*(int(x) if i % 2 else x for i, x in enumerate(parts)), name)
 
 
 def windows_in(take: Take, window: int, hop: int) -> int:
@@ -56,11 +64,11 @@ def summarise(takes: list[Take], window: int, hop: int) -> dict:
 
     first = takes[0].info
     return {
-        "takes": len(takes), "classes": sorted(by_class), "users": sorted(by_user),
+        "takes": len(takes), "classes": sorted(by_class), "users": sorted(by_user, key=natural),
         "channels": [{"name": c.name, "unit": c.unit} for c in first.channels],
         "sample_rate_hz": rate, "window": window, "hop": hop, "total": plain(total),
         "per_class": {k: plain(v) for k, v in sorted(by_class.items())},
-        "per_user": {k: plain(v) for k, v in sorted(by_user.items())},
+        "per_user": {k: plain(by_user[k]) for k in sorted(by_user, key=natural)},
     }
 
 
@@ -83,4 +91,4 @@ def text(s: dict, folder: Path) -> str:
     return "\n".join(lines)
 
 
-__all__ = ["WINDOW", "HOP", "summarise", "text", "windows_in", "user_of"]
+__all__ = ["WINDOW", "HOP", "natural", "summarise", "text", "windows_in", "user_of"]
