@@ -125,6 +125,23 @@ def test_not_a_dict_and_not_a_checkpoint(tmp_path):
     assert "weights_only" not in str(e.value)
 
 
+def test_a_checkpoint_cut_short_says_so_in_one_short_line(good, tmp_path):
+    """A checkpoint cut short (a full disk, a copy stopped) was refused in torch.load's words:
+    a paragraph of advice from its zip reader, ``EOFError`` when empty, and for one byte the
+    false claim that it held objects other than tensors."""
+    ck, _ = good
+    path = tmp_path / "checkpoint.pt"
+    torch.save(ck, path)
+    whole = path.read_bytes()
+    for n in (0, 1, 100, len(whole) // 2, len(whole) - 1):
+        path.write_bytes(whole[:n])
+        with pytest.raises(RecordingError) as e:
+            load_checkpoint(path)
+        assert str(e.value) == (f"{path}: not a readable checkpoint (not the zip archive "
+                                f"torch.save writes: empty, cut short or another file; {n} "
+                                "bytes)")
+
+
 def test_the_good_checkpoint_loads(good, tmp_path):
     ck, _ = good
     torch.save(ck, tmp_path / "checkpoint.pt")

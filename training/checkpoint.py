@@ -103,8 +103,13 @@ def _read(path: Path, what: str, hint: str) -> dict:
     try:  # torch.load does not test the archive's checksums: damaged bytes loaded as weights
         with zipfile.ZipFile(path) as z:
             damaged = z.testzip()
-    except (zipfile.BadZipFile, OSError):
-        damaged = None  # not an archive (or unreadable): torch.load below says what it is
+    except zipfile.BadZipFile:  # torch.save writes a zip archive; torch.load's own words for
+        # one cut short or empty were a paragraph, EOFError, or a claim of foreign objects
+        raise RecordingError(f"{path}: not a readable {what} (not the zip archive torch.save "
+                             f"writes: empty, cut short or another file; "
+                             f"{path.stat().st_size} bytes)") from None
+    except OSError as e:
+        raise RecordingError(f"{path}: cannot read ({e.strerror or e})") from None
     if damaged is not None:
         raise RecordingError(f"{path}: damaged ({damaged} fails its stored checksum): not a "
                              f"readable {what}")
