@@ -30,6 +30,7 @@ from tactile.device.protocol import (
 from tactile.device.sim import PenSimulator
 from tactile.runtime import monitor
 from tactile.runtime.commands.monitor import main as monitor_main
+from tactile.runtime.commands.monitor import no_samples
 
 PEN = "sim://?texture=paper&seed=1&speed=max&seconds=2"  # 200 samples, as fast as read
 
@@ -121,6 +122,20 @@ def test_the_verdict_says_alive_only_at_about_the_declared_rate():
                                     "received, 100 Hz declared: more than 10% off)")
     assert verdict_of(230, 2.0).startswith("too fast, otherwise sane: 230 samples in 2.0 s "
                                            "(115.0 Hz received")
+
+
+def test_no_samples_counts_the_bytes_held_waiting_for_a_frame_end_as_not_decodable():
+    """Bytes that never end a frame (a wrong device or baud rate: no zero byte, no line end)
+    stay held by the decoder, and the error said '0 not decodable' of them."""
+    junk = bytes(range(1, 10)) * 7  # 63 bytes, no 0x00 and no newline
+    decoder = StreamDecoder()
+    assert decoder.feed(junk) == [] and decoder.held == 63
+    assert no_samples("sim", 2.0, decoder) == ("no samples from sim in 2.0 s (63 bytes read; "
+                                               "63 not decodable)")
+    decoder = StreamDecoder(mode="binary")  # a frame end with nothing decodable before it:
+    decoder.feed(junk + b"\x00" + junk[:5])  # 63 thrown away, the delimiter, 5 held
+    assert decoder.held == 5
+    assert no_samples("sim", 1.0, decoder).endswith("(69 bytes read; 68 not decodable)")
 
 
 def test_no_data_is_exit_2_and_bad_options_exit_1(capsys):

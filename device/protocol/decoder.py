@@ -159,6 +159,12 @@ class StreamDecoder(CsvLines):
             self._restart_pending = True  # to tell, so its next row comes after the break
 
     @property
+    def held(self) -> int:
+        """Bytes received and neither decoded nor discarded yet: the start of a frame or line
+        whose end has not come (or, in auto mode, bytes not yet seen to be either)."""
+        return len(self._buf)
+
+    @property
     def next_seq(self) -> int:
         """Host sequence number the next sample will get (if nothing is lost)."""
         return self._host_next

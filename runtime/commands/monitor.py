@@ -23,6 +23,7 @@ from __future__ import annotations
 import argparse
 import sys
 import time
+from typing import TYPE_CHECKING
 
 from tactile.cli import (
     Parser,
@@ -33,6 +34,9 @@ from tactile.cli import (
     link_values,
     run,
 )
+
+if TYPE_CHECKING:
+    from tactile.device.protocol import StreamDecoder
 
 CSV_RATE = 100.0  # --csv-rate's default, Hz
 
@@ -107,10 +111,18 @@ def _monitor(args: argparse.Namespace) -> int:
         if stop.get("by") and not st.bytes_in:  # a silent port, stopped: as tactile-record
             say(f"stopped by {stop['by']} before any data")
             return 0
-        raise DeviceError(f"no samples from {port} in {end - begin:.1f} s ({st.bytes_in} bytes "
-                          f"read; {st.bytes_discarded} not decodable)")
+        raise DeviceError(no_samples(port, end - begin, decoder))
     say(verdict(watch, decoder, end))
     return 0
+
+
+def no_samples(port: str, seconds: float, decoder: StreamDecoder) -> str:
+    """The error for a port that gave no sample: the bytes read, and how many of them decoded
+    to nothing: those thrown away and those still held waiting for a frame's or a line's end
+    (a wrong device or baud rate can send bytes that never end a frame)."""
+    st = decoder.stats
+    return (f"no samples from {port} in {seconds:.1f} s ({st.bytes_in} bytes read; "
+            f"{st.bytes_discarded + decoder.held} not decodable)")
 
 
 @command("tactile-monitor", guarded=True)
