@@ -332,6 +332,13 @@ def replay(path: Path, runner: Runner, stop: dict, deadline: float = math.inf,
     if take.truncated:
         say(f"{path}: its last row was cut short (the recording stopped mid-write); "
             "it is left out")
+    window = runner.stream.window
+    longest = max(b - a for a, b in take.segments())
+    if longest < window:  # a take too short for one window would end with no word
+        say(f"{path}: {len(take.seq)} samples, fewer than the model's window of {window}: no "
+            "label" if longest == len(take.seq) else
+            f"{path}: no {window} samples without a gap (the model's window; the longest run: "
+            f"{longest}): no label")
     runner.handle([Header(take.info)])
     # the take's gap lines, as the live stream gave them (a restart stays a restart), also
     # those before its first row and after its last; a seq jump no line records is a drop of
@@ -346,7 +353,8 @@ def replay(path: Path, runner: Runner, stop: dict, deadline: float = math.inf,
         if a > 0:
             runner.handle(recorded.get(a) or [
                 Gap(int(take.seq[a]), int(take.seq[a] - take.seq[a - 1] - 1), "drop")])
-        for i in range(a, b, 256):
+        i = a
+        while i < b:
             if stop["flag"]:
                 return
             if clock() >= deadline:
@@ -354,7 +362,15 @@ def replay(path: Path, runner: Runner, stop: dict, deadline: float = math.inf,
                     f"{len(take.seq)} samples of {path} done)")
                 return
             j = min(i + 256, b)
+            # a run of samples starts where the recorded device time leaves the rate's steps
+            # (a new frame of the pen, a clock reset), as the live stream gave them
+            off = take.t_us[i:j] - take.t_us[i] - np.round(
+                np.arange(j - i) * (1e6 / take.info.sample_rate_hz)).astype(np.int64)
+            moved = np.flatnonzero(off)
+            if moved.size:
+                j = i + int(moved[0])
             runner.handle([Samples(int(take.seq[i]), int(take.t_us[i]), take.raw[i:j])])
+            i = j
     if not stop["flag"]:
         runner.handle(recorded.get(len(take.seq), []))
 

@@ -1379,6 +1379,47 @@ def test_replay_refuses_an_empty_take_and_says_when_the_last_row_is_cut(models, 
     assert len([ln for ln in out.splitlines() if '"label"' in ln]) == (599 - 50) // 25 + 1
 
 
+def test_a_replay_keeps_the_recorded_device_times(models, tmp_path):
+    """A replay fed the take in runs of 256 rows, each timed from its first row at the
+    nominal rate: windows got times the take does not hold (a pen whose clock runs 1 % slow,
+    a clock that went back). Each window's ``t`` is now its last sample's recorded time."""
+    from tactile.device.recordings import TakeWriter, read_take
+
+    src = read_take(next((models["data"]).glob("paper-*.csv")))
+    period = round(1e6 / src.info.sample_rate_hz)
+    times = []
+    with TakeWriter(tmp_path, "paper", src.info, "test", name="slow") as w:
+        for k in range(0, len(src.seq), 10):  # frames of 10 samples, each 1 % late
+            t0 = 0 if k == 300 else (k // 10) * 10 * period * 101 // 100  # at 300: back to 0
+            if k > 300:
+                t0 -= 30 * 10 * period * 101 // 100
+            w.write(k, t0, src.raw[k:k + 10])
+            times += [t0 + i * period for i in range(len(src.raw[k:k + 10]))]
+    take = read_take(tmp_path / "slow.csv")
+    assert take.t_us.tolist() == times
+    _, onnx_path = models["window"]
+    code, out, err = run_cli(["--model", str(onnx_path), "--replay", str(tmp_path / "slow.csv"),
+                              "--format", "csv", "--raw"])
+    assert code == 0, err
+    rows = [r.split(",") for r in out.splitlines()[1:]]
+    assert len(rows) == (len(times) - 50) // 25 + 1
+    for r in rows:  # t (6 decimals), seq: the window's last sample
+        assert float(r[0]) == pytest.approx(times[int(r[1])] / 1e6, abs=1e-6), r[:2]
+
+
+def test_a_replay_of_a_take_shorter_than_a_window_says_so(models, tmp_path):
+    from tactile.device.recordings import TakeWriter, read_take
+
+    src = read_take(next((models["data"]).glob("paper-*.csv")))
+    with TakeWriter(tmp_path, "paper", src.info, "test", name="short") as w:
+        w.write(0, 0, src.raw[:30])
+    _, onnx_path = models["window"]
+    code, out, err = run_cli(["--model", str(onnx_path), "--replay", str(tmp_path / "short.csv")])
+    assert code == 0 and out == "", err
+    assert (f"tactile-run: {tmp_path / 'short.csv'}: 30 samples, fewer than the model's window "
+            "of 50: no label") in err, err
+
+
 def test_sigint_stops_a_replay(tmp_path, reap):
     (take,) = make_dataset(tmp_path, takes=1, textures=("paper",), seconds=3600, seed=1)
     proc = reap(subprocess.Popen(
