@@ -18,7 +18,8 @@ import math
 import sys
 import time
 from collections import Counter
-from collections.abc import Callable, Mapping
+from collections.abc import Callable, Iterator, Mapping
+from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -27,7 +28,7 @@ import numpy as np
 import tactile.device  # noqa: F401  (registers sim://)
 from tactile.device.link import Connection, LinkSettings, Reconnected, Stall, find_port, keep_trying
 from tactile.device.protocol import DeviceInfo, Gap, Header, Samples, StreamDecoder
-from tactile.errors import ConfigError, ModelContractError, RecordingError
+from tactile.errors import ConfigError, ModelContractError, OutputError, RecordingError
 from tactile.postprocess.smoothing import PostProcessor, SmoothingSettings, override
 from tactile.runtime.model import Model
 from tactile.runtime.stream import InvalidWindow, Label, Stream
@@ -84,8 +85,25 @@ class Printer:
                        "event"])
 
     def _row(self, cells: list) -> None:
-        self._csv.writerow(cells)
-        self.out.flush()
+        with self._writing():
+            self._csv.writerow(cells)
+            self.out.flush()
+
+    def _print(self, line: str) -> None:
+        with self._writing():
+            print(line, file=self.out, flush=True)
+
+    @contextmanager
+    def _writing(self) -> Iterator[None]:
+        """stdout that cannot take a line (a full disk, an I/O error) is :class:`OutputError`
+        (exit 4: a service may restart); a reader that went away stays BrokenPipeError (the
+        command stops quietly)."""
+        try:
+            yield
+        except BrokenPipeError:
+            raise
+        except OSError as e:
+            raise OutputError(f"stdout: cannot write the labels ({e.strerror or e})") from None
 
     def label(self, lab: Label) -> None:
         sm = lab.smoothed if self.smoothed else None
@@ -106,14 +124,14 @@ class Printer:
                     f"  -> {sm.label} ({sm.leader} p={sm.p:.3f})"
                 if sm.reset is not None:
                     line += f"  [reset: {sm.reset}]"
-        print(line, file=self.out, flush=True)
+        self._print(line)
 
     def event(self, kind: str, **fields) -> None:
         """Gaps, stalls, reconnects and changes of the stable label: a JSON object in jsonl
         mode, a row with the `event` column filled in csv mode, a ``#`` comment line in text
         mode."""
         if self.fmt == "jsonl":
-            print(json.dumps({"event": kind, **fields}), file=self.out, flush=True)
+            self._print(json.dumps({"event": kind, **fields}))
             return
         shown = {k: "" if v is None else v for k, v in fields.items()}  # JSON's null: empty
         if self.fmt == "csv":
@@ -121,8 +139,7 @@ class Printer:
             blank = len(self.classes) + 4 + (3 if self.smoothed else 0)
             self._row(["", fields.get("seq", ""), *[""] * blank, what])
         else:
-            print(f"# {kind} " + " ".join(f"{k}={v}" for k, v in shown.items()),
-                  file=self.out, flush=True)
+            self._print(f"# {kind} " + " ".join(f"{k}={v}" for k, v in shown.items()))
 
 
 def post_processor(model: Model, smoothing=None) -> PostProcessor | None:

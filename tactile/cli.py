@@ -14,10 +14,17 @@ import traceback
 from collections.abc import Callable
 from pathlib import Path
 
-from tactile.errors import ConfigError, DeviceError, ModelContractError, TactileError
+from tactile.errors import (
+    ConfigError,
+    DeviceError,
+    ModelContractError,
+    OutputError,
+    TactileError,
+)
 
 # Exit codes, documented in README.md: 0 ok, 1 bad input, 2 device/port, 3 model contract.
 EXIT_OK, EXIT_USAGE, EXIT_DEVICE, EXIT_CONTRACT = 0, 1, 2, 3
+EXIT_OUTPUT = 4  # stdout cannot be written (a full disk): a service may restart
 EXIT_INTERRUPTED, EXIT_TERMINATED = 130, 143  # the shell's codes for an end by SIGINT, SIGTERM
 
 
@@ -26,6 +33,8 @@ def exit_code(err: BaseException) -> int:
         return EXIT_CONTRACT
     if isinstance(err, DeviceError):
         return EXIT_DEVICE
+    if isinstance(err, OutputError):
+        return EXIT_OUTPUT
     try:
         import serial
 

@@ -26,5 +26,9 @@ class RecordingError(TactileError):
     """A recording file or dataset folder is missing, malformed or inconsistent."""
 
 
+class OutputError(TactileError):
+    """A command's output cannot be written (stdout on a full disk, an I/O error)."""
+
+
 class ModelContractError(TactileError):
     """An ONNX model's inputs, outputs or metadata do not honour the runtime's contract."""

@@ -1420,6 +1420,26 @@ def test_a_replay_of_a_take_shorter_than_a_window_says_so(models, tmp_path):
             "of 50: no label") in err, err
 
 
+@pytest.mark.skipif(not Path("/dev/full").exists(), reason="no /dev/full on this system")
+@pytest.mark.parametrize("fmt", ["jsonl", "csv"])
+def test_stdout_on_a_full_disk_is_exit_4_after_the_summary(models, fmt):
+    """stdout on a full disk was 'error: [Errno 28] No space left on device', exit 1 (bad
+    arguments: a service unit does not restart on it) and no summary. Now the summary, then
+    one line naming stdout, exit 4."""
+    take = next((models["data"]).glob("paper-*.csv"))
+    _, onnx_path = models["window"]
+    with open("/dev/full", "w") as full:
+        proc = subprocess.run([sys.executable, "-m", "tactile.runtime.commands.run", "--model",
+                               str(onnx_path), "--replay", str(take), "--format", fmt],
+                              stdout=full, stderr=subprocess.PIPE, text=True, timeout=60)
+    lines = proc.stderr.strip().splitlines()
+    assert proc.returncode == 4, proc.stderr
+    assert lines[-1] == ("tactile-run: error: stdout: cannot write the labels (No space left on "
+                         "device)"), lines
+    assert lines[-2].startswith("tactile-run: summary {")
+    assert "Traceback" not in proc.stderr
+
+
 def test_sigint_stops_a_replay(tmp_path, reap):
     (take,) = make_dataset(tmp_path, takes=1, textures=("paper",), seconds=3600, seed=1)
     proc = reap(subprocess.Popen(

@@ -10,7 +10,8 @@ Lines by default; ``--format text|csv``); each window's label is the raw one and
 that is stable or ``uncertain``. Diagnostics go to stderr: a status line every few seconds, a
 line for each stall and reconnection, and a summary at the end. Exit codes:
 0 stopped cleanly (SIGINT/SIGTERM, end of replay or of ``--seconds``), 1 bad arguments, 2 port
-cannot be opened or no pen found, 3 the model or the device does not honour the contract.
+cannot be opened or no pen found, 3 the model or the device does not honour the contract, 4
+stdout cannot be written (a full disk: the summary still goes to stderr).
 """
 
 from __future__ import annotations
@@ -47,7 +48,8 @@ def build_parser() -> argparse.ArgumentParser:
         prog="tactile-run",
         description="Read the pen, print one label per window (stdout), keep going.",
         epilog="exit codes: 0 stopped cleanly, 1 bad arguments, 2 port cannot be opened or no "
-        "pen found, 3 model or device does not honour the contract",
+        "pen found, 3 model or device does not honour the contract, 4 stdout cannot be written "
+        "(a full disk)",
     )
     p.add_argument("--model", required=True, type=path_given,
                    help="the .onnx file from tactile-export")
@@ -112,6 +114,7 @@ PORT_OPTIONS = ("baud", "stall_timeout", "status_every")  # a port's; --replay r
 
 def _run(args: argparse.Namespace) -> int:
     from tactile.device.protocol import StreamDecoder
+    from tactile.errors import OutputError
     from tactile.runtime.model import Model
     from tactile.runtime.runner import Printer, Runner, Summary, post_processor, say
     from tactile.runtime.stream import Stream
@@ -130,9 +133,18 @@ def _run(args: argparse.Namespace) -> int:
         say(f"labels post-processed: {post.settings.describe()} ({said})")
     stream = Stream.for_model(model, hop, post)
     summary = Summary()
-    runner = Runner(model, stream, Printer(args.format, c.classes, smoothed=post is not None),
-                    summary)
     decoder = StreamDecoder(csv_rate_hz=c.sample_rate_hz)
+
+    def summarise() -> None:
+        print("tactile-run: summary " + json.dumps(summary.to_dict(decoder.stats.as_dict())),
+              file=sys.stderr, flush=True)
+
+    try:  # (the CSV header is the first line written)
+        printer = Printer(args.format, c.classes, smoothed=post is not None)
+    except OutputError:  # stdout is full: stderr still tells what was labelled until then
+        summarise()
+        raise
+    runner = Runner(model, stream, printer, summary)
     found = None  # the one likely pen, looked for now: no pen is its error alone, before a
     # live page is announced (--wait looks for it while the page runs)
     if args.replay is None and args.port is None and not args.wait:
@@ -146,11 +158,13 @@ def _run(args: argparse.Namespace) -> int:
         live = serve_runner(args.serve, runner, decoder, say)
     try:
         _read(args, runner, decoder, summary.started + args.seconds, found)
+    except OutputError:
+        summarise()
+        raise
     finally:  # the page gets its end, stderr its last line, whatever stopped the run
         if live is not None:
             live.close()
-    print("tactile-run: summary " + json.dumps(summary.to_dict(decoder.stats.as_dict())),
-          file=sys.stderr, flush=True)
+    summarise()
     return 0
 
 
