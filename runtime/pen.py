@@ -10,6 +10,7 @@ from collections.abc import Callable, Iterator, Mapping
 import tactile.device  # noqa: F401  (registers sim://)
 from tactile.device.link import Connection, LinkSettings
 from tactile.device.protocol import StreamDecoder
+from tactile.errors import ConfigError
 from tactile.postprocess.smoothing import SmoothingSettings
 from tactile.runtime.model import Model
 from tactile.runtime.runner import Runner, Summary, post_processor
@@ -86,6 +87,9 @@ def labels(
     Raises :class:`~tactile.errors.DeviceError` if the port cannot be opened (or, without
     ``reconnect``, is lost: after the labels of the bytes that came before the loss).
     """
+    if isinstance(seconds, bool) or not isinstance(seconds, (int, float)) or not seconds > 0:
+        raise ConfigError(f"seconds {seconds!r}: must be a number > 0 (math.inf, the default: "
+                          "until the caller stops)")  # (NaN, -1: no label, and no word)
     if not isinstance(model, Model):
         model = Model(model)
     out = _Collect(on_event)

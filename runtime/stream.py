@@ -100,6 +100,10 @@ class Stream:
         post: PostProcessor | None = None,
         rate_hz: float | None = None,
     ) -> None:
+        if not all(isinstance(v, (int, np.integer)) and not isinstance(v, bool)
+                   for v in (window, hop)):
+            raise ConfigError(f"window {window!r} and hop {hop!r} must be whole numbers of "
+                              "samples")
         if window < 1 or hop < 1:
             raise ConfigError(f"window {window} and hop {hop} must be >= 1")
         if carry and hop != window:

@@ -1440,6 +1440,25 @@ def test_stdout_on_a_full_disk_is_exit_4_after_the_summary(models, fmt):
     assert "Traceback" not in proc.stderr
 
 
+@pytest.mark.parametrize("kw, message", [
+    ({"hop": 2.5}, "window 50 and hop 2.5 must be whole numbers of samples"),
+    ({"hop": "10"}, "window 50 and hop '10' must be whole numbers of samples"),
+    ({"hop": True}, "window 50 and hop True must be whole numbers of samples"),
+    ({"seconds": -1}, "seconds -1: must be a number > 0"),
+    ({"seconds": float("nan")}, "seconds nan: must be a number > 0"),
+    ({"seconds": "5"}, "seconds '5': must be a number > 0"),
+])
+def test_labels_refuses_a_bad_hop_or_seconds_in_one_line(models, kw, message):
+    """hop=2.5 or '10' was a TypeError from numpy's slicing; seconds=-1 or NaN yielded nothing,
+    with no word. Each is a ConfigError naming the value, before the port opens."""
+    from tactile.runtime import labels
+
+    _, onnx_path = models["window"]
+    with pytest.raises(ConfigError) as e:
+        next(labels("loop://", str(onnx_path), **kw))
+    assert str(e.value).startswith(message), str(e.value)
+
+
 def test_sigint_stops_a_replay(tmp_path, reap):
     (take,) = make_dataset(tmp_path, takes=1, textures=("paper",), seconds=3600, seed=1)
     proc = reap(subprocess.Popen(
