@@ -356,8 +356,11 @@ def check_file(path: Path, run_dir: Path | None = None, data: Path | None = None
     if run_dir is not None:
         if not _reparity(path, contract, run_dir, data, windows,
                          native=bool(contract.custom_ops) and loaded.native):
+            source = contract.extra.get("source_run")
+            other = (f"; the file says it was exported from a run named {source!r}, not "
+                     f"{run_dir.name!r}" if source and source != run_dir.name else "")
             raise ModelContractError(f"{path}: parity against {run_dir} failed "
-                                     "(table above)")
+                                     f"(table above){other}")
     elif data is not None:
         _accuracy(loaded, contract, data)
 

@@ -307,6 +307,16 @@ def test_export_cli_and_check_cli(dataset, root, capsys):
     assert stop.value.code == 1
     assert capsys.readouterr().err == ("tactile-check: error: argument --windows: only with "
                                        "--run (the windows of the parity check) (see --help)\n")
+    # another run of the same shape (its weights moved): the failure names the file's run
+    other = root / "another-run"
+    other.mkdir(exist_ok=True)
+    ck = torch.load(run / "checkpoint.pt", weights_only=True)
+    ck["state_dict"] = {k: v + 0.5 for k, v in ck["state_dict"].items()}
+    torch.save(ck, other / "checkpoint.pt")
+    assert check_main([str(out), "--run", str(other), "--windows", "16"]) == 3
+    assert capsys.readouterr().err == (
+        f"tactile-check: error: {out}: parity against {other} failed (table above); the file "
+        f"says it was exported from a run named {run.name!r}, not 'another-run'\n")
 
 
 def test_export_fails_on_broken_parity(dataset, root, capsys, monkeypatch):
