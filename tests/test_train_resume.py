@@ -68,7 +68,8 @@ def resume_run(run):
 
 
 def test_sigint_after_an_epoch_then_resume_ends_where_an_uninterrupted_run_does(dataset,
-                                                                                tmp_path):
+                                                                                tmp_path,
+                                                                                capsys):
     cfg = TrainConfig(**SMALL)
     full = train(dataset, tmp_path / "full", cfg, progress=False)
     cut = train(dataset, tmp_path / "cut", cfg, progress=False, on_epoch=sigint_after("fit", 2))
@@ -81,6 +82,14 @@ def test_sigint_after_an_epoch_then_resume_ends_where_an_uninterrupted_run_does(
     load_checkpoint(tmp_path / "cut")
     state = torch.load(tmp_path / "cut" / RESUME, weights_only=True)["state"]
     assert state["phase"] == "fit" and state["epoch"] == 2
+    # exporting it works, and says the run is not finished (the export said nothing)
+    from tactile.export.commands.export import main as export_main
+
+    capsys.readouterr()
+    assert export_main([str(tmp_path / "cut"), "-o", str(tmp_path / "cut.onnx")]) == 0
+    assert (f"tactile-export: warning: {tmp_path / 'cut'}: its training was interrupted "
+            f"(resume.pt is there): the file gets the best model so far; tactile-train --resume "
+            f"{tmp_path / 'cut'} finishes it") in capsys.readouterr().err
     assert set(state["rng"]) >= {"torch", "numpy", "python", "order", "gain"}
     resumed = resume_run(tmp_path / "cut")
     assert not resumed["interrupted"] and not (tmp_path / "cut" / RESUME).exists()

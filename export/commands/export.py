@@ -32,8 +32,13 @@ def _export(args: argparse.Namespace) -> int:
     import torch
 
     from tactile.export.exporter import export_run
+    from tactile.training.checkpoint import RESUME
 
     torch.set_num_threads(1)  # one core's figures; also avoids contention on a small board
+    if (args.run / RESUME).is_file():  # the run was stopped: its model is not the finished one
+        print(f"tactile-export: warning: {args.run}: its training was interrupted ({RESUME} is "
+              f"there): the file gets the best model so far; tactile-train --resume "
+              f"{args.run} finishes it", file=sys.stderr, flush=True)
     r = export_run(args.run, args.out, args.data, args.int8, args.windows)
     print(f"wrote {args.out}: {r['bytes'] / 1e3:.1f} kB; export took {r['seconds']:.1f} s "
           f"(graph {r['build_s']:.1f} s)")
