@@ -421,8 +421,8 @@ def test_bad_arguments_are_one_line_before_any_dataset_is_made(tmp_path, monkeyp
     monkeypatch.setattr(b, "prepare", lambda *a: pytest.fail("prepared a dataset"))
     for args, says in ((["--seeds", "x"], "--seeds 'x': not comma-separated whole numbers"),
                        (["--seeds", ","], "--seeds: give at least one seed"),
-                       (["--set", "ensemble=0"], "ensemble must be >= 1"),
-                       (["--candidate", "c", "hop=0"], "hop must be >= 1")):
+                       (["--set", "ensemble=0"], "ensemble must be 1..64"),
+                       (["--candidate", "c", "hop=0"], "hop must be 1..1000000")):
         with pytest.raises(SystemExit) as e:
             b.main(["--out", str(tmp_path / "o"), "--only", "small", *args])
         err = capsys.readouterr().err

@@ -50,7 +50,7 @@ def test_automatic_threads_never_oversubscribe():
         for cpus in range(1, 17):
             assert 1 <= resolve_threads(0, procs, cpus) * procs <= max(procs, cpus - 1)
     assert TrainConfig().threads == 0
-    with pytest.raises(ConfigError, match=r"threads must be >= 0 \(0: automatic\)"):
+    with pytest.raises(ConfigError, match=r"threads must be 0..1024 \(0: automatic\)"):
         TrainConfig(threads=-1)
 
 
@@ -134,7 +134,7 @@ def test_same_seed_on_cpu_gives_the_same_run(dataset, tmp_path):
 def test_config_errors_name_only_the_settings_involved():
     with pytest.raises(ConfigError) as e:
         parse_sets(["hop=-5"], TrainConfig())
-    assert str(e.value) == "hop must be >= 1 sample (got hop=-5)"
+    assert str(e.value) == "hop must be 1..1000000 samples (got hop=-5)"
     with pytest.raises(ConfigError) as e:
         parse_sets(["hop=3", "dropout=2"], TrainConfig())
     assert str(e.value) == "dropout must be in [0, 1) (got dropout=2.0)"
@@ -160,6 +160,40 @@ def test_a_seed_out_of_numpys_range_is_refused_naming_it(bad):
                        r"\(got seed=-?\d+\)$"):
         parse_sets([bad], TrainConfig())
     assert parse_sets(["seed=4294967295"], TrainConfig()).seed == 2**32 - 1
+
+
+@pytest.mark.parametrize("bad, message", [
+    ("hop=9223372036854775808", "config hop=9223372036854775808: must be a whole number within "
+                                "+-2147483647"),
+    ("hidden=99999999999999999999", "config hidden=99999999999999999999: must be a whole "
+                                    "number within +-2147483647"),
+    ("threads=99999999999999999999", "config threads=99999999999999999999: must be a whole "
+                                     "number within +-2147483647"),
+    ("layers=65", "layers must be 1..64 and hidden 1..1000000 (got layers=65, hidden=64)"),
+    ("ensemble=65", "ensemble must be 1..64 (1: one model) (got ensemble=65)"),
+    ("window=1000001", "window must be 4..1000000 samples (got window=1000001)"),
+    ("hop=1000001", "hop must be 1..1000000 samples (got hop=1000001)"),
+    ("frame_hop=1000001", "frame must be 2..window samples and frame_hop 1..1000000 (got "
+                          "frame=20, frame_hop=1000001, window=50)"),
+    ("threads=1025", "threads must be 0..1024 (0: automatic) (got threads=1025)"),
+])
+def test_a_whole_number_past_its_cap_is_refused_naming_it(bad, message):
+    """hop=2**63 and hidden=10**20 were tracebacks from numpy and torch, window=10**20 numpy's
+    'Maximum allowed size exceeded', and layers=10**20 or ensemble=10**20 built a model layer
+    by layer until the memory was gone. Each is one line naming the setting."""
+    with pytest.raises(ConfigError) as e:
+        parse_sets([bad], TrainConfig())
+    assert str(e.value) == message
+    for fine in ("layers=64", "ensemble=64", "window=1000000", "threads=1024"):
+        parse_sets([fine], TrainConfig())
+
+
+def test_a_modality_size_past_its_cap_is_refused_naming_it():
+    from tactile.training.config import Modality
+
+    with pytest.raises(ConfigError, match=r"^modalities\.m\.atoms=100000000000000000000: must "
+                       r"be an integer 1\.\.65536$"):
+        Modality("m", ("accel_x",), atoms=10**20)
 
 
 def test_a_channel_given_twice_is_refused():

@@ -49,7 +49,7 @@ def test_config_rejects_unknown_keys_and_bad_values(tmp_path):
         TrainConfig.from_dict({"hidden": "64"})
     with pytest.raises(ConfigError, match="dropout must be in"):
         TrainConfig(dropout=1.5)
-    with pytest.raises(ConfigError, match=r"ensemble must be >= 1 \(1: one model\) \(got "
+    with pytest.raises(ConfigError, match=r"ensemble must be 1..64 \(1: one model\) \(got "
                        r"ensemble=0\)"):
         TrainConfig(ensemble=0)
     with pytest.raises(ConfigError, match=r"ensemble=2 needs model='lstm' \(got model='linear'"):

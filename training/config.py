@@ -31,6 +31,15 @@ REFITS = ("auto", "on", "off")
 SELECTS = ("loss", "accuracy")
 DEVICES = ("auto", "cpu", "cuda")
 MAX_AUTO_THREADS = 4
+# caps far above any use, so that a slip (hidden=10**20, layers=10**9) is one line naming the
+# setting, not an overflow inside numpy or torch, or a model built layer by layer until the
+# memory is gone
+MAX_INT = 2**31 - 1  # every whole-number setting (seed: its own range)
+MAX_SAMPLES = 1_000_000  # window, hop, frame_hop: samples
+MAX_LAYERS = 64  # layers, ensemble
+MAX_HIDDEN = 1_000_000  # (an allocation that large fails, in one line: out of memory)
+MAX_THREADS = 1024
+MAX_ATOMS = 65_536  # a modality's dictionary atoms (and non-zeros per code)
 FLOAT32_MAX = 3.4028234663852886e38  # the largest float32: lr and weight_decay reach the weights
 # ``test`` / ``val`` selectors: FIELD:VALUE[,VALUE...] (see TrainConfig)
 SELECTOR = re.compile(r"^(?P<field>[A-Za-z_][A-Za-z0-9_]*):(?P<values>.+)$")
@@ -66,8 +75,8 @@ class Modality:
                 and all(isinstance(c, str) and c for c in self.channels)):
             raise ConfigError(f"{where}.channels={_shown(self.channels)}: must be a non-empty "
                               "list of channel or signal name patterns")
-        for key, lo, hi in (("imfs", 0, MAX_IMFS), ("steps", 1, None), ("atoms", 1, None),
-                            ("nonzero", 0, None)):
+        for key, lo, hi in (("imfs", 0, MAX_IMFS), ("steps", 1, MAX_SAMPLES),
+                            ("atoms", 1, MAX_ATOMS), ("nonzero", 0, MAX_ATOMS)):
             v = getattr(self, key)
             if isinstance(v, bool) or not isinstance(v, int) or v < lo or (
                     hi is not None and v > hi):
@@ -247,12 +256,14 @@ class TrainConfig:
     def __post_init__(self) -> None:
         _check_types(self)
         checks = [  # (holds, message, the fields it is about: the error shows their values)
-            (self.window >= 4, "window must be >= 4 samples", ("window",)),
-            (self.hop >= 1, "hop must be >= 1 sample", ("hop",)),
+            (4 <= self.window <= MAX_SAMPLES, f"window must be 4..{MAX_SAMPLES} samples",
+             ("window",)),
+            (1 <= self.hop <= MAX_SAMPLES, f"hop must be 1..{MAX_SAMPLES} samples", ("hop",)),
             (self.model in MODELS, f"model must be one of {', '.join(MODELS)}", ("model",)),
             (self.front in FRONTS, f"front must be one of {', '.join(FRONTS)}", ("front",)),
-            (self.model != "lstm" or 2 <= self.frame <= self.window and self.frame_hop >= 1,
-             "frame must be 2..window samples and frame_hop >= 1",
+            (self.model != "lstm"
+             or 2 <= self.frame <= self.window and 1 <= self.frame_hop <= MAX_SAMPLES,
+             f"frame must be 2..window samples and frame_hop 1..{MAX_SAMPLES}",
              ("frame", "frame_hop", "window")),
             (self.epoch_windows >= 0, "epoch_windows must be >= 0 (0: every window)",
              ("epoch_windows",)),
@@ -267,10 +278,11 @@ class TrainConfig:
             (self.select in SELECTS, f"select must be one of {', '.join(SELECTS)}",
              ("select",)),
             (self.refit in REFITS, f"refit must be one of {', '.join(REFITS)}", ("refit",)),
-            (self.layers >= 1 and self.hidden >= 1, "layers and hidden must be >= 1",
-             ("layers", "hidden")),
+            (1 <= self.layers <= MAX_LAYERS and 1 <= self.hidden <= MAX_HIDDEN,
+             f"layers must be 1..{MAX_LAYERS} and hidden 1..{MAX_HIDDEN}", ("layers", "hidden")),
             (0 <= self.dropout < 1, "dropout must be in [0, 1)", ("dropout",)),
-            (self.ensemble >= 1, "ensemble must be >= 1 (1: one model)", ("ensemble",)),
+            (1 <= self.ensemble <= MAX_LAYERS, f"ensemble must be 1..{MAX_LAYERS} (1: one model)",
+             ("ensemble",)),
             (self.epochs >= 1 and self.batch_size >= 1 and self.patience >= 1,
              "epochs, batch_size and patience must be >= 1", ("epochs", "batch_size", "patience")),
             # (NaN fails too; the weights are float32, so the factors must be too)
@@ -283,7 +295,8 @@ class TrainConfig:
              f"emd_imfs must be 1..{MAX_EMD_IMFS} and emd_sifts 1..{MAX_EMD_SIFTS}",
              ("emd_imfs", "emd_sifts")),
             (self.carry_steps >= 2, "carry_steps must be >= 2", ("carry_steps",)),
-            (self.threads >= 0, "threads must be >= 0 (0: automatic)", ("threads",)),
+            (0 <= self.threads <= MAX_THREADS, f"threads must be 0..{MAX_THREADS} (0: automatic)",
+             ("threads",)),
             (0 <= self.seed < 2**32, "seed must be in 0..4294967295 (numpy's range)", ("seed",)),
             (self.device in DEVICES, f"device must be one of {', '.join(DEVICES)}", ("device",)),
             (0 <= self.augment_gain < 1, "augment_gain must be in [0, 1)", ("augment_gain",)),
@@ -398,6 +411,8 @@ def _check_types(cfg: TrainConfig) -> None:
         else:
             ok = isinstance(value, hint) and not (hint is int and isinstance(value, bool))
             want = hint.__name__
+            if ok and hint is int and f.name != "seed" and abs(value) > MAX_INT:
+                ok, want = False, f"a whole number within +-{MAX_INT}"
         if not ok:
             raise ConfigError(f"config {f.name}={value!r}: must be {want}")
 

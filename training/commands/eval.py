@@ -16,6 +16,7 @@ import json
 import sys
 
 from tactile.cli import Parser, add_debug, command, int_in, path_given, run
+from tactile.training.config import MAX_THREADS
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -23,8 +24,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("run", type=path_given, help="run folder written by tactile-train")
     p.add_argument("data", type=path_given, help="dataset folder")
     p.add_argument("--json", action="store_true", help="the figures as one JSON object")
-    p.add_argument("--threads", type=int_in(1), metavar="N",
-                   help="torch threads (default: the run's threads setting)")
+    p.add_argument("--threads", type=int_in(1, MAX_THREADS), metavar="N",
+                   help=f"torch threads, at most {MAX_THREADS} (default: the run's threads "
+                   "setting)")
     p.add_argument("--smooth", metavar="S", help="label stream: the averaging (N windows, Ts, "
                    "ma:N or ema:T) instead of the calibrated setting's")
     p.add_argument("--p-min", type=float, metavar="P", help="label stream: the stable label's "
