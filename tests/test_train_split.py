@@ -69,6 +69,25 @@ def test_the_split_line_names_users_not_indices(takes):
     assert "test users trial12 (user:trial12);" in s.description and "[" not in s.description
 
 
+def test_a_selector_of_single_takes_says_when_their_users_also_train(takes):
+    """test=name:... with split=user put the named take's user in test and in training (its
+    other take was drawn to train) with no word, and the split line said 'train the other N
+    users', counting that user."""
+    s = split_takes(takes, TrainConfig(test="name:paper-user000", val="user:bob", seed=0))
+    train, _, test = parts(takes, s)
+    assert test == {"paper-user000"} and "non_contact-user000" in train
+    assert s.shared == ("users alice have takes in test and in training "
+                        "(test='name:paper-user000' names takes, not whole users): those test "
+                        "users are not unseen")
+    trained = sorted({takes[i].meta["user"] for i in s.train})
+    assert s.description.endswith(f"train users {', '.join(trained)}") and "alice" in trained
+    s = split_takes(takes, TrainConfig(test="user:alice", val="name:paper-user001", seed=0))
+    assert s.shared.startswith("users bob have takes in validation and in training (val=")
+    for cfg in (TrainConfig(test="user:alice,bob", seed=1), TrainConfig(seed=0),
+                TrainConfig(split="take", test="name:paper-*", seed=2)):
+        assert split_takes(takes, cfg).shared is None  # whole users, or split by take
+
+
 @pytest.mark.parametrize("spec,message", [
     ("session:1", "no take has a 'session' field (fields: "),
     ("user:zed", "matches no take (user values: alice, bob, carol"),

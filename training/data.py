@@ -195,6 +195,7 @@ class Split:
     val: dict[int, tuple[int, int]]
     test: dict[int, tuple[int, int]]
     description: str
+    shared: str | None = None  # users in two parts (test/val named by take): a warning
 
 
 def split_takes(takes: list[Take], cfg: TrainConfig) -> Split:
@@ -246,9 +247,17 @@ def split_takes(takes: list[Take], cfg: TrainConfig) -> Split:
     description = (
         f"{cfg.split}: test {unit}s {name_list(names(test))}{named(cfg.test)}; "
         f"validation {unit}s {name_list(names(val))}{named(cfg.val)}; "
-        f"train the other {len(names(train))} {unit}s")
+        f"train {unit}s {name_list(names(train))}")
+    # a selector names takes: the other takes of its users may fall to another part
+    shared = []
+    for part, key, held in (("test", "test", test), ("validation", "val", val)):
+        both = sorted(set(names(held)) & set(names(train)))
+        if both and getattr(cfg, key):
+            shared.append(f"{unit}s {name_list(both, 4)} have takes in {part} and in training "
+                          f"({key}={getattr(cfg, key)!r} names takes, not whole {unit}s): "
+                          f"those {part} {unit}s are not unseen")
     return Split({i: whole[i] for i in sorted(train)}, {i: whole[i] for i in sorted(val)},
-                 {i: whole[i] for i in sorted(test)}, description)
+                 {i: whole[i] for i in sorted(test)}, description, "; ".join(shared) or None)
 
 
 

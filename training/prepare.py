@@ -115,6 +115,8 @@ def prepare(takes: list[Take], classes: tuple[str, ...], channels: tuple[str, ..
     split, parts = split_windows(takes, classes, channels, cfg)
     log.info(f"classes {list(classes)}; windows train {len(parts['train'])}, "
              f"val {len(parts['val'])}, test {len(parts['test'])}; split {split.description}")
+    if split.shared:
+        log.warn(split.shared)
     _check_classes(parts, classes, log)
     # statistics fitted once (rank 0) and shared: every process normalises alike
     stats = (pooled_stats(parts["train"].x, channels, signals) if cfg.modalities or signals
