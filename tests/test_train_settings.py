@@ -196,6 +196,28 @@ def test_a_modality_size_past_its_cap_is_refused_naming_it():
         Modality("m", ("accel_x",), atoms=10**20)
 
 
+def test_settings_the_training_does_not_read_are_named():
+    """emd_imfs without emd_channels, carry_steps without state='carry', frame with
+    front='none', test_fraction with a named test, an LSTM's sizes for a linear model: each
+    trained exactly as without it, with no word."""
+    from tactile.training.config import Modality, unused
+
+    assert unused(TrainConfig()) == []
+    assert unused(TrainConfig(emd_imfs=8, carry_steps=100)) == [
+        "emd_imfs=8 (only with emd_channels)", "carry_steps=100 (only state='carry')"]
+    assert unused(TrainConfig(front="none", frame=50, frame_hop=3)) == [
+        "frame=50 (only front='spectral')", "frame_hop=3 (only front='spectral')"]
+    assert unused(TrainConfig(test="user:2", test_fraction=0.9, val_fraction=0.5)) == [
+        "test_fraction=0.9 (test='user:2' names the test takes)"]
+    linear = TrainConfig(model="linear", modalities=(Modality("imu", ("accel_*",)),), hidden=3,
+                         wide=False, emd_sifts=5, emd_imfs=2)
+    assert unused(linear) == [
+        "wide=False (only model='lstm')", "hidden=3 (model='linear' has no LSTM)",
+        "emd_imfs=2 (only with emd_channels; a modality sets its own imfs)"]
+    assert unused(TrainConfig(emd_channels=("accel_x",), emd_imfs=2, state="carry", hop=50,
+                              carry_steps=3)) == []
+
+
 def test_a_channel_given_twice_is_refused():
     """channels=accel_x,accel_x trained a run whose export then failed on the file's names."""
     for key in ("channels", "emd_channels"):

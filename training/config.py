@@ -393,6 +393,34 @@ class TrainConfig:
         return self.from_dict({**self.to_dict(), **kw})
 
 
+def unused(cfg: TrainConfig) -> list[str]:
+    """The settings ``cfg`` moves from their defaults that its model or options never read,
+    each as ``key=value (why)``: a training that ran as if they were not there would
+    otherwise say nothing of them."""
+    base = TrainConfig()
+    rules = [  # (keys, when they are not read, why)
+        (("front", "frame", "frame_hop", "wide"), cfg.model != "lstm", "only model='lstm'"),
+        (("frame", "frame_hop"), cfg.model == "lstm" and cfg.front != "spectral",
+         "only front='spectral'"),
+        (("hidden", "layers", "dropout"), cfg.model in ("linear", "sparse_linear"),
+         f"model={cfg.model!r} has no LSTM"),
+        (("emd_imfs",), not cfg.emd_channels,
+         "only with emd_channels; a modality sets its own imfs" if cfg.modalities
+         else "only with emd_channels"),
+        (("emd_sifts",), not (cfg.emd_channels or cfg.modalities),
+         "only with emd_channels or modalities"),
+        (("carry_steps",), cfg.state != "carry", "only state='carry'"),
+        (("test_fraction",), bool(cfg.test), f"test={cfg.test!r} names the test takes"),
+        (("val_fraction",), bool(cfg.val), f"val={cfg.val!r} names the validation takes"),
+    ]
+    said: dict[str, str] = {}
+    for keys, idle, why in rules:
+        for k in keys:
+            if idle and k not in said and getattr(cfg, k) != getattr(base, k):
+                said[k] = f"{k}={getattr(cfg, k)!r} ({why})"
+    return list(said.values())
+
+
 def _check_types(cfg: TrainConfig) -> None:
     hints = typing.get_type_hints(type(cfg))
     for f in dataclasses.fields(cfg):
@@ -464,6 +492,6 @@ def resolve_device(device: str, cuda_available: bool | None = None) -> str:
     return device
 
 
-__all__ = ["TrainConfig", "Modality", "MODELS", "FRONTS", "STATE_MODES",
+__all__ = ["TrainConfig", "Modality", "unused", "MODELS", "FRONTS", "STATE_MODES",
            "SPLITS", "SCHEDULES", "SELECTS", "REFITS", "DEVICES", "signals_from", "modalities_from",
            "apply_threads", "resolve_threads", "resolve_device", "usable_cpus"]

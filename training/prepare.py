@@ -22,7 +22,7 @@ from tactile.errors import ConfigError, RecordingError
 from tactile.postprocess.smoothing import UNCERTAIN
 from tactile.training import feature_pass
 from tactile.training.checkpoint import Norm
-from tactile.training.config import TrainConfig
+from tactile.training.config import TrainConfig, unused
 from tactile.training.data import (
     Split,
     Windows,
@@ -93,6 +93,9 @@ def prepare(takes: list[Take], classes: tuple[str, ...], channels: tuple[str, ..
             cfg: TrainConfig, log: Log, dist: Dist) -> Prepared:
     """Resolve the modalities (if any), split and cut the windows, fit the normalisation on
     the training windows (rank 0's, shared: every process normalises alike)."""
+    idle = unused(cfg)
+    if idle:
+        log.warn(f"settings this training does not read: {'; '.join(idle)}")
     signals = ()
     if cfg.modalities:  # the high-rate signals as exact names, then the layout (fail early)
         signals = (resolve_signals(cfg.signals, channels) if cfg.signals
