@@ -21,7 +21,7 @@ from tactile.training.config import (
     resolve_threads,
 )
 from tactile.training.data import Windows
-from tactile.training.evaluate import per_take, shifted_line
+from tactile.training.evaluate import per_take, shifted_line, summary, table
 from tactile.training.log import Log
 from tactile.training.overrides import parse_sets
 from tactile.training.prepare import centered
@@ -270,6 +270,18 @@ def test_center_patterns_say_what_they_matched(capsys):
     assert "warning" in capsys.readouterr().err
     _log_center(log, channels, ("pac_*", "e*"), centered(channels, ("pac_*", "e*")))
     assert capsys.readouterr().err == "center (pac_*, e*): pac_0, electrode_0\n"
+
+
+def test_a_class_without_windows_has_no_recall_rather_than_zero():
+    """A class with no test window got recall 0.0 and a row of zeros in the confusion table,
+    where the warning said its figures were left out."""
+    y = np.array([0, 0, 1, 1])
+    probs = np.array([[0.9, 0.05, 0.05], [0.2, 0.7, 0.1], [0.1, 0.8, 0.1], [0.6, 0.3, 0.1]])
+    s = summary(y, probs, ("a", "b", "c"))
+    assert s["recall"] == {"a": 0.5, "b": 0.5, "c": None}
+    rows = table(s, ("a", "b", "c")).splitlines()
+    assert rows[2].split() == ["a", "0.500", "0.500", "0.000"]
+    assert rows[4].split() == ["c", "-", "-", "-"]
 
 
 def test_majority_vote_per_take():

@@ -90,7 +90,8 @@ def summary(y: np.ndarray, probs: np.ndarray, classes: tuple[str, ...]) -> dict:
     return {
         "windows": int(len(y)),
         "accuracy": float((pred == y).mean()) if len(y) else float("nan"),
-        "recall": {c: float(norm[i, i]) for i, c in enumerate(classes)},
+        # (None: the class has no window here, nothing to recall)
+        "recall": {c: float(norm[i, i]) if rows[i, 0] else None for i, c in enumerate(classes)},
         "confusion": m.tolist(),
         "confusion_normalised": norm.round(4).tolist(),
     }
@@ -130,8 +131,10 @@ def table(s: dict, classes: tuple[str, ...], title: str = "") -> str:
     head = "label of input data".ljust(22) + "estimated class".ljust(width * len(classes))
     lines = [title] if title else []
     lines += [head.rstrip(), " " * 22 + "".join(c.rjust(width) for c in classes)]
-    for i, c in enumerate(classes):
-        lines.append(c.ljust(22) + "".join(f"{v:.3f}".rjust(width) for v in norm[i]))
+    counts = np.array(s["confusion"]).sum(1)
+    for i, c in enumerate(classes):  # a class with no window here: "-", not a row of zeros
+        lines.append(c.ljust(22) + "".join((f"{v:.3f}" if counts[i] else "-").rjust(width)
+                                           for v in norm[i]))
     lines.append(f"accuracy {s['accuracy']:.3f} over {s['windows']} windows")
     return "\n".join(lines)
 

@@ -189,7 +189,7 @@ def stream_table(f: dict) -> str:
             return "-"
         return f"{v * 100:.1f} %" if pct else f"{v:.2f}" if isinstance(v, float) else str(v)
 
-    lines = [f"label stream: {f['streams']} streams of the test takes in pieces of "
+    lines = [f"label stream: {f['streams']} streams of the evaluated takes in pieces of "
              f"{f['dwell_s']:g} s, {f['raw']['minutes']:.1f} min; post-processed with "
              f"{f['setting']} ({f['source']})",
              f"  {'':36s}{'raw':>10s}{'post-processed':>16s}"]

@@ -52,7 +52,8 @@ def _eval(args: argparse.Namespace) -> int:
     print(f"evaluated on {s['scope']}")
     print(table(s, classes))
     print(f"per take (majority vote): {s['take_accuracy']:.3f} over {s['takes']} takes")
-    print("recall: " + ", ".join(f"{c} {v:.3f}" for c, v in s["recall"].items()))
+    print("recall: " + ", ".join(f"{c} {'-' if v is None else f'{v:.3f}'}"
+                                 for c, v in s["recall"].items()))
     print(shifted_line(s["shifted"]))
     print(stream_table(s["label_stream"]))
     return 0
