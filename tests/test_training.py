@@ -457,6 +457,11 @@ def test_an_out_that_cannot_be_a_folder_is_refused_before_training(dataset, tmp_
         err = capsys.readouterr().err
         assert says in err and len(err.strip().splitlines()) == 1, err
     assert afile.read_text() == "keep me\n"
+    # the dataset folder itself (a run's files among the takes), however it is spelled
+    for spelled in (str(dataset), f"{dataset}/", f"{dataset}/../{dataset.name}"):
+        assert train_main([str(dataset), "--out", spelled, "--force"]) == 1
+        err = capsys.readouterr().err
+        assert "the dataset folder itself" in err and len(err.strip().splitlines()) == 1, err
 
 
 @pytest.mark.skipif(not Path("/proc/self").is_dir(), reason="needs Linux's /proc")

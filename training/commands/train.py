@@ -71,6 +71,9 @@ def _settings(args: argparse.Namespace):
     cfg = parse_sets(args.set, cfg)
     out = args.out
     _check_out(out)
+    if out.exists() and args.data.exists() and out.resolve() == args.data.resolve():
+        raise ConfigError(f"--out {out}: the dataset folder itself: the run's files would lie "
+                          "among the takes; choose another folder")
     if not args.force:
         _refuse_a_run(out)
     # with --force the old run's files stay until the new run writes its own (a finished run
