@@ -18,7 +18,7 @@ from pathlib import Path
 import onnx
 
 from tactile import checksum
-from tactile.errors import ConfigError, ModelContractError
+from tactile.errors import ConfigError, ModelContractError, OutputError
 from tactile.export.calibrate import calibrate_file
 from tactile.export.check import load_contract
 from tactile.export.custom_ops import custom_nodes, custom_ops_key
@@ -80,10 +80,16 @@ def export_run(run_dir: Path, out: Path, data: Path | None = None, int8: bool = 
     # the last key: the file's own digest, so that a damaged copy is refused (tactile.checksum)
     onnx.helper.set_model_props(final, {**{p.key: p.value for p in final.metadata_props},
                                         checksum.KEY: checksum.PLACEHOLDER})
-    with tempfile.NamedTemporaryFile(dir=out.parent, suffix=".onnx", delete=False) as tmp:
-        tmp_path = Path(tmp.name)
     try:
-        tmp_path.write_bytes(checksum.seal(final.SerializeToString()))
+        with tempfile.NamedTemporaryFile(dir=out.parent, suffix=".onnx", delete=False) as tmp:
+            tmp_path = Path(tmp.name)
+    except OSError as e:  # the folder went away or filled up since output_file looked
+        raise OutputError(f"-o {out}: cannot write in {out.parent} ({e.strerror or e})") from None
+    try:
+        try:
+            tmp_path.write_bytes(checksum.seal(final.SerializeToString()))
+        except OSError as e:  # a full disk: named as the file it was to be
+            raise OutputError(f"-o {out}: cannot be written ({e.strerror or e})") from None
         try:  # the written file honours the contract, or nothing is written
             load_contract(tmp_path)
         except ModelContractError as e:  # named as the file it was to be, not the temp file
@@ -109,8 +115,11 @@ def output_file(out: Path) -> Path:
         raise ConfigError(f"-o {out}: name an .onnx file, e.g. {out.with_suffix('.onnx')}")
     if not out.parent.is_dir():
         raise ConfigError(f"-o {out}: no folder {out.parent} to write it in")
-    if not os.access(out.parent, os.W_OK):
-        raise ConfigError(f"-o {out}: cannot write in {out.parent}")
+    try:  # tried, not asked: os.access says yes to root, also on /proc or a read-only mount
+        with tempfile.NamedTemporaryFile(dir=out.parent, suffix=".onnx"):
+            pass
+    except OSError as e:
+        raise ConfigError(f"-o {out}: cannot write in {out.parent} ({e.strerror or e})") from None
     return out
 
 

@@ -94,6 +94,10 @@ def test_export_checks_its_output_path_before_any_work(tmp_path):
     assert code == 1 and err.strip() == (f"tactile-export: error: -o {tmp_path}/checkpoint.pt: "
                                          f"name an .onnx file, e.g. {tmp_path}/checkpoint.onnx")
     assert (tmp_path / "checkpoint.pt").read_bytes() == b"keep"
+    if Path("/proc/self").is_dir():  # /proc: root may "write" by os.access, but makes no file
+        code, _, err = cli("tactile-export", str(tmp_path / "run"), "-o", "/proc/x.onnx")
+        assert code == 1 and err.strip().startswith(
+            "tactile-export: error: -o /proc/x.onnx: cannot write in /proc ("), err
 
 
 @pytest.mark.parametrize("kind", ["missing", "folder"])

@@ -339,6 +339,30 @@ def test_export_fails_on_broken_parity(dataset, root, capsys, monkeypatch):
     assert not out.exists()
 
 
+def test_a_disk_that_fills_while_the_file_is_written_is_exit_4_naming_out(dataset, root,
+                                                                         capsys, monkeypatch):
+    """A write that failed (a full disk) was '[Errno 28] ...' naming the temporary file, exit 1.
+    Now one line naming -o, exit 4, and no file (the temporary one is removed)."""
+    import errno
+
+    run, _, _, _, _ = _build("lstm1", GRID["lstm1"], dataset, root)
+    folder = root / "full"
+    folder.mkdir(exist_ok=True)
+    out = folder / "m.onnx"
+    real = Path.write_bytes
+
+    def full(self, data):
+        if self.parent == folder:
+            raise OSError(errno.ENOSPC, "No space left on device")
+        return real(self, data)
+
+    monkeypatch.setattr(Path, "write_bytes", full)
+    assert export_main([str(run), "-o", str(out)]) == 4
+    assert capsys.readouterr().err.strip().splitlines()[-1] == (
+        f"tactile-export: error: -o {out}: cannot be written (No space left on device)")
+    assert list(folder.iterdir()) == []
+
+
 def test_a_file_that_fails_its_contract_when_written_is_named_as_out(dataset, root, capsys,
                                                                     monkeypatch):
     """The last check reads the file back from a temporary name beside -o: its error named
