@@ -23,7 +23,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--int8", action="store_true",
                    help="write an onnxruntime dynamic-int8 model (default: float32)")
     p.add_argument("--windows", type=int_in(1), default=256,
-                   help="at most this many windows for the parity check (default 256)")
+                   help="at most this many windows of the data for the parity check "
+                   "(default 256); a model that carries its state is also checked along "
+                   "simulated runs of windows when no run of the data is long enough")
     add_debug(p)
     return p
 
