@@ -345,7 +345,7 @@ def replay(path: Path, runner: Runner, stop: dict, deadline: float = math.inf,
     take = read_take(path)
     if len(take.seq) == 0:
         raise RecordingError(f"{path}: the take holds no samples")
-    say_mismatch(take, "tactile-run: ")
+    say_mismatch(take)
     if take.truncated:
         say(f"{path}: its last row was cut short (the recording stopped mid-write); "
             "it is left out")

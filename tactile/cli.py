@@ -260,6 +260,15 @@ def terminable_here() -> bool:
     return signal.getsignal(signal.SIGTERM) is _terminate
 
 
+_running: list[str] = []  # the commands running in this process (a test may nest them)
+
+
+def prefix() -> str:
+    """``"tactile-x: "`` while the command ``tactile-x`` runs in this process, else ``""``:
+    for the library's own warning lines, so that they name the command as its errors do."""
+    return f"{_running[-1]}: " if _running else ""
+
+
 def command(prog: str, *, guarded: bool = False, interruptible: bool = False,
             files: bool = False, terminable: bool = False
             ) -> Callable[[Callable[..., int]], Callable[..., int]]:
@@ -280,6 +289,7 @@ def command(prog: str, *, guarded: bool = False, interruptible: bool = False,
     def wrap(main: Callable[..., int]) -> Callable[..., int]:
         @functools.wraps(main)
         def entry(argv: list[str] | None = None) -> int:
+            _running.append(prog)
             if guarded:  # the command's signal handlers last as long as the command
                 handlers = {s: signal.getsignal(s) for s in (signal.SIGINT, signal.SIGTERM)}
                 _guard_start()
@@ -310,6 +320,7 @@ def command(prog: str, *, guarded: bool = False, interruptible: bool = False,
                 print(f"{prog}: interrupted", file=sys.stderr)
                 return EXIT_INTERRUPTED
             finally:
+                _running.pop()
                 if term is not None:
                     signal.signal(signal.SIGTERM, term)
                 if files:

@@ -332,7 +332,7 @@ def test_a_finished_take_that_lost_rows_says_so(tmp_path, capsys):
                              "recording")
     assert data_main([str(tmp_path)]) == 0
     err = capsys.readouterr().err
-    assert err == f"warning: {path}: {take.mismatch}\n"
+    assert err == f"tactile-data: warning: {path}: {take.mismatch}\n"  # named as its errors
     load_dataset(tmp_path)
     assert capsys.readouterr().err == ""  # said once in a process
     meta = json.loads(path.with_suffix(".json").read_text())
@@ -349,7 +349,7 @@ def test_tactile_plot_of_one_take_that_lost_rows_says_so(tmp_path, capsys):
     path.write_text("".join(path.read_text().splitlines(keepends=True)[:101]))
     assert plot_main([str(path), "-o", str(tmp_path / "p.png")]) == 0
     err = capsys.readouterr().err
-    assert err == f"warning: {path}: {read_take(path).mismatch}\n"
+    assert err == f"tactile-plot: warning: {path}: {read_take(path).mismatch}\n"
 
 
 def test_a_csv_without_its_json_is_named_not_skipped_silently(tmp_path, capsys):
@@ -363,6 +363,21 @@ def test_a_csv_without_its_json_is_named_not_skipped_silently(tmp_path, capsys):
                                        "without its .json, not read as a take\n")
     load_dataset(tmp_path)
     assert capsys.readouterr().err == ""  # said once in a process
+
+
+def test_a_takes_json_without_its_csv_is_named(tmp_path, capsys):
+    """A take whose CSV was lost left its JSON unread without a word. A run's metrics.json in
+    a sub-folder is no take's and stays unnamed."""
+    from tactile.device.commands.data import main as data_main
+
+    make_dataset(tmp_path, takes=2, textures=("paper",), seconds=1)
+    (tmp_path / "paper-user000.csv").unlink()
+    (tmp_path / "run").mkdir()
+    (tmp_path / "run" / "metrics.json").write_text('{"accuracy": 0.5}')
+    assert data_main([str(tmp_path)]) == 0
+    assert capsys.readouterr().err == (
+        f"tactile-data: warning: {tmp_path / 'paper-user000.json'}: a .json without its .csv, "
+        "no samples: not read as a take\n")
 
 
 def test_a_take_copied_under_another_name_is_named(tmp_path, capsys):

@@ -16,9 +16,10 @@ from pathlib import Path
 
 import numpy as np
 
+from tactile.cli import prefix
 from tactile.device.protocol.info import DeviceInfo
 from tactile.device.recordings.take import FIXED_COLUMNS, GAP_LINE, Take, _why, header_cell
-from tactile.device.recordings.take_meta import class_key, read_meta
+from tactile.device.recordings.take_meta import FORMAT, class_key, read_meta
 from tactile.errors import RecordingError
 
 
@@ -206,26 +207,40 @@ def iter_takes(folder: str | os.PathLike) -> Iterator[Path]:
 _SAID: set[tuple[str, Path]] = set()  # (what, file): the warnings said in this process
 
 
-def say_mismatch(take: Take, prefix: str = "") -> None:
+def say_mismatch(take: Take) -> None:
     """Name on stderr, once per process, a finished take whose CSV holds other rows than its
-    JSON counts (``Take.mismatch``): one ``warning:`` line after ``prefix`` (a command's
-    name), nothing for a take whose counts agree."""
+    JSON counts (``Take.mismatch``): one ``warning:`` line after the running command's name,
+    nothing for a take whose counts agree."""
     if take.mismatch and ("mismatch", take.path) not in _SAID:
         _SAID.add(("mismatch", take.path))
-        print(f"{prefix}warning: {take.path}: {take.mismatch}", file=sys.stderr, flush=True)
+        print(f"{prefix()}warning: {take.path}: {take.mismatch}", file=sys.stderr, flush=True)
+
+
+def _a_takes_json(path: Path) -> bool:
+    """Whether ``path`` begins as a take's JSON does (its format named in the first bytes):
+    a run's metrics.json in a sub-folder is not a take's."""
+    try:
+        with open(path, "rb") as f:
+            return f'"{FORMAT}"'.encode() in f.read(256)
+    except OSError:
+        return False
 
 
 def say_orphans(folder: str | os.PathLike) -> None:
     """Name on stderr, once per process, the ``.csv`` files of ``folder`` that have no
-    ``.json`` beside them: a take whose JSON was lost (a copy that missed it) is not read,
-    and no take's data is left out without a word."""
-    orphans = sorted(p for p in Path(folder).rglob("*.csv")
-                     if not p.with_suffix(".json").is_file() and ("orphan", p) not in _SAID)
-    if orphans:
-        _SAID.update(("orphan", p) for p in orphans)
-        more = f" and {len(orphans) - 3} more" if len(orphans) > 3 else ""
-        print(f"warning: {', '.join(str(p) for p in orphans[:3])}{more}: a .csv without its "
-              ".json, not read as a take", file=sys.stderr, flush=True)
+    ``.json`` beside them, and the takes' ``.json`` files that have no ``.csv``: a take whose
+    JSON (or CSV) was lost (a copy that missed it) is not read, and no take is left out
+    without a word."""
+    for ext, other, what in ((".csv", ".json", "not read as a take"),
+                             (".json", ".csv", "no samples: not read as a take")):
+        orphans = sorted(p for p in Path(folder).rglob(f"*{ext}")
+                         if not p.with_suffix(other).is_file() and ("orphan", p) not in _SAID
+                         and (ext == ".csv" or _a_takes_json(p)))
+        if orphans:
+            _SAID.update(("orphan", p) for p in orphans)
+            more = f" and {len(orphans) - 3} more" if len(orphans) > 3 else ""
+            print(f"{prefix()}warning: {', '.join(str(p) for p in orphans[:3])}{more}: a {ext} "
+                  f"without its {other}, {what}", file=sys.stderr, flush=True)
 
 
 def load_dataset(folder: str | os.PathLike) -> list[Take]:
