@@ -357,8 +357,9 @@ def check_file(path: Path, run_dir: Path | None = None, data: Path | None = None
         if not _reparity(path, contract, run_dir, data, windows,
                          native=bool(contract.custom_ops) and loaded.native):
             source = contract.extra.get("source_run")
+            here = Path(run_dir).resolve().name  # as the exporter names it (--run . too)
             other = (f"; the file says it was exported from a run named {source!r}, not "
-                     f"{run_dir.name!r}" if source and source != run_dir.name else "")
+                     f"{here!r}" if source and source != here else "")
             raise ModelContractError(f"{path}: parity against {run_dir} failed "
                                      f"(table above){other}")
     elif data is not None:

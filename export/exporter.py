@@ -9,6 +9,7 @@ float32 one.
 
 from __future__ import annotations
 
+import errno
 import os
 import tempfile
 import time
@@ -84,12 +85,12 @@ def export_run(run_dir: Path, out: Path, data: Path | None = None, int8: bool = 
         with tempfile.NamedTemporaryFile(dir=out.parent, suffix=".onnx", delete=False) as tmp:
             tmp_path = Path(tmp.name)
     except OSError as e:  # the folder went away or filled up since output_file looked
-        raise OutputError(f"-o {out}: cannot write in {out.parent} ({e.strerror or e})") from None
+        raise _not_written(f"-o {out}: cannot write in {out.parent}", e) from None
     try:
         try:
             tmp_path.write_bytes(checksum.seal(final.SerializeToString()))
         except OSError as e:  # a full disk: named as the file it was to be
-            raise OutputError(f"-o {out}: cannot be written ({e.strerror or e})") from None
+            raise _not_written(f"-o {out}: cannot be written", e) from None
         try:  # the written file honours the contract, or nothing is written
             load_contract(tmp_path)
         except ModelContractError as e:  # named as the file it was to be, not the temp file
@@ -121,6 +122,13 @@ def output_file(out: Path) -> Path:
     except OSError as e:
         raise ConfigError(f"-o {out}: cannot write in {out.parent} ({e.strerror or e})") from None
     return out
+
+
+def _not_written(what: str, e: OSError) -> Exception:
+    """A full disk or an I/O error (exit 4: freeing space may be all it takes), else a path
+    that cannot take the file (exit 1, as :func:`output_file` says before any work)."""
+    full = e.errno in (errno.ENOSPC, errno.EDQUOT, errno.EIO, errno.EFBIG)
+    return (OutputError if full else ConfigError)(f"{what} ({e.strerror or e})")
 
 
 def _require(p: Parity, what: str) -> None:

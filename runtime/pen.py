@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+import numbers
 import os
 import time
 from collections.abc import Callable, Iterator, Mapping
@@ -85,9 +86,11 @@ def labels(
             print(lab.seq, lab.smoothed.label)                     # stable, or "uncertain"
 
     Raises :class:`~tactile.errors.DeviceError` if the port cannot be opened (or, without
-    ``reconnect``, is lost: after the labels of the bytes that came before the loss).
+    ``reconnect``, is lost: after the labels of the bytes that came before the loss), and
+    :class:`~tactile.errors.ConfigError` for a bad argument (``hop`` not a whole number,
+    ``seconds`` not a number > 0, ...) at the first label asked for.
     """
-    if isinstance(seconds, bool) or not isinstance(seconds, (int, float)) or not seconds > 0:
+    if isinstance(seconds, bool) or not isinstance(seconds, numbers.Real) or not seconds > 0:
         raise ConfigError(f"seconds {seconds!r}: must be a number > 0 (math.inf, the default: "
                           "until the caller stops)")  # (NaN, -1: no label, and no word)
     if not isinstance(model, Model):

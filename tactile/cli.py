@@ -22,9 +22,11 @@ from tactile.errors import (
     TactileError,
 )
 
-# Exit codes, documented in README.md: 0 ok, 1 bad input, 2 device/port, 3 model contract.
+# Exit codes, documented in README.md: 0 ok, 1 bad input, 2 device/port, 3 model contract, 4 an
+# output that cannot be written.
 EXIT_OK, EXIT_USAGE, EXIT_DEVICE, EXIT_CONTRACT = 0, 1, 2, 3
 EXIT_OUTPUT = 4  # stdout cannot be written (a full disk): a service may restart
+MAX_THREADS = 1024  # a command's or a setting's threads: far above any machine's use
 EXIT_INTERRUPTED, EXIT_TERMINATED = 130, 143  # the shell's codes for an end by SIGINT, SIGTERM
 
 
@@ -260,13 +262,20 @@ def terminable_here() -> bool:
     return signal.getsignal(signal.SIGTERM) is _terminate
 
 
-_running: list[str] = []  # the commands running in this process (a test may nest them)
+_local = threading.local()  # .running: the commands running in this thread (a test nests them)
+
+
+def _running() -> list[str]:
+    if not hasattr(_local, "running"):
+        _local.running = []
+    return _local.running
 
 
 def prefix() -> str:
-    """``"tactile-x: "`` while the command ``tactile-x`` runs in this process, else ``""``:
-    for the library's own warning lines, so that they name the command as its errors do."""
-    return f"{_running[-1]}: " if _running else ""
+    """``"tactile-x: "`` while the command ``tactile-x`` runs in this thread, else ``""``: for
+    the library's own warning lines, so that they name the command as its errors do."""
+    running = _running()
+    return f"{running[-1]}: " if running else ""
 
 
 def command(prog: str, *, guarded: bool = False, interruptible: bool = False,
@@ -289,7 +298,7 @@ def command(prog: str, *, guarded: bool = False, interruptible: bool = False,
     def wrap(main: Callable[..., int]) -> Callable[..., int]:
         @functools.wraps(main)
         def entry(argv: list[str] | None = None) -> int:
-            _running.append(prog)
+            depth = len(_running())
             if guarded:  # the command's signal handlers last as long as the command
                 handlers = {s: signal.getsignal(s) for s in (signal.SIGINT, signal.SIGTERM)}
                 _guard_start()
@@ -302,6 +311,7 @@ def command(prog: str, *, guarded: bool = False, interruptible: bool = False,
                 sys.stdout, sys.stderr = (s if isinstance(s, _ReaderMayGo) else _ReaderMayGo(s)
                                           for s in was)
             try:
+                _running().append(prog)
                 return main(argv)
             except ModuleNotFoundError as e:
                 top = (e.name or "").split(".")[0]
@@ -320,7 +330,7 @@ def command(prog: str, *, guarded: bool = False, interruptible: bool = False,
                 print(f"{prog}: interrupted", file=sys.stderr)
                 return EXIT_INTERRUPTED
             finally:
-                _running.pop()
+                del _running()[depth:]
                 if term is not None:
                     signal.signal(signal.SIGTERM, term)
                 if files:

@@ -379,8 +379,9 @@ def test_data_summary_lists_users_in_number_order(tmp_path):
     rows = [line.split()[0] for line in out.splitlines()[out.splitlines().index(
         next(line for line in out.splitlines() if line.startswith("user "))) + 1:]]
     assert rows[:3] == ["1", "2", "10"], out
-    assert sorted(["user10", "user2", "b", "a3", "a10"], key=natural) == [
-        "a3", "a10", "b", "user2", "user10"]
+    assert sorted(["user10", "user2", "b", "a3", "a10", "bob2", "bob", "user", "7", "-"],
+                  key=natural) == ["7", "-", "a3", "a10", "b", "bob", "bob2", "user", "user2",
+                                   "user10"]
 
 
 def test_plot_writes_pictures_and_refuses_what_it_cannot_plot(tmp_path):

@@ -1418,6 +1418,13 @@ def test_a_replay_of_a_take_shorter_than_a_window_says_so(models, tmp_path):
     assert code == 0 and out == "", err
     assert (f"tactile-run: {tmp_path / 'short.csv'}: 30 samples, fewer than the model's window "
             "of 50: no label") in err, err
+    with TakeWriter(tmp_path, "paper", src.info, "test", name="gappy") as w:
+        w.write(0, 0, src.raw[:40])  # 40 samples, 5 lost, 40 more: no run of 50
+        w.write(45, 450_000, src.raw[45:85])
+    code, out, err = run_cli(["--model", str(onnx_path), "--replay", str(tmp_path / "gappy.csv")])
+    assert code == 0 and '"label"' not in out, err
+    assert (f"tactile-run: {tmp_path / 'gappy.csv'}: no 50 samples without a gap (the model's "
+            "window; the longest run: 40): no label") in err, err
 
 
 @pytest.mark.skipif(not Path("/dev/full").exists(), reason="no /dev/full on this system")
@@ -1457,6 +1464,8 @@ def test_labels_refuses_a_bad_hop_or_seconds_in_one_line(models, kw, message):
     with pytest.raises(ConfigError) as e:
         next(labels("loop://", str(onnx_path), **kw))
     assert str(e.value).startswith(message), str(e.value)
+    with pytest.raises(StopIteration):  # numpy's numbers are numbers: no label, no error
+        next(labels("loop://", str(onnx_path), hop=np.int64(25), seconds=np.float64(0.05)))
 
 
 def test_sigint_stops_a_replay(tmp_path, reap):

@@ -218,6 +218,21 @@ def test_settings_the_training_does_not_read_are_named():
                               carry_steps=3)) == []
 
 
+def test_tactile_train_says_both_warnings_naming_itself(dataset, tmp_path, capsys):
+    """The unused settings and the users a named take leaves in training reach stderr, each
+    in one line after the command's name (the library's own lines name the running command)."""
+    sets = [f"--set={k}={v}" for k, v in TINY.items()]
+    assert train_main([str(dataset), "--out", str(tmp_path / "r"), *sets, "--set",
+                       "carry_steps=5", "--set", "test=name:paper-user000", "--set",
+                       "val=user:1"]) == 0
+    err = capsys.readouterr().err.splitlines()
+    assert ("tactile-train: warning: settings this training does not read: carry_steps=5 "
+            "(only state='carry')") in err, err
+    assert ("tactile-train: warning: user 0 has takes in test and in training "
+            "(test='name:paper-user000' names takes, not whole users): the test figures "
+            "include users seen in training") in err, err
+
+
 def test_a_channel_given_twice_is_refused():
     """channels=accel_x,accel_x trained a run whose export then failed on the file's names."""
     for key in ("channels", "emd_channels"):

@@ -76,13 +76,15 @@ def test_a_selector_of_single_takes_says_when_their_users_also_train(takes):
     s = split_takes(takes, TrainConfig(test="name:paper-user000", val="user:bob", seed=0))
     train, _, test = parts(takes, s)
     assert test == {"paper-user000"} and "non_contact-user000" in train
-    assert s.shared == ("users alice have takes in test and in training "
-                        "(test='name:paper-user000' names takes, not whole users): those test "
-                        "users are not unseen")
+    assert s.shared == ("user alice has takes in test and in training "
+                        "(test='name:paper-user000' names takes, not whole users): the test "
+                        "figures include users seen in training")
     trained = sorted({takes[i].meta["user"] for i in s.train})
     assert s.description.endswith(f"train users {', '.join(trained)}") and "alice" in trained
     s = split_takes(takes, TrainConfig(test="user:alice", val="name:paper-user001", seed=0))
-    assert s.shared.startswith("users bob have takes in validation and in training (val=")
+    assert s.shared.startswith("user bob has takes in validation and in training (val=")
+    s = split_takes(takes, TrainConfig(test="name:paper-user00[01]", val="user:carol", seed=0))
+    assert s.shared.startswith("users alice, bob have takes in test and in training (test=")
     for cfg in (TrainConfig(test="user:alice,bob", seed=1), TrainConfig(seed=0),
                 TrainConfig(split="take", test="name:paper-*", seed=2)):
         assert split_takes(takes, cfg).shared is None  # whole users, or split by take

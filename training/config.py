@@ -14,6 +14,7 @@ import typing
 from dataclasses import dataclass
 from pathlib import Path
 
+from tactile.cli import MAX_THREADS
 from tactile.contract import MAX_IMFS, MODALITY_MODELS, MODELS
 from tactile.device.recordings.summary import HOP, WINDOW
 from tactile.errors import ConfigError
@@ -38,7 +39,6 @@ MAX_INT = 2**31 - 1  # every whole-number setting (seed: its own range)
 MAX_SAMPLES = 1_000_000  # window, hop, frame_hop: samples
 MAX_LAYERS = 64  # layers, ensemble
 MAX_HIDDEN = 1_000_000  # (an allocation that large fails, in one line: out of memory)
-MAX_THREADS = 1024
 MAX_ATOMS = 65_536  # a modality's dictionary atoms (and non-zeros per code)
 FLOAT32_MAX = 3.4028234663852886e38  # the largest float32: lr and weight_decay reach the weights
 # ``test`` / ``val`` selectors: FIELD:VALUE[,VALUE...] (see TrainConfig)
@@ -410,6 +410,8 @@ def unused(cfg: TrainConfig) -> list[str]:
         (("emd_sifts",), not (cfg.emd_channels or cfg.modalities),
          "only with emd_channels or modalities"),
         (("carry_steps",), cfg.state != "carry", "only state='carry'"),
+        (("center", "augment_offset"), bool(cfg.modalities),
+         "the granular models read neither"),
         (("test_fraction",), bool(cfg.test), f"test={cfg.test!r} names the test takes"),
         (("val_fraction",), bool(cfg.val), f"val={cfg.val!r} names the validation takes"),
     ]

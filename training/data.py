@@ -253,9 +253,11 @@ def split_takes(takes: list[Take], cfg: TrainConfig) -> Split:
     for part, key, held in (("test", "test", test), ("validation", "val", val)):
         both = sorted(set(names(held)) & set(names(train)))
         if both and getattr(cfg, key):
-            shared.append(f"{unit}s {name_list(both, 4)} have takes in {part} and in training "
-                          f"({key}={getattr(cfg, key)!r} names takes, not whole {unit}s): "
-                          f"those {part} {unit}s are not unseen")
+            who = (f"{unit} {both[0]} has" if len(both) == 1
+                   else f"{unit}s {name_list(both, 4)} have")
+            shared.append(f"{who} takes in {part} and in training ({key}={getattr(cfg, key)!r} "
+                          f"names takes, not whole {unit}s): the {part} figures include "
+                          f"{unit}s seen in training")
     return Split({i: whole[i] for i in sorted(train)}, {i: whole[i] for i in sorted(val)},
                  {i: whole[i] for i in sorted(test)}, description, "; ".join(shared) or None)
 

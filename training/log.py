@@ -7,7 +7,7 @@ import signal
 import sys
 import threading
 
-from tactile.cli import terminable_here
+from tactile.cli import prefix, terminable_here
 from tactile.training.dist import Dist
 
 
@@ -26,7 +26,7 @@ class Log:
 
     def warn(self, msg: str) -> None:
         if self.main:
-            print(f"warning: {msg}", file=sys.stderr, flush=True)
+            print(f"{prefix()}warning: {msg}", file=sys.stderr, flush=True)
 
 
 class Stop:

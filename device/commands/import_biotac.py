@@ -27,10 +27,7 @@ def build_parser() -> argparse.ArgumentParser:
 def _main(args: argparse.Namespace) -> int:
     from tactile.device.recordings.biotac import import_biotac
 
-    def warn(line: str) -> None:
-        print(f"tactile-import-biotac: warning: {line}", file=sys.stderr, flush=True)
-
-    for p in import_biotac(args.files, args.out, args.force, warn):
+    for p in import_biotac(args.files, args.out, args.force):
         print(p)
     return 0
 

@@ -44,6 +44,7 @@ from pathlib import Path
 import h5py
 import numpy as np
 
+from tactile.cli import prefix as command_prefix
 from tactile.device.protocol.info import ChannelSpec, DeviceInfo
 from tactile.device.recordings.take import (
     check_label,
@@ -221,7 +222,7 @@ def irregular(stamps: np.ndarray) -> str | None:
 
 
 def _warn(line: str) -> None:
-    print(f"warning: {line}", file=sys.stderr, flush=True)
+    print(f"{command_prefix()}warning: {line}", file=sys.stderr, flush=True)
 
 
 def _utc(where: str, seconds: int) -> str:

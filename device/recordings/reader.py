@@ -297,8 +297,9 @@ def say_copies(takes: list[Take]) -> None:
             other = by_print.setdefault(t.fingerprint(), t)
             if other is not t and ("copy", t.path) not in _SAID:
                 _SAID.add(("copy", t.path))
-                print(f"warning: {t.path}: the same recording as {other.path} (label, samples "
-                      "and times): it is read twice", file=sys.stderr, flush=True)
+                print(f"{prefix()}warning: {t.path}: the same recording as {other.path} "
+                      "(label, samples and times): it is read twice", file=sys.stderr,
+                      flush=True)
 
 
 __all__ = ["iter_takes", "load_dataset", "load_numbers", "read_take", "say_mismatch"]

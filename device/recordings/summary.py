@@ -27,8 +27,8 @@ def user_of(take: Take) -> str:
 def natural(name: str) -> tuple:
     """A sort key that puts ``user2`` before ``user10`` and ``9`` before ``10``: the name's runs
     of digits compare as numbers, the rest as text (the name itself breaks ties: ``07``, ``7``)."""
-    parts = re.split(r"(\d+)", name)
-    return (*(int(x) if i % 2 else x for i, x in enumerate(parts)), name)
+    parts = re.split(r"(\d+)", name)  # text, digits, text, ...: always text first
+    return tuple((0, x) if i % 2 == 0 else (1, int(x)) for i, x in enumerate(parts)), name
 
 
 def windows_in(take: Take, window: int, hop: int) -> int:

@@ -15,8 +15,7 @@ import argparse
 import json
 import sys
 
-from tactile.cli import Parser, add_debug, command, int_in, path_given, run
-from tactile.training.config import MAX_THREADS
+from tactile.cli import MAX_THREADS, Parser, add_debug, command, int_in, path_given, run
 
 
 def build_parser() -> argparse.ArgumentParser:
