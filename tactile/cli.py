@@ -26,8 +26,8 @@ from tactile.errors import (
 # output that cannot be written.
 EXIT_OK, EXIT_USAGE, EXIT_DEVICE, EXIT_CONTRACT = 0, 1, 2, 3
 EXIT_OUTPUT = 4  # stdout cannot be written (a full disk): a service may restart
-MAX_THREADS = 1024  # a command's or a setting's threads: far above any machine's use
 EXIT_INTERRUPTED, EXIT_TERMINATED = 130, 143  # the shell's codes for an end by SIGINT, SIGTERM
+MAX_THREADS = 1024  # a command's or a setting's threads: far above any machine's use
 
 
 def exit_code(err: BaseException) -> int:
