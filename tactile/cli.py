@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import errno
 import functools
 import math
 import os
@@ -23,7 +24,7 @@ from tactile.errors import (
 )
 
 # Exit codes, documented in README.md: 0 ok, 1 bad input, 2 device/port, 3 model contract, 4 an
-# output that cannot be written.
+# output that cannot be written (a full disk: stdout, an exported model).
 EXIT_OK, EXIT_USAGE, EXIT_DEVICE, EXIT_CONTRACT = 0, 1, 2, 3
 EXIT_OUTPUT = 4  # stdout cannot be written (a full disk): a service may restart
 EXIT_INTERRUPTED, EXIT_TERMINATED = 130, 143  # the shell's codes for an end by SIGINT, SIGTERM
@@ -35,8 +36,9 @@ def exit_code(err: BaseException) -> int:
         return EXIT_CONTRACT
     if isinstance(err, DeviceError):
         return EXIT_DEVICE
-    if isinstance(err, OutputError):
-        return EXIT_OUTPUT
+    if isinstance(err, OutputError) or (
+            isinstance(err, OSError) and err.errno in (errno.ENOSPC, errno.EDQUOT)):
+        return EXIT_OUTPUT  # a full disk: freeing space may be all it takes
     try:
         import serial
 

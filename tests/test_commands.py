@@ -17,6 +17,7 @@ from tactile import __version__
 from tactile.device.protocol import pen_info
 from tactile.device.recordings import TakeWriter, check_label
 from tactile.device.recordings.summary import natural
+from tactile.device.sim import make_dataset
 from tactile.errors import RecordingError
 
 SCRIPTS = sorted(tomllib.loads((REPO / "pyproject.toml").read_text())["project"]["scripts"])
@@ -77,6 +78,19 @@ def test_an_empty_path_is_a_usage_error(name, args, option, tmp_path):
     code, out, err = cli(name, *args)
     assert (code, out) == (1, ""), err
     assert err == f"{name}: error: argument {option}: an empty path (see --help)\n", err
+
+
+@pytest.mark.skipif(not Path("/dev/full").exists(), reason="no /dev/full on this system")
+def test_stdout_on_a_full_disk_is_exit_4_for_every_command(tmp_path):
+    """tactile-data (as tactile-eval, tactile-monitor) whose stdout is on a full disk exited 1,
+    'bad input'; a full disk is 4, the code a service may restart on."""
+    make_dataset(tmp_path, takes=1, textures=("paper",), seconds=1)
+    with open("/dev/full", "w") as full:
+        proc = subprocess.run([sys.executable, "-m", "tactile.device.commands.data",
+                               str(tmp_path), "--json"], stdout=full, stderr=subprocess.PIPE,
+                              text=True, timeout=60)
+    assert proc.returncode == 4 and proc.stderr == (
+        "tactile-data: error: [Errno 28] No space left on device\n"), proc.stderr
 
 
 def test_export_checks_its_output_path_before_any_work(tmp_path):
