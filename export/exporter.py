@@ -9,7 +9,6 @@ float32 one.
 
 from __future__ import annotations
 
-import errno
 import os
 import tempfile
 import time
@@ -19,6 +18,7 @@ from pathlib import Path
 import onnx
 
 from tactile import checksum
+from tactile.cli import FULL_DISK
 from tactile.errors import ConfigError, ModelContractError, OutputError
 from tactile.export.calibrate import calibrate_file
 from tactile.export.check import load_contract
@@ -125,10 +125,9 @@ def output_file(out: Path) -> Path:
 
 
 def _not_written(what: str, e: OSError) -> Exception:
-    """A full disk or an I/O error (exit 4: freeing space may be all it takes), else a path
-    that cannot take the file (exit 1, as :func:`output_file` says before any work)."""
-    full = e.errno in (errno.ENOSPC, errno.EDQUOT, errno.EIO, errno.EFBIG)
-    return (OutputError if full else ConfigError)(f"{what} ({e.strerror or e})")
+    """A full disk (exit 4: freeing space may be all it takes), else a path that cannot take
+    the file (exit 1, as :func:`output_file` says before any work)."""
+    return (OutputError if e.errno in FULL_DISK else ConfigError)(f"{what} ({e.strerror or e})")
 
 
 def _require(p: Parity, what: str) -> None:

@@ -349,8 +349,8 @@ def replay(path: Path, runner: Runner, stop: dict, deadline: float = math.inf,
     if take.truncated:
         say(f"{path}: its last row was cut short (the recording stopped mid-write); "
             "it is left out")
-    window = runner.stream.window
-    longest = max(b - a for a, b in take.segments())
+    window, segments = runner.stream.window, take.segments()
+    longest = max(b - a for a, b in segments)
     if longest < window:  # a take too short for one window would end with no word
         say(f"{path}: {len(take.seq)} samples, fewer than the model's window of {window}: no "
             "label" if longest == len(take.seq) else
@@ -364,7 +364,7 @@ def replay(path: Path, runner: Runner, stop: dict, deadline: float = math.inf,
     for g in take.meta.get("gaps", []):
         recorded.setdefault(g["row"], []).append(Gap(g["seq"], g["missing"], g["reason"]))
     runner.handle(recorded.get(0, []))
-    for a, b in take.segments():
+    for a, b in segments:
         if stop["flag"]:
             break
         if a > 0:

@@ -28,6 +28,7 @@ from tactile.errors import (
 EXIT_OK, EXIT_USAGE, EXIT_DEVICE, EXIT_CONTRACT = 0, 1, 2, 3
 EXIT_OUTPUT = 4  # stdout cannot be written (a full disk): a service may restart
 EXIT_INTERRUPTED, EXIT_TERMINATED = 130, 143  # the shell's codes for an end by SIGINT, SIGTERM
+FULL_DISK = (errno.ENOSPC, errno.EDQUOT, errno.EFBIG)  # errnos of an output with no room: exit 4
 MAX_THREADS = 1024  # a command's or a setting's threads: far above any machine's use
 
 
@@ -36,16 +37,15 @@ def exit_code(err: BaseException) -> int:
         return EXIT_CONTRACT
     if isinstance(err, DeviceError):
         return EXIT_DEVICE
-    if isinstance(err, OutputError) or (
-            isinstance(err, OSError) and err.errno in (errno.ENOSPC, errno.EDQUOT)):
-        return EXIT_OUTPUT  # a full disk: freeing space may be all it takes
     try:
         import serial
 
-        if isinstance(err, serial.SerialException):
+        if isinstance(err, serial.SerialException):  # (an OSError, with the port's errno)
             return EXIT_DEVICE
     except ImportError:  # pragma: no cover
         pass
+    if isinstance(err, OutputError) or (isinstance(err, OSError) and err.errno in FULL_DISK):
+        return EXIT_OUTPUT  # a full disk: freeing space may be all it takes
     return EXIT_USAGE
 
 

@@ -81,9 +81,10 @@ def test_an_empty_path_is_a_usage_error(name, args, option, tmp_path):
 
 
 @pytest.mark.skipif(not Path("/dev/full").exists(), reason="no /dev/full on this system")
-def test_stdout_on_a_full_disk_is_exit_4_for_every_command(tmp_path):
-    """tactile-data (as tactile-eval, tactile-monitor) whose stdout is on a full disk exited 1,
-    'bad input'; a full disk is 4, the code a service may restart on."""
+def test_stdout_on_a_full_disk_is_exit_4_outside_tactile_run_too(tmp_path):
+    """tactile-data (as tactile-eval, tactile-monitor: the mapping is tactile.cli's, shared by
+    every command) whose stdout is on a full disk exited 1, 'bad input'; a full disk is 4, the
+    code a service may restart on."""
     make_dataset(tmp_path, takes=1, textures=("paper",), seconds=1)
     with open("/dev/full", "w") as full:
         proc = subprocess.run([sys.executable, "-m", "tactile.device.commands.data",
@@ -257,7 +258,6 @@ def test_a_derived_take_stopped_half_way_is_removed(tmp_path, monkeypatch):
     """Ctrl-C in an import (or a simulated dataset) left its last take cut, `complete: false`,
     read later as if it were a recording. Whole takes stay; the half-written one goes."""
     from tactile.device.recordings.writer import TakeWriter
-    from tactile.device.sim import make_dataset
 
     real, calls = TakeWriter.write, []
 

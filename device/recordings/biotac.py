@@ -37,7 +37,6 @@ from __future__ import annotations
 import re
 import sys
 import time
-from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -221,10 +220,6 @@ def irregular(stamps: np.ndarray) -> str | None:
     return "; ".join(said) or None
 
 
-def _warn(line: str) -> None:
-    print(f"{command_prefix()}warning: {line}", file=sys.stderr, flush=True)
-
-
 def _utc(where: str, seconds: int) -> str:
     """``seconds`` (Unix time) as ``YYYY-MM-DDTHH:MM:SSZ``; :class:`RecordingError` naming
     ``where`` (the file and trial) when this system's clock functions cannot convert it."""
@@ -258,13 +253,12 @@ def signals(fingers: tuple[int, ...] = FINGERS) -> dict[str, list[str]]:
     return {f"f{k}_pac": [f"f{k}_pac_{i:02d}" for i in range(PAC_SAMPLES)] for k in fingers}
 
 
-def import_biotac(files: list[Path], out: Path, force: bool = False,
-                  warn: Callable[[str], None] = _warn) -> list[Path]:
+def import_biotac(files: list[Path], out: Path, force: bool = False) -> list[Path]:
     """Write one take per trial of ``files`` into the dataset folder ``out``; returns the CSV
     paths. Everything is read and checked before the first take is written; takes of the same
     names already in ``out`` are refused, or replaced with ``force``. Timestamps that go back
-    or jump (:func:`irregular`) are ``warn``-ed, one line per trial, before any take is
-    written; the frames are imported in file order all the same."""
+    or jump (:func:`irregular`) are a ``warning:`` line on stderr per trial, before any take
+    is written; the frames are imported in file order all the same."""
     files = [Path(p) for p in files]
     first: dict[Path, Path] = {}
     for p in files:  # the same file twice (under any spelling) would import its trials twice
@@ -284,7 +278,8 @@ def import_biotac(files: list[Path], out: Path, force: bool = False,
         for t in trials:  # check every trial (no data kept) before writing any
             odd = irregular(read_trial(handles[t.file], t)[1])
             if odd is not None:
-                warn(f"{t.file}: {t.group}/timestamps: {odd} (imported in file order)")
+                print(f"{command_prefix()}warning: {t.file}: {t.group}/timestamps: {odd} "
+                      "(imported in file order)", file=sys.stderr, flush=True)
         # every input is valid: only now may --force delete the takes these replace
         out = dataset_folder(out)
         info = DeviceInfo(RATE_HZ, channels(), device="biotac-bolt")

@@ -36,7 +36,9 @@ from tactile.cli import (
 
 if TYPE_CHECKING:  # the library is imported when the command runs, after its arguments
     from tactile.device.protocol import StreamDecoder
-    from tactile.runtime.runner import Runner
+    from tactile.runtime.model import Model
+    from tactile.runtime.runner import Runner, Summary
+    from tactile.runtime.stream import Stream
 
 FORMATS = ("jsonl", "text", "csv")
 STATUS_EVERY = 5.0  # --status-every's default, s
@@ -116,7 +118,7 @@ def _run(args: argparse.Namespace) -> int:
     from tactile.device.protocol import StreamDecoder
     from tactile.errors import OutputError
     from tactile.runtime.model import Model
-    from tactile.runtime.runner import Printer, Runner, Summary, post_processor, say
+    from tactile.runtime.runner import Summary, post_processor, say
     from tactile.runtime.stream import Stream
 
     if args.no_native:
@@ -134,16 +136,22 @@ def _run(args: argparse.Namespace) -> int:
     stream = Stream.for_model(model, hop, post)
     summary = Summary()
     decoder = StreamDecoder(csv_rate_hz=c.sample_rate_hz)
-
-    def summarise() -> None:
-        print("tactile-run: summary " + json.dumps(summary.to_dict(decoder.stats.as_dict())),
-              file=sys.stderr, flush=True)
-
-    try:  # (the CSV header is the first line written)
-        printer = Printer(args.format, c.classes, smoothed=post is not None)
+    try:
+        _label(args, model, stream, summary, decoder, post is not None)
     except OutputError:  # stdout is full: stderr still tells what was labelled until then
-        summarise()
+        _summarise(summary, decoder)
         raise
+    _summarise(summary, decoder)
+    return 0
+
+
+def _label(args: argparse.Namespace, model: Model, stream: Stream, summary: Summary,
+           decoder: StreamDecoder, smoothed: bool) -> None:
+    """Print the labels of the replay or the pen until the run ends, with the live page
+    (``--serve``) beside them."""
+    from tactile.runtime.runner import Printer, Runner, say
+
+    printer = Printer(args.format, model.contract.classes, smoothed=smoothed)  # a CSV header
     runner = Runner(model, stream, printer, summary)
     found = None  # the one likely pen, looked for now: no pen is its error alone, before a
     # live page is announced (--wait looks for it while the page runs)
@@ -158,14 +166,14 @@ def _run(args: argparse.Namespace) -> int:
         live = serve_runner(args.serve, runner, decoder, say)
     try:
         _read(args, runner, decoder, summary.started + args.seconds, found)
-    except OutputError:
-        summarise()
-        raise
     finally:  # the page gets its end, stderr its last line, whatever stopped the run
         if live is not None:
             live.close()
-    summarise()
-    return 0
+
+
+def _summarise(summary: Summary, decoder: StreamDecoder) -> None:
+    print("tactile-run: summary " + json.dumps(summary.to_dict(decoder.stats.as_dict())),
+          file=sys.stderr, flush=True)
 
 
 def _read(args: argparse.Namespace, runner: Runner, decoder: StreamDecoder, deadline: float,
