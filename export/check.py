@@ -235,8 +235,11 @@ def _state_text(c: ModelContract) -> str:
 def _recorded(c: ModelContract) -> str:
     """The accuracy training measured, with what it was measured on."""
     m = c.training_metrics
-    if not isinstance(m.get("accuracy"), (int, float)) or isinstance(m.get("accuracy"), bool):
+    acc = m.get("accuracy")
+    if not isinstance(acc, (int, float)) or isinstance(acc, bool):
         return "none: the file's training_metrics holds no test accuracy"
+    if not 0 <= acc <= 1:  # NaN too: a hand-edited or damaged file
+        return f"none: the file's training_metrics holds accuracy {acc!r}, not in [0, 1]"
     windows = m.get("windows")
     on = f"{windows} windows of the run's test split" if isinstance(windows, int) else (
         "the run's test split")

@@ -1232,6 +1232,20 @@ def test_tactile_check_says_when_a_file_records_no_test_accuracy(tmp_path, capsy
     assert "None" not in text, text
 
 
+@pytest.mark.parametrize(("metrics", "shown"), [('{"accuracy": 2.5}', "2.5"),
+                                                 ('{"accuracy": -0.1}', "-0.1"),
+                                                 ('{"accuracy": NaN}', "nan")])
+def test_tactile_check_names_a_recorded_accuracy_out_of_range(tmp_path, capsys, metrics, shown):
+    """A hand-edited accuracy outside [0, 1] was shown as measured ('accuracy 2.500')."""
+    from tactile.export.commands.check import main as check_main
+
+    path = with_metadata(tmp_path / "odd-acc.onnx", {"training_metrics": metrics})
+    assert check_main([str(path)]) == 0
+    text = capsys.readouterr().out
+    assert (f"  training  none: the file's training_metrics holds accuracy {shown}, not in "
+            "[0, 1]\n") in text, text
+
+
 def test_tactile_check_shows_the_defaults_the_run_uses(tmp_path, capsys):
     """Keys edited after the calibration: tactile-check showed the calibration record's
     setting, tactile-run used the keys. Both now name the keys' setting."""
