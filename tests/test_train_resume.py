@@ -262,6 +262,33 @@ def test_a_forced_run_that_fails_leaves_the_old_run_resumable(dataset, tmp_path,
     assert train_main(["--resume", str(run), "--quiet"]) == 0
 
 
+@pytest.mark.parametrize("limit, fails", [(1_000, "metrics.json"), (36_000, "checkpoint.pt")])
+def test_a_run_that_cannot_be_written_is_one_line_exit_4_and_leaves_no_run(
+        dataset, tmp_path, limit, fails):
+    """The operating system refuses a run file's growth (RLIMIT_FSIZE, a real EFBIG as a full
+    disk gives ENOSPC): torch.save's RuntimeError was a traceback and left a cut-short
+    checkpoint.pt that the next training called a finished run. Now one line naming the file,
+    exit 4, no run file left, and the same --out trains once there is room."""
+    import resource
+
+    def limit_files():
+        signal.signal(signal.SIGXFSZ, signal.SIG_IGN)  # the write fails instead of killing
+        resource.setrlimit(resource.RLIMIT_FSIZE, (limit, limit))
+
+    run = tmp_path / "run"
+    sets = [f"--set={k}={v}" for k, v in {**SMALL, "epochs": 1}.items()]
+    proc = subprocess.run(
+        [sys.executable, "-c", "import sys; from tactile.training.commands.train import main; "
+         "sys.exit(main())", str(dataset), "--out", str(run), "--quiet", *sets],
+        capture_output=True, text=True, timeout=600, preexec_fn=limit_files)
+    assert proc.returncode == 4 and "Traceback" not in proc.stderr, proc.stderr
+    assert proc.stderr.splitlines()[-1] == (f"tactile-train: error: {run / fails}: cannot "
+                                            "write (File too large); the run is not saved")
+    assert not run.exists()  # no cut-short or temporary file: the folder made is removed
+    assert train_main([str(dataset), "--out", str(run), "--quiet", *sets]) == 0
+    assert (run / "checkpoint.pt").is_file()
+
+
 def test_an_unhandled_ctrl_c_in_a_torch_command_is_one_line_and_130(capsys):
     from tactile.cli import command
 

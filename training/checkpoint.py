@@ -9,7 +9,9 @@ the key (:class:`RecordingError`, exit 1), never a traceback.
 
 from __future__ import annotations
 
+import io
 import math
+import os
 import zipfile
 from dataclasses import dataclass
 from pathlib import Path
@@ -19,7 +21,7 @@ import torch
 
 import tactile
 from tactile.device.recordings import Take
-from tactile.errors import RecordingError, TactileError
+from tactile.errors import OutputError, RecordingError, TactileError
 from tactile.training.config import TrainConfig
 from tactile.training.models import build_model
 
@@ -94,7 +96,26 @@ def save_checkpoint(path: Path, cfg: TrainConfig, model: torch.nn.Module, metric
         "metrics": plain(metrics),
         "state_dict": model.state_dict(),
     }
-    torch.save(ck, path)
+    save_file(ck, path)
+
+
+def save_file(obj: dict, path: Path) -> None:
+    """``torch.save(obj)`` into ``path`` whole or not at all: serialised in memory, written to
+    a temporary file beside it, renamed over it. A write that fails (a full disk) removes the
+    temporary file and is one :class:`OutputError` naming ``path`` (torch.save straight into
+    the file left a cut-short file and raised its own RuntimeError)."""
+    buf = io.BytesIO()
+    torch.save(obj, buf)
+    tmp = path.with_name(path.name + ".tmp")
+    try:
+        with open(tmp, "wb") as f:
+            f.write(buf.getbuffer())
+            f.flush()
+            os.fsync(f.fileno())
+        tmp.replace(path)
+    except OSError as e:
+        tmp.unlink(missing_ok=True)
+        raise OutputError(f"{path}: cannot write ({e.strerror or e})") from None
 
 
 def _read(path: Path, what: str, hint: str) -> dict:
@@ -240,10 +261,8 @@ def save_resume(out: Path, cfg: TrainConfig, data: Path, world: int, state: dict
     """Write RUN/resume.pt: the config, the dataset's path, the process count and the state
     after the last finished epoch (tensors, numbers, lists: weights_only-safe)."""
     path = Path(out) / RESUME
-    tmp = path.with_suffix(".tmp")
-    torch.save({"format": RESUME_FORMAT, "version": RESUME_VERSION, "config": cfg.to_dict(),
-                "data": str(Path(data).resolve()), "processes": world, "state": state}, tmp)
-    tmp.replace(path)
+    save_file({"format": RESUME_FORMAT, "version": RESUME_VERSION, "config": cfg.to_dict(),
+               "data": str(Path(data).resolve()), "processes": world, "state": state}, path)
     return path
 
 

@@ -14,6 +14,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from tactile.errors import OutputError
 from tactile.training.checkpoint import CHECKPOINT, plain, save_checkpoint
 from tactile.training.config import TrainConfig
 from tactile.training.evaluate import per_take, predict, shifted, summary, table
@@ -54,14 +55,28 @@ def run_metrics(model: Classifier, prep: Prepared, feats: torch.Tensor, history:
 
 def write_run(out: Path, cfg: TrainConfig, model: Classifier, metrics: dict, history: dict,
               prep: Prepared) -> None:
-    """Write RUN/ (``out``): the checkpoint of ``model`` and ``cfg``, metrics.json,
-    confusion.txt and the two pictures (:func:`plots`)."""
+    """Write RUN/ (``out``): metrics.json, confusion.txt, the two pictures (:func:`plots`) and
+    last the checkpoint of ``model`` and ``cfg``, so that a checkpoint there means a whole run.
+    A file that cannot be written (a full disk) is one :class:`OutputError` naming it, and
+    these files are removed (also an older run's, which ``--force`` overwrites: no folder
+    mixes two runs; a resume.pt, written before them, stays)."""
     out.mkdir(parents=True, exist_ok=True)
-    save_checkpoint(out / CHECKPOINT, cfg, model, metrics, classes=prep.classes,
-                    takes=prep.takes, test=prep.split.test, norm=prep.norm)
-    (out / "metrics.json").write_text(json.dumps(plain(metrics), indent=1) + "\n")
-    (out / "confusion.txt").write_text(table(metrics, prep.classes, "test split") + "\n")
-    plots(out, history, metrics, prep.classes)
+    names = ("metrics.json", "confusion.txt", "curves.png", "confusion.png", CHECKPOINT)
+    current = out / names[0]
+    try:
+        current.write_text(json.dumps(plain(metrics), indent=1) + "\n")
+        current = out / "confusion.txt"
+        current.write_text(table(metrics, prep.classes, "test split") + "\n")
+        current = out / "curves.png"  # and confusion.png
+        plots(out, history, metrics, prep.classes)
+        save_checkpoint(out / CHECKPOINT, cfg, model, metrics, classes=prep.classes,
+                        takes=prep.takes, test=prep.split.test, norm=prep.norm)
+    except (OSError, OutputError) as e:
+        for n in names:  # a run overwritten (--force) is gone too: no mix of two runs
+            (out / n).unlink(missing_ok=True)
+        said = str(e) if isinstance(e, OutputError) else \
+            f"{current}: cannot write ({e.strerror or e})"
+        raise OutputError(f"{said}; the run is not saved") from None
 
 
 def plots(out: Path, history: dict, metrics: dict, classes: tuple[str, ...]) -> None:
