@@ -24,9 +24,9 @@ from tactile.errors import (
 )
 
 # Exit codes, documented in README.md: 0 ok, 1 bad input, 2 device/port, 3 model contract, 4 an
-# output that cannot be written (a full disk: stdout, an exported model).
+# output that cannot be written (a full disk: stdout, an exported model, a run, a picture).
 EXIT_OK, EXIT_USAGE, EXIT_DEVICE, EXIT_CONTRACT = 0, 1, 2, 3
-EXIT_OUTPUT = 4  # stdout cannot be written (a full disk): a service may restart
+EXIT_OUTPUT = 4  # an output cannot be written (a full disk): a service may restart
 EXIT_INTERRUPTED, EXIT_TERMINATED = 130, 143  # the shell's codes for an end by SIGINT, SIGTERM
 FULL_DISK = (errno.ENOSPC, errno.EDQUOT, errno.EFBIG)  # errnos of an output with no room: exit 4
 MAX_THREADS = 1024  # a command's or a setting's threads: far above any machine's use
@@ -60,12 +60,22 @@ def run(prog: str, body: Callable[[argparse.Namespace], int], args: argparse.Nam
     except (TactileError, OSError, ValueError, MemoryError, RuntimeError) as e:
         msg = _out_of_memory(e) if isinstance(e, (MemoryError, RuntimeError)) else (
             str(e).splitlines()[0] if str(e) else type(e).__name__)
+        if isinstance(e, OSError) and e.filename is None and _stdout_failed():
+            msg = f"stdout: cannot write ({e.strerror or e})"
         if msg is None:  # a RuntimeError that is not an allocation: a defect, shown as one
             raise
         if getattr(args, "debug", False):  # the traceback, then the same line and exit code
             traceback.print_exc()
         print(f"{prog}: error: {msg}", file=sys.stderr)
         return exit_code(e)
+
+
+def _stdout_failed() -> bool:
+    """Whether a write to the command's stdout (:class:`_Stdout`) failed."""
+    out = sys.stdout
+    while isinstance(out, _ReaderMayGo):
+        out = out._stream
+    return isinstance(out, _Stdout) and out.failed
 
 
 def _out_of_memory(e: BaseException) -> str | None:
@@ -247,6 +257,32 @@ class _ReaderMayGo:
         return getattr(self._stream, name)
 
 
+class _Stdout:
+    """A command's stdout, noting a write that fails (a full disk) so that its one line can say
+    that it was stdout: the OSError from a flush names no file."""
+
+    def __init__(self, stream) -> None:
+        self._stream = stream
+        self.failed = False
+
+    def write(self, text: str) -> int:
+        try:
+            return self._stream.write(text)
+        except OSError as e:
+            self.failed = not isinstance(e, BrokenPipeError)
+            raise
+
+    def flush(self) -> None:
+        try:
+            self._stream.flush()
+        except OSError as e:
+            self.failed = not isinstance(e, BrokenPipeError)
+            raise
+
+    def __getattr__(self, name: str):
+        return getattr(self._stream, name)
+
+
 class Terminated(KeyboardInterrupt):
     """SIGTERM in a command that takes it as Ctrl-C (``command(terminable=True)``): raised
     where the command is, so that what a Ctrl-C cleans up (a half-written take) is cleaned up
@@ -309,9 +345,11 @@ def command(prog: str, *, guarded: bool = False, interruptible: bool = False,
                     signal.getsignal(signal.SIGTERM) == signal.SIG_DFL:
                 term = signal.signal(signal.SIGTERM, _terminate)
             was = (sys.stdout, sys.stderr)
+            if not isinstance(sys.stdout, (_Stdout, _ReaderMayGo)):  # an outer command's
+                sys.stdout = _Stdout(sys.stdout)
             if files:
                 sys.stdout, sys.stderr = (s if isinstance(s, _ReaderMayGo) else _ReaderMayGo(s)
-                                          for s in was)
+                                          for s in (sys.stdout, sys.stderr))
             try:
                 _running().append(prog)
                 return main(argv)
@@ -335,8 +373,7 @@ def command(prog: str, *, guarded: bool = False, interruptible: bool = False,
                 del _running()[depth:]
                 if term is not None:
                     signal.signal(signal.SIGTERM, term)
-                if files:
-                    sys.stdout, sys.stderr = was
+                sys.stdout, sys.stderr = was
                 if guarded:  # called in-process (a test, a script): the caller's own again
                     _start["guarded"] = False
                     for s, h in handlers.items():

@@ -81,17 +81,20 @@ def test_an_empty_path_is_a_usage_error(name, args, option, tmp_path):
 
 
 @pytest.mark.skipif(not Path("/dev/full").exists(), reason="no /dev/full on this system")
-def test_stdout_on_a_full_disk_is_exit_4_outside_tactile_run_too(tmp_path):
+@pytest.mark.parametrize("name, args", [("data", ["--json"]), ("sim", ["--pty", "--seconds",
+                                                                      "1"])])
+def test_stdout_on_a_full_disk_is_exit_4_outside_tactile_run_too(tmp_path, name, args):
     """tactile-data (as tactile-eval, tactile-monitor: the mapping is tactile.cli's, shared by
     every command) whose stdout is on a full disk exited 1, 'bad input'; a full disk is 4, the
-    code a service may restart on."""
+    code a service may restart on. The line said '[Errno 28] No space left on device', not
+    what could not be written; tactile-sim's stdout is wrapped twice (a command of files)."""
     make_dataset(tmp_path, takes=1, textures=("paper",), seconds=1)
     with open("/dev/full", "w") as full:
-        proc = subprocess.run([sys.executable, "-m", "tactile.device.commands.data",
-                               str(tmp_path), "--json"], stdout=full, stderr=subprocess.PIPE,
-                              text=True, timeout=60)
+        proc = subprocess.run([sys.executable, "-m", f"tactile.device.commands.{name}",
+                               *([str(tmp_path)] if name == "data" else []), *args],
+                              stdout=full, stderr=subprocess.PIPE, text=True, timeout=60)
     assert proc.returncode == 4 and proc.stderr == (
-        "tactile-data: error: [Errno 28] No space left on device\n"), proc.stderr
+        f"tactile-{name}: error: stdout: cannot write (No space left on device)\n"), proc.stderr
 
 
 def test_export_checks_its_output_path_before_any_work(tmp_path):
@@ -318,6 +321,33 @@ def test_sigterm_in_a_simulated_dataset_removes_the_take_being_written(tmp_path)
     assert proc.returncode == 143, err
     assert err.splitlines().count("tactile-sim: terminated (SIGTERM)") == 1, err
     assert list(out.iterdir()) == []
+
+
+def test_a_simulated_take_that_cannot_be_written_is_removed_and_the_line_says_so(tmp_path):
+    """A write refused by the operating system (RLIMIT_FSIZE: EFBIG, as a full disk gives
+    ENOSPC) removes the derived take being written, as the docs say; the line said "the take
+    keeps what came before" (the recorder's words: its take is kept)."""
+    import resource
+    import signal
+
+    def limit_files():
+        signal.signal(signal.SIGXFSZ, signal.SIG_IGN)  # the write fails instead of killing
+        resource.setrlimit(resource.RLIMIT_FSIZE, (200_000, 200_000))
+
+    out = tmp_path / "d"
+    proc = subprocess.run([sys.executable, "-m", "tactile.device.commands.sim", "--dataset",
+                           str(out), "--takes", "1", "--seconds", "2",
+                           "--textures", "paper"], capture_output=True, text=True,
+                          timeout=120)
+    assert proc.returncode == 0, proc.stderr  # a short take fits under the limit
+    proc = subprocess.run([sys.executable, "-m", "tactile.device.commands.sim", "--dataset",
+                           str(out), "--takes", "1", "--seconds", "60", "--textures", "desk"],
+                          capture_output=True, text=True, timeout=120, preexec_fn=limit_files)
+    assert proc.returncode == 1 and "Traceback" not in proc.stderr, proc.stderr
+    assert proc.stderr == (f"tactile-sim: error: {out / 'desk-user000.csv'}: cannot write (File "
+                           "too large); the take is removed (the folder keeps whole takes "
+                           "only)\n")
+    assert sorted(p.name for p in out.iterdir()) == ["paper-user000.csv", "paper-user000.json"]
 
 
 @pytest.mark.parametrize("link, says", [
@@ -597,3 +627,23 @@ def test_plot_groups_many_channels_into_panels():
 def test_plot_refuses_an_output_it_cannot_write_before_reading(tmp_path, name):
     code, _, err = cli("tactile-plot", str(tmp_path / "none.csv"), "-o", str(tmp_path / name))
     assert code == 1 and "name an image file ending in .png" in err  # not the missing take
+
+
+def test_plot_to_a_file_the_system_refuses_is_one_line_naming_it_and_exit_4(tmp_path):
+    """An image the operating system will not let grow (RLIMIT_FSIZE: EFBIG, as a full disk
+    gives ENOSPC) said only '[Errno 27] File too large' and left a cut-short image."""
+    import resource
+    import signal
+
+    def limit_files():
+        signal.signal(signal.SIGXFSZ, signal.SIG_IGN)  # the write fails instead of killing
+        resource.setrlimit(resource.RLIMIT_FSIZE, (2_000, 2_000))
+
+    make_dataset(tmp_path / "d", takes=1, textures=("paper",), seconds=2, seed=0)
+    png = tmp_path / "p.png"
+    proc = subprocess.run([sys.executable, "-m", "tactile.device.commands.plot",
+                           str(tmp_path / "d" / "paper-user000.csv"), "-o", str(png)],
+                          capture_output=True, text=True, timeout=120, preexec_fn=limit_files)
+    assert proc.returncode == 4, proc.stderr
+    assert proc.stderr == f"tactile-plot: error: -o {png}: cannot write (File too large)\n"
+    assert not png.exists()

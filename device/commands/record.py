@@ -27,7 +27,8 @@ def build_parser() -> argparse.ArgumentParser:
                "be opened, or it gave no usable data before the end. Exit 1: a take cannot be "
                "written (a full disk: the line names the file; the take keeps what was written "
                "and is not marked complete), or --out holds another device's takes (other "
-               "channels, units or rate; said at its header, before any take).",
+               "channels, units or rate; said at its header, before any take). Exit 4: "
+               "stdout cannot be written (a full disk).",
     )
     p.add_argument("--port", help="/dev/ttyACM0, sim://?texture=paper, socket://...; default: "
                    "the one likely pen attached (as tactile-run; tactile-ports lists them)")
@@ -38,7 +39,7 @@ def build_parser() -> argparse.ArgumentParser:
                    help="stop after this much data")
     p.add_argument("--baud", type=int_in(1), default=BAUD, help=f"UART baud rate (default {BAUD})")
     p.add_argument("--csv-rate", type=float_in(0.0), default=100.0,
-                   help="rate of CSV-mode devices, Hz")
+                   help="rate of a CSV-line device, Hz (it declares none; default 100)")
     p.add_argument("--quiet", action="store_true", help="no progress lines on stderr")
     add_debug(p)
     return p

@@ -135,17 +135,26 @@ def replace_takes(folder: Path, stems: list[str], force: bool,
         p.unlink()
 
 
+KEPT = "; the take keeps what came before"  # a recorder's take, after a write that failed
+
+
 @contextlib.contextmanager
 def whole_take(folder: Path, stem: str) -> Iterator[None]:
     """Around the writing of one take that a command derives (an import, a simulated take):
     when the writing stops half-way (Ctrl-C, a full disk), the take's files are removed, so
     that the folder holds whole takes only (a recorder's take, which holds what was recorded,
-    is kept instead)."""
+    is kept instead), and the writer's error says so."""
     try:
         yield
-    except BaseException:
+    except BaseException as e:
+        removed = False
         for suffix in (".csv", ".json"):
-            (folder / f"{stem}{suffix}").unlink(missing_ok=True)
+            path = folder / f"{stem}{suffix}"
+            removed |= path.exists()
+            path.unlink(missing_ok=True)
+        if removed and isinstance(e, RecordingError):  # a write that failed
+            raise RecordingError(str(e).removesuffix(KEPT) + "; the take is removed (the "
+                                 "folder keeps whole takes only)") from None
         raise
 
 

@@ -23,6 +23,7 @@ from tactile.device.protocol.info import DeviceInfo
 from tactile.device.recordings.take import (
     _REASON,
     FIXED_COLUMNS,
+    KEPT,
     _why,
     check_label,
     dataset_folder,
@@ -180,7 +181,7 @@ class TakeWriter:
         try:
             _write_all(self._fd, data)
         except OSError as e:
-            self._error = f"{path}: cannot write ({_why(e)}); the take keeps what came before"
+            self._error = f"{path}: cannot write ({_why(e)}){KEPT}"
             self._raise()
 
     def _tick(self, period: float) -> None:

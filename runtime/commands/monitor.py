@@ -47,7 +47,8 @@ def build_parser() -> argparse.ArgumentParser:
         description="Show a pen's header and live values (no model needed): per channel the "
         "last value in units and min/max/RMS over the last second, and the link's figures.",
         epilog="exit codes: 0 data came, or Ctrl-C/SIGTERM before any byte; 1 bad arguments; "
-        "2 port cannot be opened, no pen found, or no samples came",
+        "2 port cannot be opened, no pen found, or no samples came; 4 stdout cannot be written "
+        "(a full disk)",
     )
     p.add_argument("--port", help="device path or pyserial URL (sim://, socket://, ...); "
                    "default: the one likely pen attached (tactile-ports lists them)")
