@@ -345,8 +345,8 @@ def command(prog: str, *, guarded: bool = False, interruptible: bool = False,
                     signal.getsignal(signal.SIGTERM) == signal.SIG_DFL:
                 term = signal.signal(signal.SIGTERM, _terminate)
             was = (sys.stdout, sys.stderr)
-            if not isinstance(sys.stdout, (_Stdout, _ReaderMayGo)):  # an outer command's
-                sys.stdout = _Stdout(sys.stdout)
+            if depth == 0 and threading.current_thread() is threading.main_thread():
+                sys.stdout = _Stdout(sys.stdout)  # the outermost command's, as a process has
             if files:
                 sys.stdout, sys.stderr = (s if isinstance(s, _ReaderMayGo) else _ReaderMayGo(s)
                                           for s in (sys.stdout, sys.stderr))

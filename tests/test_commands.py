@@ -629,9 +629,11 @@ def test_plot_refuses_an_output_it_cannot_write_before_reading(tmp_path, name):
     assert code == 1 and "name an image file ending in .png" in err  # not the missing take
 
 
-def test_plot_to_a_file_the_system_refuses_is_one_line_naming_it_and_exit_4(tmp_path):
+@pytest.mark.parametrize("suffix", ["png", "pdf"])
+def test_plot_to_a_file_the_system_refuses_is_one_line_naming_it_and_exit_4(tmp_path, suffix):
     """An image the operating system will not let grow (RLIMIT_FSIZE: EFBIG, as a full disk
-    gives ENOSPC) said only '[Errno 27] File too large' and left a cut-short image."""
+    gives ENOSPC) said only '[Errno 27] File too large' and left a cut-short image (a PDF:
+    a zlib traceback, exit 1)."""
     import resource
     import signal
 
@@ -640,10 +642,10 @@ def test_plot_to_a_file_the_system_refuses_is_one_line_naming_it_and_exit_4(tmp_
         resource.setrlimit(resource.RLIMIT_FSIZE, (2_000, 2_000))
 
     make_dataset(tmp_path / "d", takes=1, textures=("paper",), seconds=2, seed=0)
-    png = tmp_path / "p.png"
+    png = tmp_path / f"p.{suffix}"
     proc = subprocess.run([sys.executable, "-m", "tactile.device.commands.plot",
                            str(tmp_path / "d" / "paper-user000.csv"), "-o", str(png)],
                           capture_output=True, text=True, timeout=120, preexec_fn=limit_files)
     assert proc.returncode == 4, proc.stderr
-    assert proc.stderr == f"tactile-plot: error: -o {png}: cannot write (File too large)\n"
-    assert not png.exists()
+    assert proc.stderr == f"tactile-plot: error: {png}: cannot write (File too large)\n"
+    assert list(tmp_path.glob("p.*")) == []  # no cut-short image, no temporary file

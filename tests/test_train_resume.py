@@ -262,13 +262,14 @@ def test_a_forced_run_that_fails_leaves_the_old_run_resumable(dataset, tmp_path,
     assert train_main(["--resume", str(run), "--quiet"]) == 0
 
 
-@pytest.mark.parametrize("limit, fails", [(1_000, "metrics.json"), (36_000, "checkpoint.pt")])
+@pytest.mark.parametrize("limit, fails", [(1_000, "metrics.json"), (100_000, "checkpoint.pt")])
 def test_a_run_that_cannot_be_written_is_one_line_exit_4_and_leaves_no_run(
         dataset, tmp_path, limit, fails):
     """The operating system refuses a run file's growth (RLIMIT_FSIZE, a real EFBIG as a full
     disk gives ENOSPC): torch.save's RuntimeError was a traceback and left a cut-short
     checkpoint.pt that the next training called a finished run. Now one line naming the file,
-    exit 4, no run file left, and the same --out trains once there is room."""
+    exit 4, no run file left, and the same --out trains once there is room. (hidden=48: the
+    checkpoint, about 200 kB, is well above the limit, the pictures, about 30 kB, below it.)"""
     import resource
 
     def limit_files():
@@ -276,7 +277,7 @@ def test_a_run_that_cannot_be_written_is_one_line_exit_4_and_leaves_no_run(
         resource.setrlimit(resource.RLIMIT_FSIZE, (limit, limit))
 
     run = tmp_path / "run"
-    sets = [f"--set={k}={v}" for k, v in {**SMALL, "epochs": 1}.items()]
+    sets = [f"--set={k}={v}" for k, v in {**SMALL, "epochs": 1, "hidden": 48}.items()]
     proc = subprocess.run(
         [sys.executable, "-c", "import sys; from tactile.training.commands.train import main; "
          "sys.exit(main())", str(dataset), "--out", str(run), "--quiet", *sets],
@@ -286,7 +287,48 @@ def test_a_run_that_cannot_be_written_is_one_line_exit_4_and_leaves_no_run(
                                             "write (File too large); the run is not saved")
     assert not run.exists()  # no cut-short or temporary file: the folder made is removed
     assert train_main([str(dataset), "--out", str(run), "--quiet", *sets]) == 0
-    assert (run / "checkpoint.pt").is_file()
+    assert (run / "checkpoint.pt").stat().st_size > limit
+
+
+def test_a_run_file_the_folder_cannot_take_is_exit_1_and_removes_the_run(dataset, tmp_path,
+                                                                          capsys):
+    """A folder in the way of confusion.txt: not a full disk, so exit 1, naming that file; the
+    files written before it are removed (metrics.json made the folder look like a run)."""
+    run = tmp_path / "run"
+    (run / "confusion.txt").mkdir(parents=True)
+    sets = [f"--set={k}={v}" for k, v in {**SMALL, "epochs": 1}.items()]
+    assert train_main([str(dataset), "--out", str(run), "--quiet", *sets]) == 1
+    assert capsys.readouterr().err.splitlines()[-1] == (
+        f"tactile-train: error: {run / 'confusion.txt'}: cannot write (Is a directory); the "
+        "run is not saved")
+    assert sorted(p.name for p in run.iterdir()) == ["confusion.txt"]
+
+
+def test_an_interrupted_run_whose_files_cannot_be_written_says_resume_pt_is_saved(
+        dataset, tmp_path, monkeypatch):
+    """Ctrl-C saves resume.pt, then the run's files; when those fail the line said only 'the
+    run is not saved', and the resume hint was never printed."""
+    import tactile.training.run_files as rf
+    from tactile.errors import OutputError
+
+    real = rf.write_whole
+
+    def full_at_curves(path, data):
+        if path.name == "curves.png":
+            raise OutputError(f"{path}: cannot write (No space left on device)")
+        real(path, data)
+
+    monkeypatch.setattr(rf, "write_whole", full_at_curves)
+    run = tmp_path / "run"
+    cfg = TrainConfig(**{**SMALL, "epochs": 3})
+    with pytest.raises(OutputError) as e:
+        train(dataset, run, cfg, progress=False, on_epoch=sigint_after("fit", 1))
+    assert str(e.value) == (f"{run / 'curves.png'}: cannot write (No space left on device); "
+                            "the run is not saved, but resume.pt is (the state after fit epoch "
+                            f"1): make room, then tactile-train --resume {run}")
+    assert sorted(p.name for p in run.iterdir()) == ["resume.pt"]
+    monkeypatch.setattr(rf, "write_whole", real)
+    assert resume_run(run)["epochs_run"] == 3
 
 
 def test_an_unhandled_ctrl_c_in_a_torch_command_is_one_line_and_130(capsys):

@@ -510,7 +510,7 @@ def test_numpy_out_of_memory_and_other_runtime_errors():
         run("x", broken, args)
 
 
-def test_plots_mark_the_best_epoch_and_show_counts(tmp_path, monkeypatch):
+def test_plots_mark_the_best_epoch_and_show_counts(monkeypatch):
     from matplotlib.axes import Axes
 
     lines, texts = [], []
@@ -523,10 +523,11 @@ def test_plots_mark_the_best_epoch_and_show_counts(tmp_path, monkeypatch):
                "val_acc": [0.5, 0.7, 0.6], "best_epoch": 1}
     metrics = {"accuracy": 0.75, "confusion": [[3, 1], [0, 4]],
                "confusion_normalised": [[0.75, 0.25], [0.0, 1.0]]}
-    _plots(tmp_path, history, metrics, ("a", "b"))
+    pictures = _plots(history, metrics, ("a", "b"))
     assert lines == [2, 2]  # epoch 2 (1-based) on both panels
     assert texts == ["0.75\n(3)", "0.25\n(1)", "0.00\n(0)", "1.00\n(4)"]
-    assert (tmp_path / "curves.png").stat().st_size > 1000
+    assert sorted(pictures) == ["confusion.png", "curves.png"]
+    assert all(p.startswith(b"\x89PNG") and len(p) > 1000 for p in pictures.values())
 
 
 def test_eval_help_reads_as_a_sentence(capsys):

@@ -11,7 +11,6 @@ from __future__ import annotations
 
 import io
 import math
-import os
 import zipfile
 from dataclasses import dataclass
 from pathlib import Path
@@ -21,7 +20,8 @@ import torch
 
 import tactile
 from tactile.device.recordings import Take
-from tactile.errors import OutputError, RecordingError, TactileError
+from tactile.errors import RecordingError, TactileError
+from tactile.files import write_whole
 from tactile.training.config import TrainConfig
 from tactile.training.models import build_model
 
@@ -100,22 +100,12 @@ def save_checkpoint(path: Path, cfg: TrainConfig, model: torch.nn.Module, metric
 
 
 def save_file(obj: dict, path: Path) -> None:
-    """``torch.save(obj)`` into ``path`` whole or not at all: serialised in memory, written to
-    a temporary file beside it, renamed over it. A write that fails (a full disk) removes the
-    temporary file and is one :class:`OutputError` naming ``path`` (torch.save straight into
-    the file left a cut-short file and raised its own RuntimeError)."""
+    """``torch.save(obj)`` into ``path`` whole or not at all (serialised in memory, then
+    :func:`~tactile.files.write_whole`): torch.save straight into the file left a cut-short
+    file on a full disk and raised its own RuntimeError."""
     buf = io.BytesIO()
     torch.save(obj, buf)
-    tmp = path.with_name(path.name + ".tmp")
-    try:
-        with open(tmp, "wb") as f:
-            f.write(buf.getbuffer())
-            f.flush()
-            os.fsync(f.fileno())
-        tmp.replace(path)
-    except OSError as e:
-        tmp.unlink(missing_ok=True)
-        raise OutputError(f"{path}: cannot write ({e.strerror or e})") from None
+    write_whole(path, buf.getbuffer())
 
 
 def _read(path: Path, what: str, hint: str) -> dict:

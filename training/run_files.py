@@ -8,13 +8,16 @@
 
 from __future__ import annotations
 
+import contextlib
+import io
 import json
 from pathlib import Path
 
 import numpy as np
 import torch
 
-from tactile.errors import OutputError
+from tactile.errors import ConfigError, OutputError
+from tactile.files import write_whole
 from tactile.training.checkpoint import CHECKPOINT, plain, save_checkpoint
 from tactile.training.config import TrainConfig
 from tactile.training.evaluate import per_take, predict, shifted, summary, table
@@ -56,32 +59,31 @@ def run_metrics(model: Classifier, prep: Prepared, feats: torch.Tensor, history:
 def write_run(out: Path, cfg: TrainConfig, model: Classifier, metrics: dict, history: dict,
               prep: Prepared) -> None:
     """Write RUN/ (``out``): metrics.json, confusion.txt, the two pictures (:func:`plots`) and
-    last the checkpoint of ``model`` and ``cfg``, so that a checkpoint there means a whole run.
-    A file that cannot be written (a full disk) is one :class:`OutputError` naming it, and
-    these files are removed (also an older run's, which ``--force`` overwrites: no folder
-    mixes two runs; a resume.pt, written before them, stays)."""
+    last the checkpoint of ``model`` and ``cfg``, each whole or not at all
+    (:func:`~tactile.files.write_whole`), so that a checkpoint there means a whole run. A file
+    that cannot be written is one error naming it (:class:`OutputError`, exit 4, for a full
+    disk), and these files are removed (also an older run's, which ``--force`` overwrites: no
+    folder mixes two runs; a resume.pt, written before them, stays)."""
     out.mkdir(parents=True, exist_ok=True)
-    names = ("metrics.json", "confusion.txt", "curves.png", "confusion.png", CHECKPOINT)
-    current = out / names[0]
+    files = {"metrics.json": (json.dumps(plain(metrics), indent=1) + "\n").encode(),
+             "confusion.txt": (table(metrics, prep.classes, "test split") + "\n").encode(),
+             **plots(history, metrics, prep.classes)}
     try:
-        current.write_text(json.dumps(plain(metrics), indent=1) + "\n")
-        current = out / "confusion.txt"
-        current.write_text(table(metrics, prep.classes, "test split") + "\n")
-        current = out / "curves.png"  # and confusion.png
-        plots(out, history, metrics, prep.classes)
+        for name, data in files.items():
+            write_whole(out / name, data)
         save_checkpoint(out / CHECKPOINT, cfg, model, metrics, classes=prep.classes,
                         takes=prep.takes, test=prep.split.test, norm=prep.norm)
-    except (OSError, OutputError) as e:
-        for n in names:  # a run overwritten (--force) is gone too: no mix of two runs
-            (out / n).unlink(missing_ok=True)
-        said = str(e) if isinstance(e, OutputError) else \
-            f"{current}: cannot write ({e.strerror or e})"
-        raise OutputError(f"{said}; the run is not saved") from None
+    except (OutputError, ConfigError) as e:
+        for name in (*files, CHECKPOINT):
+            with contextlib.suppress(OSError):
+                (out / name).unlink(missing_ok=True)
+        raise type(e)(f"{e}; the run is not saved") from None
 
 
-def plots(out: Path, history: dict, metrics: dict, classes: tuple[str, ...]) -> None:
-    """RUN/curves.png (the loss and validation accuracy per epoch, the kept epoch marked) and
-    RUN/confusion.png (the row-normalised confusion with its counts)."""
+def plots(history: dict, metrics: dict, classes: tuple[str, ...]) -> dict[str, bytes]:
+    """A run's two pictures as PNG bytes: curves.png (the loss and validation accuracy per
+    epoch, the kept epoch marked) and confusion.png (the row-normalised confusion with its
+    counts)."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -99,7 +101,7 @@ def plots(out: Path, history: dict, metrics: dict, classes: tuple[str, ...]) -> 
         a.axvline(best, color="tab:red", linestyle="--", linewidth=1, label=f"best epoch {best}")
     ax[0].legend()
     fig.tight_layout()
-    fig.savefig(out / "curves.png", dpi=100)
+    pictures = {"curves.png": _png(fig)}
     plt.close(fig)
     counts = np.array(metrics["confusion"])
     norm = np.array(metrics["confusion_normalised"])
@@ -114,8 +116,15 @@ def plots(out: Path, history: dict, metrics: dict, classes: tuple[str, ...]) -> 
     ax.set(xlabel="estimated class", ylabel="label of input data",
            title=f"test accuracy {metrics['accuracy']:.3f} (share of row, window count)")
     fig.tight_layout()
-    fig.savefig(out / "confusion.png", dpi=100)
+    pictures["confusion.png"] = _png(fig)
     plt.close(fig)
+    return pictures
+
+
+def _png(fig) -> bytes:
+    buf = io.BytesIO()
+    fig.savefig(buf, format="png", dpi=100)
+    return buf.getvalue()
 
 
 __all__ = ["test_metrics", "run_metrics", "write_run", "plots"]

@@ -26,7 +26,7 @@ import numpy as np
 import torch
 
 from tactile.device.recordings import load_dataset
-from tactile.errors import RecordingError
+from tactile.errors import ConfigError, OutputError, RecordingError
 from tactile.training.checkpoint import (  # load_checkpoint: export reads runs through here
     CHECKPOINT,
     RESUME,
@@ -148,7 +148,11 @@ def _save_interrupted(out: Path, data: Path, model: Classifier, ctx: Context, pr
         epochs_run=len(history["train_loss"]), phase=snap["phase"], interrupted=True,
         shifted=None, seed=prep.cfg.seed,
     ), robustness=False)
-    write_run(out, prep.cfg, model, metrics, history, prep)
+    try:
+        write_run(out, prep.cfg, model, metrics, history, prep)
+    except (OutputError, ConfigError) as e:  # the state to go on from is saved all the same
+        raise type(e)(f"{e}, but {RESUME} is (the state after {snap['phase']} epoch "
+                      f"{snap['epoch']}): make room, then tactile-train --resume {out}") from None
     ctx.log.warn(f"interrupted ({ctx.stop.signal or 'SIGINT'}): {snap['phase']} epoch "
                  f"{snap['epoch']} was the last finished; "
                  f"best checkpoint so far in {out / CHECKPOINT}; continue with "

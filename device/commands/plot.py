@@ -11,7 +11,7 @@ from __future__ import annotations
 import argparse
 import sys
 
-from tactile.cli import FULL_DISK, Parser, add_debug, command, path_given, run
+from tactile.cli import Parser, add_debug, command, path_given, run
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -29,7 +29,7 @@ def build_parser() -> argparse.ArgumentParser:
 def _main(args: argparse.Namespace) -> int:
     from tactile.device.recordings.plot import image_formats, plot_summary, plot_take
     from tactile.device.recordings.reader import read_take, say_mismatch
-    from tactile.errors import ConfigError, OutputError
+    from tactile.errors import ConfigError
 
     if args.out.is_dir() or not args.out.parent.is_dir():
         raise ConfigError(f"-o {args.out}: give an image file in a folder that exists")
@@ -37,23 +37,16 @@ def _main(args: argparse.Namespace) -> int:
     if args.out.suffix.lower().lstrip(".") not in kinds:
         raise ConfigError(f"-o {args.out}: name an image file ending in .png, .svg or .pdf "
                           f"(or any of {', '.join(sorted(kinds))})")
-    try:
-        if args.summary:
-            plot_summary(args.source, args.out)
-        else:
-            if args.source.is_dir():
-                raise ConfigError(f"{args.source}: a folder; give a take's .csv, or add "
-                                  "--summary")
-            take = read_take(args.source)
-            say_mismatch(take)  # a finished take that lost rows, as every reader says
-            if len(take.seq) == 0:
-                raise ConfigError(f"{args.source}: the take holds no samples")
-            plot_take(take, args.out)
-    except OSError as e:
-        if e.errno not in FULL_DISK:
-            raise
-        args.out.unlink(missing_ok=True)  # not a cut-short image
-        raise OutputError(f"-o {args.out}: cannot write ({e.strerror or e})") from None
+    if args.summary:
+        plot_summary(args.source, args.out)
+    else:
+        if args.source.is_dir():
+            raise ConfigError(f"{args.source}: a folder; give a take's .csv, or add --summary")
+        take = read_take(args.source)
+        say_mismatch(take)  # a finished take that lost rows, as every reader of takes says
+        if len(take.seq) == 0:
+            raise ConfigError(f"{args.source}: the take holds no samples")
+        plot_take(take, args.out)
     print(args.out)
     return 0
 

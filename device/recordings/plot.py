@@ -7,6 +7,7 @@ module does not need it.
 
 from __future__ import annotations
 
+import io
 from pathlib import Path
 
 import numpy as np
@@ -14,6 +15,7 @@ import numpy as np
 from tactile.device.recordings.reader import load_dataset
 from tactile.device.recordings.summary import summarise
 from tactile.device.recordings.take import Take
+from tactile.files import write_whole
 
 LEGEND_MAX = 8
 """A panel with more channels than this names them in its label instead of a legend."""
@@ -81,8 +83,7 @@ def plot_take(take: Take, out: Path) -> None:
     fig.suptitle(f"{take.path.name}: label {take.label!r}, source {take.meta.get('source', '')!r}"
                  f"\n{len(take.seq)} samples at {rate:g} Hz, {gaps} gaps (red)", fontsize=9)
     fig.tight_layout()
-    fig.savefig(out, dpi=110)
-    plt.close(fig)
+    _save(fig, out)
 
 
 def plot_summary(folder: Path, out: Path) -> None:
@@ -105,8 +106,19 @@ def plot_summary(folder: Path, out: Path) -> None:
     fig.suptitle(f"{folder}: {s['takes']} takes, {t['minutes']:.1f} min, {t['gaps']} gaps, "
                  f"{len(s['channels'])} channels at {s['sample_rate_hz']:g} Hz", fontsize=9)
     fig.tight_layout()
-    fig.savefig(out, dpi=110)
+    _save(fig, out)
+
+
+def _save(fig, out: Path) -> None:
+    """The figure into ``out`` (its format by the name's ending), whole or not at all: drawn in
+    memory, then written (:func:`~tactile.files.write_whole`: a full disk is one line naming
+    ``out``, exit 4, and no cut-short image; matplotlib writing into the file left one)."""
+    import matplotlib.pyplot as plt
+
+    buf = io.BytesIO()
+    fig.savefig(buf, format=out.suffix.lstrip(".").lower(), dpi=110)
     plt.close(fig)
+    write_whole(out, buf.getbuffer())
 
 
 __all__ = ["LEGEND_MAX", "image_formats", "panels", "plot_summary", "plot_take"]

@@ -152,7 +152,7 @@ def whole_take(folder: Path, stem: str) -> Iterator[None]:
             path = folder / f"{stem}{suffix}"
             removed |= path.exists()
             path.unlink(missing_ok=True)
-        if removed and isinstance(e, RecordingError):  # a write that failed
+        if removed and isinstance(e, RecordingError):  # a write, or the data, refused
             raise RecordingError(str(e).removesuffix(KEPT) + "; the take is removed (the "
                                  "folder keeps whole takes only)") from None
         raise

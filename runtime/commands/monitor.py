@@ -15,7 +15,7 @@ says whether the pen was alive (data at its declared rate within 10%,
 slow`` or ``too fast``) and sane (no channel flat or pinned at its limit, no errors). Exit codes:
 0 data came (whatever the verdict), or Ctrl-C or SIGTERM stopped it before the port sent any
 byte; 1 bad arguments; 2 the port cannot be opened, or bytes but no decodable samples came, or
-nothing came by ``--seconds``.
+nothing came by ``--seconds``; 4 stdout cannot be written (a full disk).
 """
 
 from __future__ import annotations
