@@ -25,6 +25,13 @@ from tactile.training.data import Windows, check_model_input, cut, find_test_spl
 from tactile.training.label_stream import stream_figures
 from tactile.training.model import TextureModel
 
+
+def per_take_line(m: dict) -> str:
+    """The per-take majority vote of ``m`` (a run's or an evaluation's figures), one line."""
+    n = m["takes"]
+    return f"per take (majority vote): {m['take_accuracy']:.3f} over {n} take{'s' * (n != 1)}"
+
+
 SHIFTS_S = (-0.2, -0.1, 0.1, 0.2)  # the "novel" set: windows moved by up to +/-0.2 s
 
 
@@ -190,5 +197,5 @@ def evaluate_run(run_dir: Path, data: Path, threads: int | None = None,
     return s
 
 
-__all__ = ["predict", "summary", "per_take", "shifted", "shifted_line", "table", "evaluate_run",
-           "runs", "confusion", "SHIFTS_S"]
+__all__ = ["predict", "summary", "per_take", "per_take_line", "shifted", "shifted_line",
+           "table", "evaluate_run", "runs", "confusion", "SHIFTS_S"]

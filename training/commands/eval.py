@@ -38,7 +38,7 @@ def build_parser() -> argparse.ArgumentParser:
 
 def _eval(args: argparse.Namespace) -> int:
     from tactile.postprocess.smoothing import override
-    from tactile.training.evaluate import evaluate_run, shifted_line, table
+    from tactile.training.evaluate import evaluate_run, per_take_line, shifted_line, table
     from tactile.training.label_stream import stream_table
 
     # a value given without the others: those of the raw stream (ma:1, p_min 0, hold 1)
@@ -50,7 +50,7 @@ def _eval(args: argparse.Namespace) -> int:
     classes = tuple(s["classes"])
     print(f"evaluated on {s['scope']}")
     print(table(s, classes))
-    print(f"per take (majority vote): {s['take_accuracy']:.3f} over {s['takes']} takes")
+    print(per_take_line(s))
     print("recall: " + ", ".join(f"{c} {'-' if v is None else f'{v:.3f}'}"
                                  for c, v in s["recall"].items()))
     print(shifted_line(s["shifted"]))

@@ -179,7 +179,7 @@ def _refuse_a_run(out: Path) -> None:
 
 
 def _train(args: argparse.Namespace) -> int:
-    from tactile.training.evaluate import shifted_line, table
+    from tactile.training.evaluate import per_take_line, shifted_line, table
     from tactile.training.train import train
 
     cfg, data, out, resume = _settings(args)
@@ -199,7 +199,7 @@ def _train(args: argparse.Namespace) -> int:
     was = {s: signal.signal(s, signal.SIG_IGN) for s in (signal.SIGINT, signal.SIGTERM)}
     try:
         print(table(m, tuple(m["classes"]), f"test split ({m['split']})"))
-        print(f"per take (majority vote): {m['take_accuracy']:.3f} over {m['takes']} takes")
+        print(per_take_line(m))
         print(shifted_line(m["shifted"]))
         print(f"trained in {m['train_seconds']} s; run in {out}")
     finally:
