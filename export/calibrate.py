@@ -1,9 +1,11 @@
 """The label stream's defaults of an exported file, calibrated on the run's validation takes.
 
 ``tactile-export RUN -o F --data DATA`` plays the run's validation takes of DATA (never its
-test takes) through the file as the board will run it: their samples cut into pieces of 30 s,
-each user's pieces ordered so that neighbours differ in class and joined into one stream
-(:mod:`tactile.postprocess.streams`), which the runtime's own
+test takes) through the file as the board will run it (for a run that refit on them, the
+default, the run's first training labelled them instead, and the checkpoint keeps those labels:
+the final model's own would calibrate on takes it has trained on): their samples cut into
+pieces of 30 s, each user's pieces ordered so that neighbours differ in class and joined
+into one stream (:mod:`tactile.postprocess.streams`), which the runtime's own
 :class:`~tactile.runtime.model.Model` and :class:`~tactile.runtime.stream.Stream` label as a
 pen's (windows across the pieces' boundaries, a carried state carried on), lets
 :func:`~tactile.postprocess.calibration.calibrate` choose a setting, and writes it with the
@@ -26,13 +28,20 @@ import numpy as np
 import onnx
 
 from tactile.device.recordings import load_dataset
-from tactile.postprocess.calibration import calibrate, summary_line
+from tactile.postprocess.calibration import (
+    FIRST_TRAINING,
+    LABELLED_BY,
+    MAX_UNCERTAIN,
+    calibrate,
+    refusal,
+    summary_line,
+)
 from tactile.postprocess.metrics import WindowStream
 from tactile.postprocess.smoothing import settings_to_metadata
 from tactile.postprocess.streams import Piece, SampleStream, make_streams, shortfall, window_stream
 from tactile.runtime.model import Model
 from tactile.runtime.stream import Stream
-from tactile.training.label_stream import pieces, validation_rows
+from tactile.training.label_stream import pieces, stored_streams, validation_rows
 
 
 def run_stream(model: Model, stream: SampleStream) -> WindowStream | None:
@@ -77,25 +86,27 @@ def calibrate_file(final: onnx.ModelProto, ck: dict, cfg, data: Path | None, log
     if rows is None:
         warn(f"tactile-export: no label stream defaults in the file (it runs raw): {why}")
         return None
-    with tempfile.TemporaryDirectory() as tmp:
-        path = Path(tmp) / "model.onnx"
-        onnx.save(final, path)
-        model = Model(path)
-        c = model.contract
-        streams = run_streams(model, pieces(takes, rows, c.classes, c.channels,
-                                            c.sample_rate_hz))
+    streams = held = stored_streams(ck)
+    if held is None:  # the final model's own labels: it has not trained on these takes
+        with tempfile.TemporaryDirectory() as tmp:
+            path = Path(tmp) / "model.onnx"
+            onnx.save(final, path)
+            model = Model(path)
+            c = model.contract
+            streams = run_streams(model, pieces(takes, rows, c.classes, c.channels,
+                                                c.sample_rate_hz))
     why = shortfall(streams) if streams else "no validation window"
     if why:
         warn(f"tactile-export: no label stream defaults in the file (it runs raw): too little "
              f"validation data ({why})")
         return None
-    cal = calibrate(streams)
-    raw, chosen = cal.figures["raw"]["accuracy"], cal.figures["smoothed"]["accuracy"]
-    if chosen < raw:  # a default that labels fewer windows right than no post-processing
-        warn(f"tactile-export: no label stream defaults in the file (it runs raw): the best "
-             f"setting of the grid, {cal.settings.describe()}, gives fewer correct stable "
-             f"labels than the raw stream on the validation streams ({chosen:.1%} against "
-             f"{raw:.1%})")
+    cal = calibrate(streams, max_uncertain=MAX_UNCERTAIN)
+    if held is not None:
+        cal.figures[LABELLED_BY] = FIRST_TRAINING
+    why = refusal(cal)
+    if why:
+        warn(f"tactile-export: no label stream defaults in the file (it runs raw): on the "
+             f"validation streams {why}")
         return None
     onnx.helper.set_model_props(final, {**{p.key: p.value for p in final.metadata_props},
                                         **settings_to_metadata(cal.settings, cal.figures)})

@@ -9,7 +9,7 @@ import pytest
 from conftest import REPO
 
 from tactile.errors import ConfigError, ModelContractError
-from tactile.postprocess.calibration import calibrate, default_grid
+from tactile.postprocess.calibration import calibrate, default_grid, refusal
 from tactile.postprocess.metrics import (
     WindowStream,
     compare,
@@ -410,6 +410,27 @@ def test_calibration_cap_on_uncertain_windows():
     assert dict(cal.table)[hold3]["uncertain"] == pytest.approx(74 / 240)
     with pytest.raises(ConfigError, match="max_uncertain"):
         calibrate([flicker()], (hold2,), max_uncertain=1.5)
+
+
+def test_a_file_keeps_a_setting_that_meets_the_limits_though_it_labels_fewer_right_than_raw():
+    """refusal(): a setting that meets the limits is a file's defaults even when its uncertain
+    windows leave fewer windows right than the raw stream (on held-out validation streams
+    that is the usual price of a stable stream); a setting that misses them is one only when
+    it labels at least as many right as raw."""
+    hold2 = SmoothingSettings(n=1, p_min=0.5, hold=2)
+    met = calibrate([flicker()], (hold2,), max_uncertain=0.5)
+    f = met.figures
+    assert f["met_limit"] and f["smoothed"]["false_changes"] == 0
+    assert f["smoothed"]["accuracy"] == round(191 / 240, 4) and f["raw"]["accuracy"] == 0.9
+    assert refusal(met) is None
+    missed = calibrate([flicker()], (hold2,), max_uncertain=0.1)  # 49 of 240 uncertain
+    assert not missed.figures["met_limit"]
+    assert refusal(missed) == (
+        "no setting of the grid gets to at most 1 false change a minute with at most 10% of "
+        "the windows uncertain, and the one with the fewest, ma:1 p_min=0.5 hold=2, gives "
+        "fewer correct stable labels than the raw stream (79.6% against 90.0%)")
+    raw = SmoothingSettings(n=1, p_min=0.5, hold=1)  # misses the limit, as right as raw
+    assert refusal(calibrate([flicker()], (raw,), max_uncertain=0.5)) is None
 
 
 def test_default_grid():

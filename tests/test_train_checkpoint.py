@@ -72,6 +72,9 @@ CASES = [  # (change, the key the message must name)
     (lambda ck: ck.__setitem__("channels", [ck["channels"][0]] * len(ck["channels"])),
      "'channels'"),
     (_nan_weight, "'state_dict': head.out.weight holds NaN or inf"),
+    (_set("held_out_streams", "all"), "'held_out_streams'"),
+    (_set("held_out_streams", [{"t": torch.zeros(3), "truth": torch.zeros(2, dtype=torch.long),
+                                "probs": torch.zeros(3, 2)}]), "'held_out_streams'"),
 ]
 
 

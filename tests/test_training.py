@@ -366,18 +366,19 @@ def test_a_class_named_uncertain_is_refused_before_training(tmp_path, capsys):
 
 
 def test_eval_keeps_the_raw_stream_where_export_would(trained, dataset, capsys, monkeypatch):
-    """When the calibrated setting labels fewer validation windows right than the raw stream,
-    tactile-export leaves the file raw; tactile-eval reported the setting anyway."""
+    """When no setting meets the limits and the one with the fewest false changes labels fewer
+    validation windows right than the raw stream, tactile-export leaves the file raw;
+    tactile-eval reported the setting anyway."""
     import dataclasses
 
     import tactile.training.label_stream as ls_mod
 
     real = ls_mod.calibrate
 
-    def worse(streams):  # the grid's best, made to label fewer windows right than raw
-        cal = real(streams)
-        figures = {**cal.figures, "smoothed": {**cal.figures["smoothed"],
-                                               "accuracy": cal.figures["raw"]["accuracy"] - 0.1}}
+    def worse(streams, **limits):  # made to miss the limits and to label fewer right than raw
+        cal = real(streams, **limits)
+        figures = {**cal.figures, "met_limit": False, "smoothed": {
+            **cal.figures["smoothed"], "accuracy": cal.figures["raw"]["accuracy"] - 0.1}}
         return dataclasses.replace(cal, figures=figures)
 
     monkeypatch.setattr(ls_mod, "calibrate", worse)
@@ -387,7 +388,7 @@ def test_eval_keeps_the_raw_stream_where_export_would(trained, dataset, capsys, 
     ls = json.loads(capsys.readouterr().out)["label_stream"]
     assert ls["source"].startswith("calibrated on the run's validation takes"), ls["source"]
     assert ls["setting"] == "ma:1 p_min=0 hold=1", ls["setting"]
-    assert "labelled fewer windows right than the raw stream" in ls["source"]
+    assert "gives fewer correct stable labels than the raw stream" in ls["source"]
     assert ls["smoothed"]["accuracy"] == pytest.approx(ls["raw"]["accuracy"])
 
 

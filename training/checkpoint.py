@@ -71,11 +71,15 @@ def plain(obj):
 
 def save_checkpoint(path: Path, cfg: TrainConfig, model: torch.nn.Module, metrics: dict, *,
                     classes: tuple[str, ...], takes: list[Take],
-                    test: dict[int, tuple[int, int]], norm: Norm) -> None:
+                    test: dict[int, tuple[int, int]], norm: Norm,
+                    held_out: list | None = None) -> None:
     """Write the checkpoint ``path``: the weights of ``model``, the resolved ``cfg`` (whose
     ``channels`` are the model's inputs, in order), ``classes``, the channels' units and the
     sample rate (of ``takes``, the dataset's takes), ``norm``, the test split's rows (``test``:
-    take index -> (first, end) rows) with each test take's fingerprint, and ``metrics``."""
+    take index -> (first, end) rows) with each test take's fingerprint, and ``metrics``; with
+    ``held_out`` (a refit's run), the first training's label streams of the validation takes
+    (:class:`~tactile.postprocess.metrics.WindowStream`: what the label stream's defaults
+    are calibrated on, the final model having trained on those takes)."""
     channels = cfg.channels
     names = [t.path.name for t in takes]
     ck = {
@@ -96,6 +100,11 @@ def save_checkpoint(path: Path, cfg: TrainConfig, model: torch.nn.Module, metric
         "metrics": plain(metrics),
         "state_dict": model.state_dict(),
     }
+    if held_out:
+        ck["held_out_streams"] = [
+            {"t": torch.from_numpy(np.asarray(s.t, np.float64)),
+             "truth": torch.from_numpy(np.asarray(s.truth, np.int64)),
+             "probs": torch.from_numpy(np.asarray(s.probs, np.float32))} for s in held_out]
     save_file(ck, path)
 
 
@@ -206,6 +215,9 @@ def check_checkpoint(ck: dict, path: Path) -> TrainConfig:
         ("state_dict", isinstance(ck.get("state_dict"), dict) and all(
             isinstance(k, str) and isinstance(v, torch.Tensor)
             for k, v in ck["state_dict"].items()), "a table of tensors"),
+        ("held_out_streams", _streams(ck.get("held_out_streams", []), len(ck["classes"])),
+         "a list of streams (t, truth, probs: tensors of one length, probs one column a "
+         "class)"),
     ]
     for key, ok, want in checks:
         if not ok:
@@ -217,6 +229,15 @@ def check_checkpoint(ck: dict, path: Path) -> TrainConfig:
     if cfg.emd_channels and len(ck["emd_index"]) != len(cfg.emd_channels):
         raise bad("emd_index", f"{len(cfg.emd_channels)} indices (the config's emd_channels)")
     return cfg
+
+
+def _streams(v: object, k: int) -> bool:
+    """``held_out_streams``: a list of {t (N,), truth (N,), probs (N, k)} tensors."""
+    return isinstance(v, list) and all(
+        isinstance(s, dict) and all(isinstance(s.get(x), torch.Tensor)
+                                    for x in ("t", "truth", "probs"))
+        and s["t"].ndim == 1 and s["truth"].shape == s["t"].shape
+        and s["probs"].shape == (len(s["t"]), k) for s in v)
 
 
 def load_checkpoint(run_dir: Path):

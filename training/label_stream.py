@@ -21,7 +21,7 @@ from __future__ import annotations
 import numpy as np
 
 from tactile.errors import ConfigError
-from tactile.postprocess.calibration import calibrate
+from tactile.postprocess.calibration import HELD_OUT, MAX_UNCERTAIN, calibrate, refusal
 from tactile.postprocess.metrics import WindowStream, compare
 from tactile.postprocess.smoothing import SmoothingSettings
 from tactile.postprocess.streams import (
@@ -61,6 +61,19 @@ def validation_rows(takes: list, ck: dict, cfg, folder: str
     if not split.val:
         return None, "the run has no validation takes"
     return split.val, ""
+
+
+def stored_streams(ck: dict) -> list[WindowStream] | None:
+    """The validation takes' label streams as the first training's model labelled them, kept
+    in the checkpoint of a run whose final model refit on those takes
+    (:func:`tactile.training.run_files.held_out_streams`); None for a run without them (no
+    refit, or saved before they were kept)."""
+    kept = ck.get("held_out_streams")
+    if not kept:
+        return None
+    classes = tuple(ck["classes"])
+    return [WindowStream(s["t"].numpy(), s["truth"].numpy(), s["probs"].numpy(), classes)
+            for s in kept]
 
 
 def group_of(take) -> str:
@@ -145,24 +158,23 @@ def stream_figures(model, ck: dict, takes: list, folder: str,
     calibration, source = None, "given"
     if settings is None:
         rows, why = validation_rows(takes, ck, cfg, folder)
-        streams = []
+        streams, held = [], stored_streams(ck)
         if rows is not None:
-            streams = streams_of(rows)
+            streams = held if held is not None else streams_of(rows)
             why = (shortfall(streams) if streams else "no validation window") or ""
         if why:
             settings, source = FALLBACK, f"not calibrated: {why}"
         else:
-            cal = calibrate(streams)
+            cal = calibrate(streams, max_uncertain=MAX_UNCERTAIN)
             settings, calibration = cal.settings, cal.figures
             n = len(streams)
             source = (f"calibrated on the run's validation takes: {n} stream"
-                      f"{'s' if n != 1 else ''}, {sum(s.minutes for s in streams):.1f} min")
-            raw, chosen = cal.figures["raw"]["accuracy"], cal.figures["smoothed"]["accuracy"]
-            if chosen < raw:  # tactile-export's rule: then the file carries no defaults
+                      f"{'s' if n != 1 else ''}, {sum(s.minutes for s in streams):.1f} min"
+                      + (f", {HELD_OUT}" if held is not None else ""))
+            refused = refusal(cal)
+            if refused:  # tactile-export's rule: then the file carries no defaults
                 settings = SmoothingSettings()
-                source += (f"; the best setting, {cal.settings.describe()}, labelled fewer "
-                           f"windows right than the raw stream ({chosen:.1%} against "
-                           f"{raw:.1%}): raw, as tactile-export leaves the file")
+                source += f"; {refused}: raw, as tactile-export leaves the file"
     test_streams = streams_of(test_rows)
     if not test_streams:
         raise ConfigError("label stream: no test stream as long as one window")
@@ -189,7 +201,8 @@ def stream_table(f: dict) -> str:
             return "-"
         return f"{v * 100:.1f} %" if pct else f"{v:.2f}" if isinstance(v, float) else str(v)
 
-    lines = [f"label stream: {f['streams']} streams of the evaluated takes in pieces of "
+    n = f["streams"]
+    lines = [f"label stream: {n} stream{'s' if n != 1 else ''} of the evaluated takes in pieces of "
              f"{f['dwell_s']:g} s, {f['raw']['minutes']:.1f} min; post-processed with "
              f"{f['setting']} ({f['source']})",
              f"  {'':36s}{'raw':>10s}{'post-processed':>16s}"]
@@ -199,5 +212,5 @@ def stream_table(f: dict) -> str:
     return "\n".join(lines)
 
 
-__all__ = ["FALLBACK", "group_of", "pieces", "run_streams", "stream_figures", "stream_table",
-           "stream_windows", "take_pieces", "validation_rows"]
+__all__ = ["FALLBACK", "group_of", "pieces", "run_streams", "stored_streams",
+           "stream_figures", "stream_table", "stream_windows", "take_pieces", "validation_rows"]

@@ -9,6 +9,7 @@
 from __future__ import annotations
 
 import contextlib
+import copy
 import io
 import json
 from pathlib import Path
@@ -56,14 +57,37 @@ def run_metrics(model: Classifier, prep: Prepared, feats: torch.Tensor, history:
     return metrics
 
 
+def held_out_streams(model: Classifier, best: dict, prep: Prepared) -> list:
+    """The label streams of the run's validation takes (as ``tactile-eval`` and ``tactile-export
+    --data`` make them: :mod:`tactile.training.label_stream`) labelled by the first training's
+    model (``best``: its head's weights at its best epoch), for a run that refit: its final
+    model has trained on those takes, so its own labels of them would calibrate the label
+    stream on data it has seen. ``model`` keeps its weights."""
+    from tactile.training.label_stream import pieces, run_streams
+
+    cfg = prep.cfg
+    if not prep.split.val:
+        return []
+    rate = float(prep.takes[0].info.sample_rate_hz)
+    groups = pieces(prep.takes, prep.split.val, prep.classes, cfg.channels, rate)
+    final = copy.deepcopy(model.head.state_dict())
+    model.head.load_state_dict(best)
+    try:
+        return run_streams(groups, prep.classes, rate, cfg.window, cfg.hop,
+                           lambda w: predict(model, w))
+    finally:
+        model.head.load_state_dict(final)
+
+
 def write_run(out: Path, cfg: TrainConfig, model: Classifier, metrics: dict, history: dict,
-              prep: Prepared) -> None:
+              prep: Prepared, held_out: list | None = None) -> None:
     """Write RUN/ (``out``): metrics.json, confusion.txt, the two pictures (:func:`plots`) and
     last the checkpoint of ``model`` and ``cfg``, each whole or not at all
     (:func:`~tactile.files.write_whole`), so that a checkpoint there means a whole run. A file
     that cannot be written is one error naming it (:class:`OutputError`, exit 4, for a full
     disk), and these files are removed (also an older run's, which ``--force`` overwrites: no
-    folder mixes two runs; a resume.pt, written before them, stays)."""
+    folder mixes two runs; a resume.pt, written before them, stays). ``held_out``: see
+    :func:`held_out_streams`."""
     out.mkdir(parents=True, exist_ok=True)
     files = {"metrics.json": (json.dumps(plain(metrics), indent=1) + "\n").encode(),
              "confusion.txt": (table(metrics, prep.classes, "test split") + "\n").encode(),
@@ -72,7 +96,8 @@ def write_run(out: Path, cfg: TrainConfig, model: Classifier, metrics: dict, his
         for name, data in files.items():
             write_whole(out / name, data)
         save_checkpoint(out / CHECKPOINT, cfg, model, metrics, classes=prep.classes,
-                        takes=prep.takes, test=prep.split.test, norm=prep.norm)
+                        takes=prep.takes, test=prep.split.test, norm=prep.norm,
+                        held_out=held_out)
     except (OutputError, ConfigError) as e:
         for name in (*files, CHECKPOINT):
             with contextlib.suppress(OSError):
@@ -127,4 +152,4 @@ def _png(fig) -> bytes:
     return buf.getvalue()
 
 
-__all__ = ["test_metrics", "run_metrics", "write_run", "plots"]
+__all__ = ["test_metrics", "run_metrics", "held_out_streams", "write_run", "plots"]

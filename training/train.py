@@ -47,7 +47,7 @@ from tactile.training.loop import Context, Interrupted, fit
 from tactile.training.model import Classifier
 from tactile.training.models import build_model
 from tactile.training.prepare import Prepared, check_inputs, features, prepare
-from tactile.training.run_files import run_metrics, write_run
+from tactile.training.run_files import held_out_streams, run_metrics, write_run
 
 
 def train(data: Path, out: Path, cfg: TrainConfig, progress: bool = True, *,
@@ -120,7 +120,9 @@ def train(data: Path, out: Path, cfg: TrainConfig, progress: bool = True, *,
             threads=threads, device=str(device), processes=dist.world, seed=cfg.seed,
             interrupted=False,
         ), robustness=True)
-        write_run(out, cfg, model, metrics, history, prep)
+        held = (held_out_streams(model, ctx.fit_best, prep)
+                if history.get("refit_kept") and ctx.fit_best is not None else None)
+        write_run(out, cfg, model, metrics, history, prep, held)
         (out / RESUME).unlink(missing_ok=True)  # finished: nothing left to resume
     return metrics
 

@@ -123,6 +123,37 @@ def _rounded(f: dict) -> dict:
     return {k: round(v, 4) if isinstance(v, float) else v for k, v in f.items()}
 
 
+MAX_UNCERTAIN = 0.5
+"""The share of windows a file's default setting may leave ``uncertain``: a stream uncertain
+more than half the time says less than it hides."""
+
+
+def refusal(cal: Calibration) -> str | None:
+    """Why a calibration's setting should not become a file's defaults (one phrase), or None.
+
+    A setting that meets the limits (:func:`calibrate` with ``max_uncertain``
+    :data:`MAX_UNCERTAIN`) is kept even when it labels fewer windows right than the raw stream:
+    its price for a stream that changes at most once a minute on an unchanged surface is the
+    windows it leaves ``uncertain``, which its figures say. One that does not (no setting of
+    the grid gets there: the one with the fewest false changes) is kept only when it labels at
+    least as many windows right as the raw stream."""
+    f = cal.figures
+    raw, chosen = f["raw"]["accuracy"], f["smoothed"]["accuracy"]
+    if f["met_limit"] or chosen >= raw:
+        return None
+    cap = "" if f["max_uncertain"] is None else \
+        f" with at most {f['max_uncertain']:.0%} of the windows uncertain"
+    return (f"no setting of the grid gets to at most {f['max_false_per_min']:g} false change a "
+            f"minute{cap}, and the one with the fewest, {cal.settings.describe()}, gives "
+            f"fewer correct stable labels than the raw stream ({chosen:.1%} against {raw:.1%})")
+
+
+LABELLED_BY, FIRST_TRAINING = "labelled_by", "first_training"
+"""A calibration's figures say ``labelled_by: first_training`` when the validation streams were
+labelled by a refit run's first model (the final one trained on them)."""
+HELD_OUT = "labelled by the first training's model (the final one refit on them)"
+
+
 def summary_line(f: dict) -> str:
     """The chosen setting and the figures :func:`calibrate` saw (its ``figures``), one line for
     people (``tactile-export`` prints it, ``tactile-check`` shows it)."""
@@ -132,7 +163,8 @@ def summary_line(f: dict) -> str:
         return "-" if v is None else format(v, fmt)
 
     n = f["streams"]
-    return (f"{f['setting']} (calibrated on {n} validation stream{'s' if n != 1 else ''}, "
+    by = f" {HELD_OUT}" if f.get(LABELLED_BY) == FIRST_TRAINING else ""
+    return (f"{f['setting']} (calibrated on {n} validation stream{'s' if n != 1 else ''}{by}, "
             f"{raw['minutes']:.1f} min: correct stable labels {sm['accuracy'] * 100:.1f} % "
             f"(raw {raw['accuracy'] * 100:.1f} %), uncertain {sm['uncertain'] * 100:.1f} %, "
             f"false changes/min {num(sm['false_per_min'], '.2f')} (raw "
@@ -141,4 +173,5 @@ def summary_line(f: dict) -> str:
             f"{'' if f['met_limit'] else '; the change limit NOT met'})")
 
 
-__all__ = ["MAX_FALSE_PER_MIN", "Calibration", "calibrate", "default_grid", "summary_line"]
+__all__ = ["FIRST_TRAINING", "HELD_OUT", "LABELLED_BY", "MAX_FALSE_PER_MIN", "MAX_UNCERTAIN",
+           "Calibration", "calibrate", "default_grid", "refusal", "summary_line"]
