@@ -87,7 +87,8 @@ def calibrate_file(final: onnx.ModelProto, ck: dict, cfg, data: Path | None, log
         warn(f"tactile-export: no label stream defaults in the file (it runs raw): {why}")
         return None
     streams = held = stored_streams(ck)
-    if held is None:  # the final model's own labels: it has not trained on these takes
+    if held is None:  # a run without a refit: the file's own labels are held out (a refit
+        # run saved before runs kept their first training's labels gets in-sample figures)
         with tempfile.TemporaryDirectory() as tmp:
             path = Path(tmp) / "model.onnx"
             onnx.save(final, path)
