@@ -168,6 +168,9 @@ def test_layout_errors_name_the_bad_value(tables, message):
 def test_signal_patterns_resolve_in_recording_order_and_refuse_overlaps():
     names = ("b_1", "a", "b_0", "b_2")
     assert resolve_signals((("b", ("b_*",)),), names) == (("b", ("b_1", "b_0", "b_2")),)
+    # exact names (a run's record, in time order) keep their order, whatever names' order
+    assert resolve_signals((("b", ("b_2", "b_0", "b_1")),), names) == (
+        ("b", ("b_2", "b_0", "b_1")),)
     with pytest.raises(ConfigError, match=r"signals.x: pattern 'z\*' matches none of: b_1"):
         resolve_signals((("x", ("z*",)),), names)
     with pytest.raises(ConfigError, match="signals.c: channel 'b_0' is already in signal 'b'"):

@@ -172,3 +172,40 @@ def test_gain_augmentation_keeps_a_signal_whole():
     assert len(torch.unique(g[0, 0, 0])) == len(CHANNELS) - R + 1
     want = super(type(plain), plain).augment_gain(f, 0.3, torch.Generator().manual_seed(0))
     assert torch.equal(plain.augment_gain(f, 0.3, torch.Generator().manual_seed(0)), want)
+
+
+def test_channels_in_another_order_keep_a_signals_time_order(tmp_path, capsys):
+    """`channels` listing a signal's sub-samples in another order (here reversed) fed the model
+    each frame's samples in that order, and the contract named them so; the signal is the
+    takes' declaration, in time order, whatever the order of `channels`. Some sub-samples but
+    not all: read as plain channels, and a warning now says so (it was silent)."""
+    pytest.importorskip("h5py")
+    from test_biotac import write_h5
+
+    from tactile.device.recordings.biotac import import_biotac
+    from tactile.training.checkpoint import load_checkpoint
+    from tactile.training.models import signal_index
+    from tactile.training.train import train
+
+    for obj in ("cork", "glass_bottle"):
+        write_h5(tmp_path / f"{obj}.h5",
+                 {f"{obj}_pdc100_1cm_{r:02d}": 120 for r in (1, 2, 3)}, seed=len(obj))
+    data = tmp_path / "data"
+    import_biotac(sorted(tmp_path.glob("*.h5")), data)
+    mixed = ("f0_pdc", *reversed(PAC), *(f"f0_ele_{i:02d}" for i in range(19)))
+    run = tmp_path / "run"
+    train(data, run, TrainConfig(channels=mixed, epochs=1, threads=1, batch_size=16),
+          progress=False)
+    model, ck = load_checkpoint(run)
+    assert ck["channels"] == list(mixed)
+    assert ck["config"]["signals"] == {"f0_pac": list(PAC)}
+    assert signal_index(model.cfg, mixed) == [[mixed.index(c) for c in PAC]]
+    assert "some but not all" not in capsys.readouterr().err
+    few = ("f0_pdc", "f0_pac_00", "f0_pac_01")
+    train(data, tmp_path / "few", TrainConfig(channels=few, epochs=1, threads=1,
+                                              batch_size=16), progress=False)
+    err = capsys.readouterr().err
+    assert ("warning: channels holds some but not all sub-samples of the takes' signal f0_pac "
+            "(2 of 22): read as plain channels at 100 Hz, not as the signal") in err, err
+    assert "signals" not in load_checkpoint(tmp_path / "few")[1]["config"] or not \
+        load_checkpoint(tmp_path / "few")[1]["config"]["signals"]

@@ -66,27 +66,46 @@ def _unmatched(pattern: str, what: str, names: list[str]) -> ConfigError:
 
 
 def resolve_signals(patterns: Signals, channels: tuple[str, ...]) -> Signals:
-    """The config's ``[signals]`` (name, channel name patterns) as exact channel names, in
-    recording order. A pattern that matches nothing, a channel in two signals, or a signal named
-    like a channel is a :class:`ConfigError`."""
+    """The config's ``[signals]`` (name, channel name patterns) as exact channel names in time
+    order: the patterns' order, and the channels one pattern matches in the order of
+    ``channels`` (give them in recording order: :func:`recorded_order`). A pattern that
+    matches nothing, a channel in two signals, or a signal named like a channel is a
+    :class:`ConfigError`."""
     out, owner = [], {}
     for name, pats in patterns:
         if name in channels:
             raise ConfigError(f"signals.{name}: a channel has that name; name the signal "
                               "otherwise")
-        picked = set()
+        picked: dict[int, None] = {}  # in the patterns' order, each channel once
         for p in pats:
-            hit = {i for i, c in enumerate(channels) if fnmatch.fnmatchcase(c, p)}
+            hit = [i for i, c in enumerate(channels) if fnmatch.fnmatchcase(c, p)]
             if not hit:
                 raise _unmatched(p, f"signals.{name}", list(channels))
-            picked |= hit
-        for i in sorted(picked):
+            picked.update(dict.fromkeys(hit))
+        for i in picked:
             if channels[i] in owner:
                 raise ConfigError(f"signals.{name}: channel {channels[i]!r} is already in "
                                   f"signal {owner[channels[i]]!r}")
             owner[channels[i]] = name
-        out.append((name, tuple(channels[i] for i in sorted(picked))))
+        out.append((name, tuple(channels[i] for i in picked)))
     return tuple(out)
+
+
+def recorded_order(takes, channels: tuple[str, ...]) -> tuple[str, ...]:
+    """``channels`` (a model's, in the order the user chose) in the takes' recording order:
+    what a signal's patterns are resolved against, so that its sub-samples keep their time
+    order whatever order ``channels`` lists them in."""
+    chosen = set(channels)
+    return tuple(c for c in takes[0].channels if c in chosen) if takes else channels
+
+
+def partial_signals(takes, channels: tuple[str, ...]) -> list[str]:
+    """The signals the takes declare of which ``channels`` hold some sub-samples but not all
+    (read as plain channels at the device rate, not as the signal), each as ``name (k of n)``."""
+    d = (takes[0].meta.get("signals") or {}) if takes else {}
+    chosen = set(channels)
+    return [f"{k} ({sum(c in chosen for c in v)} of {len(v)})" for k, v in d.items()
+            if 0 < sum(c in chosen for c in v) < len(v)]
 
 
 def signals_of_takes(takes, channels: tuple[str, ...]) -> Signals:
@@ -170,5 +189,5 @@ def literal_signals(signals: Signals) -> Signals:
     return tuple((n, tuple(lit(c) for c in names)) for n, names in signals)
 
 
-__all__ = ["ModalityLayout", "Signals", "resolve", "resolve_signals",
-           "literal_signals", "signals_of_takes", "n_steps"]
+__all__ = ["ModalityLayout", "Signals", "resolve", "resolve_signals", "recorded_order",
+           "partial_signals", "literal_signals", "signals_of_takes", "n_steps"]

@@ -35,7 +35,14 @@ from tactile.training.data import (
 from tactile.training.dist import Dist
 from tactile.training.granular import learn_dictionaries, pooled_stats
 from tactile.training.log import Log
-from tactile.training.modality import literal_signals, resolve, resolve_signals, signals_of_takes
+from tactile.training.modality import (
+    literal_signals,
+    partial_signals,
+    recorded_order,
+    resolve,
+    resolve_signals,
+    signals_of_takes,
+)
 from tactile.training.model import Classifier
 
 
@@ -97,8 +104,16 @@ def prepare(takes: list[Take], classes: tuple[str, ...], channels: tuple[str, ..
     if idle:
         log.warn(f"settings this training does not read: {'; '.join(idle)}")
     signals = ()
+    reads = cfg.modalities or cfg.model == "linear" or cfg.front == "spectral"
+    partial = partial_signals(takes, channels) if reads and not cfg.signals else []
+    if partial:
+        log.warn(f"channels holds some but not all sub-samples of the takes' signal"
+                 f"{'s' * (len(partial) > 1)} {', '.join(partial)}: read as plain channels at "
+                 f"{takes[0].info.sample_rate_hz:g} Hz, not as the signal (select all of them to "
+                 "read it at its own rate)")
+    order = recorded_order(takes, channels)  # a signal's sub-samples in time order
     if cfg.modalities:  # the high-rate signals as exact names, then the layout (fail early)
-        signals = (resolve_signals(cfg.signals, channels) if cfg.signals
+        signals = (resolve_signals(cfg.signals, order) if cfg.signals
                    else signals_of_takes(takes, channels))
         cfg = cfg.replace(channels=channels, signals=literal_signals(signals))
         layout = resolve(cfg, channels, takes[0].info.sample_rate_hz)
@@ -108,7 +123,7 @@ def prepare(takes: list[Take], classes: tuple[str, ...], channels: tuple[str, ..
     else:
         cfg = cfg.replace(channels=channels)
         if cfg.model == "linear" or cfg.front == "spectral":  # signals at their own rate
-            signals = (resolve_signals(cfg.signals, channels) if cfg.signals
+            signals = (resolve_signals(cfg.signals, order) if cfg.signals
                        else signals_of_takes(takes, channels))
             if signals:
                 cfg = cfg.replace(signals=literal_signals(signals))
