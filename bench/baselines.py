@@ -73,7 +73,7 @@ from tactile.training import loop
 from tactile.training import train as train_module
 from tactile.training.checkpoint import SAVED_BEFORE
 from tactile.training.config import TrainConfig
-from tactile.training.data import channel_index, classes_of, split_takes, split_windows
+from tactile.training.data import classes_of, pick_channels, split_takes, split_windows
 from tactile.training.evaluate import per_take
 from tactile.training.modality import signals_of_takes
 from tactile.training.overrides import parse_sets
@@ -145,7 +145,7 @@ def band_logistic(takes: list[Take], cfg: TrainConfig) -> dict:
     (:func:`signal_features`), its ``C`` also chosen on the validation windows."""
     t0, c0 = time.perf_counter(), _cpu()
     classes = classes_of(takes)
-    channels = tuple(takes[0].channels[i] for i in channel_index(takes[0], cfg.channels))
+    channels = pick_channels(takes[0], cfg.channels)
     rate = takes[0].info.sample_rate_hz
     _, parts = split_windows(takes, classes, channels, cfg)
     feats = {k: window_features(w.x, rate) for k, w in parts.items()}

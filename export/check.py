@@ -190,11 +190,12 @@ def _excused(parity: dict) -> str:
 
 
 def _granular_lines(c: ModelContract, emd) -> list[str]:
-    """The pen's EMD line, or a granular model's signals and modalities."""
-    if not c.modalities:
-        return [f"  emd       {_emd_text(emd)}"]
+    """The pen's EMD line, or a granular model's modalities, after the high-rate signals the
+    model reads at their own rate (either kind)."""
     lines = [f"  signal    {s.name}: {len(s.channels)} sub-samples per frame ({s.channels[0]}"
              f"..{s.channels[-1]}), {s.rate_hz:g} Hz" for s in c.signals]
+    if not c.modalities:
+        return [f"  emd       {_emd_text(emd)}", *lines]
     for m in c.modalities:
         units = len(m.channels) // max(1, round(m.rate_hz / c.sample_rate_hz))
         emd_text = f"{m.imfs} IMFs x {c.preprocessing.get('sifts')} sifts" if m.imfs else "no EMD"

@@ -111,7 +111,7 @@ def test_a_declared_signal_changes_the_input_layout():
     assert none.head.lstm.input_size == len(CHANNELS)
 
 
-def test_a_biotac_take_trains_and_exports_with_parity(tmp_path):
+def test_a_biotac_take_trains_and_exports_with_parity(tmp_path, capsys):
     """88 channels as the importer writes them (the takes declare f0_pac and f1_pac), the
     default model with no setting but a short run: one epoch, exported with parity; the
     contract names both signals and how the front end frames them."""
@@ -146,6 +146,12 @@ def test_a_biotac_take_trains_and_exports_with_parity(tmp_path):
     assert [(h["signal"], h["frame"], h["hop"]) for h in high] == [
         ("f0_pac", 440, 220), ("f1_pac", 440, 220)]
     assert high[0]["bands_hz"][-1][1] == 1100.0
+    from tactile.export.commands.check import main as check_main  # shows the signals too
+
+    assert check_main([str(out)]) == 0
+    text = capsys.readouterr().out
+    assert "  emd       none\n  signal    f0_pac: 22 sub-samples per frame (f0_pac_00.." \
+        "f0_pac_21), 2200 Hz\n  signal    f1_pac: 22" in text, text
 
 
 def test_the_linear_head_adds_the_signals_bands_over_the_window():
@@ -209,3 +215,32 @@ def test_channels_in_another_order_keep_a_signals_time_order(tmp_path, capsys):
             "(2 of 22): read as plain channels at 100 Hz, not as the signal") in err, err
     assert "signals" not in load_checkpoint(tmp_path / "few")[1]["config"] or not \
         load_checkpoint(tmp_path / "few")[1]["config"]["signals"]
+
+
+def test_channels_patterns_pick_in_recording_order(tmp_path):
+    """`channels` took exact names only (one fingertip of a BioTac: 42 names to type); a
+    shell-style pattern picks the channels it matches in recording order, exact names keep
+    the order given, and the run records the names picked."""
+    pytest.importorskip("h5py")
+    from test_biotac import write_h5
+
+    from tactile.device.recordings import load_dataset
+    from tactile.device.recordings.biotac import import_biotac
+    from tactile.errors import ConfigError
+    from tactile.training.data import pick_channels
+
+    write_h5(tmp_path / "cork.h5", {"cork_pdc100_1cm_01": 30})
+    data = tmp_path / "data"
+    import_biotac(sorted(tmp_path.glob("*.h5")), data)
+    take = load_dataset(data)[0]
+    assert pick_channels(take, ("f0_ele_*", "f0_pdc", "f0_pac_*")) == (
+        *(f"f0_ele_{i:02d}" for i in range(19)), "f0_pdc", *PAC)
+    assert pick_channels(take, ("f0_pdc", "f1_pdc")) == ("f0_pdc", "f1_pdc")
+    assert pick_channels(take, ()) == tuple(take.channels)
+    with pytest.raises(ConfigError, match=r"channels pattern 'f9_\*' matches none of the "
+                                          r"recordings' channels: f0_pac_00, "):
+        pick_channels(take, ("f9_*",))
+    with pytest.raises(ConfigError, match=r"channels picks 'f0_pdc' twice \('f0_\*' again\)"):
+        pick_channels(take, ("f0_pdc", "f0_*"))
+    with pytest.raises(ConfigError, match=r"channels \['f9'\] not in the recordings'"):
+        pick_channels(take, ("f9",))

@@ -61,6 +61,30 @@ def channel_index(take: Take, channels: tuple[str, ...]) -> list[int]:
     return [take.channels.index(c) for c in channels]
 
 
+def pick_channels(take: Take, patterns: tuple[str, ...]) -> tuple[str, ...]:
+    """The channels of ``take`` that the ``channels`` setting picks, in its order: an exact
+    name, or a shell-style pattern (``f0_*``) for the channels it matches in recording order
+    (empty: all of them). A name or pattern that picks nothing, or a channel picked twice, is
+    a :class:`ConfigError`."""
+    if not patterns:
+        return tuple(take.channels)
+    out: list[str] = []
+    for p in patterns:
+        if any(ch in p for ch in "*?["):
+            hit = [c for c in take.channels if fnmatch.fnmatchcase(c, p)]
+            if not hit:
+                raise ConfigError(f"channels pattern {p!r} matches none of the recordings' "
+                                  f"channels: {name_list(list(take.channels))}")
+        else:
+            channel_index(take, (p,))  # an exact name: the recordings' own error when absent
+            hit = [p]
+        twice = [c for c in hit if c in out]
+        if twice:
+            raise ConfigError(f"channels picks {twice[0]!r} twice ({p!r} again)")
+        out += hit
+    return tuple(out)
+
+
 def check_model_input(takes: list[Take], channels: tuple[str, ...], units, rate_hz,
                       data: object) -> None:
     """The takes carry what a trained model reads, as ``tactile-run`` checks a device: each

@@ -26,10 +26,10 @@ from tactile.training.config import TrainConfig, unused
 from tactile.training.data import (
     Split,
     Windows,
-    channel_index,
     channel_stats,
     classes_of,
     name_list,
+    pick_channels,
     split_windows,
 )
 from tactile.training.dist import Dist
@@ -72,7 +72,7 @@ def check_inputs(data: Path, takes: list[Take],
     if UNCERTAIN in classes:
         raise ConfigError(f"{data}: a class is named {UNCERTAIN!r}, the name the label stream "
                           "reserves for no stable label: rename its takes' label")
-    channels = tuple(takes[0].channels[i] for i in channel_index(takes[0], cfg.channels))
+    channels = pick_channels(takes[0], cfg.channels)
     missing = [c for c in cfg.emd_channels if c not in channels]
     if missing:
         raise ConfigError(f"emd_channels {missing} not among the input channels {list(channels)}")
