@@ -186,8 +186,9 @@ def check_device(model: Model, info: DeviceInfo) -> np.ndarray:
     if missing:
         unnamed = info.device == "csv" and got == tuple(f"ch{i}" for i in range(len(got)))
         raise ModelContractError(
-            f"the device sends no {', '.join(missing)}: the model reads {list(want)}, the device "
-            f"sends {list(got)}" + ("; a CSV device names its channels in a names line before "
+            f"the device sends no {_names(missing)}: the model reads {len(want)} channel"
+            f"{'s' * (len(want) != 1)} ({_names(list(want))}), the device sends {len(got)} "
+            f"({_names(list(got))})" + ("; a CSV device names its channels in a names line before "
                                     "its first row, which this port did not get (opened after "
                                     "it): restart the board with the port open" if unnamed
                                     else "")

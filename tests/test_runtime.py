@@ -859,8 +859,11 @@ def test_a_model_of_some_channels_runs_on_the_pen_that_sends_them_all(models, tm
     take = edited_take(models, tmp_path, "no_z", no_accel_z)
     code, out, err = run_cli(["--model", str(tmp_path / "imu.onnx"), "--replay", str(take)])
     assert code == 3 and '"label"' not in out
-    assert err.strip().splitlines()[-1].startswith("tactile-run: error: the device sends no "
-                                                   "accel_z: the model reads ['accel_z', ")
+    assert err.strip().splitlines()[-1] == (
+        "tactile-run: error: the device sends no accel_z: the model reads 3 channels (accel_z, "
+        "pressure_0, accel_x), "
+        "the device sends 8 (pressure_0, pressure_1, accel_x, accel_y, accel_q, gyro_x, "
+        "gyro_y, gyro_z)")
 
 
 SHIPPED = REPO / "models" / "pen-exp2.onnx"
