@@ -111,24 +111,32 @@ def test_a_declared_signal_changes_the_input_layout():
     assert none.head.lstm.input_size == len(CHANNELS)
 
 
+def biotac_takes(tmp_path, objects=("cork", "glass_bottle"), frames: int = 120):
+    """A dataset folder of BioTac takes as the importer writes them (88 channels, f0_pac and
+    f1_pac declared): repetitions 1-3 of each object (skips without h5py)."""
+    pytest.importorskip("h5py")
+    from test_biotac import write_h5
+
+    from tactile.device.recordings.biotac import import_biotac
+
+    for obj in objects:
+        write_h5(tmp_path / f"{obj}.h5",
+                 {f"{obj}_pdc100_1cm_{r:02d}": frames for r in (1, 2, 3)}, seed=len(obj))
+    data = tmp_path / "data"
+    import_biotac(sorted(tmp_path.glob("*.h5")), data)
+    return data
+
+
 def test_a_biotac_take_trains_and_exports_with_parity(tmp_path, capsys):
     """88 channels as the importer writes them (the takes declare f0_pac and f1_pac), the
     default model with no setting but a short run: one epoch, exported with parity; the
     contract names both signals and how the front end frames them."""
-    pytest.importorskip("h5py")
-    from test_biotac import write_h5
-
     from tactile.contract import ModelContract
-    from tactile.device.recordings.biotac import import_biotac
     from tactile.export.exporter import export_run
     from tactile.training.checkpoint import load_checkpoint
     from tactile.training.train import train
 
-    for obj in ("cork", "glass_bottle"):
-        write_h5(tmp_path / f"{obj}.h5",
-                 {f"{obj}_pdc100_1cm_{r:02d}": 120 for r in (1, 2, 3)}, seed=len(obj))
-    data = tmp_path / "data"
-    import_biotac(sorted(tmp_path.glob("*.h5")), data)
+    data = biotac_takes(tmp_path)
     run = tmp_path / "run"
     train(data, run, TrainConfig(epochs=1, threads=1, batch_size=16), progress=False)
     model, ck = load_checkpoint(run)
@@ -185,19 +193,11 @@ def test_channels_in_another_order_keep_a_signals_time_order(tmp_path, capsys):
     each frame's samples in that order, and the contract named them so; the signal is the
     takes' declaration, in time order, whatever the order of `channels`. Some sub-samples but
     not all: read as plain channels, and a warning now says so (it was silent)."""
-    pytest.importorskip("h5py")
-    from test_biotac import write_h5
-
-    from tactile.device.recordings.biotac import import_biotac
     from tactile.training.checkpoint import load_checkpoint
     from tactile.training.models import signal_index
     from tactile.training.train import train
 
-    for obj in ("cork", "glass_bottle"):
-        write_h5(tmp_path / f"{obj}.h5",
-                 {f"{obj}_pdc100_1cm_{r:02d}": 120 for r in (1, 2, 3)}, seed=len(obj))
-    data = tmp_path / "data"
-    import_biotac(sorted(tmp_path.glob("*.h5")), data)
+    data = biotac_takes(tmp_path)
     mixed = ("f0_pdc", *reversed(PAC), *(f"f0_ele_{i:02d}" for i in range(19)))
     run = tmp_path / "run"
     train(data, run, TrainConfig(channels=mixed, epochs=1, threads=1, batch_size=16),
@@ -221,18 +221,11 @@ def test_channels_patterns_pick_in_recording_order(tmp_path):
     """`channels` took exact names only (one fingertip of a BioTac: 42 names to type); a
     shell-style pattern picks the channels it matches in recording order, exact names keep
     the order given, and the run records the names picked."""
-    pytest.importorskip("h5py")
-    from test_biotac import write_h5
-
     from tactile.device.recordings import load_dataset
-    from tactile.device.recordings.biotac import import_biotac
     from tactile.errors import ConfigError
     from tactile.training.data import pick_channels
 
-    write_h5(tmp_path / "cork.h5", {"cork_pdc100_1cm_01": 30})
-    data = tmp_path / "data"
-    import_biotac(sorted(tmp_path.glob("*.h5")), data)
-    take = load_dataset(data)[0]
+    take = load_dataset(biotac_takes(tmp_path, ("cork",), 30))[0]
     assert pick_channels(take, ("f0_ele_*", "f0_pdc", "f0_pac_*")) == (
         *(f"f0_ele_{i:02d}" for i in range(19)), "f0_pdc", *PAC)
     assert pick_channels(take, ("f0_pdc", "f1_pdc")) == ("f0_pdc", "f1_pdc")
