@@ -41,7 +41,13 @@ from tactile.postprocess.smoothing import settings_to_metadata
 from tactile.postprocess.streams import Piece, SampleStream, make_streams, shortfall, window_stream
 from tactile.runtime.model import Model
 from tactile.runtime.stream import Stream
-from tactile.training.label_stream import pieces, stored_streams, validation_rows
+from tactile.training.label_stream import (
+    IN_SAMPLE,
+    in_sample,
+    pieces,
+    stored_streams,
+    validation_rows,
+)
 
 
 def run_stream(model: Model, stream: SampleStream) -> WindowStream | None:
@@ -87,8 +93,9 @@ def calibrate_file(final: onnx.ModelProto, ck: dict, cfg, data: Path | None, log
         warn(f"tactile-export: no label stream defaults in the file (it runs raw): {why}")
         return None
     streams = held = stored_streams(ck)
-    if held is None:  # a run without a refit: the file's own labels are held out (a refit
-        # run saved before runs kept their first training's labels gets in-sample figures)
+    if held is None:  # a run without a refit: the file's own labels are held out
+        if in_sample(ck):
+            warn(f"tactile-export: warning: label stream calibrated on {IN_SAMPLE}")
         with tempfile.TemporaryDirectory() as tmp:
             path = Path(tmp) / "model.onnx"
             onnx.save(final, path)

@@ -886,12 +886,39 @@ def test_a_refit_run_calibrates_on_its_first_trainings_labels(calibrated_export,
     final = run_streams(pieces(takes, rows, classes, channels, rate), classes, rate,
                         net.cfg.window, net.cfg.hop, lambda w: predict(net, w))
     assert max(np.abs(a.probs - b.probs).max() for a, b in zip(final, held)) > 1e-3
-    figures = calibrate(held).figures
+    figures = calibrate(held, max_uncertain=0.5).figures  # export's cap on uncertain windows
     assert report["postprocess"]["setting"] == figures["setting"]
     assert report["postprocess"]["raw"] == pytest.approx(figures["raw"])
     assert check_main([str(out)]) == 0
     assert "labelled by the first training's model (the final one refit on them)" in \
         capsys.readouterr().out
+
+
+def test_a_refit_run_without_kept_labels_is_said_to_calibrate_in_sample(calibrated_export,
+                                                                       tmp_path, capsys):
+    """A refit run saved before runs kept their first training's labels: export and eval
+    calibrate on the final model's own labels of takes it refit on, and now say so."""
+    import shutil
+
+    import torch
+
+    from tactile.training.commands.eval import main as eval_main
+
+    run, _, _, data = calibrated_export
+    old = tmp_path / "old"
+    shutil.copytree(run, old)
+    ck = torch.load(old / "checkpoint.pt", weights_only=True)
+    del ck["held_out_streams"]
+    torch.save(ck, old / "checkpoint.pt")
+    capsys.readouterr()
+    export_run(old, tmp_path / "old.onnx", data=data, log=lambda s: None)
+    err = capsys.readouterr().err
+    assert ("tactile-export: warning: label stream calibrated on the final model's own labels "
+            "of takes it refit on (a run saved before runs kept their first training's "
+            "labels): figures in-sample") in err, err
+    assert eval_main([str(old), str(data), "--json"]) == 0
+    source = json.loads(capsys.readouterr().out)["label_stream"]["source"]
+    assert "the final model's own labels of takes it refit on" in source, source
 
 
 def test_calibrated_defaults_round_trip_through_the_contract(calibrated_export):

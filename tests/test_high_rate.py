@@ -237,3 +237,37 @@ def test_channels_patterns_pick_in_recording_order(tmp_path):
         pick_channels(take, ("f0_pdc", "f0_*"))
     with pytest.raises(ConfigError, match=r"channels \['f9'\] not in the recordings'"):
         pick_channels(take, ("f9",))
+
+
+def test_a_channel_named_like_a_pattern_is_picked_by_its_name():
+    """Channel names may hold * ? [ (a run records them as exact names): the name is looked up
+    first, a pattern only when no channel has that name; every missing name is listed."""
+    from types import SimpleNamespace
+
+    from tactile.errors import ConfigError
+    from tactile.training.data import pick_channels
+
+    take = SimpleNamespace(channels=("p[0]", "p0", "a*", "ab", "b"))
+    assert pick_channels(take, ("p[0]", "b")) == ("p[0]", "b")
+    assert pick_channels(take, ("a*",)) == ("a*",)
+    assert pick_channels(take, ("a?",)) == ("a*", "ab")
+    with pytest.raises(ConfigError, match=r"channels \['x', 'y'\] not in the recordings'"):
+        pick_channels(take, ("x", "b", "y"))
+
+
+def test_config_signal_patterns_join_the_sub_samples_in_recording_order(tmp_path):
+    """[signals] patterns in another order (f0_pac_1*, then 0*, then 2*) made the signal
+    10..19, 00..09, 20, 21; the docs say recording order, which the run now records."""
+    from tactile.training.checkpoint import load_checkpoint
+    from tactile.training.models import signal_index
+    from tactile.training.train import train
+
+    data = biotac_takes(tmp_path)
+    run = tmp_path / "run"
+    channels = ("f0_pdc", *PAC)
+    cfg = TrainConfig(channels=channels, epochs=1, threads=1, batch_size=16,
+                      signals=(("f0_pac", ("f0_pac_1*", "f0_pac_0*", "f0_pac_2*")),))
+    train(data, run, cfg, progress=False)
+    model, ck = load_checkpoint(run)
+    assert ck["config"]["signals"] == {"f0_pac": list(PAC)}
+    assert signal_index(model.cfg, channels) == [list(range(1, 23))]

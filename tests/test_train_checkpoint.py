@@ -75,6 +75,18 @@ CASES = [  # (change, the key the message must name)
     (_set("held_out_streams", "all"), "'held_out_streams'"),
     (_set("held_out_streams", [{"t": torch.zeros(3), "truth": torch.zeros(2, dtype=torch.long),
                                 "probs": torch.zeros(3, 2)}]), "'held_out_streams'"),
+    # values: they calibrate the label stream (a NaN was named as the model's output, a
+    # negative probability was taken)
+    *((_set("held_out_streams", [{"t": t, "truth": y, "probs": p}]), "'held_out_streams'")
+      for t, y, p in (
+          (torch.arange(3.0), torch.zeros(3, dtype=torch.long),
+           torch.tensor([[0.5, 0.5], [float("nan"), 0.5], [0.5, 0.5]])),
+          (torch.arange(3.0), torch.zeros(3, dtype=torch.long), torch.full((3, 2), -0.5)),
+          (torch.arange(3.0), torch.tensor([0, 2, 0]), torch.full((3, 2), 0.5)),
+          (torch.arange(3.0), torch.zeros(3), torch.full((3, 2), 0.5)),
+          (torch.tensor([0.0, 2.0, 1.0]), torch.zeros(3, dtype=torch.long),
+           torch.full((3, 2), 0.5)),
+          (torch.zeros(0), torch.zeros(0, dtype=torch.long), torch.zeros(0, 2)))),
 ]
 
 

@@ -216,8 +216,8 @@ def check_checkpoint(ck: dict, path: Path) -> TrainConfig:
             isinstance(k, str) and isinstance(v, torch.Tensor)
             for k, v in ck["state_dict"].items()), "a table of tensors"),
         ("held_out_streams", _streams(ck.get("held_out_streams", []), len(ck["classes"])),
-         "a list of streams (t, truth, probs: tensors of one length, probs one column a "
-         "class)"),
+         "a list of streams (t: finite, non-decreasing times; truth: class indices; probs: "
+         "0..1, one column a class; one length, at least 1)"),
     ]
     for key, ok, want in checks:
         if not ok:
@@ -232,12 +232,21 @@ def check_checkpoint(ck: dict, path: Path) -> TrainConfig:
 
 
 def _streams(v: object, k: int) -> bool:
-    """``held_out_streams``: a list of {t (N,), truth (N,), probs (N, k)} tensors."""
-    return isinstance(v, list) and all(
-        isinstance(s, dict) and all(isinstance(s.get(x), torch.Tensor)
-                                    for x in ("t", "truth", "probs"))
-        and s["t"].ndim == 1 and s["truth"].shape == s["t"].shape
-        and s["probs"].shape == (len(s["t"]), k) for s in v)
+    """``held_out_streams``: a list of streams, each {t (N,) finite, non-decreasing window
+    times; truth (N,) class indices 0..k-1; probs (N, k) in [0, 1]}, N >= 1."""
+    def ok(s) -> bool:
+        if not (isinstance(s, dict) and all(isinstance(s.get(x), torch.Tensor)
+                                            for x in ("t", "truth", "probs"))):
+            return False
+        t, truth, p = s["t"], s["truth"], s["probs"]
+        return (t.ndim == 1 and len(t) >= 1 and truth.shape == t.shape
+                and p.shape == (len(t), k) and t.is_floating_point()
+                and p.is_floating_point() and not truth.is_floating_point()
+                and bool(torch.isfinite(t).all()) and bool((t[1:] >= t[:-1]).all())
+                and bool(((truth >= 0) & (truth < k)).all())
+                and bool(((p >= 0) & (p <= 1)).all()))  # (False for NaN too)
+
+    return isinstance(v, list) and all(ok(s) for s in v)
 
 
 def load_checkpoint(run_dir: Path):

@@ -68,16 +68,19 @@ def pick_channels(take: Take, patterns: tuple[str, ...]) -> tuple[str, ...]:
     a :class:`ConfigError`."""
     if not patterns:
         return tuple(take.channels)
+    missing = [p for p in patterns if p not in take.channels and not any(
+        ch in p for ch in "*?[")]
+    if missing:  # exact names: the recordings' own error, naming all of them
+        channel_index(take, tuple(missing))
     out: list[str] = []
     for p in patterns:
-        if any(ch in p for ch in "*?["):
+        if p in take.channels:  # a channel's own name first (names may hold * ? [)
+            hit = [p]
+        else:
             hit = [c for c in take.channels if fnmatch.fnmatchcase(c, p)]
             if not hit:
                 raise ConfigError(f"channels pattern {p!r} matches none of the recordings' "
                                   f"channels: {name_list(list(take.channels))}")
-        else:
-            channel_index(take, (p,))  # an exact name: the recordings' own error when absent
-            hit = [p]
         twice = [c for c in hit if c in out]
         if twice:
             raise ConfigError(f"channels picks {twice[0]!r} twice ({p!r} again)")

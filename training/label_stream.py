@@ -21,7 +21,14 @@ from __future__ import annotations
 import numpy as np
 
 from tactile.errors import ConfigError
-from tactile.postprocess.calibration import HELD_OUT, MAX_UNCERTAIN, calibrate, refusal
+from tactile.postprocess.calibration import (
+    FIRST_TRAINING,
+    HELD_OUT,
+    LABELLED_BY,
+    MAX_UNCERTAIN,
+    calibrate,
+    refusal,
+)
 from tactile.postprocess.metrics import WindowStream, compare
 from tactile.postprocess.smoothing import SmoothingSettings
 from tactile.postprocess.streams import (
@@ -74,6 +81,19 @@ def stored_streams(ck: dict) -> list[WindowStream] | None:
     classes = tuple(ck["classes"])
     return [WindowStream(s["t"].numpy(), s["truth"].numpy(), s["probs"].numpy(), classes)
             for s in kept]
+
+
+IN_SAMPLE = ("the final model's own labels of takes it refit on (a run saved before runs kept "
+             "their first training's labels): figures in-sample, train it again for held-out "
+             "ones")
+
+
+def in_sample(ck: dict) -> bool:
+    """Whether a run's final model refit on its validation takes and the checkpoint keeps no
+    held-out labels of them (saved before runs kept them): its own labels are in-sample."""
+    m = ck.get("metrics") or {}
+    return stored_streams(ck) is None and bool(m.get("refit_epochs")) and \
+        m.get("refit_kept") is not False
 
 
 def group_of(take) -> str:
@@ -167,10 +187,13 @@ def stream_figures(model, ck: dict, takes: list, folder: str,
         else:
             cal = calibrate(streams, max_uncertain=MAX_UNCERTAIN)
             settings, calibration = cal.settings, cal.figures
+            if held is not None:
+                calibration = {**calibration, LABELLED_BY: FIRST_TRAINING}
             n = len(streams)
             source = (f"calibrated on the run's validation takes: {n} stream"
                       f"{'s' if n != 1 else ''}, {sum(s.minutes for s in streams):.1f} min"
-                      + (f", {HELD_OUT}" if held is not None else ""))
+                      + (f", {HELD_OUT}" if held is not None else
+                         f", {IN_SAMPLE}" if in_sample(ck) else ""))
             refused = refusal(cal)
             if refused:  # tactile-export's rule: then the file carries no defaults
                 settings = SmoothingSettings()
@@ -212,5 +235,6 @@ def stream_table(f: dict) -> str:
     return "\n".join(lines)
 
 
-__all__ = ["FALLBACK", "group_of", "pieces", "run_streams", "stored_streams",
-           "stream_figures", "stream_table", "stream_windows", "take_pieces", "validation_rows"]
+__all__ = ["FALLBACK", "IN_SAMPLE", "group_of", "in_sample", "pieces", "run_streams",
+           "stored_streams", "stream_figures", "stream_table", "stream_windows", "take_pieces",
+           "validation_rows"]

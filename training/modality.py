@@ -66,11 +66,12 @@ def _unmatched(pattern: str, what: str, names: list[str]) -> ConfigError:
 
 
 def resolve_signals(patterns: Signals, channels: tuple[str, ...]) -> Signals:
-    """The config's ``[signals]`` (name, channel name patterns) as exact channel names in time
-    order: the patterns' order, and the channels one pattern matches in the order of
-    ``channels`` (give them in recording order: :func:`recorded_order`). A pattern that
-    matches nothing, a channel in two signals, or a signal named like a channel is a
-    :class:`ConfigError`."""
+    """``[signals]`` (name, channel name patterns) as exact channel names: the patterns'
+    order, and the channels one pattern matches in the order of ``channels``. A run records its
+    signals as exact names in time order, which this keeps whatever order ``channels`` (the
+    model's) lists them in; training sorts a config's patterns' channels into recording order
+    (:func:`recorded_order`). A pattern that matches nothing, a channel in two signals, or a
+    signal named like a channel is a :class:`ConfigError`."""
     out, owner = [], {}
     for name, pats in patterns:
         if name in channels:

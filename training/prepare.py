@@ -111,10 +111,14 @@ def prepare(takes: list[Take], classes: tuple[str, ...], channels: tuple[str, ..
                  f"{'s' * (len(partial) > 1)} {', '.join(partial)}: read as plain channels at "
                  f"{takes[0].info.sample_rate_hz:g} Hz, not as the signal (select all of them to "
                  "read it at its own rate)")
-    order = recorded_order(takes, channels)  # a signal's sub-samples in time order
+    order = recorded_order(takes, channels)  # a signal's sub-samples in recording order
+
+    def given() -> tuple:  # the config's [signals] patterns: their channels in recording order
+        return tuple((n, tuple(sorted(c, key=order.index)))
+                     for n, c in resolve_signals(cfg.signals, order))
+
     if cfg.modalities:  # the high-rate signals as exact names, then the layout (fail early)
-        signals = (resolve_signals(cfg.signals, order) if cfg.signals
-                   else signals_of_takes(takes, channels))
+        signals = given() if cfg.signals else signals_of_takes(takes, channels)
         cfg = cfg.replace(channels=channels, signals=literal_signals(signals))
         layout = resolve(cfg, channels, takes[0].info.sample_rate_hz)
         log.info("modalities: " + "; ".join(
@@ -123,8 +127,7 @@ def prepare(takes: list[Take], classes: tuple[str, ...], channels: tuple[str, ..
     else:
         cfg = cfg.replace(channels=channels)
         if cfg.model == "linear" or cfg.front == "spectral":  # signals at their own rate
-            signals = (resolve_signals(cfg.signals, order) if cfg.signals
-                       else signals_of_takes(takes, channels))
+            signals = given() if cfg.signals else signals_of_takes(takes, channels)
             if signals:
                 cfg = cfg.replace(signals=literal_signals(signals))
                 log.info("high-rate signals: " + "; ".join(
