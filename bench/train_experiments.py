@@ -25,7 +25,7 @@ import torch
 from tactile.device.recordings import import_hapmat, load_dataset
 from tactile.device.sim import make_dataset
 from tactile.training.config import TrainConfig
-from tactile.training.data import channel_index, classes_of, split_windows
+from tactile.training.data import classes_of, pick_channels, split_windows
 from tactile.training.overrides import parse_sets
 from tactile.training.train import train
 
@@ -116,7 +116,7 @@ def band_logistic(data: Path, cfg: TrainConfig, l2: float = 1e-3) -> dict:
     torch.manual_seed(cfg.seed)
     takes = load_dataset(data)
     classes = classes_of(takes)
-    channels = tuple(takes[0].channels[i] for i in channel_index(takes[0], cfg.channels))
+    channels = pick_channels(takes[0], cfg.channels)
     rate = takes[0].info.sample_rate_hz
     _, parts = split_windows(takes, classes, channels, cfg)
     feats = {k: band_energies(w.x, rate) for k, w in parts.items()}

@@ -28,14 +28,7 @@ import numpy as np
 import onnx
 
 from tactile.device.recordings import load_dataset
-from tactile.postprocess.calibration import (
-    FIRST_TRAINING,
-    LABELLED_BY,
-    MAX_UNCERTAIN,
-    calibrate,
-    refusal,
-    summary_line,
-)
+from tactile.postprocess.calibration import summary_line
 from tactile.postprocess.metrics import WindowStream
 from tactile.postprocess.smoothing import settings_to_metadata
 from tactile.postprocess.streams import Piece, SampleStream, make_streams, shortfall, window_stream
@@ -43,6 +36,7 @@ from tactile.runtime.model import Model
 from tactile.runtime.stream import Stream
 from tactile.training.label_stream import (
     IN_SAMPLE,
+    calibration,
     in_sample,
     pieces,
     stored_streams,
@@ -108,10 +102,7 @@ def calibrate_file(final: onnx.ModelProto, ck: dict, cfg, data: Path | None, log
         warn(f"tactile-export: no label stream defaults in the file (it runs raw): too little "
              f"validation data ({why})")
         return None
-    cal = calibrate(streams, max_uncertain=MAX_UNCERTAIN)
-    if held is not None:
-        cal.figures[LABELLED_BY] = FIRST_TRAINING
-    why = refusal(cal)
+    cal, why = calibration(streams, held is not None)
     if why:
         warn(f"tactile-export: no label stream defaults in the file (it runs raw): on the "
              f"validation streams {why}")

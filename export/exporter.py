@@ -18,8 +18,7 @@ from pathlib import Path
 import onnx
 
 from tactile import checksum
-from tactile.cli import FULL_DISK
-from tactile.errors import ConfigError, ModelContractError, OutputError
+from tactile.errors import ConfigError, ModelContractError
 from tactile.export.calibrate import calibrate_file
 from tactile.export.check import load_contract
 from tactile.export.custom_ops import custom_nodes, custom_ops_key
@@ -29,6 +28,7 @@ from tactile.export.parity import Parity, ParityError, compare, compare_on_kerne
 from tactile.export.quantize import latency_ms, quantize_int8
 from tactile.export.session import native_available
 from tactile.export.windows import probe_windows
+from tactile.files import output_error
 from tactile.training.checkpoint import load_checkpoint
 
 
@@ -85,12 +85,12 @@ def export_run(run_dir: Path, out: Path, data: Path | None = None, int8: bool = 
         with tempfile.NamedTemporaryFile(dir=out.parent, suffix=".onnx", delete=False) as tmp:
             tmp_path = Path(tmp.name)
     except OSError as e:  # the folder went away or filled up since output_file looked
-        raise _not_written(f"-o {out}: cannot write in {out.parent}", e) from None
+        raise output_error(f"-o {out}: cannot write in {out.parent}", e) from None
     try:
         try:
             tmp_path.write_bytes(checksum.seal(final.SerializeToString()))
         except OSError as e:  # a full disk: named as the file it was to be
-            raise _not_written(f"-o {out}: cannot be written", e) from None
+            raise output_error(f"-o {out}: cannot be written", e) from None
         try:  # the written file honours the contract, or nothing is written
             load_contract(tmp_path)
         except ModelContractError as e:  # named as the file it was to be, not the temp file
@@ -122,12 +122,6 @@ def output_file(out: Path) -> Path:
     except OSError as e:
         raise ConfigError(f"-o {out}: cannot write in {out.parent} ({e.strerror or e})") from None
     return out
-
-
-def _not_written(what: str, e: OSError) -> Exception:
-    """A full disk (exit 4: freeing space may be all it takes), else a path that cannot take
-    the file (exit 1, as :func:`output_file` says before any work)."""
-    return (OutputError if e.errno in FULL_DISK else ConfigError)(f"{what} ({e.strerror or e})")
 
 
 def _require(p: Parity, what: str) -> None:

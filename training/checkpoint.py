@@ -20,8 +20,9 @@ import torch
 
 import tactile
 from tactile.device.recordings import Take
-from tactile.errors import RecordingError, TactileError
+from tactile.errors import ConfigError, RecordingError, TactileError
 from tactile.files import write_whole
+from tactile.postprocess.metrics import WindowStream
 from tactile.training.config import TrainConfig
 from tactile.training.models import build_model
 
@@ -215,7 +216,7 @@ def check_checkpoint(ck: dict, path: Path) -> TrainConfig:
         ("state_dict", isinstance(ck.get("state_dict"), dict) and all(
             isinstance(k, str) and isinstance(v, torch.Tensor)
             for k, v in ck["state_dict"].items()), "a table of tensors"),
-        ("held_out_streams", _streams(ck.get("held_out_streams", []), len(ck["classes"])),
+        ("held_out_streams", _streams(ck.get("held_out_streams", []), ck["classes"]),
          "a list of streams (t: finite, non-decreasing times; truth: class indices; probs: "
          "0..1, one column a class; one length, at least 1)"),
     ]
@@ -231,22 +232,24 @@ def check_checkpoint(ck: dict, path: Path) -> TrainConfig:
     return cfg
 
 
-def _streams(v: object, k: int) -> bool:
-    """``held_out_streams``: a list of streams, each {t (N,) finite, non-decreasing window
-    times; truth (N,) class indices 0..k-1; probs (N, k) in [0, 1]}, N >= 1."""
-    def ok(s) -> bool:
+def _streams(v: object, classes: list[str]) -> bool:
+    """``held_out_streams``: a list of streams {t, truth, probs} (tensors) that make
+    :class:`~tactile.postprocess.metrics.WindowStream` s of ``classes`` (which checks lengths,
+    times and class indices), their probabilities in [0, 1]."""
+    if not isinstance(v, list):
+        return False
+    for s in v:
         if not (isinstance(s, dict) and all(isinstance(s.get(x), torch.Tensor)
                                             for x in ("t", "truth", "probs"))):
             return False
-        t, truth, p = s["t"], s["truth"], s["probs"]
-        return (t.ndim == 1 and len(t) >= 1 and truth.shape == t.shape
-                and p.shape == (len(t), k) and t.is_floating_point()
-                and p.is_floating_point() and not truth.is_floating_point()
-                and bool(torch.isfinite(t).all()) and bool((t[1:] >= t[:-1]).all())
-                and bool(((truth >= 0) & (truth < k)).all())
-                and bool(((p >= 0) & (p <= 1)).all()))  # (False for NaN too)
-
-    return isinstance(v, list) and all(ok(s) for s in v)
+        p = s["probs"]
+        if not (p.is_floating_point() and bool(((p >= 0) & (p <= 1)).all())):  # (NaN: no)
+            return False
+        try:
+            WindowStream(s["t"].numpy(), s["truth"].numpy(), p.numpy(), tuple(classes))
+        except ConfigError:
+            return False
+    return True
 
 
 def load_checkpoint(run_dir: Path):

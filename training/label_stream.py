@@ -26,6 +26,7 @@ from tactile.postprocess.calibration import (
     HELD_OUT,
     LABELLED_BY,
     MAX_UNCERTAIN,
+    Calibration,
     calibrate,
     refusal,
 )
@@ -92,8 +93,20 @@ def in_sample(ck: dict) -> bool:
     """Whether a run's final model refit on its validation takes and the checkpoint keeps no
     held-out labels of them (saved before runs kept them): its own labels are in-sample."""
     m = ck.get("metrics") or {}
-    return stored_streams(ck) is None and bool(m.get("refit_epochs")) and \
+    return not ck.get("held_out_streams") and bool(m.get("refit_epochs")) and \
         m.get("refit_kept") is not False
+
+
+def calibration(streams: list[WindowStream], held: bool) -> tuple[Calibration, str | None]:
+    """The setting :func:`~tactile.postprocess.calibration.calibrate` picks on validation
+    ``streams`` within a file's limits (``held``: the first training's labels, said in its
+    figures), and why a file would not carry it
+    (:func:`~tactile.postprocess.calibration.refusal`; None: it would): tactile-export's rule,
+    which tactile-eval follows."""
+    cal = calibrate(streams, max_uncertain=MAX_UNCERTAIN)
+    if held:
+        cal.figures[LABELLED_BY] = FIRST_TRAINING
+    return cal, refusal(cal)
 
 
 def group_of(take) -> str:
@@ -175,7 +188,7 @@ def stream_figures(model, ck: dict, takes: list, folder: str,
         return run_streams(pieces(takes, rows, classes, channels, rate), classes, rate,
                            cfg.window, cfg.hop, predict, seed)
 
-    calibration, source = None, "given"
+    seen, source = None, "given"
     if settings is None:
         rows, why = validation_rows(takes, ck, cfg, folder)
         streams, held = [], stored_streams(ck)
@@ -185,23 +198,20 @@ def stream_figures(model, ck: dict, takes: list, folder: str,
         if why:
             settings, source = FALLBACK, f"not calibrated: {why}"
         else:
-            cal = calibrate(streams, max_uncertain=MAX_UNCERTAIN)
-            settings, calibration = cal.settings, cal.figures
-            if held is not None:
-                calibration = {**calibration, LABELLED_BY: FIRST_TRAINING}
+            cal, refused = calibration(streams, held is not None)
+            settings, seen = cal.settings, cal.figures
             n = len(streams)
             source = (f"calibrated on the run's validation takes: {n} stream"
                       f"{'s' if n != 1 else ''}, {sum(s.minutes for s in streams):.1f} min"
                       + (f", {HELD_OUT}" if held is not None else
                          f", {IN_SAMPLE}" if in_sample(ck) else ""))
-            refused = refusal(cal)
             if refused:  # tactile-export's rule: then the file carries no defaults
                 settings = SmoothingSettings()
                 source += f"; {refused}: raw, as tactile-export leaves the file"
     test_streams = streams_of(test_rows)
     if not test_streams:
         raise ConfigError("label stream: no test stream as long as one window")
-    return {"setting": settings.describe(), "source": source, "calibration": calibration,
+    return {"setting": settings.describe(), "source": source, "calibration": seen,
             "streams": len(test_streams), "dwell_s": DWELL_S,
             **compare(test_streams, settings)}
 
@@ -235,6 +245,6 @@ def stream_table(f: dict) -> str:
     return "\n".join(lines)
 
 
-__all__ = ["FALLBACK", "IN_SAMPLE", "group_of", "in_sample", "pieces", "run_streams",
+__all__ = ["FALLBACK", "IN_SAMPLE", "calibration", "group_of", "in_sample", "pieces", "run_streams",
            "stored_streams", "stream_figures", "stream_table", "stream_windows", "take_pieces",
            "validation_rows"]

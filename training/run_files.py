@@ -10,7 +10,6 @@ from __future__ import annotations
 
 import contextlib
 import copy
-import io
 import json
 from pathlib import Path
 
@@ -18,7 +17,7 @@ import numpy as np
 import torch
 
 from tactile.errors import ConfigError, OutputError
-from tactile.files import write_whole
+from tactile.files import figure_bytes, write_whole
 from tactile.training.checkpoint import CHECKPOINT, plain, save_checkpoint
 from tactile.training.config import TrainConfig
 from tactile.training.evaluate import per_take, predict, shifted, summary, table
@@ -126,7 +125,7 @@ def plots(history: dict, metrics: dict, classes: tuple[str, ...]) -> dict[str, b
         a.axvline(best, color="tab:red", linestyle="--", linewidth=1, label=f"best epoch {best}")
     ax[0].legend()
     fig.tight_layout()
-    pictures = {"curves.png": _png(fig)}
+    pictures = {"curves.png": figure_bytes(fig, "png", 100)}
     plt.close(fig)
     counts = np.array(metrics["confusion"])
     norm = np.array(metrics["confusion_normalised"])
@@ -141,15 +140,9 @@ def plots(history: dict, metrics: dict, classes: tuple[str, ...]) -> dict[str, b
     ax.set(xlabel="estimated class", ylabel="label of input data",
            title=f"test accuracy {metrics['accuracy']:.3f} (share of row, window count)")
     fig.tight_layout()
-    pictures["confusion.png"] = _png(fig)
+    pictures["confusion.png"] = figure_bytes(fig, "png", 100)
     plt.close(fig)
     return pictures
-
-
-def _png(fig) -> bytes:
-    buf = io.BytesIO()
-    fig.savefig(buf, format="png", dpi=100)
-    return buf.getvalue()
 
 
 __all__ = ["test_metrics", "run_metrics", "held_out_streams", "write_run", "plots"]

@@ -120,8 +120,7 @@ def train(data: Path, out: Path, cfg: TrainConfig, progress: bool = True, *,
             threads=threads, device=str(device), processes=dist.world, seed=cfg.seed,
             interrupted=False,
         ), robustness=True)
-        held = (held_out_streams(model, ctx.fit_best, prep)
-                if history.get("refit_kept") and ctx.fit_best is not None else None)
+        held = held_out_streams(model, ctx.fit_best, prep) if history.get("refit_kept") else None
         write_run(out, cfg, model, metrics, history, prep, held)
         (out / RESUME).unlink(missing_ok=True)  # finished: nothing left to resume
     return metrics

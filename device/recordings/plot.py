@@ -7,7 +7,6 @@ module does not need it.
 
 from __future__ import annotations
 
-import io
 from pathlib import Path
 
 import numpy as np
@@ -15,7 +14,7 @@ import numpy as np
 from tactile.device.recordings.reader import load_dataset
 from tactile.device.recordings.summary import summarise
 from tactile.device.recordings.take import Take
-from tactile.files import write_whole
+from tactile.files import figure_bytes, write_whole
 
 LEGEND_MAX = 8
 """A panel with more channels than this names them in its label instead of a legend."""
@@ -115,10 +114,9 @@ def _save(fig, out: Path) -> None:
     ``out``, exit 4, and no cut-short image; matplotlib writing into the file left one)."""
     import matplotlib.pyplot as plt
 
-    buf = io.BytesIO()
-    fig.savefig(buf, format=out.suffix.lstrip(".").lower(), dpi=110)
+    data = figure_bytes(fig, out.suffix.lstrip(".").lower(), 110)
     plt.close(fig)
-    write_whole(out, buf.getbuffer())
+    write_whole(out, data)
 
 
 __all__ = ["LEGEND_MAX", "image_formats", "panels", "plot_summary", "plot_take"]

@@ -31,29 +31,13 @@ from tactile.device.recordings.take import (
 )
 from tactile.device.recordings.take_meta import FORMAT, VERSION
 from tactile.errors import ConfigError, RecordingError
-
-
-def _write_all(fd: int, data: bytes) -> None:
-    """``os.write`` until all of ``data`` is written (a regular file may take part of it)."""
-    view = memoryview(data)
-    while view:
-        view = view[os.write(fd, view):]
+from tactile.files import replace_file
+from tactile.files import write_all as _write_all
 
 
 def _replace_file(path: Path, text: str) -> None:
-    """Write ``text`` to ``path`` atomically (a temporary file, fsynced, then renamed)."""
-    tmp = path.with_name(path.name + ".tmp")
-    fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o644)
-    try:
-        try:
-            _write_all(fd, text.encode("utf-8"))
-            os.fsync(fd)
-        finally:
-            os.close(fd)
-        os.replace(tmp, path)
-    except OSError:
-        tmp.unlink(missing_ok=True)
-        raise
+    """Write ``text`` to ``path`` atomically (:func:`tactile.files.replace_file`)."""
+    replace_file(path, text.encode("utf-8"))
 
 
 class TakeWriter:

@@ -14,9 +14,9 @@ from tactile.device.sim.simlink import LinkConfig, PenLink
 from tactile.errors import ConfigError
 
 
-def serve_pty(config: LinkConfig, out=None) -> None:
+def serve_pty(config: LinkConfig) -> None:
     """Stream the pen on a new pseudo-terminal until SIGINT/SIGTERM or ``seconds`` ran out;
-    its path is printed on ``out`` (default: stdout as it is at the call)."""
+    its path is printed on stdout (as it is at the call)."""
     if config.unplug:
         raise ConfigError("unplug is only simulated on sim:// ports (a pty cannot vanish)")
     if math.isinf(config.speed):
@@ -24,7 +24,7 @@ def serve_pty(config: LinkConfig, out=None) -> None:
     master, slave = os.openpty()
     tty.setraw(slave)
     os.set_blocking(master, False)
-    print(os.ttyname(slave), file=out if out is not None else sys.stdout, flush=True)
+    print(os.ttyname(slave), file=sys.stdout, flush=True)
     link = PenLink(config)
     stop = {"flag": False}
     for s in (signal.SIGINT, signal.SIGTERM):
