@@ -49,8 +49,9 @@ torch.set_num_threads(1)
 
 SMALL_EMD = {"emd_imfs": 2, "emd_sifts": 3, "emd_channels": ("accel_z",)}
 GRID = {  # name -> TrainConfig overrides: EMD on/off, layers 1/2, hidden 8/16, both state
-    # modes, window 50/30, the linear head and ensembles of two
+    # modes, window 50/30, the linear head, ensembles of two and the LSTM without the blend
     "lstm1": {"layers": 1},
+    "lstm1-alone": {"layers": 1, "blend": "off"},  # the LSTM alone: its every weight counts
     "lstm2-emd": {"layers": 2, **SMALL_EMD},
     "lstm1-h16-w30": {"layers": 1, "hidden": 16, "window": 30, "hop": 10},
     "carry1": {"layers": 1, "state": "carry", "hop": 50, "carry_steps": 2},
@@ -325,9 +326,11 @@ def test_export_fails_on_broken_parity(dataset, root, capsys, monkeypatch):
 
     def perturbed(model):
         g = build_graph(model)
-        w = max(g.graph.initializer, key=lambda t: np.prod(t.dims))  # the largest weight
-        arr = onnx.numpy_helper.to_array(w) + 0.5
-        w.CopyFrom(onnx.numpy_helper.from_array(arr.astype(np.float32), w.name))
+        for w in g.graph.initializer:  # every weight of the LSTM and of the regression
+            if w.data_type == onnx.TensorProto.FLOAT and ("LSTM" in w.name
+                                                          or "coef" in w.name):
+                arr = onnx.numpy_helper.to_array(w) * 2 + 0.5
+                w.CopyFrom(onnx.numpy_helper.from_array(arr.astype(np.float32), w.name))
         return g
 
     monkeypatch.setattr(cli, "build_graph", perturbed)
@@ -505,7 +508,7 @@ def test_a_damaged_copy_is_refused_by_its_checksum(dataset, root, tmp_path, caps
     from tactile.runtime.commands.run import main as run_main
     from tactile.runtime.model import Model
 
-    _, out, _, _, _ = _build("lstm1", GRID["lstm1"], dataset, root)
+    _, out, _, _, _ = _build("lstm1-alone", GRID["lstm1-alone"], dataset, root)
     data = out.read_bytes()
     proto = onnx.load_model_from_string(data)
     meta = {p.key: p.value for p in proto.metadata_props}
@@ -956,17 +959,18 @@ def test_export_without_validation_data_writes_no_defaults(dataset, root, tmp_pa
 
 def test_a_setting_that_labels_fewer_windows_right_than_raw_is_not_written(
         calibrated_export, tmp_path, monkeypatch, capsys):
-    """A grid whose only setting leaves nearly every window uncertain (p_min 0.999): the
-    calibration picks it, but it labels fewer windows right than the raw stream, so the file
-    gets no defaults and runs raw, and one stderr line says why."""
+    """A grid whose only setting leaves windows uncertain (p_min 0.999) where no window may be
+    (the limit set to 0 here: outside the limits): the calibration picks it, but it labels
+    fewer windows right than the raw stream, so the file gets no defaults and runs raw, and one
+    stderr line says why."""
     import tactile.training.label_stream as cal_module  # export's rule lives there
     from tactile.postprocess.calibration import calibrate
     from tactile.postprocess.smoothing import SmoothingSettings
     from tactile.runtime.model import Model
 
     cautious = SmoothingSettings(n=1, p_min=0.999, hold=3)
-    monkeypatch.setattr(cal_module, "calibrate",
-                        lambda streams, **limits: calibrate(streams, (cautious,), **limits))
+    monkeypatch.setattr(cal_module, "calibrate", lambda streams, **limits: calibrate(
+        streams, (cautious,), **{**limits, "max_uncertain": 0.0}))
     run, _, _, data = calibrated_export
     capsys.readouterr()
     report = export_run(run, tmp_path / "raw.onnx", data=data, log=lambda s: None)

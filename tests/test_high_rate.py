@@ -100,15 +100,15 @@ def test_a_declared_signal_changes_the_input_layout():
     high = _model(TrainConfig(channels=CHANNELS, signals=SIGNAL))
     nb = len(band_bins(20 * R // 2 + 1))
     k = 20 // 2 + 1  # the plain front's bins
-    assert plain.head.lstm.input_size == len(CHANNELS) * (k + 1)
-    assert high.head.lstm.input_size == (len(CHANNELS) - R) * (k + 1) + nb + 1
+    assert plain.head.recurrent.lstm.input_size == len(CHANNELS) * (k + 1)
+    assert high.head.recurrent.lstm.input_size == (len(CHANNELS) - R) * (k + 1) + nb + 1
     x = torch.randn(3, 50, len(CHANNELS))
     for m in (plain.eval(), high.eval()):
         p, _, _ = m(x, *m.zero_state(3))
         assert p.shape == (3, 5) and torch.allclose(p.sum(1), torch.ones(3))
     # the model's input is still (B, T, C) frames: the signal's channels are a reshape away
     none = _model(TrainConfig(channels=CHANNELS, signals=SIGNAL, front="none"))
-    assert none.head.lstm.input_size == len(CHANNELS)
+    assert none.head.recurrent.lstm.input_size == len(CHANNELS)
 
 
 def biotac_takes(tmp_path, objects=("cork", "glass_bottle"), frames: int = 120):
@@ -142,7 +142,7 @@ def test_a_biotac_take_trains_and_exports_with_parity(tmp_path, capsys):
     model, ck = load_checkpoint(run)
     assert len(ck["channels"]) == 88
     assert [n for n, _ in ck["config"]["signals"].items()] == ["f0_pac", "f1_pac"]
-    assert len(model.head.high) == 1 and model.head.high[0].n_signals == 2
+    assert len(model.head.recurrent.high) == 1 and model.head.recurrent.high[0].n_signals == 2
     out = tmp_path / "model.onnx"
     report = export_run(run, out, log=lambda s: None)
     assert report["parity"]["passed"]

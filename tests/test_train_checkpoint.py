@@ -41,9 +41,9 @@ def _shrink_weight(ck):
 
 
 def _nan_weight(ck):
-    w = ck["state_dict"]["head.out.weight"].clone()
+    w = ck["state_dict"]["head.recurrent.out.weight"].clone()
     w[0, 0] = float("nan")
-    ck["state_dict"]["head.out.weight"] = w
+    ck["state_dict"]["head.recurrent.out.weight"] = w
 
 
 CASES = [  # (change, the key the message must name)
@@ -71,7 +71,7 @@ CASES = [  # (change, the key the message must name)
     (lambda ck: ck.__setitem__("classes", [ck["classes"][0]] * 2), "'classes'"),
     (lambda ck: ck.__setitem__("channels", [ck["channels"][0]] * len(ck["channels"])),
      "'channels'"),
-    (_nan_weight, "'state_dict': head.out.weight holds NaN or inf"),
+    (_nan_weight, "'state_dict': head.recurrent.out.weight holds NaN or inf"),
     (_set("held_out_streams", "all"), "'held_out_streams'"),
     (_set("held_out_streams", [{"t": torch.zeros(3), "truth": torch.zeros(2, dtype=torch.long),
                                 "probs": torch.zeros(3, 2)}]), "'held_out_streams'"),
@@ -112,7 +112,7 @@ def test_damaged_bytes_in_a_weight_are_refused(good, tmp_path, capsys):
     path = tmp_path / "checkpoint.pt"
     torch.save(ck, path)
     raw = bytearray(path.read_bytes())
-    w = ck["state_dict"]["head.out.weight"].numpy().tobytes()
+    w = ck["state_dict"]["head.recurrent.out.weight"].numpy().tobytes()
     at = bytes(raw).find(w)  # the weight's bytes, stored as they are
     assert at > 0
     raw[at : at + 4] = bytes(b ^ 0xFF for b in raw[at : at + 4])
@@ -172,7 +172,7 @@ def test_a_checkpoint_saved_before_the_wide_path_loads_without_it(tmp_path):
     for wide in (False, True):
         run = tmp_path / f"run-{wide}"
         train(data, run, TrainConfig(epochs=1, hidden=4, layers=1, threads=1, wide=wide,
-                                     ensemble=1), progress=False)
+                                     ensemble=1, blend="off"), progress=False)  # as then
         ck = torch.load(run / "checkpoint.pt", weights_only=True)
         assert any(k.startswith("head.wide.") for k in ck["state_dict"]) == wide
         del ck["config"]["wide"]
@@ -194,7 +194,7 @@ def test_a_checkpoint_saved_before_ensembles_loads_as_one_model(tmp_path):
     for members in (1, 2):
         run = tmp_path / f"run-{members}"
         train(data, run, TrainConfig(epochs=1, hidden=4, layers=1, threads=1,
-                                     ensemble=members), progress=False)
+                                     ensemble=members, blend="off"), progress=False)  # as then
         ck = torch.load(run / "checkpoint.pt", weights_only=True)
         assert any(k.startswith("head.members.1.") for k in ck["state_dict"]) == (members == 2)
         model, _ = load_checkpoint(run)

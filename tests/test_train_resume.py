@@ -432,20 +432,23 @@ def test_a_state_saved_before_select_existed_keeps_stopping_on_the_loss(dataset,
     assert TrainConfig.from_dict(load_resume(run)["config"]).select == "loss"
 
 
-def test_a_state_saved_before_the_wide_path_and_ensembles_goes_on_as_one_plain_model(
+def test_a_state_saved_before_the_wide_path_ensembles_and_blend_goes_on_as_one_plain_model(
         dataset, tmp_path):
     run = tmp_path / "r"
-    cfg = TrainConfig(**{**SMALL, "epochs": 3, "patience": 3, "wide": False, "ensemble": 1})
+    cfg = TrainConfig(**{**SMALL, "epochs": 3, "patience": 3, "wide": False, "ensemble": 1,
+                         "blend": "off"})
     assert train(dataset, run, cfg, progress=False, on_epoch=sigint_after("fit", 1))[
         "interrupted"]
     saved = torch.load(run / RESUME, weights_only=True)
-    del saved["config"]["wide"], saved["config"]["ensemble"]
+    del saved["config"]["wide"], saved["config"]["ensemble"], saved["config"]["blend"]
     torch.save(saved, run / RESUME)
     old = TrainConfig.from_dict(load_resume(run)["config"])
-    assert old.wide is False and old.ensemble == 1
+    assert old.wide is False and old.ensemble == 1 and old.blend == "off"
     assert train_main(["--resume", str(run), "--quiet"]) == 0
     model, ck = load_checkpoint(run)
     assert model.head.wide is None and ck["config"]["wide"] is False
+    assert ck["config"]["blend"] == "off" and "blend" not in json.loads(
+        (run / "metrics.json").read_text())
     assert ck["config"]["ensemble"] == 1 and model.state_shape == (2, 12)
 
 

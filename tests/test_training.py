@@ -306,10 +306,17 @@ def test_refit_failed_judges_the_refit_by_the_first_trainings_progress():
 
 def test_a_refit_that_learned_nothing_is_not_kept(dataset, tmp_path, monkeypatch, capsys):
     """A refit whose training loss stays near where training starts (here: made so by zeroing
-    its weights) ships the first training's validated best weights, says so, and records it."""
+    its weights) ships the first training's validated best weights, says so, and records it;
+    with them the regression blended with the first model (solved on the training windows),
+    not the one the refit solved again."""
     import tactile.training.loop as tr
 
-    real, first = tr.train_head, {}
+    real, first, refitted = tr.train_head, {}, {}
+    real_refit = tr.blend.refit
+
+    def spy_refit(model, *args):
+        real_refit(model, *args)
+        refitted.update({k: v.clone() for k, v in model.head.regression.state_dict().items()})
 
     def sabotage(model, w, f_all, n_epochs, ctx, val=None, resume=None):
         history = real(model, w, f_all, n_epochs, ctx, val, resume)
@@ -323,13 +330,18 @@ def test_a_refit_that_learned_nothing_is_not_kept(dataset, tmp_path, monkeypatch
         return {**history, "train_loss": [1.6] * n_epochs}
 
     monkeypatch.setattr(tr, "train_head", sabotage)
+    monkeypatch.setattr(tr.blend, "refit", spy_refit)
     cfg = TrainConfig(epochs=4, hidden=8, layers=1, threads=1, patience=10, refit="on")
     m = train(dataset, tmp_path / "run", cfg, progress=False)
     assert m["refit_kept"] is False and m["refit_epochs"] == 4
     assert "refit not kept" in capsys.readouterr().err
     model, _ = load_checkpoint(tmp_path / "run")
     for k, v in model.head.state_dict().items():
-        torch.testing.assert_close(v, first[k], rtol=0, atol=0)
+        if k.startswith("recurrent."):  # the LSTM: its first training's best epoch
+            torch.testing.assert_close(v, first[k], rtol=0, atol=0)
+    assert float(model.head.mix) == m["blend"]["mix"]
+    coef = model.head.regression.coef
+    assert coef.abs().max() > 0 and not torch.equal(coef, refitted["coef"])
 
 
 def test_eval_recognises_the_test_split_by_content_not_by_name(trained, dataset, tmp_path,

@@ -35,8 +35,8 @@ RESUME_VERSION = 1
 RUN_FILES = (CHECKPOINT, RESUME, "metrics.json")  # a folder holding one of these is a run
 # what a saved config without these keys meant (they came later, or their default changed):
 # the model before front ends, without the wide path, one model (no ensemble), stopped on the
-# validation loss
-SAVED_BEFORE = {"front": "none", "wide": False, "select": "loss", "ensemble": 1}
+# validation loss, no blended regression
+SAVED_BEFORE = {"front": "none", "wide": False, "select": "loss", "ensemble": 1, "blend": "off"}
 OLD_F_RNN = "an F-RNN saved before its input scale replaced batch normalisation: train it again"
 
 

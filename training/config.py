@@ -29,6 +29,7 @@ STATE_MODES = ("window", "carry")
 SPLITS = ("user", "take", "time")
 SCHEDULES = ("constant", "plateau", "cosine")
 REFITS = ("auto", "on", "off")
+BLENDS = ("auto", "off")
 SELECTS = ("loss", "accuracy")
 DEVICES = ("auto", "cpu", "cuda")
 MAX_AUTO_THREADS = 4
@@ -180,7 +181,12 @@ class TrainConfig:
     its logits, a direct path for the window's spectrum and levels; ``ensemble`` (default 1):
     that many such models, each from its own initial weights, trained side by side on the same
     batches, each on its own loss, whose probabilities are averaged: what is validated, kept
-    and exported) or
+    and exported; ``blend``: ``auto`` (default) solves a logistic regression on whole-window
+    features of the channels (mean, log standard deviation, log band energies) on all
+    training windows at once, ``C`` chosen on the validation windows, and mixes its
+    log-probabilities with the LSTM's at the weight that labels the most validation windows
+    right (0 keeps the LSTM alone), the refit solving it again on training + validation
+    windows; ``off``: the LSTM alone) or
     ``linear`` (a linear classifier on the log energies of the IMFs, the granular-media paper's
     baseline; needs ``emd_channels``).
     The granular-media paper's models (``docs/granular.md``) work on ``modalities``, one
@@ -229,6 +235,7 @@ class TrainConfig:
     dropout: float = 0.4
     wide: bool = True
     ensemble: int = 1
+    blend: str = "auto"
     state: str = "window"
     carry_steps: int = 8
     epochs: int = 150
@@ -278,6 +285,7 @@ class TrainConfig:
             (self.select in SELECTS, f"select must be one of {', '.join(SELECTS)}",
              ("select",)),
             (self.refit in REFITS, f"refit must be one of {', '.join(REFITS)}", ("refit",)),
+            (self.blend in BLENDS, f"blend must be one of {', '.join(BLENDS)}", ("blend",)),
             (1 <= self.layers <= MAX_LAYERS and 1 <= self.hidden <= MAX_HIDDEN,
              f"layers must be 1..{MAX_LAYERS} and hidden 1..{MAX_HIDDEN}", ("layers", "hidden")),
             (0 <= self.dropout < 1, "dropout must be in [0, 1)", ("dropout",)),
@@ -399,7 +407,8 @@ def unused(cfg: TrainConfig) -> list[str]:
     otherwise say nothing of them."""
     base = TrainConfig()
     rules = [  # (keys, when they are not read, why)
-        (("front", "frame", "frame_hop", "wide"), cfg.model != "lstm", "only model='lstm'"),
+        (("front", "frame", "frame_hop", "wide", "blend"), cfg.model != "lstm",
+         "only model='lstm'"),
         (("frame", "frame_hop"), cfg.model == "lstm" and cfg.front != "spectral",
          "only front='spectral'"),
         (("hidden", "layers", "dropout"), cfg.model in ("linear", "sparse_linear"),
@@ -495,5 +504,6 @@ def resolve_device(device: str, cuda_available: bool | None = None) -> str:
 
 
 __all__ = ["TrainConfig", "Modality", "unused", "MODELS", "FRONTS", "STATE_MODES",
-           "SPLITS", "SCHEDULES", "SELECTS", "REFITS", "DEVICES", "signals_from", "modalities_from",
+           "SPLITS", "SCHEDULES", "SELECTS", "REFITS", "BLENDS", "DEVICES", "signals_from",
+           "modalities_from",
            "apply_threads", "resolve_threads", "resolve_device", "usable_cpus"]

@@ -25,12 +25,13 @@ from torch.optim.lr_scheduler import ReduceLROnPlateau
 from tqdm import tqdm
 
 from tactile.errors import ConfigError
+from tactile.training import blend
 from tactile.training.config import TrainConfig
 from tactile.training.data import Windows, concat
 from tactile.training.dist import Dist
 from tactile.training.evaluate import predict, runs
 from tactile.training.log import Log, Stop
-from tactile.training.model import Classifier, member_loss
+from tactile.training.model import Blend, Classifier, member_loss
 from tactile.training.resume import Live, LoopState, restore, snapshot
 from tactile.training.sampling import epoch_order
 
@@ -111,6 +112,13 @@ def fit(model: Classifier, parts: dict, feats: dict, ctx: Context,
                              val=(parts["val"], feats["val"]), resume=resume)
     else:
         history = resume["fit_history"]
+    blended = isinstance(model.head, Blend)
+    if blended and "blend" not in history:  # (a resumed refit has chosen already)
+        history["blend"] = blend.choose(model, parts, feats, ctx.dist)
+        b = history["blend"]
+        ctx.log.info(f"blended regression: C {b['c']:g}, mix {b['mix']:g}; validation "
+                     f"accuracy {b['val_acc']:.3f} (LSTM {b['recurrent_val_acc']:.3f}, "
+                     f"regression {b['regression_val_acc']:.3f})")
     if cfg.refits:
         epochs = history["best_epoch"] + 1
         ctx.fit_history, ctx.fit_best = history, copy.deepcopy(model.head.state_dict())
@@ -127,6 +135,9 @@ def fit(model: Classifier, parts: dict, feats: dict, ctx: Context,
         refit = train_head(model, concat(parts["train"], parts["val"]),
                            torch.cat([feats["train"], feats["val"]]), epochs, ctx, resume=resume)
         history["refit_epochs"] = epochs
+        if blended:
+            blend.refit(model, concat(parts["train"], parts["val"]),
+                        torch.cat([feats["train"], feats["val"]]), history["blend"], ctx.dist)
         # (a full-batch head's refit is an L-BFGS fit of a convex objective: nothing to judge)
         reason = None if full_batch(model, cfg, ctx.dist) else refit_failed(
             history["train_loss"], history["best_epoch"], refit["train_loss"])

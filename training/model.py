@@ -249,6 +249,81 @@ class LinearHead(nn.Module):
         return self.out(energy), h, c
 
 
+class WindowRegression(nn.Module):
+    """(B, T, F) features -> (B, classes) logits of a logistic regression on whole-window
+    features of the C normalised channels (the first C of F): per channel the window's mean,
+    log standard deviation and log energy of the mean-free, Hann-tapered window in
+    :data:`BANDS` equal bands up to the Nyquist frequency, standardised with the training
+    windows' statistics (a feature that does not vary there is left out). Everything is a
+    buffer: it is solved on all training windows at once (:mod:`tactile.training.blend`),
+    not trained by the loop.
+    """
+
+    BANDS = 5
+    FLOOR = 1e-8  # of variances and band energies, on the unit-variance normalised scale
+
+    def __init__(self, n_channels: int, window: int, n_classes: int) -> None:
+        super().__init__()
+        t = torch.arange(window, dtype=torch.float64)
+        k = torch.arange(window // 2 + 1, dtype=torch.float64)
+        taper = torch.hann_window(window, periodic=False, dtype=torch.float64)
+        angle = 2 * math.pi * k[:, None] * t[None, :] / window  # (K, T)
+        self.register_buffer("cos", (torch.cos(angle) * taper).float())
+        self.register_buffer("sin", (torch.sin(angle) * taper).float())
+        # bin k (k / window cycles a sample) in band b when b <= 2 BANDS k / window < b + 1
+        # (in integers: no edge lost to rounding), Nyquist's bin in the last band
+        band = torch.clamp(torch.arange(window // 2 + 1) * 2 * self.BANDS // window,
+                           max=self.BANDS - 1)
+        self.register_buffer("bands", nn.functional.one_hot(band, self.BANDS).T.float())
+        self.n_channels = n_channels
+        self.n_features = n_channels * (2 + self.BANDS)
+        self.register_buffer("feature_mean", torch.zeros(self.n_features))
+        self.register_buffer("feature_scale", torch.zeros(self.n_features))  # 1 / std, or 0
+        self.register_buffer("coef", torch.zeros(self.n_features, n_classes))
+        self.register_buffer("intercept", torch.zeros(n_classes))
+
+    def features(self, f: Tensor) -> Tensor:
+        """(B, T, F) -> (B, C * (2 + BANDS)): the means, log standard deviations, then each
+        band's log energies, every group channel by channel."""
+        z = f[:, :, : self.n_channels]
+        mean = z.mean(dim=1)  # (B, C)
+        d = z - mean.unsqueeze(1)
+        log_std = 0.5 * torch.log((d * d).mean(dim=1) + self.FLOOR)
+        d = d.transpose(1, 2)  # (B, C, T)
+        re, im = d @ self.cos.T, d @ self.sin.T  # (B, C, K)
+        energy = (re * re + im * im) @ self.bands.T  # (B, C, BANDS)
+        bands = torch.log(energy + self.FLOOR).transpose(1, 2).flatten(1)
+        return torch.cat([mean, log_std, bands], dim=1)
+
+    def forward(self, f: Tensor) -> Tensor:
+        x = (self.features(f) - self.feature_mean) * self.feature_scale
+        return x @ self.coef + self.intercept
+
+
+class Blend(nn.Module):
+    """A recurrent head and a :class:`WindowRegression`, their log-probabilities mixed:
+    ``(1 - mix) * log_softmax(head) + mix * log_softmax(regression)`` in eval mode (the
+    classifier's softmax then gives their normalised weighted geometric mean); in training
+    mode the head's own logits (the regression is solved apart). ``mix``, the regression's
+    weight (a buffer), is chosen on the validation windows (:mod:`tactile.training.blend`); 0
+    until then. The state is the head's.
+    """
+
+    def __init__(self, head: nn.Module, regression: WindowRegression) -> None:
+        super().__init__()
+        self.recurrent, self.regression = head, regression
+        self.layers, self.hidden = head.layers, head.hidden
+        self.register_buffer("mix", torch.zeros(()))
+
+    def forward(self, f: Tensor, h: Tensor, c: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+        logits, h, c = self.recurrent(f, h, c)
+        if self.training:
+            return logits, h, c
+        mixed = ((1 - self.mix) * torch.log_softmax(logits, dim=1)
+                 + self.mix * torch.log_softmax(self.regression(f), dim=1))
+        return mixed, h, c
+
+
 class Classifier(nn.Module):
     """What every model shares: ``pre`` (window -> features), ``head`` (features + state ->
     logits + state), ``n_classes`` and ``state_shape`` (set by the subclass); the zero state,
@@ -313,6 +388,9 @@ class TextureModel(Classifier):
                               signals)
                      for _ in range(cfg.ensemble)]
             self.head = heads[0] if cfg.ensemble == 1 else Ensemble(heads)
+            if cfg.blend != "off":
+                self.head = Blend(self.head, WindowRegression(self.pre.n_channels, cfg.window,
+                                                              n_classes))
         else:
             self.head = LinearHead(self.pre.n_channels, self.pre.n_emd, n_classes, signals,
                                    cfg.window)
@@ -331,7 +409,7 @@ class TextureModel(Classifier):
     def state_shape(self) -> tuple[int, int]:
         """(layers, hidden) of the state tensors (an ensemble's members' layers stacked);
         (1, 1) for the linear head."""
-        if isinstance(self.head, (LSTMHead, Ensemble)):
+        if isinstance(self.head, (LSTMHead, Ensemble, Blend)):
             return self.head.layers, self.head.hidden
         return 1, 1
 

@@ -52,6 +52,8 @@ def run_metrics(model: Classifier, prep: Prepared, feats: torch.Tensor, history:
         best_epoch=history["best_epoch"],
         val_accuracy=history_acc[history["best_epoch"]] if history_acc else None,
     )
+    if history.get("blend"):  # what was validated is the mix: its figure, and the choice
+        metrics.update(val_accuracy=history["blend"]["val_acc"], blend=history["blend"])
     metrics.update(extra)
     return metrics
 
