@@ -114,11 +114,12 @@ def fit(model: Classifier, parts: dict, feats: dict, ctx: Context,
         history = resume["fit_history"]
     blended = isinstance(model.head, Blend)
     if blended and "blend" not in history:  # (a resumed refit has chosen already)
-        history["blend"] = blend.choose(model, parts, feats, ctx.dist)
-        b = history["blend"]
+        t0 = time.process_time()
+        history["blend"] = b = blend.choose(model, parts, feats, ctx.dist)
+        b["cpu_seconds"] = round(time.process_time() - t0, 1)
         ctx.log.info(f"blended regression: C {b['c']:g}, mix {b['mix']:g}; validation "
                      f"accuracy {b['val_acc']:.3f} (LSTM {b['recurrent_val_acc']:.3f}, "
-                     f"regression {b['regression_val_acc']:.3f})")
+                     f"regression {b['regression_val_acc']:.3f}; {b['cpu_seconds']:g} s of CPU)")
     if cfg.refits:
         epochs = history["best_epoch"] + 1
         ctx.fit_history, ctx.fit_best = history, copy.deepcopy(model.head.state_dict())
@@ -136,8 +137,10 @@ def fit(model: Classifier, parts: dict, feats: dict, ctx: Context,
                            torch.cat([feats["train"], feats["val"]]), epochs, ctx, resume=resume)
         history["refit_epochs"] = epochs
         if blended:
+            t0 = time.process_time()
             blend.refit(model, concat(parts["train"], parts["val"]),
                         torch.cat([feats["train"], feats["val"]]), history["blend"], ctx.dist)
+            history["blend"]["refit_cpu_seconds"] = round(time.process_time() - t0, 1)
         # (a full-batch head's refit is an L-BFGS fit of a convex objective: nothing to judge)
         reason = None if full_batch(model, cfg, ctx.dist) else refit_failed(
             history["train_loss"], history["best_epoch"], refit["train_loss"])
