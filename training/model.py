@@ -268,8 +268,10 @@ class WindowRegression(nn.Module):
         k = torch.arange(window // 2 + 1, dtype=torch.float64)
         taper = torch.hann_window(window, periodic=False, dtype=torch.float64)
         angle = 2 * math.pi * k[:, None] * t[None, :] / window  # (K, T)
-        self.register_buffer("cos", (torch.cos(angle) * taper).float())
-        self.register_buffer("sin", (torch.sin(angle) * taper).float())
+        # (T, 2K): the tapered cosines then sines, one product for both
+        self.register_buffer("dft", (torch.cat([torch.cos(angle), torch.sin(angle)]) * taper)
+                             .T.float().contiguous())
+        self.n_bins = len(k)
         # bin k (k / window cycles a sample) in band b when b <= 2 BANDS k / window < b + 1
         # (in integers: no edge lost to rounding), Nyquist's bin in the last band
         band = torch.clamp(torch.arange(window // 2 + 1) * 2 * self.BANDS // window,
@@ -289,8 +291,8 @@ class WindowRegression(nn.Module):
         mean = z.mean(dim=1)  # (B, C)
         d = z - mean.unsqueeze(1)
         log_std = 0.5 * torch.log((d * d).mean(dim=1) + self.FLOOR)
-        d = d.transpose(1, 2)  # (B, C, T)
-        re, im = d @ self.cos.T, d @ self.sin.T  # (B, C, K)
+        y = d.transpose(1, 2) @ self.dft  # (B, C, 2K)
+        re, im = y[..., : self.n_bins], y[..., self.n_bins :]
         energy = (re * re + im * im) @ self.bands.T  # (B, C, BANDS)
         bands = torch.log(energy + self.FLOOR).transpose(1, 2).flatten(1)
         return torch.cat([mean, log_std, bands], dim=1)
