@@ -5,6 +5,7 @@ regression against scikit-learn on the run's own windows, and the mix the model 
 from __future__ import annotations
 
 import numpy as np
+import onnx
 import pytest
 import torch
 
@@ -231,3 +232,26 @@ def test_a_blended_model_exports_with_parity(dataset, run, tmp_path):
     got = np.concatenate([onnx_model.classify(w.x[i : i + 64], *onnx_model.zero_state(
         len(w.x[i : i + 64])))[0] for i in range(0, len(w), 64)])
     np.testing.assert_allclose(got, want, atol=1e-4)
+
+
+def test_a_mix_of_0_exports_the_lstm_alone_and_keeps_parity(run, tmp_path):
+    """Mix 0: the regression's nodes are left out of the graph (the same probabilities
+    without its work), the file is as small as the LSTM's and parity against the blended
+    model still holds; mix 0.5 keeps them."""
+    from tactile.export.exporter import export_run
+
+    out, _ = run
+    ck = torch.load(out / "checkpoint.pt", weights_only=True)
+    nodes, sizes = {}, {}
+    for mix in (0.0, 0.5):
+        ck["state_dict"]["head.mix"] = torch.tensor(mix)
+        folder = tmp_path / f"mix{mix}"
+        folder.mkdir()
+        torch.save(ck, folder / "checkpoint.pt")
+        report = export_run(folder, tmp_path / f"mix{mix}.onnx", log=lambda s: None)
+        assert report["parity"]["passed"]
+        graph = onnx.load(str(tmp_path / f"mix{mix}.onnx")).graph
+        nodes[mix] = [n.name for n in graph.node if "/regression/" in n.name]
+        sizes[mix] = (tmp_path / f"mix{mix}.onnx").stat().st_size
+    assert nodes[0.0] == [] and len(nodes[0.5]) > 10
+    assert sizes[0.5] - sizes[0.0] > 4 * 50 * 26 * 2  # the DFT basis alone: 2,600 floats
