@@ -41,8 +41,11 @@ def quantize_int8(model: onnx.ModelProto) -> onnx.ModelProto:
         custom = any(n.domain == CUSTOM_DOMAIN for n in model.graph.node)
         quant_pre_process(str(src), str(pre), skip_symbolic_shape=True,
                           skip_optimization=custom)
-        kept = [n.name for n in onnx.load(pre).graph.node
-                if any(scope in n.name for scope in FLOAT_SCOPES)]
+        # (the pre-process fuses a MatMul + Add into a Gemm, which the quantiser splits again
+        # into a MatMul named after it: both names are excluded)
+        kept = [name for n in onnx.load(pre).graph.node
+                if any(scope in n.name for scope in FLOAT_SCOPES)
+                for name in (n.name, f"{n.name}_MatMul")]
         quantize_dynamic(str(pre), str(out), weight_type=QuantType.QInt8,
                          op_types_to_quantize=list(QUANTIZED_OPS), nodes_to_exclude=kept)
         # the optimiser orders nodes by their explicit inputs only; a Loop or If body may read

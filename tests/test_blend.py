@@ -255,3 +255,27 @@ def test_a_mix_of_0_exports_the_lstm_alone_and_keeps_parity(run, tmp_path):
         sizes[mix] = (tmp_path / f"mix{mix}.onnx").stat().st_size
     assert nodes[0.0] == [] and len(nodes[0.5]) > 10
     assert sizes[0.5] - sizes[0.0] > 4 * 50 * 26 * 2  # the DFT basis alone: 2,600 floats
+
+
+def test_int8_keeps_the_regression_in_float32(run):
+    """``--int8`` quantises the LSTM's weights, not the regression's products (its DFT basis,
+    band sums and weights feed logs): no quantised node under the regression, and at mix 1
+    (the regression alone) the int8 graph gives the float32 model's probabilities."""
+    from tactile.export.graph import build_graph
+    from tactile.export.quantize import quantize_int8
+    from tactile.export.session import session
+
+    out, _ = run
+    model, ck = load_checkpoint(out)
+    model.head.mix.fill_(1.0)
+    q = quantize_int8(build_graph(model))
+    quantised = [n.name for n in q.graph.node if "/regression/" in n.name
+                 and n.op_type in ("MatMulInteger", "DynamicQuantizeLinear", "QLinearMatMul")]
+    assert quantised == [] and any("/regression/" in n.name for n in q.graph.node)
+    x = np.random.default_rng(0).normal(size=(16, 50, len(ck["channels"]))).astype(np.float32)
+    x = x * np.array(ck["std"], np.float32) + np.array(ck["mean"], np.float32)
+    h, c = model.zero_state(16)
+    got = session(q.SerializeToString()).run(None, {"x": x, "h": h.numpy(), "c": c.numpy()})[0]
+    with torch.no_grad():
+        want = model(torch.from_numpy(x), h, c)[0].numpy()
+    np.testing.assert_allclose(got, want, atol=1e-5)
