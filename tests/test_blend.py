@@ -18,6 +18,7 @@ from tactile.training.config import TrainConfig
 from tactile.training.data import classes_of, split_windows
 from tactile.training.evaluate import predict
 from tactile.training.model import Blend, WindowRegression
+from tactile.training.models import build_model
 from tactile.training.train import train
 
 FLOOR = WindowRegression.FLOOR
@@ -158,13 +159,18 @@ def test_the_model_outputs_the_weighted_mix(dataset, run):
 
 
 class _Fixed:
-    """``predict`` replaced: the LSTM's validation probabilities given."""
+    """``predict`` replaced: the LSTM's validation probabilities given, mixed as the model
+    mixes them at its current ``mix`` with its regression's."""
 
     def __init__(self, probs: np.ndarray) -> None:
         self.probs = probs
 
     def __call__(self, model, w, batch=512, feats=None):
-        return self.probs
+        mix = float(model.head.mix)
+        with torch.no_grad():
+            reg = torch.log_softmax(model.head.regression(feats).double(), 1)
+        lstm = torch.log(torch.from_numpy(self.probs).double() + 1e-300)
+        return torch.softmax((1 - mix) * lstm + mix * reg, 1).float().numpy()
 
 
 def test_the_weight_is_chosen_on_validation_windows(dataset, run, monkeypatch):
@@ -279,3 +285,30 @@ def test_int8_keeps_the_regression_in_float32(run):
     with torch.no_grad():
         want = model(torch.from_numpy(x), h, c)[0].numpy()
     np.testing.assert_allclose(got, want, atol=1e-5)
+
+
+def test_without_scikit_learn_the_blend_is_refused_before_training(dataset, tmp_path,
+                                                                    monkeypatch):
+    """The solver missing: one line naming the way out, before any epoch (not after a long
+    training); blend=off trains without it."""
+    import sys
+
+    monkeypatch.setitem(sys.modules, "sklearn.linear_model", None)  # import raises
+    epochs = []
+    with pytest.raises(ConfigError, match=r"blend='auto' solves its regression with "
+                       r"scikit-learn, which does not import .*or set blend=off"):
+        train(dataset, tmp_path / "r", CFG, progress=False,
+              on_epoch=lambda phase, e: epochs.append(e))
+    assert epochs == []
+    m = train(dataset, tmp_path / "off", CFG.replace(blend="off", epochs=1), progress=False)
+    assert "blend" not in m
+
+
+def test_a_carried_state_is_never_mixed_away():
+    """With state='carry' the mix stops at 0.75: at 1 the carried state would do nothing."""
+    carry = TrainConfig(state="carry", hop=50, window=50)
+    model = build_model(carry, 3, torch.zeros(4), torch.ones(4), channels=("a", "b", "c", "d"))
+    assert blend.weights(model) == (0.0, 0.25, 0.5, 0.75)
+    plain = build_model(TrainConfig(), 3, torch.zeros(4), torch.ones(4),
+                        channels=("a", "b", "c", "d"))
+    assert blend.weights(plain) == blend.WEIGHTS and blend.WEIGHTS[-1] == 1.0

@@ -122,6 +122,34 @@ def test_a_stop_in_mid_epoch_rolls_back_to_the_last_finished_epoch(dataset, tmp_
     assert_same_run(tmp_path / "full", tmp_path / "cut", full, resumed)
 
 
+def test_ctrl_c_while_the_blend_is_chosen_then_resume_ends_where_an_uninterrupted_run_does(
+        dataset, tmp_path, monkeypatch):
+    """SIGINT during the blended regression's fits (after an early stop, the first training
+    over): the run stops there, saved as its last fit epoch; the resume trains no epoch more
+    (the phase had stopped), chooses again and refits: the same run as one never stopped."""
+    import tactile.training.blend as blend
+
+    cfg = TrainConfig(**{**SMALL, "epochs": 30, "patience": 2})
+    full = train(dataset, tmp_path / "full", cfg, progress=False)
+    assert full["epochs_run"] < 30  # it stopped early
+    real, calls = blend.choose, []
+
+    def interrupted(model, parts, feats, dist, check):
+        calls.append(1)
+        if len(calls) == 1:
+            signal.raise_signal(signal.SIGINT)
+        return real(model, parts, feats, dist, check)
+
+    monkeypatch.setattr(blend, "choose", interrupted)
+    cut = train(dataset, tmp_path / "cut", cfg, progress=False)
+    assert cut["interrupted"] and cut["epochs_run"] == full["epochs_run"]
+    resumed = resume_run(tmp_path / "cut")
+    assert len(calls) == 2 and resumed["epochs_run"] == full["epochs_run"]
+    for k in ("c", "mix", "val_acc", "regression_val_acc", "recurrent_val_acc"):
+        assert resumed["blend"][k] == pytest.approx(full["blend"][k], abs=1e-9), k
+    assert_same_run(tmp_path / "full", tmp_path / "cut", full, resumed)
+
+
 @pytest.mark.parametrize("sig, exit_code", [("SIGINT", EXIT_INTERRUPTED),
                                              ("SIGTERM", EXIT_TERMINATED)])
 def test_ctrl_c_or_sigterm_in_the_command_saves_without_a_traceback_and_resume_finishes(
@@ -343,14 +371,16 @@ def test_an_unhandled_ctrl_c_in_a_torch_command_is_one_line_and_130(capsys):
 
 
 def test_sigint_after_the_last_epoch_still_saves_the_finished_run(dataset, tmp_path):
-    # without a refit, fit epoch 2 is the last
-    cfg = TrainConfig(**{**SMALL, "epochs": 2, "patience": 2, "refit": "off"})
+    # without a refit or the blend's fits (which a SIGINT stops: the test above), fit epoch 2
+    # is the last step
+    cfg = TrainConfig(**{**SMALL, "epochs": 2, "patience": 2, "refit": "off", "blend": "off"})
     m = train(dataset, tmp_path / "r", cfg, progress=False, on_epoch=sigint_after("fit", 2))
     assert m["interrupted"] is False and m["epochs_run"] == 2 and m["shifted"]["mean"] >= 0
     assert (tmp_path / "r" / "checkpoint.pt").is_file()
     assert not (tmp_path / "r" / RESUME).exists()
-    # with the default refit the last epoch is the refit's last
-    cfg = cfg.replace(refit="on")
+    # with the default refit and blend the last epoch is the refit's last (the regression's
+    # solve after it is not stopped)
+    cfg = cfg.replace(refit="on", blend="auto")
     full = train(dataset, tmp_path / "full", cfg, progress=False)
     last = full["refit_epochs"]
     seen = []

@@ -20,6 +20,7 @@ import warnings
 import numpy as np
 import torch
 
+from tactile.errors import ConfigError
 from tactile.training.evaluate import predict
 
 CS = (0.01, 0.1, 1.0, 10.0)
@@ -67,18 +68,23 @@ MAX_ITERATIONS = 2000
 
 
 def _features(regression, f: torch.Tensor, batch: int = 2048) -> torch.Tensor:
+    """(N, T, F) windows' features -> (N, F') the regression's, float64 on the CPU."""
     dev = regression.coef.device
     with torch.no_grad():
         return torch.cat([regression.features(f[i : i + batch].to(dev)).cpu()
-                          for i in range(0, len(f), batch)])
+                          for i in range(0, len(f), batch)]).double()
 
 
-def fit(regression, f: torch.Tensor, y: np.ndarray, c: float, warm: bool = False) -> None:
-    """Set ``regression``'s standardisation from the windows' features ``f`` (N, T, F) and
-    its weights to the solution for ``c`` on them (``warm``: going on from its weights)."""
-    x = _features(regression, f).double().numpy()
+def fit(regression, x: np.ndarray, y: np.ndarray, c: float, warm: bool = False,
+        left_out: np.ndarray | None = None) -> None:
+    """Set ``regression``'s standardisation from the windows' features ``x`` (N, F; its
+    ``features``) and its weights to the solution for ``c`` on them (``warm``: going on from
+    its weights). ``left_out``: features to leave out (a centred channel's mean: always 0 but
+    for rounding); so is any that does not vary."""
     mean, std = x.mean(axis=0), x.std(axis=0)
-    scale = np.where(std > 1e-6, 1.0 / np.maximum(std, 1e-6), 0.0)  # constant: left out
+    scale = np.where(std > 1e-6, 1.0 / np.maximum(std, 1e-6), 0.0)
+    if left_out is not None:
+        mean[left_out], scale[left_out] = 0.0, 0.0
     start = None
     if warm:
         start = (regression.coef.double().cpu().numpy(),
@@ -90,6 +96,7 @@ def fit(regression, f: torch.Tensor, y: np.ndarray, c: float, warm: bool = False
 
 
 def _log_probs(regression, f: torch.Tensor) -> np.ndarray:
+    """The regression alone's log-probabilities of the windows' features ``f`` (N, T, F)."""
     regression.eval()
     with torch.no_grad():
         logits = torch.cat([regression(f[i : i + 2048].to(regression.coef.device)).cpu()
@@ -103,30 +110,44 @@ def _figures(log_p: np.ndarray, y: np.ndarray) -> tuple[float, float]:
     return float((lp.argmax(1) == y).mean()), float(-lp[np.arange(len(y)), y].mean())
 
 
-def choose(model, parts: dict, feats: dict, dist) -> dict:
+def _left_out(model) -> np.ndarray:
+    """The regression's features to leave out: the means of the centred channels."""
+    return np.flatnonzero(model.pre.center_mask.cpu().numpy())
+
+
+def weights(model) -> tuple[float, ...]:
+    """The mixes tried: :data:`WEIGHTS`; with ``state='carry'`` not 1, which would leave the
+    carried state nothing to do."""
+    return WEIGHTS[:-1] if model.cfg.state == "carry" else WEIGHTS
+
+
+def choose(model, parts: dict, feats: dict, dist, check=lambda: None) -> dict:
     """After the first training (its best weights in ``model``, a :class:`Blend` head whose
-    weight is still 0): ``C`` on the regression's validation accuracy, the regression solved
-    on the training windows, then the weight on the mixed model's validation accuracy (a lower
-    validation loss breaking ties). Rank 0's result is every process's. Returns the choice
-    and its validation figures, for the run's history."""
-    head = model.head
-    reg = head.regression
+    mix is still 0): ``C`` on the regression's validation accuracy, the regression solved on
+    the training windows, then the mix on the validation accuracy of the model as it will be
+    (``predict`` at each mix; a lower validation loss, as training's validation measures it,
+    breaking ties). ``check()`` between the fits (it raises to stop). Rank 0's result is every
+    process's. Returns the choice and its validation figures, for the run's history."""
+    head, reg = model.head, model.head.regression
     y_tr, y_val = parts["train"].y, parts["val"].y
-    val_acc = {}
-    solutions = {}
+    x_tr, x_val = _features(reg, feats["train"]).numpy(), feats["val"]
+    left_out = _left_out(model)
+    val_acc, solutions = {}, {}
     for i, c in enumerate(CS):  # ascending C, each going on from the last
-        fit(reg, feats["train"], y_tr, c, warm=i > 0)
+        check()
+        fit(reg, x_tr, y_tr, c, warm=i > 0, left_out=left_out)
         solutions[c] = copy.deepcopy(reg.state_dict())
-        val_acc[c] = _figures(_log_probs(reg, feats["val"]), y_val)[0]
+        val_acc[c] = _figures(_log_probs(reg, x_val), y_val)[0]
     best_c = max(CS, key=lambda c: (val_acc[c], -c))
     reg.load_state_dict(solutions[best_c])
-    head.mix.zero_()
-    recurrent = np.log(predict(model, parts["val"], feats=feats["val"]).astype(np.float64)
-                       + 1e-300)
-    regression = _log_probs(reg, feats["val"])
-    mixed = {w: _figures((1 - w) * recurrent + w * regression, y_val) for w in WEIGHTS}
+    mixed = {}
+    for w in weights(model):
+        check()
+        head.mix.fill_(w)
+        probs = predict(model, parts["val"], feats=feats["val"]).astype(np.float64)
+        mixed[w] = _figures(np.log(probs + 1e-9), y_val)
     best_w = WEIGHTS[0]
-    for w in WEIGHTS[1:]:  # more accurate, or as accurate with a lower loss (by > 1e-9)
+    for w in list(mixed)[1:]:  # more accurate, or as accurate with a lower loss (by > 1e-9)
         (acc, loss), (best_acc, best_loss) = mixed[w], mixed[best_w]
         if acc > best_acc + 1e-12 or (abs(acc - best_acc) <= 1e-12 and loss < best_loss - 1e-9):
             best_w = w
@@ -138,11 +159,24 @@ def choose(model, parts: dict, feats: dict, dist) -> dict:
 
 def refit(model, w, f: torch.Tensor, choice: dict, dist) -> None:
     """The regression solved again on the windows ``w`` (features ``f``: training +
-    validation) with the chosen ``C``; the chosen weight set."""
+    validation) with the chosen ``C``; the chosen mix set."""
     head = model.head
-    fit(head.regression, f, w.y, float(choice["c"]), warm=True)
+    fit(head.regression, _features(head.regression, f).numpy(), w.y, float(choice["c"]),
+        warm=True, left_out=_left_out(model))
     head.mix.fill_(float(choice["mix"]))
     dist.sync_buffers(head)
 
 
-__all__ = ["CS", "WEIGHTS", "solve", "fit", "choose", "refit"]
+def check_available() -> None:
+    """scikit-learn (the solver) importable, else a one-line :class:`ConfigError`: checked
+    before training, not after it."""
+    try:
+        import sklearn.linear_model  # noqa: F401
+        import threadpoolctl  # noqa: F401
+    except ImportError as e:
+        raise ConfigError(f"blend='auto' solves its regression with scikit-learn, which does "
+                          f"not import ({e}): pip install 'tactile[train]', or set "
+                          "blend=off") from None
+
+
+__all__ = ["CS", "WEIGHTS", "solve", "fit", "weights", "choose", "refit", "check_available"]

@@ -115,7 +115,7 @@ def fit(model: Classifier, parts: dict, feats: dict, ctx: Context,
     blended = isinstance(model.head, Blend)
     if blended and "blend" not in history:  # (a resumed refit has chosen already)
         t0 = time.process_time()
-        history["blend"] = b = blend.choose(model, parts, feats, ctx.dist)
+        history["blend"] = b = blend.choose(model, parts, feats, ctx.dist, _stop_check(ctx))
         b["cpu_seconds"] = round(time.process_time() - t0, 1)
         ctx.log.info(f"blended regression: C {b['c']:g}, mix {b['mix']:g}; validation "
                      f"accuracy {b['val_acc']:.3f} (LSTM {b['recurrent_val_acc']:.3f}, "
@@ -147,10 +147,20 @@ def fit(model: Classifier, parts: dict, feats: dict, ctx: Context,
         history["refit_kept"] = reason is None
         if reason is not None:  # the validated model is the better one to keep
             model.head.load_state_dict(ctx.fit_best)
-            acc = history["val_acc"][history["best_epoch"]]
+            acc = (history["blend"]["val_acc"] if blended
+                   else history["val_acc"][history["best_epoch"]])
             ctx.log.warn(f"refit not kept: {reason}; the run's model is the first training's "
                          f"best epoch (validation accuracy {acc:.3f})")
     return history
+
+
+def _stop_check(ctx: Context) -> Callable[[], None]:
+    """A check that raises :class:`Interrupted` when a stop was requested (between the steps
+    of work done outside the epochs: the blended regression's fits)."""
+    def check() -> None:
+        if ctx.stop is not None and ctx.stop.requested():
+            raise Interrupted
+    return check
 
 
 def refit_failed(fit_loss: list[float], best_epoch: int, refit_loss: list[float]) -> str | None:
@@ -219,7 +229,9 @@ def train_head(model: Classifier, w: Windows, f_all: torch.Tensor, n_epochs: int
         pooled = head.pooled(f_all[units[:, 0]].to(ctx.device))
         head.set_norm(pooled)
     history = st.history
-    epochs = tqdm(range(st.epoch, n_epochs), desc=phase, disable=not ctx.log.bars,
+    # a resumed phase that had stopped early is over (it was interrupted after its last epoch)
+    last = st.epoch if val is not None and st.stale >= cfg.patience else n_epochs
+    epochs = tqdm(range(st.epoch, last), desc=phase, disable=not ctx.log.bars,
                   file=sys.stderr, initial=st.epoch, total=n_epochs)
     for epoch in epochs:
         t_epoch = time.perf_counter()

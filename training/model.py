@@ -269,14 +269,16 @@ class WindowRegression(nn.Module):
         taper = torch.hann_window(window, periodic=False, dtype=torch.float64)
         angle = 2 * math.pi * k[:, None] * t[None, :] / window  # (K, T)
         # (T, 2K): the tapered cosines then sines, one product for both
+        # (derived constants: not in the state dict, rebuilt with the module)
         self.register_buffer("dft", (torch.cat([torch.cos(angle), torch.sin(angle)]) * taper)
-                             .T.float().contiguous())
+                             .T.float().contiguous(), persistent=False)
         self.n_bins = len(k)
         # bin k (k / window cycles a sample) in band b when b <= 2 BANDS k / window < b + 1
         # (in integers: no edge lost to rounding), Nyquist's bin in the last band
         band = torch.clamp(torch.arange(window // 2 + 1) * 2 * self.BANDS // window,
                            max=self.BANDS - 1)
-        self.register_buffer("bands", nn.functional.one_hot(band, self.BANDS).T.float())
+        self.register_buffer("bands", nn.functional.one_hot(band, self.BANDS).T.float(),
+                             persistent=False)
         self.n_channels = n_channels
         self.n_features = n_channels * (2 + self.BANDS)
         self.register_buffer("feature_mean", torch.zeros(self.n_features))

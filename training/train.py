@@ -27,6 +27,7 @@ import torch
 
 from tactile.device.recordings import load_dataset
 from tactile.errors import ConfigError, OutputError, RecordingError
+from tactile.training import blend
 from tactile.training.checkpoint import (  # load_checkpoint: export reads runs through here
     CHECKPOINT,
     RESUME,
@@ -71,6 +72,8 @@ def train(data: Path, out: Path, cfg: TrainConfig, progress: bool = True, *,
     if resume is not None:
         same_takes(data, takes, resume.get("takes"))
     classes, channels = check_inputs(data, takes, cfg)
+    if cfg.model == "lstm" and cfg.blend == "auto" and not cfg.modalities:
+        blend.check_available()  # its solver, before the training it follows
     # said once the data is known to fit: a bad input's error is then the only line
     job = f"; {dist.world} processes in all (rank 0 writes)" if dist.world > 1 else ""
     cpus = usable_cpus()
@@ -93,8 +96,8 @@ def train(data: Path, out: Path, cfg: TrainConfig, progress: bool = True, *,
     feature_s = time.perf_counter() - t0
     model.to(device)
     ctx = Context(cfg, log, dist, device, None, on_epoch)
-    # Ctrl-C (SIGTERM) stops at the next batch; after the last epoch it is only noted (the run
-    # is saved)
+    # Ctrl-C (SIGTERM) stops at the next batch or blend fit; after the last epoch (and the
+    # blend's choice) it is only noted (the run is saved)
     with Stop(dist) as ctx.stop:
         try:
             history = fit(model, prep.parts, feats, ctx, resume)
