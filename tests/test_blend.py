@@ -18,7 +18,6 @@ from tactile.training.config import TrainConfig
 from tactile.training.data import classes_of, split_windows
 from tactile.training.evaluate import predict
 from tactile.training.model import Blend, WindowRegression
-from tactile.training.models import build_model
 from tactile.training.train import train
 
 FLOOR = WindowRegression.FLOOR
@@ -304,11 +303,35 @@ def test_without_scikit_learn_the_blend_is_refused_before_training(dataset, tmp_
     assert "blend" not in m
 
 
-def test_a_carried_state_is_never_mixed_away():
-    """With state='carry' the mix stops at 0.75: at 1 the carried state would do nothing."""
-    carry = TrainConfig(state="carry", hop=50, window=50)
-    model = build_model(carry, 3, torch.zeros(4), torch.ones(4), channels=("a", "b", "c", "d"))
+def test_a_carried_state_is_never_mixed_away(dataset, run, monkeypatch):
+    """An LSTM always wrong: the regression alone (mix 1) labels the most validation windows
+    right, and is chosen; with state='carry' the mix stops at 0.75, where the carried state
+    still counts."""
+    from tactile.training.dist import Dist
+
+    out, _ = run
+    model, ck = load_checkpoint(out)
+    parts = _windows(dataset, ck)
+    feats = {k: model.pre(torch.from_numpy(parts[k].x)).detach() for k in ("train", "val")}
+    k = model.n_classes
+    wrong = np.eye(k, dtype=np.float32)[(parts["val"].y + 1) % k]
+    monkeypatch.setattr(blend, "predict", _Fixed(wrong))
+    assert blend.choose(model, parts, feats, Dist.from_env())["mix"] == 1.0
+    model.cfg = model.cfg.replace(state="carry", hop=model.cfg.window)
     assert blend.weights(model) == (0.0, 0.25, 0.5, 0.75)
-    plain = build_model(TrainConfig(), 3, torch.zeros(4), torch.ones(4),
-                        channels=("a", "b", "c", "d"))
-    assert blend.weights(plain) == blend.WEIGHTS and blend.WEIGHTS[-1] == 1.0
+    assert blend.choose(model, parts, feats, Dist.from_env())["mix"] <= 0.75
+
+
+def test_a_checkpoint_that_stored_the_constants_loads(run, tmp_path):
+    """Checkpoints written while the regression's DFT basis and band sums were stored (they
+    are rebuilt with the module now) load, the stored copies set aside."""
+    out, _ = run
+    ck = torch.load(out / "checkpoint.pt", weights_only=True)
+    model, _ = load_checkpoint(out)
+    reg = model.head.regression
+    ck["state_dict"]["head.regression.dft"] = reg.dft.clone()
+    ck["state_dict"]["head.regression.bands"] = reg.bands.clone()
+    torch.save(ck, tmp_path / "checkpoint.pt")
+    again, _ = load_checkpoint(tmp_path)
+    assert torch.equal(again.head.regression.dft, reg.dft)
+    assert torch.equal(again.head.regression.coef, reg.coef)

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import contextlib
 import fcntl
+import io
 import json
 import os
 import signal
@@ -136,15 +137,27 @@ def test_ctrl_c_while_the_blend_is_chosen_then_resume_ends_where_an_uninterrupte
 
     def interrupted(model, parts, feats, dist, check):
         calls.append(1)
-        if len(calls) == 1:
-            signal.raise_signal(signal.SIGINT)
-        return real(model, parts, feats, dist, check)
+        checks = []
+
+        def stop_at_the_second_check():  # between the first fit and the second
+            checks.append(1)
+            if len(calls) < 3 and len(checks) == 2:
+                signal.raise_signal(signal.SIGINT)
+            check()
+        return real(model, parts, feats, dist, stop_at_the_second_check)
 
     monkeypatch.setattr(blend, "choose", interrupted)
     cut = train(dataset, tmp_path / "cut", cfg, progress=False)
     assert cut["interrupted"] and cut["epochs_run"] == full["epochs_run"]
+    model, _ = load_checkpoint(tmp_path / "cut")  # the LSTM's best epoch, no regression yet
+    assert float(model.head.mix) == 0 and not model.head.regression.coef.any()
+    saved = (tmp_path / "cut" / RESUME).read_bytes()
+    again = resume_run(tmp_path / "cut")  # stopped again in the choice: the same state saved
+    assert again["interrupted"] and again["epochs_run"] == full["epochs_run"]
+    assert torch.load(tmp_path / "cut" / RESUME, weights_only=True)["state"]["epoch"] == \
+        torch.load(io.BytesIO(saved), weights_only=True)["state"]["epoch"]
     resumed = resume_run(tmp_path / "cut")
-    assert len(calls) == 2 and resumed["epochs_run"] == full["epochs_run"]
+    assert len(calls) == 3 and resumed["epochs_run"] == full["epochs_run"]
     for k in ("c", "mix", "val_acc", "regression_val_acc", "recurrent_val_acc"):
         assert resumed["blend"][k] == pytest.approx(full["blend"][k], abs=1e-9), k
     assert_same_run(tmp_path / "full", tmp_path / "cut", full, resumed)

@@ -224,6 +224,7 @@ def train_head(model: Classifier, w: Windows, f_all: torch.Tensor, n_epochs: int
                    if cfg.ema else None)
     if resume is not None:
         st = restore(resume, live)
+        ctx.snapshot = resume  # a stop before this phase's next epoch saves the same state
     pooled = None
     if full:  # the features pooled once; the standardisation fixed to the training windows'
         pooled = head.pooled(f_all[units[:, 0]].to(ctx.device))

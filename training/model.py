@@ -285,6 +285,7 @@ class WindowRegression(nn.Module):
         self.register_buffer("feature_scale", torch.zeros(self.n_features))  # 1 / std, or 0
         self.register_buffer("coef", torch.zeros(self.n_features, n_classes))
         self.register_buffer("intercept", torch.zeros(n_classes))
+        self._register_load_state_dict_pre_hook(_without_constants)
 
     def features(self, f: Tensor) -> Tensor:
         """(B, T, F) -> (B, C * (2 + BANDS)): the means, log standard deviations, then each
@@ -302,6 +303,13 @@ class WindowRegression(nn.Module):
     def forward(self, f: Tensor) -> Tensor:
         x = (self.features(f) - self.feature_mean) * self.feature_scale
         return x @ self.coef + self.intercept
+
+
+def _without_constants(state: dict, prefix: str, *args) -> None:
+    """A state dict saved while :class:`WindowRegression` stored its constants (the DFT basis
+    and the band sums, rebuilt with the module) loads without them."""
+    for name in ("dft", "bands"):
+        state.pop(prefix + name, None)
 
 
 class Blend(nn.Module):
