@@ -358,6 +358,11 @@ class TrainConfig:
                 raise ConfigError(f"{what} {twice[0]!r} named twice")
 
     @property
+    def blends(self) -> bool:
+        """Whether the model is an LSTM with the blended regression (``blend='auto'``)."""
+        return self.model == "lstm" and self.blend == "auto"
+
+    @property
     def refits(self) -> bool:
         """Whether training ends with a refit on training + validation windows."""
         return self.refit == "on" or (self.refit == "auto" and self.split == "time")

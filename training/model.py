@@ -400,7 +400,7 @@ class TextureModel(Classifier):
                               signals)
                      for _ in range(cfg.ensemble)]
             self.head = heads[0] if cfg.ensemble == 1 else Ensemble(heads)
-            if cfg.blend != "off":
+            if cfg.blends:
                 self.head = Blend(self.head, WindowRegression(self.pre.n_channels, cfg.window,
                                                               n_classes))
         else:
