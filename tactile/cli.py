@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import contextlib
 import errno
 import functools
 import math
@@ -223,6 +224,41 @@ def _guard_start() -> None:
     _start["guarded"], _start["signal"] = True, None  # a signal of an earlier call is past
     for sig in (signal.SIGINT, signal.SIGTERM):
         signal.signal(sig, note)
+
+
+@contextlib.contextmanager
+def holding_signals():
+    """Ctrl-C (and SIGTERM where the command takes it as Ctrl-C) held back while the block
+    imports libraries, then raised where the block ends. An import stopped midway can leave a
+    library half-built, so that a later import fails with another error (numpy's
+    ``RecursionError`` under onnx, seen on ``tactile-export``) instead of the
+    ``KeyboardInterrupt`` that ends the command with its one line. A second signal while held
+    ends the process at once, by that signal (an import stuck on a slow disk can still be
+    stopped). Off the main thread, and for a signal whose handler is a caller's own, the block
+    runs as it is."""
+    held = {}
+    if threading.current_thread() is threading.main_thread():
+        for sig, ours in ((signal.SIGINT, signal.default_int_handler),
+                          (signal.SIGTERM, _terminate)):
+            if signal.getsignal(sig) is ours:
+                held[sig] = ours
+    got: list[int] = []
+
+    def note(signum, frame):
+        if got:  # a second one: die by it at once
+            signal.signal(signum, signal.SIG_DFL)
+            os.kill(os.getpid(), signum)
+        got.append(signum)
+
+    for sig in held:
+        signal.signal(sig, note)
+    try:
+        yield
+    finally:
+        for sig, handler in held.items():
+            signal.signal(sig, handler)
+    if got:
+        held[got[0]](got[0], None)  # raises KeyboardInterrupt, or Terminated
 
 
 class _ReaderMayGo:

@@ -59,6 +59,44 @@ def test_ctrl_c_in_a_command_is_one_line_and_130(module, body, argv, monkeypatch
     assert err.endswith(": interrupted\n") and err.count("\n") == 1, err
 
 
+def test_ctrl_c_while_a_command_imports_is_held_until_the_imports_end():
+    """A Ctrl-C inside a library's import left the library half-built: tactile-export then
+    died of numpy's RecursionError (a traceback), not with its one line. The command's imports
+    hold SIGINT (and SIGTERM where the command takes it as Ctrl-C) and raise it when they end;
+    a caller's own handler is left alone; the handlers are put back."""
+    import signal
+
+    from tactile import cli
+
+    was = {s: signal.getsignal(s) for s in (signal.SIGINT, signal.SIGTERM)}
+    try:
+        signal.signal(signal.SIGINT, signal.default_int_handler)  # Python's own
+        done = []
+        with pytest.raises(KeyboardInterrupt), cli.holding_signals():
+            signal.raise_signal(signal.SIGINT)  # (its handler runs before this returns)
+            done.append("the rest of the imports")
+        assert done == ["the rest of the imports"]
+        assert signal.getsignal(signal.SIGINT) is signal.default_int_handler
+        with cli.holding_signals():  # no signal: nothing raised
+            done.append("quiet")
+        assert done[-1] == "quiet"
+
+        signal.signal(signal.SIGTERM, cli._terminate)  # a command(terminable=True)'s
+        with pytest.raises(cli.Terminated), cli.holding_signals():
+            signal.raise_signal(signal.SIGTERM)
+            done.append("term")
+        assert done[-1] == "term" and signal.getsignal(signal.SIGTERM) is cli._terminate
+
+        seen = []
+        signal.signal(signal.SIGINT, lambda signum, frame: seen.append(signum))  # a caller's
+        with cli.holding_signals():
+            signal.raise_signal(signal.SIGINT)
+            assert seen == [signal.SIGINT]  # its handler ran at once
+    finally:
+        for s, handler in was.items():
+            signal.signal(s, handler)
+
+
 @pytest.mark.parametrize("name, args, option", [
     ("tactile-data", [""], "data"),
     ("tactile-sim", ["--dataset", "", "--takes", "1"], "--dataset"),

@@ -13,7 +13,7 @@ import argparse
 import json
 import sys
 
-from tactile.cli import Parser, add_debug, command, int_in, path_given, run
+from tactile.cli import Parser, add_debug, command, holding_signals, int_in, path_given, run
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -32,8 +32,9 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def _main(args: argparse.Namespace) -> int:
-    from tactile.device.recordings.reader import load_dataset
-    from tactile.device.recordings.summary import summarise, text
+    with holding_signals():
+        from tactile.device.recordings.reader import load_dataset
+        from tactile.device.recordings.summary import summarise, text
 
     s = summarise(load_dataset(args.data), args.window, args.hop)
     print(json.dumps(s) if args.json else text(s, args.data))

@@ -10,7 +10,7 @@ from __future__ import annotations
 import argparse
 import sys
 
-from tactile.cli import Parser, add_debug, command, path_given, run
+from tactile.cli import Parser, add_debug, command, holding_signals, path_given, run
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -25,7 +25,8 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def _main(args: argparse.Namespace) -> int:
-    from tactile.device.recordings.biotac import import_biotac
+    with holding_signals():
+        from tactile.device.recordings.biotac import import_biotac
 
     for p in import_biotac(args.files, args.out, args.force):
         print(p)

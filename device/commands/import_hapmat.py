@@ -9,7 +9,7 @@ from __future__ import annotations
 import argparse
 import sys
 
-from tactile.cli import Parser, add_debug, command, path_given, run
+from tactile.cli import Parser, add_debug, command, holding_signals, path_given, run
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -26,7 +26,8 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def _main(args: argparse.Namespace) -> int:
-    from tactile.device.recordings.hapmat import import_hapmat
+    with holding_signals():
+        from tactile.device.recordings.hapmat import import_hapmat
 
     for p in import_hapmat(args.source, args.out, args.force):
         print(p)

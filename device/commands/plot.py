@@ -11,7 +11,7 @@ from __future__ import annotations
 import argparse
 import sys
 
-from tactile.cli import Parser, add_debug, command, path_given, run
+from tactile.cli import Parser, add_debug, command, holding_signals, path_given, run
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -27,9 +27,10 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def _main(args: argparse.Namespace) -> int:
-    from tactile.device.recordings.plot import image_formats, plot_summary, plot_take
-    from tactile.device.recordings.reader import read_take, say_mismatch
-    from tactile.errors import ConfigError
+    with holding_signals():
+        from tactile.device.recordings.plot import image_formats, plot_summary, plot_take
+        from tactile.device.recordings.reader import read_take, say_mismatch
+        from tactile.errors import ConfigError
 
     if args.out.is_dir() or not args.out.parent.is_dir():
         raise ConfigError(f"-o {args.out}: give an image file in a folder that exists")

@@ -13,7 +13,16 @@ import argparse
 import sys
 import time
 
-from tactile.cli import Parser, add_debug, command, float_in, int_in, path_given, run
+from tactile.cli import (
+    Parser,
+    add_debug,
+    command,
+    float_in,
+    holding_signals,
+    int_in,
+    path_given,
+    run,
+)
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -53,10 +62,11 @@ PTY_ONLY = {"texture": "paper", "link": "", "speed": 1.0}
 
 
 def _main(args: argparse.Namespace) -> int:
-    from tactile.device.sim.dataset import make_dataset
-    from tactile.device.sim.pty_server import serve_pty
-    from tactile.device.sim.simlink import LinkConfig
-    from tactile.device.sim.textures import TEXTURES
+    with holding_signals():
+        from tactile.device.sim.dataset import make_dataset
+        from tactile.device.sim.pty_server import serve_pty
+        from tactile.device.sim.simlink import LinkConfig
+        from tactile.device.sim.textures import TEXTURES
 
     # the parser leaves a mode's own options None when not given: their defaults
     for key, default in {**DATASET_ONLY, **PTY_ONLY}.items():

@@ -22,7 +22,7 @@ from __future__ import annotations
 import argparse
 import sys
 
-from tactile.cli import Parser, add_debug, command, int_in, path_given, run
+from tactile.cli import Parser, add_debug, command, holding_signals, int_in, path_given, run
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -40,7 +40,8 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def _check(args: argparse.Namespace) -> int:
-    from tactile.export.check import check_file
+    with holding_signals():
+        from tactile.export.check import check_file
 
     if args.no_native:
         from tactile.runtime import kernels

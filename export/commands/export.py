@@ -12,7 +12,7 @@ from __future__ import annotations
 import argparse
 import sys
 
-from tactile.cli import Parser, add_debug, command, int_in, path_given, run
+from tactile.cli import Parser, add_debug, command, holding_signals, int_in, path_given, run
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -31,10 +31,11 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def _export(args: argparse.Namespace) -> int:
-    import torch
+    with holding_signals():
+        import torch
 
-    from tactile.export.exporter import export_run
-    from tactile.training.checkpoint import RESUME
+        from tactile.export.exporter import export_run
+        from tactile.training.checkpoint import RESUME
 
     torch.set_num_threads(1)  # one core's figures; also avoids contention on a small board
     if (args.run / RESUME).is_file():  # the run was stopped: its model is not the finished one

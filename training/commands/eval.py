@@ -15,7 +15,16 @@ import argparse
 import json
 import sys
 
-from tactile.cli import MAX_THREADS, Parser, add_debug, command, int_in, path_given, run
+from tactile.cli import (
+    MAX_THREADS,
+    Parser,
+    add_debug,
+    command,
+    holding_signals,
+    int_in,
+    path_given,
+    run,
+)
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -37,9 +46,10 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def _eval(args: argparse.Namespace) -> int:
-    from tactile.postprocess.smoothing import override
-    from tactile.training.evaluate import evaluate_run, per_take_line, shifted_line, table
-    from tactile.training.label_stream import stream_table
+    with holding_signals():
+        from tactile.postprocess.smoothing import override
+        from tactile.training.evaluate import evaluate_run, per_take_line, shifted_line, table
+        from tactile.training.label_stream import stream_table
 
     # a value given without the others: those of the raw stream (ma:1, p_min 0, hold 1)
     smoothing = override(None, args.smooth, args.p_min, args.hold)

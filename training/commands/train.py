@@ -22,6 +22,7 @@ from tactile.cli import (
     Terminated,
     add_debug,
     command,
+    holding_signals,
     path_given,
     run,
 )
@@ -48,10 +49,11 @@ def build_parser() -> argparse.ArgumentParser:
 def _settings(args: argparse.Namespace):
     """(config, dataset folder, run folder, resume state or None) of the command line; the
     run folder is checked first (a run in it is refused unless ``--force``)."""
-    from tactile.errors import ConfigError
-    from tactile.training.checkpoint import load_resume
-    from tactile.training.config import TrainConfig
-    from tactile.training.overrides import parse_sets
+    with holding_signals():
+        from tactile.errors import ConfigError
+        from tactile.training.checkpoint import load_resume
+        from tactile.training.config import TrainConfig
+        from tactile.training.overrides import parse_sets
 
     if args.resume is not None:
         if args.set or args.config or args.force:
@@ -179,8 +181,9 @@ def _refuse_a_run(out: Path) -> None:
 
 
 def _train(args: argparse.Namespace) -> int:
-    from tactile.training.evaluate import per_take_line, shifted_line, table
-    from tactile.training.train import train
+    with holding_signals():
+        from tactile.training.evaluate import per_take_line, shifted_line, table
+        from tactile.training.train import train
 
     cfg, data, out, resume = _settings(args)
     try:
