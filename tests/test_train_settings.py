@@ -529,6 +529,19 @@ def test_plots_mark_the_best_epoch_and_show_counts(monkeypatch):
     assert sorted(pictures) == ["confusion.png", "curves.png"]
     assert all(p.startswith(b"\x89PNG") and len(p) > 1000 for p in pictures.values())
 
+    points = []  # with the blended regression: its validation accuracy at the kept epoch
+    real_plot = Axes.plot
+    monkeypatch.setattr(Axes, "plot", lambda self, *a, **k: (
+        points.append((a, k.get("label"))), real_plot(self, *a, **k))[1])
+    blend = {"c": 10.0, "mix": 0.5, "val_acc": 0.82}
+    _plots({**history, "blend": blend}, metrics, ("a", "b"))
+    assert [(xy, label) for xy, label in points if label and "regression" in label] == [
+        (([2], [0.82]), "with the regression (mix 0.5)")]
+    assert [label for _, label in points][:3] == ["train", "validation", "the LSTM alone"]
+    points.clear()
+    _plots({**history, "blend": {**blend, "mix": 0.0}}, metrics, ("a", "b"))  # the LSTM alone
+    assert [label for _, label in points] == ["train", "validation", None]
+
 
 def test_eval_help_reads_as_a_sentence(capsys):
     with pytest.raises(SystemExit) as e:

@@ -108,7 +108,8 @@ def write_run(out: Path, cfg: TrainConfig, model: Classifier, metrics: dict, his
 
 def plots(history: dict, metrics: dict, classes: tuple[str, ...]) -> dict[str, bytes]:
     """A run's two pictures as PNG bytes: curves.png (the loss and validation accuracy per
-    epoch, the kept epoch marked) and confusion.png (the row-normalised confusion with its
+    epoch, the kept epoch marked; with the blended regression, the blended model's validation
+    accuracy at that epoch) and confusion.png (the row-normalised confusion with its
     counts)."""
     import matplotlib
 
@@ -121,10 +122,17 @@ def plots(history: dict, metrics: dict, classes: tuple[str, ...]) -> dict[str, b
     ax[0].plot(ep, history["train_loss"], label="train")
     ax[0].plot(ep[: len(history["val_loss"])], history["val_loss"], label="validation")
     ax[0].set(xlabel="epoch", ylabel="cross-entropy", title="loss")
-    ax[1].plot(ep[: len(history["val_acc"])], history["val_acc"])
+    blend = history.get("blend")
+    blended = bool(blend and blend["mix"] > 0)
+    ax[1].plot(ep[: len(history["val_acc"])], history["val_acc"],
+               label="the LSTM alone" if blended else None)
     ax[1].set(xlabel="epoch", ylabel="accuracy", title="validation accuracy", ylim=(0, 1))
     for a in ax:  # the epoch whose weights were kept
         a.axvline(best, color="tab:red", linestyle="--", linewidth=1, label=f"best epoch {best}")
+    if blended:  # the model as kept: that epoch's LSTM with the regression
+        ax[1].plot([best], [blend["val_acc"]], marker="*", markersize=11, linestyle="none",
+                   color="tab:green", label=f"with the regression (mix {blend['mix']:g})")
+        ax[1].legend(loc="lower right")
     ax[0].legend()
     fig.tight_layout()
     pictures = {"curves.png": figure_bytes(fig, "png", 100)}
