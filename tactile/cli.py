@@ -234,8 +234,9 @@ def holding_signals():
     ``RecursionError`` under onnx, seen on ``tactile-export``) instead of the
     ``KeyboardInterrupt`` that ends the command with its one line. A second signal while held
     ends the process at once, by that signal (an import stuck on a slow disk can still be
-    stopped). Off the main thread, and for a signal whose handler is a caller's own, the block
-    runs as it is."""
+    stopped); an error raised in the block wins over a held signal. The handlers are swapped
+    with the signals blocked, so that none runs between two swaps. Off the main thread, and
+    for a signal whose handler is a caller's own, the block runs as it is."""
     held = {}
     if threading.current_thread() is threading.main_thread():
         for sig, ours in ((signal.SIGINT, signal.default_int_handler),
@@ -250,13 +251,21 @@ def holding_signals():
             os.kill(os.getpid(), signum)
         got.append(signum)
 
-    for sig in held:
-        signal.signal(sig, note)
+    def swap(handlers: dict) -> None:
+        mask = (signal.pthread_sigmask(signal.SIG_BLOCK, handlers)
+                if handlers and hasattr(signal, "pthread_sigmask") else None)
+        try:
+            for sig, handler in handlers.items():
+                signal.signal(sig, handler)
+        finally:
+            if mask is not None:  # (a signal that came meanwhile reaches the new handler)
+                signal.pthread_sigmask(signal.SIG_SETMASK, mask)
+
+    swap(dict.fromkeys(held, note))
     try:
         yield
     finally:
-        for sig, handler in held.items():
-            signal.signal(sig, handler)
+        swap(held)
     if got:
         held[got[0]](got[0], None)  # raises KeyboardInterrupt, or Terminated
 

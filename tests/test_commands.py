@@ -4,8 +4,10 @@ message for a missing model, refused labels, no silent overwrite; tactile-data a
 from __future__ import annotations
 
 import json
+import signal
 import subprocess
 import sys
+import threading
 import tomllib
 from pathlib import Path
 
@@ -64,8 +66,6 @@ def test_ctrl_c_while_a_command_imports_is_held_until_the_imports_end():
     died of numpy's RecursionError (a traceback), not with its one line. The command's imports
     hold SIGINT (and SIGTERM where the command takes it as Ctrl-C) and raise it when they end;
     a caller's own handler is left alone; the handlers are put back."""
-    import signal
-
     from tactile import cli
 
     was = {s: signal.getsignal(s) for s in (signal.SIGINT, signal.SIGTERM)}
@@ -87,14 +87,43 @@ def test_ctrl_c_while_a_command_imports_is_held_until_the_imports_end():
             done.append("term")
         assert done[-1] == "term" and signal.getsignal(signal.SIGTERM) is cli._terminate
 
+        with pytest.raises(ModuleNotFoundError), cli.holding_signals():  # the block's error
+            signal.raise_signal(signal.SIGINT)
+            raise ModuleNotFoundError("no module named 'h5py'")
+        assert signal.getsignal(signal.SIGINT) is signal.default_int_handler
+
         seen = []
         signal.signal(signal.SIGINT, lambda signum, frame: seen.append(signum))  # a caller's
         with cli.holding_signals():
             signal.raise_signal(signal.SIGINT)
             assert seen == [signal.SIGINT]  # its handler ran at once
+        signal.signal(signal.SIGINT, signal.default_int_handler)
+
+        def off_main():  # another thread cannot set handlers: the block runs as it is
+            with cli.holding_signals():
+                seen.append(signal.getsignal(signal.SIGINT))
+
+        thread = threading.Thread(target=off_main)
+        thread.start()
+        thread.join()
+        assert seen[-1] is signal.default_int_handler
     finally:
         for s, handler in was.items():
             signal.signal(s, handler)
+
+
+def test_a_second_ctrl_c_while_imports_hold_the_first_ends_the_process_by_it():
+    """An import stuck on a slow disk can still be stopped: the second signal kills."""
+    code = ("import os, signal\n"
+            "from tactile.cli import holding_signals\n"
+            "with holding_signals():\n"
+            "    os.kill(os.getpid(), signal.SIGINT)\n"
+            "    print('held', flush=True)\n"
+            "    os.kill(os.getpid(), signal.SIGINT)\n"
+            "    print('not reached', flush=True)\n")
+    proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                          timeout=60)
+    assert (proc.returncode, proc.stdout) == (-signal.SIGINT, "held\n"), proc.stderr
 
 
 @pytest.mark.parametrize("name, args, option", [
