@@ -423,6 +423,13 @@ def command(prog: str, *, guarded: bool = False, interruptible: bool = False,
                     _start["guarded"] = False
                     for s, h in handlers.items():
                         signal.signal(s, h)
+                if argv is None and depth == 0 and \
+                        threading.current_thread() is threading.main_thread():
+                    # the command line's process, which now ends with the command's code: a
+                    # signal in the interpreter's teardown (0.1-0.5 s after torch or onnx)
+                    # would end it by that signal, no line, as if the finished work had failed
+                    for s in (signal.SIGINT, signal.SIGTERM):
+                        signal.signal(s, signal.SIG_IGN)
 
         return entry
 

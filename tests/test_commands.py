@@ -112,6 +112,28 @@ def test_ctrl_c_while_a_command_imports_is_held_until_the_imports_end():
             signal.signal(s, handler)
 
 
+def test_a_signal_after_a_command_line_command_returned_does_not_change_its_exit():
+    """Ctrl-C in the interpreter's teardown after tactile-export had written its file ended it
+    by SIGINT, with no line (7 of 8 tries in that half second): a command run from the command
+    line (no argv given) ignores signals once it has returned its code; one run in-process
+    with its argv leaves the caller's handlers as they were."""
+    code = ("import os, signal, sys\n"
+            "from tactile.cli import command\n"
+            "@command('tactile-x', interruptible=True, files=True)\n"
+            "def main(argv=None):\n"
+            "    return 3\n"
+            "main([])\n"
+            "assert signal.getsignal(signal.SIGINT) is signal.default_int_handler\n"
+            "code = main()\n"
+            "os.kill(os.getpid(), signal.SIGINT)\n"
+            "os.kill(os.getpid(), signal.SIGTERM)\n"
+            "print('exit', code, flush=True)\n"
+            "sys.exit(code)\n")
+    proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                          timeout=60)
+    assert (proc.returncode, proc.stdout, proc.stderr) == (3, "exit 3\n", "")
+
+
 def test_a_second_ctrl_c_while_imports_hold_the_first_ends_the_process_by_it():
     """An import stuck on a slow disk can still be stopped: the second signal kills."""
     code = ("import os, signal\n"
