@@ -361,6 +361,29 @@ def prefix() -> str:
     return f"{running[-1]}: " if running else ""
 
 
+def _is_the_process(prog: str, main: Callable[..., int]) -> bool:
+    """Whether the command is what this process runs: its console script (``sys.argv[0]``
+    named ``prog``) or its module run by ``python -m``; not a script that calls ``main()``."""
+    if threading.current_thread() is not threading.main_thread():
+        return False
+    return main.__module__ == "__main__" or bool(sys.argv and Path(sys.argv[0]).name == prog)
+
+
+def _ignore_ctrl_c_from_now() -> None:
+    """SIGINT ignored for the rest of the process, whose command has returned its code: a
+    Ctrl-C in the interpreter's teardown (0.1-0.5 s after torch or onnx) would end it by
+    SIGINT, no line, as if the finished work had failed. Only SIG_IGN lasts through the
+    teardown (Python puts its own handlers back to the default late in it). SIGTERM is left
+    as it is: a stuck teardown can still be ended, and torchrun's agent ends its workers so.
+    A SIGINT already pending (the work was done before it) is dropped."""
+    while True:
+        try:
+            signal.signal(signal.SIGINT, signal.SIG_IGN)
+            return
+        except KeyboardInterrupt:  # (checked before the handler changes: set it again)
+            continue
+
+
 def command(prog: str, *, guarded: bool = False, interruptible: bool = False,
             files: bool = False, terminable: bool = False
             ) -> Callable[[Callable[..., int]], Callable[..., int]]:
@@ -376,7 +399,9 @@ def command(prog: str, *, guarded: bool = False, interruptible: bool = False,
     code for SIGINT, not a traceback; with ``terminable`` SIGTERM does the same (exit 143) where
     its handler is the default (not in a caller that set its own, nor off the main thread).
     ``files``: the command's work is the files it writes, which a reader of its output that
-    goes away does not stop (:class:`_ReaderMayGo`)."""
+    goes away does not stop (:class:`_ReaderMayGo`). Run as the process's command (its console
+    script, or ``python -m`` its module), a command ignores SIGINT once it has returned its
+    code (:func:`_ignore_ctrl_c_from_now`)."""
 
     def wrap(main: Callable[..., int]) -> Callable[..., int]:
         @functools.wraps(main)
@@ -423,13 +448,8 @@ def command(prog: str, *, guarded: bool = False, interruptible: bool = False,
                     _start["guarded"] = False
                     for s, h in handlers.items():
                         signal.signal(s, h)
-                if argv is None and depth == 0 and \
-                        threading.current_thread() is threading.main_thread():
-                    # the command line's process, which now ends with the command's code: a
-                    # signal in the interpreter's teardown (0.1-0.5 s after torch or onnx)
-                    # would end it by that signal, no line, as if the finished work had failed
-                    for s in (signal.SIGINT, signal.SIGTERM):
-                        signal.signal(s, signal.SIG_IGN)
+                if argv is None and depth == 0 and _is_the_process(prog, main):
+                    _ignore_ctrl_c_from_now()
 
         return entry
 

@@ -112,26 +112,48 @@ def test_ctrl_c_while_a_command_imports_is_held_until_the_imports_end():
             signal.signal(s, handler)
 
 
-def test_a_signal_after_a_command_line_command_returned_does_not_change_its_exit():
+def test_ctrl_c_after_a_command_line_command_returned_does_not_change_its_exit(tmp_path):
     """Ctrl-C in the interpreter's teardown after tactile-export had written its file ended it
-    by SIGINT, with no line (7 of 8 tries in that half second): a command run from the command
-    line (no argv given) ignores signals once it has returned its code; one run in-process
-    with its argv leaves the caller's handlers as they were."""
-    code = ("import os, signal, sys\n"
-            "from tactile.cli import command\n"
-            "@command('tactile-x', interruptible=True, files=True)\n"
-            "def main(argv=None):\n"
-            "    return 3\n"
-            "main([])\n"
-            "assert signal.getsignal(signal.SIGINT) is signal.default_int_handler\n"
-            "code = main()\n"
-            "os.kill(os.getpid(), signal.SIGINT)\n"
-            "os.kill(os.getpid(), signal.SIGTERM)\n"
-            "print('exit', code, flush=True)\n"
-            "sys.exit(code)\n")
-    proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+    by SIGINT, with no line (7 of 8 tries in that half second): the process's command (its
+    console script, or python -m) ignores SIGINT once it has returned its code; a script
+    that calls main() itself, and any in-process call, keeps its handlers; SIGTERM is left
+    alone (torchrun's agent ends its workers by it)."""
+    module = tmp_path / "fakecmd.py"
+    module.write_text("from tactile.cli import command\n"
+                      "@command('tactile-x', interruptible=True, files=True)\n"
+                      "def main(argv=None):\n"
+                      "    return 3\n")
+    after = ("import os, signal, sys\n"
+             "print('exit', code, signal.getsignal(signal.SIGINT) is signal.SIG_IGN,\n"
+             "      signal.getsignal(signal.SIGTERM) is signal.SIG_DFL, flush=True)\n"
+             "os.kill(os.getpid(), signal.SIGINT)\n"
+             "sys.exit(code)\n")
+    as_process = tmp_path / "tactile-x"  # the console script's name
+    as_process.write_text(f"import sys\nsys.path.insert(0, {str(tmp_path)!r})\n"
+                          "from fakecmd import main\n"
+                          "main([])\n"  # in-process, argv given: nothing changes
+                          "import signal\n"
+                          "assert signal.getsignal(signal.SIGINT) is signal.default_int_handler\n"
+                          "code = main()\n" + after)
+    proc = subprocess.run([sys.executable, str(as_process)], capture_output=True, text=True,
                           timeout=60)
-    assert (proc.returncode, proc.stdout, proc.stderr) == (3, "exit 3\n", "")
+    assert (proc.returncode, proc.stdout, proc.stderr) == (3, "exit 3 True True\n", "")
+
+    as_module = tmp_path / "fakemod.py"  # python -m MODULE
+    as_module.write_text(module.read_text() + "if __name__ == '__main__':\n"
+                         "    code = main()\n" + "".join(f"    {line}\n"
+                                                      for line in after.splitlines()))
+    proc = subprocess.run([sys.executable, "-m", "fakemod"], capture_output=True, text=True,
+                          timeout=60, cwd=tmp_path)
+    assert (proc.returncode, proc.stdout, proc.stderr) == (3, "exit 3 True True\n", "")
+
+    script = tmp_path / "my_script.py"  # a user's script calling main(): its handlers stay
+    script.write_text(f"import sys\nsys.path.insert(0, {str(tmp_path)!r})\n"
+                      "from fakecmd import main\n"
+                      "code = main()\n" + after)
+    proc = subprocess.run([sys.executable, str(script)], capture_output=True, text=True,
+                          timeout=60)
+    assert (proc.returncode, proc.stdout) == (-signal.SIGINT, "exit 3 False True\n")
 
 
 def test_a_second_ctrl_c_while_imports_hold_the_first_ends_the_process_by_it():
