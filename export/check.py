@@ -23,6 +23,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from tactile import checksum
+from tactile.cli import holding_signals
 from tactile.contract import OPSET, ModelContract, model_file
 from tactile.errors import ConfigError, ModelContractError
 
@@ -341,8 +342,9 @@ def check_file(path: Path, run_dir: Path | None = None, data: Path | None = None
     or data without the extra)."""
     model_file(path)  # missing or a folder: the line and exit code tactile-run gives
     try:
-        import onnx  # noqa: F401
-        import torch
+        with holding_signals():  # (a Ctrl-C that cuts an import short: the command's line)
+            import onnx  # noqa: F401
+            import torch
     except ModuleNotFoundError:  # a board: no onnx, no torch (the [train] extra)
         if run_dir is not None or data is not None:
             raise ConfigError("--run and --data need the [train] extra: "
@@ -351,7 +353,8 @@ def check_file(path: Path, run_dir: Path | None = None, data: Path | None = None
         return
     torch.set_num_threads(1)  # one core's figures; also avoids contention on a small board
     _, contract = load_contract(path)
-    from tactile.runtime.model import Model
+    with holding_signals():
+        from tactile.runtime.model import Model
 
     loaded = Model(path)
     loaded.probe(2)  # outputs of the declared shapes at batch 1 (as tactile-run

@@ -202,6 +202,13 @@ def started() -> str | None:
     return _start["signal"]
 
 
+def _die_by(signum: int) -> None:
+    """End the process at once by signal ``signum``: a second signal while the first is only
+    noted (:func:`_guard_start`, :func:`holding_signals`)."""
+    signal.signal(signum, signal.SIG_DFL)
+    os.kill(os.getpid(), signum)
+
+
 def _guard_start() -> None:
     """Install the start-up handlers of ``command(guarded=True)``: a SIGINT or SIGTERM that
     arrives while the command starts (importing numpy and onnxruntime, loading the model:
@@ -217,9 +224,8 @@ def _guard_start() -> None:
             return
         if _start["signal"] is None:
             _start["signal"] = signal.Signals(signum).name
-        else:  # a second one: the start is stuck, or the user insists: die by it at once
-            signal.signal(signum, signal.SIG_DFL)
-            os.kill(os.getpid(), signum)
+        else:  # a second one: the start is stuck, or the user insists
+            _die_by(signum)
 
     _start["guarded"], _start["signal"] = True, None  # a signal of an earlier call is past
     for sig in (signal.SIGINT, signal.SIGTERM):
@@ -246,9 +252,8 @@ def holding_signals():
     got: list[int] = []
 
     def note(signum, frame):
-        if got:  # a second one: die by it at once
-            signal.signal(signum, signal.SIG_DFL)
-            os.kill(os.getpid(), signum)
+        if got:  # a second one: the import is stuck, or the user insists
+            _die_by(signum)
         got.append(signum)
 
     def swap(handlers: dict) -> None:

@@ -20,7 +20,6 @@ and runs one window through it; ``--run`` and ``--data`` need the extra.
 from __future__ import annotations
 
 import argparse
-import contextlib
 import sys
 
 from tactile.cli import Parser, add_debug, command, holding_signals, int_in, path_given, run
@@ -41,13 +40,8 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def _check(args: argparse.Namespace) -> int:
-    with holding_signals():  # (check_file's own imports too: onnx and torch, onnxruntime)
-        import tactile.runtime.model  # noqa: F401
+    with holding_signals():  # (check_file holds its own heavier imports)
         from tactile.export.check import check_file
-
-        with contextlib.suppress(ModuleNotFoundError):  # a board: no [train] extra
-            import onnx  # noqa: F401
-            import torch  # noqa: F401
 
     if args.no_native:
         from tactile.runtime import kernels
