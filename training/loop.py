@@ -133,13 +133,13 @@ def fit(model: Classifier, parts: dict, feats: dict, ctx: Context,
             resume = None
         else:
             ctx.fit_best = resume["fit_best"]
-        refit = train_head(model, concat(parts["train"], parts["val"]),
-                           torch.cat([feats["train"], feats["val"]]), epochs, ctx, resume=resume)
+        both = concat(parts["train"], parts["val"])
+        f_both = torch.cat([feats["train"], feats["val"]])
+        refit = train_head(model, both, f_both, epochs, ctx, resume=resume)
         history["refit_epochs"] = epochs
         if blended:
             t0 = time.process_time()
-            blend.refit(model, concat(parts["train"], parts["val"]),
-                        torch.cat([feats["train"], feats["val"]]), history["blend"], ctx.dist)
+            blend.refit(model, both, f_both, history["blend"], ctx.dist)
             history["blend"]["refit_cpu_seconds"] = round(time.process_time() - t0, 1)
         # (a full-batch head's refit is an L-BFGS fit of a convex objective: nothing to judge)
         reason = None if full_batch(model, cfg, ctx.dist) else refit_failed(
