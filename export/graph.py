@@ -125,17 +125,23 @@ def build_graph(model: nn.Module) -> onnx.ModelProto:
 def _idle_blend_left_out(model: nn.Module):
     """While tracing ``model``, a blended head whose mix is 0 is its LSTM alone: the mix's
     output, ``log_softmax`` of the LSTM's logits, gives the same probabilities, and the
-    regression would be computed for nothing (0.011 ms a window, ``training.md``). Parity is
-    still checked against the model as trained, blend and all."""
+    regression would be computed for nothing (0.011 ms a window, ``training.md``); so would a
+    granular model's window features, which only the regression reads. Parity is still
+    checked against the model as trained, blend and all."""
     head = getattr(model, "head", None)
     if not (isinstance(head, Blend) and float(head.mix) == 0.0):
         yield
         return
+    window_features = getattr(model.pre, "window_features", None)
     model.head = head.recurrent
+    if window_features is not None:
+        model.pre.window_features = None
     try:
         yield
     finally:
         model.head = head
+        if window_features is not None:
+            model.pre.window_features = window_features
 
 
 def _with_functions(model: onnx.ModelProto, functions: list) -> onnx.ModelProto:

@@ -18,8 +18,9 @@ from tactile.export.session import session
 # log power of the weak bins by whole units (labels of 12% of windows changed, 53% with EMD)
 QUANTIZED_OPS = ("LSTM", "MatMul", "Gemm")
 # nor the blended regression's products, for the same reason: its DFT basis and band sums
-# feed logs (int8 there: 2 of 3 labels changed on a model that weights the regression fully)
-FLOAT_SCOPES = ("/regression/",)
+# feed logs (int8 there: 2 of 3 labels changed on a model that weights the regression fully);
+# a granular model computes the regression's window features in its preprocessing
+FLOAT_SCOPES = ("/regression/", "/window_features/")
 
 
 def quantize_int8(model: onnx.ModelProto) -> onnx.ModelProto:

@@ -203,8 +203,8 @@ def test_blend_off_is_the_lstm_alone_and_old_checkpoints_load_so(dataset, tmp_pa
     torch.save(ck, run / "checkpoint.pt")
     model, _ = load_checkpoint(run)
     assert not isinstance(model.head, Blend)
-    with pytest.raises(ConfigError, match="blend must be one of auto, off"):
-        TrainConfig(blend="on")
+    with pytest.raises(ConfigError, match="blend must be one of auto, on, off"):
+        TrainConfig(blend="yes")
 
 
 def test_a_blended_checkpoint_without_the_key_is_one_line(run, tmp_path):
@@ -329,9 +329,9 @@ def test_a_checkpoint_that_stored_the_constants_loads(run, tmp_path):
     ck = torch.load(out / "checkpoint.pt", weights_only=True)
     model, _ = load_checkpoint(out)
     reg = model.head.regression
-    ck["state_dict"]["head.regression.dft"] = reg.dft.clone()
-    ck["state_dict"]["head.regression.bands"] = reg.bands.clone()
+    ck["state_dict"]["head.regression.dft"] = reg.window.dft.clone()
+    ck["state_dict"]["head.regression.bands"] = reg.window.bands.clone()
     torch.save(ck, tmp_path / "checkpoint.pt")
     again, _ = load_checkpoint(tmp_path)
-    assert torch.equal(again.head.regression.dft, reg.dft)
+    assert torch.equal(again.head.regression.window.dft, reg.window.dft)
     assert torch.equal(again.head.regression.coef, reg.coef)

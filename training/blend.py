@@ -1,5 +1,6 @@
-"""The blended regression (``blend='auto'``): solve the :class:`~tactile.training.model.
-WindowRegression` and choose its weight beside the LSTM on the validation windows.
+"""The blended regression (``blend='auto'`` with an LSTM, ``'on'`` also with an F-RNN or
+SF-RNN): solve the :class:`~tactile.training.model.WindowRegression` and choose its weight
+beside the recurrent model on the validation windows.
 
 On recordings that drift over time (a BioTac's later repetitions) an LSTM trained by
 mini-batch Adam extrapolates worse than a logistic regression on whole-window features solved
@@ -111,8 +112,10 @@ def _figures(log_p: np.ndarray, y: np.ndarray) -> tuple[float, float]:
 
 
 def _left_out(model) -> np.ndarray:
-    """The regression's features to leave out: the means of the centred channels."""
-    return np.flatnonzero(model.pre.center_mask.cpu().numpy())
+    """The regression's features to leave out: the means of the centred channels (a granular
+    model's preprocessing centres none)."""
+    mask = getattr(model.pre, "center_mask", None)
+    return np.flatnonzero(mask.cpu().numpy()) if mask is not None else np.zeros(0, np.int64)
 
 
 def weights(model) -> tuple[float, ...]:
@@ -167,14 +170,14 @@ def refit(model, w, f: torch.Tensor, choice: dict, dist) -> None:
     dist.sync_buffers(head)
 
 
-def check_available() -> None:
-    """scikit-learn (the solver) importable, else a one-line :class:`ConfigError`: checked
-    before training, not after it."""
+def check_available(setting: str = "auto") -> None:
+    """scikit-learn (the solver) importable, else a one-line :class:`ConfigError` naming the
+    ``blend`` setting: checked before training, not after it."""
     try:
         import sklearn.linear_model  # noqa: F401
         import threadpoolctl  # noqa: F401
     except ImportError as e:
-        raise ConfigError(f"blend='auto' solves its regression with scikit-learn, which does "
+        raise ConfigError(f"blend={setting!r} solves its regression with scikit-learn, which does "
                           f"not import ({e}): pip install 'tactile[train]', or set "
                           "blend=off") from None
 

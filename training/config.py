@@ -29,7 +29,8 @@ STATE_MODES = ("window", "carry")
 SPLITS = ("user", "take", "time")
 SCHEDULES = ("constant", "plateau", "cosine")
 REFITS = ("auto", "on", "off")
-BLENDS = ("auto", "off")
+BLENDS = ("auto", "on", "off")
+BLENDED_MODELS = ("lstm", "f_rnn", "sf_rnn")
 SELECTS = ("loss", "accuracy")
 DEVICES = ("auto", "cpu", "cuda")
 MAX_AUTO_THREADS = 4
@@ -186,7 +187,8 @@ class TrainConfig:
     training windows at once, ``C`` chosen on the validation windows, and mixes its
     log-probabilities with the LSTM's at the weight that labels the most validation windows
     right (0 keeps the LSTM alone), the refit solving it again on training + validation
-    windows; ``off``: the LSTM alone) or
+    windows; ``off``: the LSTM alone; ``on``: as ``auto``, and so also for ``f_rnn`` and
+    ``sf_rnn``, which ``auto`` leaves as the granular-media paper has them) or
     ``linear`` (a linear classifier on the log energies of the IMFs, the granular-media paper's
     baseline; needs ``emd_channels``).
     The granular-media paper's models (``docs/granular.md``) work on ``modalities``, one
@@ -331,6 +333,9 @@ class TrainConfig:
             )
         if self.state == "carry" and self.model != "lstm":
             raise ConfigError("state='carry' needs model='lstm'")
+        if self.blend == "on" and self.model not in BLENDED_MODELS:
+            raise ConfigError(f"blend='on' needs a recurrent model ({', '.join(BLENDED_MODELS)}; "
+                              f"got model={self.model!r})")
         if self.ensemble > 1 and self.model != "lstm":
             raise ConfigError(f"ensemble={self.ensemble} needs model='lstm' (got "
                               f"model={self.model!r})")
@@ -359,8 +364,9 @@ class TrainConfig:
 
     @property
     def blends(self) -> bool:
-        """Whether the model is an LSTM with the blended regression (``blend='auto'``)."""
-        return self.model == "lstm" and self.blend == "auto"
+        """Whether the model has the blended regression: ``blend='on'``, or ``'auto'`` with
+        ``model='lstm'`` (the granular-media paper's models stay as published)."""
+        return self.blend == "on" or (self.blend == "auto" and self.model == "lstm")
 
     @property
     def refits(self) -> bool:
@@ -412,8 +418,8 @@ def unused(cfg: TrainConfig) -> list[str]:
     otherwise say nothing of them."""
     base = TrainConfig()
     rules = [  # (keys, when they are not read, why)
-        (("front", "frame", "frame_hop", "wide", "blend"), cfg.model != "lstm",
-         "only model='lstm'"),
+        (("front", "frame", "frame_hop", "wide"), cfg.model != "lstm", "only model='lstm'"),
+        (("blend",), cfg.model not in BLENDED_MODELS, f"only model={' or '.join(BLENDED_MODELS)}"),
         (("frame", "frame_hop"), cfg.model == "lstm" and cfg.front != "spectral",
          "only front='spectral'"),
         (("hidden", "layers", "dropout"), cfg.model in ("linear", "sparse_linear"),
@@ -509,6 +515,6 @@ def resolve_device(device: str, cuda_available: bool | None = None) -> str:
 
 
 __all__ = ["TrainConfig", "Modality", "unused", "MODELS", "FRONTS", "STATE_MODES",
-           "SPLITS", "SCHEDULES", "SELECTS", "REFITS", "BLENDS", "DEVICES", "signals_from",
-           "modalities_from",
+           "SPLITS", "SCHEDULES", "SELECTS", "REFITS", "BLENDS", "BLENDED_MODELS", "DEVICES",
+           "signals_from", "modalities_from",
            "apply_threads", "resolve_threads", "resolve_device", "usable_cpus"]

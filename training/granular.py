@@ -32,7 +32,7 @@ from torch import Tensor, nn
 from tactile.training.config import TrainConfig
 from tactile.training.emd import EMD
 from tactile.training.modality import ModalityLayout, Signals, n_steps
-from tactile.training.model import Classifier
+from tactile.training.model import Blend, Classifier, WindowFeatures, WindowRegression
 from tactile.training.sparse import SparseCoder, default_n_nonzero
 
 LOG_EPS = 1e-6
@@ -72,12 +72,19 @@ class GranularPre(nn.Module):
         layout: the modalities (:func:`tactile.training.modality.resolve`).
         mean, std: (C,) normalisation (:func:`pooled_stats`).
         window: T, frames per window; emd_sifts: sifts per IMF.
+        window_features: append the normalised window's
+            :class:`~tactile.training.model.WindowFeatures` (over all C channels) to every
+            step's features, after the head's :attr:`n_features` (what a blended model's
+            regression reads: :class:`~tactile.training.model.WindowRegression`'s ``given``);
+            not in ``energy`` mode.
     """
 
     def __init__(self, layout: tuple[ModalityLayout, ...], mean: Tensor, std: Tensor,
-                 window: int, emd_sifts: int, mode: str) -> None:
+                 window: int, emd_sifts: int, mode: str, window_features: bool = False) -> None:
         super().__init__()
         self.layout, self.mode, self.window = tuple(layout), mode, window
+        self.window_features = (WindowFeatures(int(mean.numel()), window)
+                                if window_features and mode != "energy" else None)
         self.register_buffer("mean", mean.float().clone())  # (C,)
         self.register_buffer("std", std.float().clone())  # (C,)
         self.steps = n_steps(self.layout, window)  # S
@@ -127,8 +134,13 @@ class GranularPre(nn.Module):
         coefficients scale); a log mean energy ``log(E + 1e-6)`` becomes
         ``log(g^2 E + 1e-6)``, a unit's mean scales, and its ``0.5 log(var + 1e-6)`` becomes
         ``0.5 log(g^2 var + 1e-6)``. Training applies it to the features computed once,
-        instead of computing them again every batch."""
+        instead of computing them again every batch. The window's features after the head's
+        (``window_features``) pass unchanged: only the blended regression reads them, never
+        in training."""
         g = torch.index_select(gains, -1, self.gain_owner)  # (..., F)
+        if self.window_features is not None:
+            n = self.n_features
+            return torch.cat([f[..., :n] * g, f[..., n:]], dim=-1)
         if self.mode != "energy":  # codes and images scale
             return f * g
         kind = self.gain_kind
@@ -213,9 +225,18 @@ class GranularPre(nn.Module):
         sig = self._signals(z, imfs)
         return torch.cat([self._image(s, k) for k, s in enumerate(sig)], dim=2)
 
+    def with_window(self, images: Tensor, z: Tensor) -> Tensor:
+        """The images (B, S, sum features), with ``window_features`` the window's
+        :class:`~tactile.training.model.WindowFeatures` of ``z`` appended to every step."""
+        if self.window_features is None:
+            return images
+        w = self.window_features(z.to(self.window_features.dft.dtype)).to(images.dtype)
+        return torch.cat([images, w[:, None, :].expand(-1, images.shape[1], -1)], dim=2)
+
     def post(self, images: Tensor) -> Tensor:
         """(B, S, sum features) images -> the head's features: codes (B, S, sum atoms) in
-        ``codes`` mode, the images themselves in ``images`` mode."""
+        ``codes`` mode, the images themselves in ``images`` mode (the window's features after
+        them, with ``window_features``, passed on as they are)."""
         if self.mode != "codes":
             return images
         # the sizes from the images' own shape, as the exporter traces them: the coders'
@@ -227,6 +248,8 @@ class GranularPre(nn.Module):
         for coder, f in zip(self.coders, self.image_features):
             out.append(coder(flat[:, at : at + f]).reshape(b, s, coder.atoms))
             at += f
+        if self.window_features is not None:
+            out.append(images[:, :, at:])
         return torch.cat(out, dim=2)
 
     def energy(self, z: Tensor, imfs: list[Tensor]) -> Tensor:
@@ -247,15 +270,16 @@ class GranularPre(nn.Module):
         features (B, S, n_features), or (B, 1, n_features) in ``energy`` mode."""
         if self.mode == "energy":
             return self.energy(z, imfs)
-        return self.post(self.images_from(z, imfs))
+        return self.post(self.with_window(self.images_from(z, imfs), z))
 
     def decompose(self, z: Tensor) -> list[Tensor]:
         return [emd(s)[0] for emd, s in zip(self.emds, self.emd_inputs(z))]
 
     def images(self, x: Tensor) -> Tensor:
-        """x (B, T, C) -> the data images (B, S, sum features), before any coding."""
+        """x (B, T, C) -> the data images (B, S, sum features), before any coding (the
+        window's features after them, with ``window_features``)."""
         z = self.normalise(x)
-        return self.images_from(z, self.decompose(z))
+        return self.with_window(self.images_from(z, self.decompose(z)), z)
 
     def forward(self, x: Tensor) -> Tensor:
         z = self.normalise(x)
@@ -485,7 +509,8 @@ class GranularModel(Classifier):
                  mean: Tensor, std: Tensor) -> None:
         super().__init__()
         self.cfg, self.layout, self.n_classes = cfg, tuple(layout), n_classes
-        self.pre = GranularPre(layout, mean, std, cfg.window, cfg.emd_sifts, MODES[cfg.model])
+        self.pre = GranularPre(layout, mean, std, cfg.window, cfg.emd_sifts, MODES[cfg.model],
+                               window_features=cfg.blends)
         n = self.pre.n_features
         if cfg.model == "sf_rnn":
             self.head = SFRNNHead(n, n_classes, cfg.hidden, cfg.layers, cfg.dropout)
@@ -495,6 +520,9 @@ class GranularModel(Classifier):
         else:
             self.head = PooledLinearHead(n, n_classes,
                                          "abs_mean" if cfg.model == "sparse_linear" else "mean")
+        if self.pre.window_features is not None:  # blend: the regression beside the LSTM
+            self.head = Blend(self.head, WindowRegression(
+                int(mean.numel()), cfg.window, n_classes, given=n), n_head=n)
 
     @property
     def state_shape(self) -> tuple[int, int]:
@@ -503,8 +531,9 @@ class GranularModel(Classifier):
     def fit_features(self, train: Tensor) -> None:
         """Statistics of the training windows' features ``(N, S, F)`` the head keeps (before
         training): the F-RNN's input scale of each feature."""
-        if isinstance(self.head, FRNNHead):
-            self.head.fit_scale(train)
+        head = self.head.recurrent if isinstance(self.head, Blend) else self.head
+        if isinstance(head, FRNNHead):
+            head.fit_scale(train[..., : self.pre.n_features])
 
     def augment_gain(self, f: Tensor, amount: float, gen: torch.Generator) -> Tensor:
         """Training's gain augmentation on the features ``f (B, S, T, F)`` computed once by

@@ -249,27 +249,23 @@ class LinearHead(nn.Module):
         return self.out(energy), h, c
 
 
-class WindowRegression(nn.Module):
-    """(B, T, F) features -> (B, classes) logits of a logistic regression on whole-window
-    features of the C normalised channels (the first C of F): per channel the window's mean,
-    log standard deviation and log energy of the mean-free, Hann-tapered window in
-    :data:`BANDS` equal bands up to the Nyquist frequency, standardised with the training
-    windows' statistics (a feature that does not vary there is left out). Everything is a
-    buffer: it is solved on all training windows at once (:mod:`tactile.training.blend`),
-    not trained by the loop.
-    """
+class WindowFeatures(nn.Module):
+    """(B, T, C) normalised channels -> (B, C * (2 + BANDS)) whole-window features: per
+    channel the window's mean, log standard deviation and log energy of the mean-free,
+    Hann-tapered window in :data:`BANDS` equal bands up to the Nyquist frequency, grouped
+    (the means, the log standard deviations, then each band's log energies), each group
+    channel by channel. No state: its DFT basis and band sums are rebuilt with the module."""
 
     BANDS = 5
     FLOOR = 1e-8  # of variances and band energies, on the unit-variance normalised scale
 
-    def __init__(self, n_channels: int, window: int, n_classes: int) -> None:
+    def __init__(self, n_channels: int, window: int) -> None:
         super().__init__()
         t = torch.arange(window, dtype=torch.float64)
         k = torch.arange(window // 2 + 1, dtype=torch.float64)
         taper = torch.hann_window(window, periodic=False, dtype=torch.float64)
         angle = 2 * math.pi * k[:, None] * t[None, :] / window  # (K, T)
         # (T, 2K): the tapered cosines then sines, one product for both
-        # (derived constants: not in the state dict, rebuilt with the module)
         self.register_buffer("dft", (torch.cat([torch.cos(angle), torch.sin(angle)]) * taper)
                              .T.float().contiguous(), persistent=False)
         self.n_bins = len(k)
@@ -281,16 +277,8 @@ class WindowRegression(nn.Module):
                              persistent=False)
         self.n_channels = n_channels
         self.n_features = n_channels * (2 + self.BANDS)
-        self.register_buffer("feature_mean", torch.zeros(self.n_features))
-        self.register_buffer("feature_scale", torch.zeros(self.n_features))  # 1 / std, or 0
-        self.register_buffer("coef", torch.zeros(self.n_features, n_classes))
-        self.register_buffer("intercept", torch.zeros(n_classes))
-        self._register_load_state_dict_pre_hook(_without_constants)
 
-    def features(self, f: Tensor) -> Tensor:
-        """(B, T, F) -> (B, C * (2 + BANDS)): the means, log standard deviations, then each
-        band's log energies, every group channel by channel."""
-        z = f[:, :, : self.n_channels]
+    def forward(self, z: Tensor) -> Tensor:
         mean = z.mean(dim=1)  # (B, C)
         d = z - mean.unsqueeze(1)
         log_std = 0.5 * torch.log((d * d).mean(dim=1) + self.FLOOR)
@@ -299,6 +287,43 @@ class WindowRegression(nn.Module):
         energy = (re * re + im * im) @ self.bands.T  # (B, C, BANDS)
         bands = torch.log(energy + self.FLOOR).transpose(1, 2).flatten(1)
         return torch.cat([mean, log_std, bands], dim=1)
+
+
+class WindowRegression(nn.Module):
+    """(B, T, F) features -> (B, classes) logits of a logistic regression on the
+    :class:`WindowFeatures` of the C normalised channels, standardised with the training
+    windows' statistics (a feature that does not vary there is left out). Everything is a
+    buffer: it is solved on all training windows at once (:mod:`tactile.training.blend`),
+    not trained by the loop.
+
+    ``given``: None when the first C of F are the normalised channels (the LSTM's features);
+    else the column of F where the window's :class:`WindowFeatures` start, computed by the
+    preprocessing and repeated at every step (a granular model's features are images or codes,
+    not the window: :class:`tactile.training.granular.GranularPre`), read at the last step.
+    """
+
+    BANDS = WindowFeatures.BANDS
+    FLOOR = WindowFeatures.FLOOR
+
+    def __init__(self, n_channels: int, window: int, n_classes: int,
+                 given: int | None = None) -> None:
+        super().__init__()
+        self.given = given
+        n_features = n_channels * (2 + self.BANDS)
+        if given is None:
+            self.window = WindowFeatures(n_channels, window)
+        self.n_channels, self.n_features = n_channels, n_features
+        self.register_buffer("feature_mean", torch.zeros(n_features))
+        self.register_buffer("feature_scale", torch.zeros(n_features))  # 1 / std, or 0
+        self.register_buffer("coef", torch.zeros(n_features, n_classes))
+        self.register_buffer("intercept", torch.zeros(n_classes))
+        self._register_load_state_dict_pre_hook(_without_constants)
+
+    def features(self, f: Tensor) -> Tensor:
+        """(B, T, F) -> (B, C * (2 + BANDS)): :class:`WindowFeatures`."""
+        if self.given is not None:
+            return f[:, -1, self.given : self.given + self.n_features]
+        return self.window(f[:, :, : self.n_channels])
 
     def forward(self, f: Tensor) -> Tensor:
         x = (self.features(f) - self.feature_mean) * self.feature_scale
@@ -318,17 +343,24 @@ class Blend(nn.Module):
     classifier's softmax then gives their normalised weighted geometric mean); in training
     mode the head's own logits (the regression is solved apart). ``mix``, the regression's
     weight (a buffer), is chosen on the validation windows (:mod:`tactile.training.blend`); 0
-    until then. The state is the head's.
+    until then. The state is the head's. ``n_head``: the head reads the first ``n_head``
+    features (None: all of them; a granular model's regression reads the window's features
+    after them: :class:`WindowRegression`'s ``given``).
     """
 
-    def __init__(self, head: nn.Module, regression: WindowRegression) -> None:
+    def __init__(self, head: nn.Module, regression: WindowRegression,
+                 n_head: int | None = None) -> None:
         super().__init__()
-        self.recurrent, self.regression = head, regression
+        self.recurrent, self.regression, self.n_head = head, regression, n_head
         self.layers, self.hidden = head.layers, head.hidden
         self.register_buffer("mix", torch.zeros(()))
 
+    @property
+    def state_shape(self) -> tuple[int, int]:
+        return getattr(self.recurrent, "state_shape", (self.layers, self.hidden))
+
     def forward(self, f: Tensor, h: Tensor, c: Tensor) -> tuple[Tensor, Tensor, Tensor]:
-        logits, h, c = self.recurrent(f, h, c)
+        logits, h, c = self.recurrent(f if self.n_head is None else f[..., : self.n_head], h, c)
         if self.training:
             return logits, h, c
         mixed = ((1 - self.mix) * torch.log_softmax(logits, dim=1)

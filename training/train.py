@@ -73,7 +73,7 @@ def train(data: Path, out: Path, cfg: TrainConfig, progress: bool = True, *,
         same_takes(data, takes, resume.get("takes"))
     classes, channels = check_inputs(data, takes, cfg)
     if cfg.blends:
-        blend.check_available()  # its solver, before the training it follows
+        blend.check_available(cfg.blend)  # its solver, before the training it follows
     # said once the data is known to fit: a bad input's error is then the only line
     job = f"; {dist.world} processes in all (rank 0 writes)" if dist.world > 1 else ""
     cpus = usable_cpus()
