@@ -537,7 +537,8 @@ def test_plots_mark_the_best_epoch_and_show_counts(monkeypatch):
     _plots({**history, "blend": blend}, metrics, ("a", "b"))
     assert [(xy, label) for xy, label in points if label and "regression" in label] == [
         (([2], [0.82]), "with the regression (mix 0.5)")]
-    assert [label for _, label in points][:3] == ["train", "validation", "the LSTM alone"]
+    assert [label for _, label in points][:3] == ["train", "validation",
+                                                  "the recurrent model alone"]
     points.clear()
     _plots({**history, "blend": {**blend, "mix": 0.0}}, metrics, ("a", "b"))  # the LSTM alone
     assert [label for _, label in points] == ["train", "validation", None]

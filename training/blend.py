@@ -29,6 +29,8 @@ CS = (0.01, 0.1, 1.0, 10.0)
 smaller."""
 WEIGHTS = (0.0, 0.25, 0.5, 0.75, 1.0)
 """The regression's weights tried; ties: the smaller (0: the LSTM alone)."""
+NAMES = {"lstm": "LSTM", "f_rnn": "F-RNN", "sf_rnn": "SF-RNN"}
+"""The recurrent model of each model that blends, as the log names it."""
 ABSENT = -1e4
 """The intercept of a class no training window has (its probability 0 in float32)."""
 

@@ -419,7 +419,7 @@ def unused(cfg: TrainConfig) -> list[str]:
     base = TrainConfig()
     rules = [  # (keys, when they are not read, why)
         (("front", "frame", "frame_hop", "wide"), cfg.model != "lstm", "only model='lstm'"),
-        (("blend",), cfg.model not in BLENDED_MODELS, f"only model={' or '.join(BLENDED_MODELS)}"),
+        (("blend",), cfg.model not in BLENDED_MODELS, "only model='lstm', 'f_rnn' or 'sf_rnn'"),
         (("frame", "frame_hop"), cfg.model == "lstm" and cfg.front != "spectral",
          "only front='spectral'"),
         (("hidden", "layers", "dropout"), cfg.model in ("linear", "sparse_linear"),

@@ -16,7 +16,9 @@ of the granular models, in three stages that export composes (``docs/granular.md
    ``mode``: ``codes`` (sf_rnn, sparse_linear) one :class:`SparseCoder` per modality over
    the image, ``(B, S, sum atoms)``; ``images`` (f_rnn) the images ``(B, S, sum features)``;
    ``energy`` (linear) one row per window ``(B, 1, F)``: the log mean energy of each IMF of
-   each unit (imfs = 0: the mean and the log standard deviation of each unit).
+   each unit (imfs = 0: the mean and the log standard deviation of each unit). With the
+   blended regression (``blend='on'``) the window's whole-window features follow at every
+   step (``window_features``): only the regression reads them.
 
 Dictionaries are learned from training images only by scikit-learn's
 ``MiniBatchDictionaryLearning`` (:func:`learn_dictionaries`) and live in the coders' buffers,
@@ -107,8 +109,9 @@ class GranularPre(nn.Module):
         self.register_buffer("gain_kind", kind, persistent=False)  # (F,) GAIN_* of a feature
 
     def _gain_map(self) -> tuple[Tensor, Tensor]:
-        """Per feature of :meth:`forward`'s output, the modality it comes from and how a gain
-        g on that modality's normalised channels reaches it (:meth:`apply_gain`)."""
+        """Per feature the head reads (:attr:`n_features` of :meth:`forward`'s output), the
+        modality it comes from and how a gain g on that modality's normalised channels
+        reaches it (:meth:`apply_gain`)."""
         owner, kind = [], []
         for k, m in enumerate(self.layout):
             if self.mode == "codes":
@@ -243,13 +246,16 @@ class GranularPre(nn.Module):
         # inputs keep unknown sizes in the graph (a SparseCode function of several coders holds
         # every coder's body) and the codes the sizes the exporter gives a pooled head
         b, s = images.shape[0], images.shape[1]
+        if self.window_features is not None:  # the images alone, laid out as without them
+            window, images = images[:, :, sum(self.image_features):], \
+                images[:, :, : sum(self.image_features)].contiguous()
         flat = images.reshape(b * s, images.shape[2])
         out, at = [], 0
         for coder, f in zip(self.coders, self.image_features):
             out.append(coder(flat[:, at : at + f]).reshape(b, s, coder.atoms))
             at += f
         if self.window_features is not None:
-            out.append(images[:, :, at:])
+            out.append(window)
         return torch.cat(out, dim=2)
 
     def energy(self, z: Tensor, imfs: list[Tensor]) -> Tensor:
@@ -267,7 +273,9 @@ class GranularPre(nn.Module):
 
     def finish(self, z: Tensor, imfs: list[Tensor]) -> Tensor:
         """z (B, T, C) and imfs[k] (B, n_k, K_k, L_k) (the EMDs of :meth:`emd_inputs`) ->
-        features (B, S, n_features), or (B, 1, n_features) in ``energy`` mode."""
+        features (B, S, n_features), or (B, 1, n_features) in ``energy`` mode; with
+        ``window_features`` (B, S, n_features + its n_features), the window's after the
+        head's."""
         if self.mode == "energy":
             return self.energy(z, imfs)
         return self.post(self.with_window(self.images_from(z, imfs), z))

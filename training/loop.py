@@ -118,8 +118,9 @@ def fit(model: Classifier, parts: dict, feats: dict, ctx: Context,
         history["blend"] = b = blend.choose(model, parts, feats, ctx.dist, _stop_check(ctx))
         b["cpu_seconds"] = round(time.process_time() - t0, 1)
         ctx.log.info(f"blended regression: C {b['c']:g}, mix {b['mix']:g}; validation "
-                     f"accuracy {b['val_acc']:.3f} (LSTM {b['recurrent_val_acc']:.3f}, "
-                     f"regression {b['regression_val_acc']:.3f}; {b['cpu_seconds']:g} s of CPU)")
+                     f"accuracy {b['val_acc']:.3f} ({blend.NAMES[cfg.model]} "
+                     f"{b['recurrent_val_acc']:.3f}, regression {b['regression_val_acc']:.3f}; "
+                     f"{b['cpu_seconds']:g} s of CPU)")
     if cfg.refits:
         epochs = history["best_epoch"] + 1
         ctx.fit_history, ctx.fit_best = history, copy.deepcopy(model.head.state_dict())

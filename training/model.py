@@ -360,7 +360,9 @@ class Blend(nn.Module):
         return getattr(self.recurrent, "state_shape", (self.layers, self.hidden))
 
     def forward(self, f: Tensor, h: Tensor, c: Tensor) -> tuple[Tensor, Tensor, Tensor]:
-        logits, h, c = self.recurrent(f if self.n_head is None else f[..., : self.n_head], h, c)
+        # (contiguous: the head computes as it would without the regression's features)
+        head_f = f if self.n_head is None else f[..., : self.n_head].contiguous()
+        logits, h, c = self.recurrent(head_f, h, c)
         if self.training:
             return logits, h, c
         mixed = ((1 - self.mix) * torch.log_softmax(logits, dim=1)

@@ -125,11 +125,11 @@ def plots(history: dict, metrics: dict, classes: tuple[str, ...]) -> dict[str, b
     blend = history.get("blend")
     blended = bool(blend and blend["mix"] > 0)
     ax[1].plot(ep[: len(history["val_acc"])], history["val_acc"],
-               label="the LSTM alone" if blended else None)
+               label="the recurrent model alone" if blended else None)
     ax[1].set(xlabel="epoch", ylabel="accuracy", title="validation accuracy", ylim=(0, 1))
     for a in ax:  # the epoch whose weights were kept
         a.axvline(best, color="tab:red", linestyle="--", linewidth=1, label=f"best epoch {best}")
-    if blended:  # the model as kept: that epoch's LSTM with the regression
+    if blended:  # the model as kept: that epoch's recurrent model with the regression
         ax[1].plot([best], [blend["val_acc"]], marker="*", markersize=11, linestyle="none",
                    color="tab:green", label=f"with the regression (mix {blend['mix']:g})")
         ax[1].legend(loc="lower right")
