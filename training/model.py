@@ -279,8 +279,13 @@ class WindowFeatures(nn.Module):
         self.n_features = n_channels * (2 + self.BANDS)
 
     def forward(self, z: Tensor) -> Tensor:
-        mean = z.mean(dim=1)  # (B, C)
-        d = z - mean.unsqueeze(1)
+        # the mean-free window from the differences to its first sample: a level far above the
+        # window's variation (a pressure held steady) would otherwise leave float32's rounding
+        # of the mean in every sample, which the taper turns into energy at the lowest bins
+        u = z - z[:, :1]
+        du = u.mean(dim=1)  # (B, C)
+        mean = z[:, 0] + du
+        d = u - du.unsqueeze(1)
         log_std = 0.5 * torch.log((d * d).mean(dim=1) + self.FLOOR)
         y = d.transpose(1, 2) @ self.dft  # (B, C, 2K)
         re, im = y[..., : self.n_bins], y[..., self.n_bins :]
