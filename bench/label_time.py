@@ -63,9 +63,11 @@ def _windows(contract, data: Path | None, seconds: float, seed: int = 0) -> np.n
 
         out = []
         for take in load_dataset(data):
-            if tuple(take.channels) != tuple(c.channels):
+            if not set(c.channels) <= set(take.channels):
                 continue
-            v = np.asarray(take.values(), np.float32)  # (rows, C) in units
+            # the model's channels by name, in its order (a take may carry more: both fingers)
+            idx = [list(take.channels).index(n) for n in c.channels]
+            v = np.asarray(take.values(), np.float32)[:, idx]  # (rows, C) in units
             starts = np.arange(0, len(v) - c.window + 1, c.hop)
             out += [v[s : s + c.window] for s in starts]
             if len(out) >= n:

@@ -58,3 +58,32 @@ def test_bad_input_is_one_line_and_an_exit_code(args, code, says, tmp_path):
                        capture_output=True, text=True, timeout=300, cwd=ROOT)
     assert r.returncode == code, r.stderr
     assert says in r.stderr and len(r.stderr.strip().splitlines()) == 1, r.stderr
+
+
+def test_windows_take_the_models_channels_by_name_from_a_take_with_more(tmp_path):
+    """A take that carries the model's channels among others, in another order (a BioTac
+    take of both fingers for a model of one): its windows hold the model's channels by name,
+    in the model's order, at the model's hop, not Gaussian stand-ins."""
+    import numpy as np
+
+    from tactile.device.protocol import ChannelSpec, DeviceInfo
+    from tactile.device.recordings import TakeWriter
+    from tactile.runtime.model import Model
+
+    bench = _bench()
+    c = Model(SHIPPED).contract
+    names = ("extra", *reversed(c.channels))
+    rows = c.window + 3 * c.hop
+    raw = np.arange(rows * len(names)).reshape(rows, len(names)) % 997
+    info = DeviceInfo(c.sample_rate_hz, tuple(ChannelSpec(n, "count") for n in names),
+                      device="synthetic")
+    with TakeWriter(tmp_path, "paper", info, "synthetic", name="t0") as w:
+        w.write(0, 0, raw)
+    got = bench._windows(c, tmp_path, 4 * c.hop / c.sample_rate_hz)
+    assert got.shape == (4, c.window, len(c.channels))
+    from tactile.device.recordings import load_dataset
+
+    values = np.asarray(load_dataset(tmp_path)[0].values(), np.float32)
+    want = values[:, [names.index(n) for n in c.channels]]
+    for i in range(4):
+        np.testing.assert_array_equal(got[i], want[i * c.hop : i * c.hop + c.window])

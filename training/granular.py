@@ -528,7 +528,7 @@ class GranularModel(Classifier):
         else:
             self.head = PooledLinearHead(n, n_classes,
                                          "abs_mean" if cfg.model == "sparse_linear" else "mean")
-        if self.pre.window_features is not None:  # blend: the regression beside the LSTM
+        if self.pre.window_features is not None:  # blend: the regression beside the head
             self.head = Blend(self.head, WindowRegression(
                 int(mean.numel()), cfg.window, n_classes, given=n), n_head=n)
 
