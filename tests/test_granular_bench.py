@@ -214,9 +214,11 @@ def test_a_run_held_by_a_live_process_is_passed_by_and_a_stale_lock_taken_over(t
         assert (tmp_path / ".lock").read_text() == str(os.getpid())
 
 
-def test_recommended_biotac_config_is_the_f_rnn_row_at_the_toolkit_budget():
+def test_recommended_biotac_config_is_the_f_rnn_row_at_the_toolkit_budget_blended():
     from tactile.training.config import TrainConfig
 
     rec = TrainConfig.from_toml(CONFIGS / "biotac-recommended.toml")
-    assert rec == TrainConfig.from_toml(CONFIGS / "biotac-all-f_rnn.toml")
+    row = TrainConfig.from_toml(CONFIGS / "biotac-all-f_rnn.toml")
+    assert rec.blends and not row.blends
+    assert rec == row.replace(blend="on")
     assert (rec.val, rec.test) == ("repetition:4", "repetition:5")
