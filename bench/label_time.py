@@ -13,7 +13,8 @@ on the windows, through the EMD's early stops: give ``--data`` with BioTac takes
 Measured on the exported file as ``tactile-run`` runs it: onnxruntime on one thread, one window
 at a time (batch 1) at the model's streaming hop (the contract's ``hop``), preprocessing, EMD
 and sparse coding included (they are in the graph), the state zeroed or carried as the contract
-says. Windows come from ``--data`` (consecutive windows of its first takes, cut at the hop) or,
+says. Windows come from ``--data`` (consecutive windows of its first takes that carry the
+model's channels, cut at the hop; the model's channels taken by name, in its order) or,
 without it, from Gaussian noise with the contract's per-channel mean and std (the EMD's sift
 loop stops early on smooth data, so real windows may be faster than noise).
 
@@ -66,7 +67,7 @@ def _windows(contract, data: Path | None, seconds: float, seed: int = 0) -> np.n
             if not set(c.channels) <= set(take.channels):
                 continue
             # the model's channels by name, in its order (a take may carry more: both fingers)
-            idx = [list(take.channels).index(n) for n in c.channels]
+            idx = [list(take.channels).index(name) for name in c.channels]
             v = np.asarray(take.values(), np.float32)[:, idx]  # (rows, C) in units
             starts = np.arange(0, len(v) - c.window + 1, c.hop)
             out += [v[s : s + c.window] for s in starts]
