@@ -124,9 +124,26 @@ def _windows(dataset, ck):
     return parts
 
 
-def test_the_refit_regression_is_scikit_learns_on_training_and_validation_windows(dataset, run):
+def scikit_learn_refit(parts: dict, normalised, c: float) -> np.ndarray:
+    """The refit's reference: scikit-learn's regression (``C = c``, solved far tighter than
+    the model's) on the numpy features of the normalised training + validation windows
+    (``normalised``: windows in units -> the model's normalised channels), standardised, a
+    feature that never varies left out (a centred channel's mean); its probabilities of the
+    test windows."""
     from sklearn.linear_model import LogisticRegression
 
+    feats = {k: reference_features(normalised(parts[k].x.astype(np.float64)))
+             for k in ("train", "val", "test")}
+    both = np.concatenate([feats["train"], feats["val"]])
+    mean, std = both.mean(axis=0), both.std(axis=0)
+    kept = std > 1e-6
+    ref = LogisticRegression(C=c, tol=1e-10, max_iter=10_000).fit(
+        ((both - mean) / np.where(kept, std, 1))[:, kept],
+        np.concatenate([parts["train"].y, parts["val"].y]))
+    return ref.predict_proba(((feats["test"] - mean) / np.where(kept, std, 1))[:, kept])
+
+
+def test_the_refit_regression_is_scikit_learns_on_training_and_validation_windows(dataset, run):
     out, metrics = run
     choice = metrics["blend"]
     assert choice["c"] in blend.CS and choice["mix"] in blend.WEIGHTS
@@ -140,15 +157,7 @@ def test_the_refit_regression_is_scikit_learns_on_training_and_validation_window
         mask = np.isin(np.arange(z.shape[2]), ck["center_index"])
         return np.where(mask, centred, z)
 
-    feats = {k: reference_features(normalised(parts[k].x.astype(np.float64)))
-             for k in ("train", "val", "test")}
-    both = np.concatenate([feats["train"], feats["val"]])
-    mean, std = both.mean(axis=0), both.std(axis=0)
-    kept = std > 1e-6  # a feature that never varies is left out (a centred channel's mean)
-    ref = LogisticRegression(C=choice["c"], tol=1e-10, max_iter=10_000).fit(
-        ((both - mean) / np.where(kept, std, 1))[:, kept],
-        np.concatenate([parts["train"].y, parts["val"].y]))
-    want = ref.predict_proba(((feats["test"] - mean) / np.where(kept, std, 1))[:, kept])
+    want = scikit_learn_refit(parts, normalised, choice["c"])
     with torch.no_grad():
         got = torch.softmax(model.head.regression(model.pre(torch.from_numpy(parts["test"].x))),
                             dim=1).double().numpy()

@@ -16,7 +16,7 @@ import numpy as np
 import onnx
 import pytest
 import torch
-from test_blend import _windows, reference_features
+from test_blend import _windows, reference_features, scikit_learn_refit
 from test_export_granular import BASE, CHANNELS, ELECTRODES, PRESSURE, SIGNAL, VIB, write_takes
 
 from tactile.device.protocol import ChannelSpec
@@ -116,23 +116,14 @@ def test_the_window_features_follow_the_heads_at_every_step(run, dataset):
 
 
 def test_the_refit_regression_is_scikit_learns(run, dataset):
-    from sklearn.linear_model import LogisticRegression
-
     name, out, metrics = run
     choice = metrics["blend"]
     model, ck = load_checkpoint(out)
     assert float(model.head.mix) == choice["mix"] and metrics["val_accuracy"] == choice["val_acc"]
     parts = _windows(dataset, ck)
     mean, std = model.pre.mean.double().numpy(), model.pre.std.double().numpy()
-    feats = {k: reference_features((parts[k].x.astype(np.float64) - mean) / std)
-             for k in ("train", "val", "test")}
-    both = np.concatenate([feats["train"], feats["val"]])
-    mu, sd = both.mean(axis=0), both.std(axis=0)
-    kept = sd > 1e-6
-    ref = LogisticRegression(C=choice["c"], tol=1e-10, max_iter=10_000).fit(
-        ((both - mu) / np.where(kept, sd, 1))[:, kept],
-        np.concatenate([parts["train"].y, parts["val"].y]))
-    want = ref.predict_proba(((feats["test"] - mu) / np.where(kept, sd, 1))[:, kept])
+    # the granular normalisation: no centring
+    want = scikit_learn_refit(parts, lambda x: (x - mean) / std, choice["c"])
     with torch.no_grad():
         got = torch.softmax(model.head.regression(model.pre(torch.from_numpy(parts["test"].x))),
                             dim=1).double().numpy()

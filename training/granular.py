@@ -530,7 +530,7 @@ class GranularModel(Classifier):
                                          "abs_mean" if cfg.model == "sparse_linear" else "mean")
         if self.pre.window_features is not None:  # blend: the regression beside the head
             self.head = Blend(self.head, WindowRegression(
-                int(mean.numel()), cfg.window, n_classes, given=n), n_head=n)
+                int(mean.numel()), cfg.window, n_classes, given=n))
 
     @property
     def state_shape(self) -> tuple[int, int]:

@@ -348,17 +348,21 @@ class Blend(nn.Module):
     classifier's softmax then gives their normalised weighted geometric mean); in training
     mode the head's own logits (the regression is solved apart). ``mix``, the regression's
     weight (a buffer), is chosen on the validation windows (:mod:`tactile.training.blend`); 0
-    until then. The state is the head's. ``n_head``: the head reads the first ``n_head``
-    features (None: all of them; a granular model's regression reads the window's features
-    after them: :class:`WindowRegression`'s ``given``).
+    until then. The state is the head's. The head reads the features before the regression's
+    own (:attr:`n_head`).
     """
 
-    def __init__(self, head: nn.Module, regression: WindowRegression,
-                 n_head: int | None = None) -> None:
+    def __init__(self, head: nn.Module, regression: WindowRegression) -> None:
         super().__init__()
-        self.recurrent, self.regression, self.n_head = head, regression, n_head
+        self.recurrent, self.regression = head, regression
         self.layers, self.hidden = head.layers, head.hidden
         self.register_buffer("mix", torch.zeros(()))
+
+    @property
+    def n_head(self) -> int | None:
+        """How many features the head reads: those before the window's features a granular
+        model appends (:class:`WindowRegression`'s ``given``); None: all of them."""
+        return self.regression.given
 
     @property
     def state_shape(self) -> tuple[int, int]:
