@@ -26,8 +26,9 @@ float32 least squares through the Gram matrix allows. So a row above :data:`RTOL
 the graph's code is at least as close to float64 least squares as scikit-learn's, or within
 float32's accuracy for its atoms, (cond(D_S)^2 + sqrt(features) + non-zeros) x epsilon
 (:func:`float32_bound`), and a disagreement passes as a near-tie (where the graph's run
-parted from scikit-learn's or from the float64 OMP's), as the float64 OMP's choice, or as a
-code whose residual is no larger than scikit-learn's (:func:`judge`); each count is reported.
+parted from scikit-learn's, reconstructed from the correlations its transform computed), as
+the float64 OMP's choice, or as a code whose residual is no larger than scikit-learn's
+(:func:`judge`); each count is reported.
 """
 
 from __future__ import annotations
@@ -140,23 +141,6 @@ def near_tie(d: np.ndarray, x: np.ndarray, first: list[int], second: list[int]) 
     return abs(gap) < tolerance
 
 
-def _float64_tie(d: np.ndarray, x: np.ndarray, got: np.ndarray, n: int,
-                 order: list[int] | None) -> bool:
-    """True when the graph's code ``got`` of image ``x`` parted from the float64 OMP's run at a
-    near-tie: :func:`near_tie` of the two selection orders given the graph's ``order``, else
-    :func:`~tactile.training.sparse_check.tie_gap` of its atoms below :data:`TIE`. The
-    reconstruction of scikit-learn's float32 run (``sklearn_order``, one image's correlations)
-    can round a tie otherwise than its transform did (a batch's matrix product): then it agrees
-    with the graph while the transform took the float64 run's pick, and only the float64 run
-    shows where the graph's parted, at a tie float32 may decide either way."""
-    from tactile.training.sparse_check import sklearn_order, tie_gap
-
-    first = sklearn_order(d.astype(np.float64), x.astype(np.float64), n)
-    if order is not None:
-        return near_tie(d, x, first, order)
-    return abs(tie_gap(d, x, first, set(np.flatnonzero(got)))) < TIE
-
-
 def judge(ref: np.ndarray, got: np.ndarray, d: np.ndarray, x: np.ndarray, n: int,
           order: np.ndarray | None = None) -> dict:
     """The graph's codes ``got`` against scikit-learn's ``ref`` (rows, atoms) of images ``x``
@@ -171,12 +155,13 @@ def judge(ref: np.ndarray, got: np.ndarray, d: np.ndarray, x: np.ndarray, n: int
     other atoms are explained, in this order, as a near-tie (:func:`tie_gap` below
     :data:`TIE` in magnitude, or, given the graph's selection ``order`` (rows, n; -1 after a
     stop), a :func:`near_tie` where scikit-learn's run and the graph's parted, which may lie
-    before the first atom scikit-learn has and the graph lacks; or where the float64 OMP's run
-    and the graph's parted, :func:`_float64_tie`), as the float64 OMP's own
+    before the first atom scikit-learn has and the graph lacks; scikit-learn's run is
+    reconstructed from the correlations its transform computed for the batch,
+    :func:`~tactile.training.sparse_check.correlations`), as the float64 OMP's own
     choice (the graph's atoms are those of :func:`omp64`: scikit-learn's float32 run left the
     float64 path), or as an equally good code (the graph's float64 residual at most
     scikit-learn's); anything else fails."""
-    from tactile.training.sparse_check import compare, sklearn_order
+    from tactile.training.sparse_check import compare
 
     stats = compare(ref, got, d, x, n)
     same = ((ref != 0) == (got != 0)).all(1)
@@ -188,10 +173,9 @@ def judge(ref: np.ndarray, got: np.ndarray, d: np.ndarray, x: np.ndarray, n: int
         worst_f64 = max(worst_f64, mine)
         unexcused_over += mine > max(theirs, RTOL, float32_bound(d, got[i]))
     why = {"tie": 0, "float64": 0, "residual": 0, "unexplained": 0}
-    for i, gap in zip(np.flatnonzero(~same), stats["gaps"]):
+    for i, gap, theirs in zip(np.flatnonzero(~same), stats["gaps"], stats["orders"]):
         if abs(gap) < TIE or (order is not None and near_tie(
-                d, x[i], sklearn_order(d, x[i], n), order[i].tolist())) or _float64_tie(
-                d, x[i], got[i], n, None if order is None else order[i].tolist()):
+                d, x[i], theirs, order[i].tolist())):
             why["tie"] += 1
         elif set(np.flatnonzero(omp64(d, x[i], n))) == set(np.flatnonzero(got[i])):
             why["float64"] += 1

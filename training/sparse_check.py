@@ -20,20 +20,30 @@ from tactile.training.sparse import EPS as FLOAT32_EPS  # float32's epsilon
 
 
 def sklearn_order(d: np.ndarray, x: np.ndarray, n: int,
-                  gram: np.ndarray | None = None) -> list[int]:
+                  gram: np.ndarray | None = None, xy: np.ndarray | None = None) -> list[int]:
     """The atoms scikit-learn's OMP picks for window ``x`` (features,) with dictionary ``d``
     (atoms, features) and ``n`` non-zeros, in order (from its coefficient path), computed as
-    its transform computes them (Gram in x's dtype), or on ``gram`` when given."""
+    its transform computes them (Gram in x's dtype), or on ``gram`` when given. ``xy``: the
+    correlations ``D x`` the transform started from (a column of :func:`correlations` of the
+    batch it coded: one image's ``d @ x`` may round a tie otherwise); by default ``d @ x``."""
     if gram is None:
         gram = (d @ d.T).astype(x.dtype)
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")  # "ended prematurely": an early exit is fine here
-        path = orthogonal_mp_gram(gram, d @ x, n_nonzero_coefs=n, return_path=True)
+        path = orthogonal_mp_gram(gram, d @ x if xy is None else xy, n_nonzero_coefs=n,
+                                  return_path=True)
     path = path.reshape(len(d), -1)
     order: list[int] = []
     for s in range(path.shape[1]):
         order += [int(a) for a in np.flatnonzero(path[:, s]) if a not in order]
     return order
+
+
+def correlations(d: np.ndarray, x: np.ndarray) -> np.ndarray:
+    """(atoms, windows): the correlations of every window of the batch ``x`` (windows,
+    features) with the atoms of ``d``, as scikit-learn's transform computes them for the batch
+    it codes (one matrix product, ``np.dot(dictionary, X.T)``), the start of its OMP runs."""
+    return np.dot(np.ascontiguousarray(d), np.ascontiguousarray(x).T)
 
 
 def tie_gap(d: np.ndarray, x: np.ndarray, order: list[int], other: set[int]) -> float:
@@ -108,15 +118,20 @@ def compare(ref: np.ndarray, got: np.ndarray, d: np.ndarray, x: np.ndarray, n: i
     """Codes ``got`` against scikit-learn's ``ref`` (windows, atoms) for windows ``x``
     (windows, features), dictionary ``d`` and ``n`` non-zeros: ``same`` (windows with the same
     non-zero atoms, of ``windows``), ``agree`` (their share), ``max_rel`` (the largest
-    max |ref - got| / ||ref|| over those windows) and ``gaps`` (:func:`tie_gap` of every
-    other window, in window order)."""
+    max |ref - got| / ||ref|| over those windows), ``gaps`` (:func:`tie_gap` of every
+    other window, in window order) and their scikit-learn ``orders`` (:func:`sklearn_order`
+    from the batch's :func:`correlations`: ``ref`` is scikit-learn's transform of ``x`` as one
+    batch)."""
     same = ((ref != 0) == (got != 0)).all(1)
     norm = np.linalg.norm(ref, axis=1)
     rel = np.abs(ref - got).max(1) / np.maximum(norm, 1e-30)
-    gaps = [tie_gap(d, x[i], sklearn_order(d, x[i], n), set(np.flatnonzero(got[i])))
-            for i in np.flatnonzero(~same)]
+    differ = np.flatnonzero(~same)
+    xy = correlations(d, x) if len(differ) else None
+    orders = [sklearn_order(d, x[i], n, xy=xy[:, i]) for i in differ]
+    gaps = [tie_gap(d, x[i], o, set(np.flatnonzero(got[i]))) for i, o in zip(differ, orders)]
     return {"same": int(same.sum()), "windows": len(same), "agree": float(same.mean()),
-            "max_rel": float(rel[same].max()) if same.any() else 0.0, "gaps": gaps}
+            "max_rel": float(rel[same].max()) if same.any() else 0.0, "gaps": gaps,
+            "orders": orders}
 
 
 def structured(n: int, features: int, seed: int) -> np.ndarray:
@@ -132,4 +147,5 @@ def structured(n: int, features: int, seed: int) -> np.ndarray:
     return (weights @ pool + 0.05 * rng.standard_normal((n, features))).astype(np.float32)
 
 
-__all__ = ["compare", "divergence", "divergence_gap", "sklearn_order", "structured", "tie_gap"]
+__all__ = ["compare", "correlations", "divergence", "divergence_gap", "sklearn_order",
+           "structured", "tie_gap"]
