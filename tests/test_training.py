@@ -155,6 +155,27 @@ def test_training_learns_above_chance(trained):
     assert 0 <= metrics["shifted"]["mean"] <= 1
 
 
+def test_a_run_says_which_libraries_it_ran_on(trained):
+    # the figures of the same code, data and seed move with scikit-learn's or numpy's version:
+    # metrics.json records them, as the libraries themselves report their versions
+    import platform
+
+    import onnxruntime
+    import sklearn
+
+    import tactile
+
+    run, metrics = trained
+    on_disk = json.loads((run / "metrics.json").read_text())["libraries"]
+    assert on_disk == metrics["libraries"]
+    assert on_disk["python"] == platform.python_version()
+    assert on_disk["tactile"] == tactile.__version__
+    assert on_disk["torch"] == torch.__version__
+    assert on_disk["numpy"] == np.__version__
+    assert on_disk["scikit-learn"] == sklearn.__version__
+    assert on_disk["onnxruntime"] == onnxruntime.__version__
+
+
 def test_checkpoint_round_trip_rebuilds_the_same_model(trained, dataset):
     run, metrics = trained
     ck = torch.load(run / "checkpoint.pt", weights_only=True)  # data, not code

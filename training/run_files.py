@@ -11,11 +11,14 @@ from __future__ import annotations
 import contextlib
 import copy
 import json
+import platform
+from importlib import metadata
 from pathlib import Path
 
 import numpy as np
 import torch
 
+import tactile
 from tactile.errors import ConfigError, OutputError
 from tactile.files import figure_bytes, write_whole
 from tactile.training.checkpoint import CHECKPOINT, plain, save_checkpoint
@@ -23,6 +26,24 @@ from tactile.training.config import TrainConfig
 from tactile.training.evaluate import per_take, predict, shifted, summary, table
 from tactile.training.model import Classifier
 from tactile.training.prepare import Prepared
+
+# what a run's figures depend on beside the code and the data: PyTorch (training), numpy (the
+# BLAS under its products), scikit-learn and the SciPy under it (the granular models'
+# dictionaries, the blended regression), onnx and onnxruntime (the exported file and its check)
+LIBRARIES = ("torch", "numpy", "scipy", "scikit-learn", "onnx", "onnxruntime")
+
+
+def libraries() -> dict[str, str]:
+    """The versions of Python, tactile and the :data:`LIBRARIES` installed here (those not
+    installed are left out): the same code, data and seed give other figures under another
+    scikit-learn's dictionary learning, so a run says what it ran on."""
+    found = {"python": platform.python_version(), "tactile": tactile.__version__}
+    for name in LIBRARIES:
+        try:
+            found[name] = metadata.version(name)
+        except metadata.PackageNotFoundError:
+            pass
+    return found
 
 
 def test_metrics(model: Classifier, prep: Prepared, feats: torch.Tensor) -> dict:
@@ -38,8 +59,8 @@ def run_metrics(model: Classifier, prep: Prepared, feats: torch.Tensor, history:
     """The run's figures, in the order metrics.json lists them: the test split's
     (:func:`test_metrics`), with ``robustness`` the shifted windows' accuracy (``shifted``),
     then what every run says (classes, channels, the split, its window counts, the best epoch
-    and its validation accuracy), then ``extra``: what only a finished, or only an
-    interrupted, run says."""
+    and its validation accuracy, the :func:`libraries` it ran on), then ``extra``: what only a
+    finished, or only an interrupted, run says."""
     cfg, history_acc = prep.cfg, history["val_acc"]
     metrics = test_metrics(model, prep, feats)
     if robustness:
@@ -51,6 +72,7 @@ def run_metrics(model: Classifier, prep: Prepared, feats: torch.Tensor, history:
         split_windows={k: len(w) for k, w in prep.parts.items()},
         best_epoch=history["best_epoch"],
         val_accuracy=history_acc[history["best_epoch"]] if history_acc else None,
+        libraries=libraries(),
     )
     if history.get("blend"):  # what was validated is the mix: its figure, and the choice
         metrics.update(val_accuracy=history["blend"]["val_acc"], blend=history["blend"])
@@ -155,4 +177,4 @@ def plots(history: dict, metrics: dict, classes: tuple[str, ...]) -> dict[str, b
     return pictures
 
 
-__all__ = ["test_metrics", "run_metrics", "held_out_streams", "write_run", "plots"]
+__all__ = ["libraries", "test_metrics", "run_metrics", "held_out_streams", "write_run", "plots"]
