@@ -275,6 +275,29 @@ def holding_signals():
         held[got[0]](got[0], None)  # raises KeyboardInterrupt, or Terminated
 
 
+def _fill_closed_descriptors() -> None:
+    """A command started with stdin, stdout or stderr closed (``>&-``, ``2>&-``, a service
+    manager's choice) gets the null device there: otherwise the next file it opens (a take
+    being recorded, an exported model) takes the free descriptor 1 or 2 and any write to
+    stdout or stderr, onnxruntime's and PyTorch's own among them, lands in that file, and
+    Python, which left ``sys.stdout`` or ``sys.stderr`` None, would end the first ``print``
+    with a traceback or send stderr's lines to stdout. The lines of a closed stream are
+    dropped; the command goes on."""
+    for fd, name in ((0, "stdin"), (1, "stdout"), (2, "stderr")):
+        try:
+            os.fstat(fd)
+            continue
+        except OSError:
+            pass
+        null = os.open(os.devnull, os.O_RDWR)  # the lowest free descriptor: fd itself
+        if null != fd:
+            os.dup2(null, fd)
+            os.close(null)
+        if getattr(sys, name) is None:
+            setattr(sys, name, open(fd, "r" if fd == 0 else "w", buffering=1, closefd=False,
+                                    encoding="utf-8", errors="backslashreplace"))
+
+
 class _ReaderMayGo:
     """stdout or stderr of a command whose work is its files (training, an export, an
     import): when the reader of the stream goes away (``2>&1 | head``), the rest of the
@@ -421,6 +444,7 @@ def command(prog: str, *, guarded: bool = False, interruptible: bool = False,
                 term = signal.signal(signal.SIGTERM, _terminate)
             was = (sys.stdout, sys.stderr)
             if depth == 0 and threading.current_thread() is threading.main_thread():
+                _fill_closed_descriptors()
                 sys.stdout = _Stdout(sys.stdout)  # the outermost command's, as a process has
             if files:
                 sys.stdout, sys.stderr = (s if isinstance(s, _ReaderMayGo) else _ReaderMayGo(s)

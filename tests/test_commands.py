@@ -4,6 +4,7 @@ message for a missing model, refused labels, no silent overwrite; tactile-data a
 from __future__ import annotations
 
 import json
+import os
 import signal
 import subprocess
 import sys
@@ -17,7 +18,7 @@ from conftest import REPO
 
 from tactile import __version__
 from tactile.device.protocol import pen_info
-from tactile.device.recordings import TakeWriter, check_label
+from tactile.device.recordings import TakeWriter, check_label, read_take
 from tactile.device.recordings.summary import natural
 from tactile.device.sim import make_dataset
 from tactile.errors import RecordingError
@@ -206,6 +207,41 @@ def test_stdout_on_a_full_disk_is_exit_4_outside_tactile_run_too(tmp_path, name,
                               stdout=full, stderr=subprocess.PIPE, text=True, timeout=60)
     assert proc.returncode == 4 and proc.stderr == (
         f"tactile-{name}: error: stdout: cannot write (No space left on device)\n"), proc.stderr
+
+
+def _closing(fd: int):
+    return lambda: os.close(fd)  # in the child, before the command starts: `>&-` or `2>&-`
+
+
+def test_a_closed_stdout_is_the_null_device_not_a_traceback(tmp_path):
+    """Started with stdout closed (`>&-`: Python leaves sys.stdout None), every command
+    ended at its first line with a traceback, exit 1. The recorder records the take whole."""
+    out = tmp_path / "rec"
+    proc = subprocess.run([str(BIN / "tactile-record"), "--port",
+                           "sim://?texture=paper&seed=3&speed=max", "--label", "paper",
+                           "--seconds", "1", "--out", str(out)], stderr=subprocess.PIPE,
+                          text=True, timeout=120, preexec_fn=_closing(1))
+    assert proc.returncode == 0 and "Traceback" not in proc.stderr, proc.stderr
+    [take] = [read_take(p) for p in out.glob("*.csv")]
+    assert len(take.seq) >= 100 and (np.diff(take.seq) == 1).all()
+    assert (out / take.path.name).read_text().startswith("seq,t_us,")
+    proc = subprocess.run([str(BIN / "tactile-data"), str(out)], stderr=subprocess.PIPE,
+                          text=True, timeout=60, preexec_fn=_closing(1))
+    assert (proc.returncode, proc.stderr) == (0, "")
+
+
+def test_a_closed_stderr_keeps_its_lines_out_of_the_label_stream(tmp_path):
+    """With stderr closed (`2>&-`: sys.stderr None), print(file=sys.stderr) writes to stdout:
+    tactile-run's notes and summary went into the JSON lines of its labels."""
+    make_dataset(tmp_path, takes=1, textures=("paper",), seconds=3, seed=2)
+    [take] = tmp_path.glob("*.csv")
+    proc = subprocess.run([str(BIN / "tactile-run"), "--model",
+                           str(REPO / "models" / "pen-exp2.onnx"), "--replay", str(take)],
+                          stdout=subprocess.PIPE, text=True, timeout=120,
+                          preexec_fn=_closing(2))
+    lines = proc.stdout.splitlines()
+    assert proc.returncode == 0 and len(lines) > 5
+    assert all(isinstance(json.loads(line), dict) for line in lines), lines[:3]
 
 
 def test_export_checks_its_output_path_before_any_work(tmp_path):
