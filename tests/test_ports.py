@@ -91,6 +91,38 @@ def test_bytes_read_before_a_disconnect_are_kept():
         srv.close()
 
 
+def test_bytes_that_arrive_while_the_port_opens_are_kept(monkeypatch):
+    """A device that sends as soon as the link is up (a pen behind a TCP bridge, the burst it
+    held while the link was down): pyserial's open() ends by discarding the input that has
+    arrived, and the recorder lost those samples (after a reconnection, the pen's header too).
+    Here the server's whole burst and its FIN are in the socket before open() reaches that
+    step (it waits for them inside open, after connecting)."""
+    from serial.urlhandler import protocol_socket
+
+    srv, url = listening()
+    data = encode_header(pen_info()) + bytes(range(256)) * 4
+    configure = protocol_socket.Serial._reconfigure_port
+
+    def connected_then_burst(self, *args, **kwargs):
+        conn, _ = srv.accept()
+        conn.sendall(data)
+        conn.close()
+        until(lambda: peer_closed(self), "the burst and the FIN arrived")
+        return configure(self, *args, **kwargs)
+
+    monkeypatch.setattr(protocol_socket.Serial, "_reconfigure_port", connected_then_burst)
+    try:
+        link = open_port(url, 115200)
+        got, lost = bytearray(), None
+        while lost is None:
+            chunk, lost = read_some(link)
+            got += chunk
+        link.close()
+    finally:
+        srv.close()
+    assert bytes(got) == data
+
+
 def test_a_port_is_opened_by_one_program_and_the_holder_is_named(tmp_path):
     """The same pty twice: the second open is refused, naming the holder (here this process),
     and a second tactile-run on it exits 2 in one line naming the first one's pid."""

@@ -36,7 +36,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--out", required=True, type=path_given,
                    help="dataset folder (created if missing)")
     p.add_argument("--seconds", type=float_in(0.0), default=math.inf,
-                   help="stop after this much data")
+                   help="stop after this much data (a silence does not count: it waits for "
+                        "the pen as long as it takes; `timeout 60 tactile-record ...` bounds "
+                        "the wall time, its SIGTERM finishing the take)")
     p.add_argument("--baud", type=int_in(1), default=BAUD, help=f"UART baud rate (default {BAUD})")
     p.add_argument("--csv-rate", type=float_in(0.0), default=100.0,
                    help="rate of a CSV-line device, Hz (it declares none; default 100)")

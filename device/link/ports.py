@@ -7,7 +7,8 @@ only to the same pen.
 
 * :func:`open_port` opens a port for exclusive use (pyserial's ``exclusive=True``: an advisory
   ``flock`` on a posix device; URL handlers such as ``socket://`` and ``loop://`` ignore it) and
-  non-blocking (``timeout=0``), and names the program that holds a busy port.
+  non-blocking (``timeout=0``), keeps the bytes that arrived while it opened (pyserial's open
+  discards them), and names the program that holds a busy port.
 * :func:`read_some` waits for data and then makes exactly one read of the device: pyserial's
   ``read(n)`` with a timeout keeps reading until ``n`` bytes or the timeout, and when the
   device errors midway (an unplug) it raises and discards what it had read, up to ``n - 1``
@@ -80,6 +81,10 @@ def holders(port: str) -> list[str]:
     return found
 
 
+def _keep_input() -> None:
+    """Stands in for a port's ``reset_input_buffer`` while it opens (:func:`open_port`)."""
+
+
 def open_port(port: str, baud: int) -> serial.SerialBase:
     """Open ``port`` exclusively and non-blocking (read it with :func:`read_some`).
 
@@ -87,7 +92,18 @@ def open_port(port: str, baud: int) -> serial.SerialBase:
     it), :class:`PortAbsent` when it cannot be opened now, :class:`DeviceError` when it never
     can; each a line naming the port."""
     try:
-        return serial.serial_for_url(port, baudrate=baud, timeout=0, exclusive=True)
+        link = serial.serial_for_url(port, baudrate=baud, timeout=0, exclusive=True,
+                                     do_not_open=True)
+        # pyserial's open() ends by discarding the input that has arrived (the posix port's
+        # tcflush, the socket's recv until empty): a device that sends as soon as the link is
+        # up (a pen behind a TCP bridge, a burst it held while the link was down) would lose
+        # those samples and its header with them; the decoder finds frames in any bytes
+        link.reset_input_buffer = _keep_input
+        try:
+            link.open()
+        finally:
+            del link.reset_input_buffer
+        return link
     except (ValueError, serial.SerialException) as e:
         if getattr(e, "errno", None) in (errno.EWOULDBLOCK, errno.EAGAIN):  # the flock failed
             who = holders(port)
