@@ -424,6 +424,37 @@ def test_a_derived_take_stopped_half_way_is_removed(tmp_path, monkeypatch):
                                                           "paper-user000.json"]
 
 
+def test_force_stopped_half_way_leaves_every_take_old_or_new(tmp_path, monkeypatch):
+    """--force deleted every take it was to replace before writing the first: Ctrl-C in an
+    import (or a simulated dataset) with --force left the folder without the takes not yet
+    rewritten. Now each is replaced when its new take is whole; the one being written when
+    it stopped is the old one again, byte for byte."""
+    from tactile.device.recordings.writer import TakeWriter
+
+    textures = ("paper", "desk", "mouse_pad")
+    make_dataset(tmp_path, takes=1, textures=textures, seconds=2, seed=1)
+    before = {p.name: p.read_bytes() for p in tmp_path.iterdir()}
+    real, calls = TakeWriter.write, []
+
+    def write(self, *a, **k):
+        calls.append(1)
+        if len(calls) == 2:  # the second take's first chunk: its files are open
+            raise KeyboardInterrupt
+        return real(self, *a, **k)
+
+    monkeypatch.setattr(TakeWriter, "write", write)
+    with pytest.raises(KeyboardInterrupt):
+        make_dataset(tmp_path, takes=1, textures=textures, seconds=2, seed=2, force=True)
+    after = {p.name: p.read_bytes() for p in tmp_path.iterdir()}
+    assert sorted(after) == sorted(before)  # six files: no take missing, nothing aside
+    changed = sorted(n for n in after if after[n] != before[n])
+    assert changed == ["paper-user000.csv", "paper-user000.json"]  # the one written whole
+    monkeypatch.setattr(TakeWriter, "write", real)
+    make_dataset(tmp_path, takes=1, textures=textures, seconds=2, seed=2, force=True)
+    assert all(p.read_bytes() != before[p.name] for p in tmp_path.iterdir()
+               if p.suffix == ".csv")
+
+
 def test_a_take_of_the_same_name_in_a_sub_folder_is_refused_even_with_force(tmp_path):
     """A second simulated dataset (or import) into the parent folder of one wrote takes of the
     same names beside it, and no command could then read the parent as a dataset."""

@@ -113,10 +113,12 @@ def replace_takes(folder: Path, stems: list[str], force: bool,
                   info: DeviceInfo | None = None) -> None:
     """Before a command writes takes named ``stems`` into ``folder``: if any exists, refuse
     (:class:`RecordingError` naming the first, the command neither overwrites nor duplicates a
-    dataset by being run twice) or, with ``force``, delete them. With ``info`` (the new takes'
-    device), a folder whose other takes have other channels, units or another rate is refused
-    too: the takes would make a dataset no command can read; so is a folder with a take of one
-    of those names in a sub-folder, even with ``force``."""
+    dataset by being run twice) or, with ``force``, leave them to :func:`whole_take`, which
+    replaces each when its new take is whole (so that a command stopped half-way leaves every
+    take, old or new, whole). With ``info`` (the new takes' device), a folder whose other takes
+    have other channels, units or another rate is refused too: the takes would make a dataset
+    no command can read; so is a folder with a take of one of those names in a sub-folder, even
+    with ``force``."""
     if info is not None:
         check_joins(folder, set(stems), info)
     names = set(stems)  # a dataset's readers refuse two takes (.csv + .json) of one name
@@ -131,8 +133,6 @@ def replace_takes(folder: Path, stems: list[str], force: bool,
         more = f" and {len(found) - 1} more files" if len(found) > 1 else ""
         raise RecordingError(f"{found[0]}{more} already exist: choose another folder, or "
                              "--force to replace them")
-    for p in found:
-        p.unlink()
 
 
 KEPT = "; the take keeps what came before"  # a recorder's take, after a write that failed
@@ -143,19 +143,33 @@ def whole_take(folder: Path, stem: str) -> Iterator[None]:
     """Around the writing of one take that a command derives (an import, a simulated take):
     when the writing stops half-way (Ctrl-C, a full disk), the take's files are removed, so
     that the folder holds whole takes only (a recorder's take, which holds what was recorded,
-    is kept instead), and the writer's error says so."""
+    is kept instead), and the writer's error says so. A take of that name already there (one
+    that :func:`replace_takes` lets ``--force`` replace) is moved aside (``NAME.csv.replaced``)
+    while the new one is written, put back when the writing stops half-way, and deleted once
+    the new take is whole."""
+    paths = [folder / f"{stem}{suffix}" for suffix in (".csv", ".json")]
+    aside = []
+    for path in paths:
+        if path.exists():
+            old = path.with_name(path.name + ".replaced")
+            os.replace(path, old)
+            aside.append((old, path))
     try:
         yield
     except BaseException as e:
         removed = False
-        for suffix in (".csv", ".json"):
-            path = folder / f"{stem}{suffix}"
+        for path in paths:
             removed |= path.exists()
             path.unlink(missing_ok=True)
+        for old, path in aside:  # the take it was to replace, as it was
+            os.replace(old, path)
         if removed and isinstance(e, RecordingError):  # a write, or the data, refused
-            raise RecordingError(str(e).removesuffix(KEPT) + "; the take is removed (the "
-                                 "folder keeps whole takes only)") from None
+            kept = "the take it was to replace is kept" if aside else "the take is removed"
+            raise RecordingError(str(e).removesuffix(KEPT) + f"; {kept} (the folder keeps "
+                                 "whole takes only)") from None
         raise
+    for old, _ in aside:
+        old.unlink()
 
 
 def check_joins(folder: Path, stems: set[str], info: DeviceInfo) -> None:
