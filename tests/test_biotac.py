@@ -147,6 +147,11 @@ def _broken(tmp_path: Path, how: str) -> Path:
             g["finger_0/electrodes"][7, 3] = 4096
         elif how == "name":
             f.move("cork_pdc100_1cm_02", "cork_trial_2")
+        elif how == "empty":  # a trial of no frames: every dataset of length 0
+            for ds in ["timestamps", *(f"finger_{k}/{d}" for k in (0, 1) for d in WIDTHS)]:
+                shape = (0, *g[ds].shape[1:])
+                del g[ds]
+                g.create_dataset(ds, data=np.zeros(shape, np.int64))
         elif how == "external":  # links that lead nowhere
             del g["finger_1/pdc"]
             g["finger_1/pdc"] = h5py.ExternalLink("gone.h5", "/pdc")
@@ -170,6 +175,7 @@ def _broken(tmp_path: Path, how: str) -> Path:
     ("range", "cork_pdc100_1cm_02/finger_0/electrodes: value 4096 at frame 7 is not a "
               "12-bit count (0..4095)"),
     ("name", "group 'cork_trial_2' is not named <object>_pdc<setting>_<depth>_<repetition>"),
+    ("empty", "cork_pdc100_1cm_02/timestamps: no frames"),
 ])
 def test_a_bad_file_is_one_line_naming_file_and_dataset_and_nothing_is_written(
         tmp_path, how, message):

@@ -633,6 +633,28 @@ def _hapmat_npz(path: Path, nan_in: str | None = None) -> Path:
     return path
 
 
+def test_an_import_stopped_half_way_lists_the_takes_it_wrote(tmp_path, monkeypatch, capsys):
+    """Ctrl-C in an import said `interrupted` and nothing else: the paths went to stdout at
+    the end only, so the takes it had written whole (which stay) were not listed."""
+    from tactile.device.commands.import_hapmat import main
+    from tactile.device.recordings.writer import TakeWriter
+
+    real, calls = TakeWriter.write, []
+
+    def write(self, *a, **k):
+        calls.append(1)
+        if len(calls) == 2:  # the second take
+            raise KeyboardInterrupt
+        return real(self, *a, **k)
+
+    monkeypatch.setattr(TakeWriter, "write", write)
+    out = tmp_path / "out"
+    assert main([str(_hapmat_npz(tmp_path / "h.npz")), "--out", str(out)]) == 130
+    said = capsys.readouterr()
+    assert said.out == f"{out / 'hapmat-paper.csv'}\n" and said.err.endswith("interrupted\n")
+    assert sorted(p.name for p in out.iterdir()) == ["hapmat-paper.csv", "hapmat-paper.json"]
+
+
 def test_import_force_replaces_nothing_when_an_input_is_bad(tmp_path):
     out = tmp_path / "out"
     good = _hapmat_npz(tmp_path / "good.npz")

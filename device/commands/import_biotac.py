@@ -28,8 +28,8 @@ def _main(args: argparse.Namespace) -> int:
     with holding_signals():
         from tactile.device.recordings.biotac import import_biotac
 
-    for p in import_biotac(args.files, args.out, args.force):
-        print(p)
+    # each take's path as it is written whole: a stop later leaves those, and says so
+    import_biotac(args.files, args.out, args.force, written=lambda p: print(p, flush=True))
     return 0
 
 

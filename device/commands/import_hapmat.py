@@ -29,8 +29,8 @@ def _main(args: argparse.Namespace) -> int:
     with holding_signals():
         from tactile.device.recordings.hapmat import import_hapmat
 
-    for p in import_hapmat(args.source, args.out, args.force):
-        print(p)
+    # each take's path as it is written whole: a stop later leaves those, and says so
+    import_hapmat(args.source, args.out, args.force, written=lambda p: print(p, flush=True))
     return 0
 
 

@@ -37,6 +37,7 @@ from __future__ import annotations
 import re
 import sys
 import time
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -176,7 +177,7 @@ def read_trial(f: h5py.File, trial: Trial) -> tuple[np.ndarray, np.ndarray]:
         except (OSError, ValueError) as e:  # a damaged chunk, a compression filter missing
             why = str(e).splitlines()[0] if str(e) else type(e).__name__
             raise RecordingError(f"{where}/{name}: cannot be read ({why})") from None
-        return values.reshape(d.shape[0], -1)
+        return values.reshape(d.shape[0], width or 1)  # (T, 1) for a 1-D dataset, T = 0 too
 
     stamps = dataset("timestamps", None)[:, 0]
     if len(stamps) == 0:
@@ -253,12 +254,14 @@ def signals(fingers: tuple[int, ...] = FINGERS) -> dict[str, list[str]]:
     return {f"f{k}_pac": [f"f{k}_pac_{i:02d}" for i in range(PAC_SAMPLES)] for k in fingers}
 
 
-def import_biotac(files: list[Path], out: Path, force: bool = False) -> list[Path]:
+def import_biotac(files: list[Path], out: Path, force: bool = False,
+                  written: Callable[[Path], object] | None = None) -> list[Path]:
     """Write one take per trial of ``files`` into the dataset folder ``out``; returns the CSV
     paths. Everything is read and checked before the first take is written; takes of the same
     names already in ``out`` are refused, or replaced with ``force``. Timestamps that go back
     or jump (:func:`irregular`) are a ``warning:`` line on stderr per trial, before any take
-    is written; the frames are imported in file order all the same."""
+    is written; the frames are imported in file order all the same. ``written(path)``, when
+    given, is called as each take is whole."""
     files = [Path(p) for p in files]
     first: dict[Path, Path] = {}
     for p in files:  # the same file twice (under any spelling) would import its trials twice
@@ -292,6 +295,8 @@ def import_biotac(files: list[Path], out: Path, force: bool = False) -> list[Pat
                     extra=_metadata(t, stamps)) as w:
                 w.write(0, 0, raw)
             paths.append(w.csv_path)
+            if written is not None:  # said as it is whole: a stop later leaves it
+                written(w.csv_path)
         return paths
     finally:
         for f in handles.values():

@@ -27,6 +27,7 @@ import math
 import re
 import zipfile
 import zlib
+from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
@@ -178,10 +179,12 @@ def _labels(source: Path, materials: list[str], shown: list[str]) -> list[str]:
     return labels
 
 
-def import_hapmat(source: Path, out: Path, force: bool = False) -> list[Path]:
+def import_hapmat(source: Path, out: Path, force: bool = False,
+                  written: Callable[[Path], object] | None = None) -> list[Path]:
     """Write one take per material (``hapmat-<material>``) from the bundled ``.npz`` or the
     upstream folder of CSVs; returns the CSV paths. Takes of those names already in ``out`` are
-    refused, or replaced with ``force``."""
+    refused, or replaced with ``force``. ``written(path)``, when given, is
+    called as each take is whole."""
     source = Path(source)
     if not source.exists():
         raise RecordingError(f"{source}: no such file or folder (give the 'HapMat dataset' "
@@ -218,6 +221,8 @@ def import_hapmat(source: Path, out: Path, force: bool = False) -> list[Path]:
                                                name=name, extra=extra) as w:
             w.write(0, 0, values)
         paths.append(w.csv_path)
+        if written is not None:  # said as it is whole: a stop later leaves it
+            written(w.csv_path)
     return paths
 
 
