@@ -448,6 +448,36 @@ def test_tactile_train_cuts_windows_from_88_channel_takes(tmp_path, capsys):
     assert sum(sum(row) for row in metrics["confusion"]) == 2 * 5
 
 
+def test_a_granular_model_without_channels_reads_only_its_modalities_channels(tmp_path, capsys):
+    """A config of modalities and no `channels` (export.md's example) made a model of all 88
+    channels: it refused a device that sends one finger's, though it reads 23 of them."""
+    from tactile.training.checkpoint import load_checkpoint
+    from tactile.training.commands.train import main as train_main
+
+    for obj in ("cork", "glass_bottle"):
+        write_h5(tmp_path / f"{obj}.h5",
+                 {f"{obj}_pdc100_1cm_{r:02d}": 60 for r in (1, 2, 3)}, seed=len(obj))
+    data = tmp_path / "data"
+    import_biotac(sorted(tmp_path.glob("*.h5")), data)
+    config = tmp_path / "f0.toml"
+    config.write_text('model = "f_rnn"\nwindow = 20\nhop = 10\nepochs = 1\nhidden = 4\n'
+                      'layers = 1\nthreads = 1\n'
+                      '[modalities.vibration]\nchannels = ["f0_pac"]\nimfs = 0\nsteps = 22\n'
+                      '[modalities.pressure]\nchannels = ["f0_pdc"]\nimfs = 0\nsteps = 2\n')
+    code = train_main([str(data), "--out", str(tmp_path / "run"), "--config", str(config)])
+    err = capsys.readouterr().err
+    assert code == 0, err
+    _, ck = load_checkpoint(tmp_path / "run")
+    assert ck["channels"] == [*(f"f0_pac_{i:02d}" for i in range(22)), "f0_pdc"]
+    assert len(ck["mean"]) == 23
+    assert "channels: the 23 the modalities read, of the takes' 88" in err
+    code = train_main([str(data), "--out", str(tmp_path / "both"), "--config", str(config),
+                       "--set", "channels=f0_pdc,f1_pdc,f0_pac_*", "--quiet"])
+    assert code == 0, capsys.readouterr().err  # a `channels` setting is kept as it is
+    assert load_checkpoint(tmp_path / "both")[1]["channels"] == [
+        "f0_pdc", "f1_pdc", *(f"f0_pac_{i:02d}" for i in range(22))]
+
+
 @pytest.mark.skipif(not BOLT.is_dir(), reason=f"BioTac BOLT recordings absent ({BOLT})")
 def test_import_a_slice_of_the_real_recordings(tmp_path):
     """Two real trials (copied into a temporary file: the data never enters the repository)

@@ -98,7 +98,7 @@ def test_the_window_features_follow_the_heads_at_every_step(run, dataset):
         finally:
             model.pre.window_features = window_features
     n = model.pre.n_features
-    assert f.shape == (*alone.shape[:2], n + len(CHANNELS) * 7)
+    assert f.shape == (*alone.shape[:2], n + len(ck["channels"]) * 7)  # the model's inputs
     np.testing.assert_array_equal(f[..., :n], alone)
     z = (w.x[:16].astype(np.float64) - model.pre.mean.double().numpy()) \
         / model.pre.std.double().numpy()  # the granular normalisation: no centring
@@ -219,7 +219,7 @@ def test_int8_keeps_the_window_features_and_the_regression_in_float32(dataset,
     assert any("/regression/" in n.name for n in scoped)
     assert not [n.name for n in scoped if n.op_type in (
         "MatMulInteger", "DynamicQuantizeLinear", "QLinearMatMul")]
-    x = np.random.default_rng(0).normal(size=(8, 20, len(CHANNELS))).astype(np.float32)
+    x = np.random.default_rng(0).normal(size=(8, 20, len(model.pre.mean))).astype(np.float32)
     x = x * model.pre.std.numpy() + model.pre.mean.numpy()
     h, c = model.zero_state(8)
     got = session(q.SerializeToString()).run(None, {"x": x, "h": h.numpy(), "c": c.numpy()})[0]

@@ -153,7 +153,9 @@ def test_the_runtime_runs_them_like_the_pens(exported, dataset):
     name, root, _, model, ck, _ = exported
     rt = Model(root / "model.onnx")
     takes = load_dataset(dataset)
-    x = np.stack([t.values()[s : s + 20] for t in takes[:3] for s in (0, 37, 120)])
+    cols = [takes[0].channels.index(c) for c in ck["channels"]]  # those its modalities read
+    assert ("pdc" in ck["channels"]) == ("pressure" in RUNS[name]["modalities"])
+    x = np.stack([t.values()[s : s + 20, cols] for t in takes[:3] for s in (0, 37, 120)])
     x = x.astype(np.float32)
     h, c = rt.zero_state(len(x))
     p_o, h_o, _ = rt.classify(x, h, c)
@@ -247,8 +249,11 @@ def test_sf_rnn_labels_a_replayed_biotac_trial(tmp_path, capsys):
     labels = [d for d in lines if "label" in d]
     assert [d["seq"] for d in labels] == list(range(9, 150, 10))  # window 10, hop 10
     take = read_take(take_path)
-    x = np.stack([take.values()[d["seq"] - 9 : d["seq"] + 1] for d in labels]).astype(np.float32)
     model, ck = load_checkpoint(tmp_path / "run")
+    cols = [take.channels.index(c) for c in ck["channels"]]  # finger 0's 42 of the 88
+    assert len(cols) == 42
+    x = np.stack([take.values()[d["seq"] - 9 : d["seq"] + 1, cols]
+                  for d in labels]).astype(np.float32)
     with torch.no_grad():
         p_t = model(torch.from_numpy(x), *model.zero_state(len(x)))[0].numpy()
     classes = list(ck["classes"])

@@ -146,7 +146,8 @@ class TrainConfig:
     """Everything that decides a training run.
 
     Data: ``window`` samples per window, a new window every ``hop`` samples; ``channels`` picks
-    and orders the input channels (empty: all the recordings have). Splits: ``user`` keeps each
+    and orders the input channels (empty: all the recordings have; a granular model's, those
+    its modalities read). Splits: ``user`` keeps each
     user (the takes' ``user`` field, else each take) wholly in train, validation or test;
     ``take`` does the same per take; ``time`` puts the first ``1 - test_fraction`` of every take
     in training and the rest in test (for datasets with one take per class).

@@ -65,7 +65,9 @@ def check_inputs(data: Path, takes: list[Take],
                  cfg: TrainConfig) -> tuple[tuple[str, ...], tuple[str, ...]]:
     """The classes and the input channels of ``takes`` (the dataset ``data``); at least two
     classes, none named ``uncertain`` (the label stream's unsettled label), and
-    ``emd_channels`` among the inputs, else one line naming what is wrong."""
+    ``emd_channels`` among the inputs, else one line naming what is wrong. A granular model
+    with no ``channels`` setting takes the channels its modalities read (:func:`modality_inputs`),
+    not all the takes have."""
     classes = classes_of(takes)
     if len(classes) < 2:
         raise RecordingError(f"{data}: only one label ({classes[0]}); need at least two classes")
@@ -73,11 +75,36 @@ def check_inputs(data: Path, takes: list[Take],
         raise ConfigError(f"{data}: a class is named {UNCERTAIN!r}, the name the label stream "
                           "reserves for no stable label: rename its takes' label")
     channels = pick_channels(takes[0], cfg.channels)
+    if cfg.modalities and not cfg.channels:
+        channels = modality_inputs(takes, channels, cfg)
     missing = [c for c in cfg.emd_channels if c not in channels]
     if missing:
         raise ConfigError(f"emd_channels {missing} not among the input channels {list(channels)}")
     return classes, channels
 
+
+
+def signals_for(takes: list[Take], channels: tuple[str, ...],
+                cfg: TrainConfig) -> tuple[tuple[str, tuple[str, ...]], ...]:
+    """The high-rate signals among ``channels``: the config's ``[signals]`` patterns (each
+    signal's channels in recording order), else the ones the takes declare."""
+    if not cfg.signals:
+        return signals_of_takes(takes, channels)
+    order = recorded_order(takes, channels)  # a signal's sub-samples in recording order
+    return tuple((n, tuple(sorted(c, key=order.index)))
+                 for n, c in resolve_signals(cfg.signals, order))
+
+
+def modality_inputs(takes: list[Take], channels: tuple[str, ...],
+                    cfg: TrainConfig) -> tuple[str, ...]:
+    """The channels of ``channels`` that ``cfg``'s modalities read, in their order: a granular
+    model's inputs when its config names no ``channels``, so that it runs on a device that
+    sends only those (a BioTac model of one finger on that finger's channels)."""
+    signals = signals_for(takes, channels, cfg)
+    layout = resolve(cfg.replace(channels=channels, signals=literal_signals(signals)), channels,
+                     takes[0].info.sample_rate_hz)
+    used = set().union(*(m.index for m in layout))
+    return tuple(c for i, c in enumerate(channels) if i in used)
 
 
 def _check_classes(parts: dict, classes: tuple[str, ...], log: Log) -> None:
@@ -111,14 +138,11 @@ def prepare(takes: list[Take], classes: tuple[str, ...], channels: tuple[str, ..
                  f"{'s' * (len(partial) > 1)} {', '.join(partial)}: read as plain channels at "
                  f"{takes[0].info.sample_rate_hz:g} Hz, not as the signal (select all of them to "
                  "read it at its own rate)")
-    order = recorded_order(takes, channels)  # a signal's sub-samples in recording order
-
-    def given() -> tuple:  # the config's [signals] patterns: their channels in recording order
-        return tuple((n, tuple(sorted(c, key=order.index)))
-                     for n, c in resolve_signals(cfg.signals, order))
-
     if cfg.modalities:  # the high-rate signals as exact names, then the layout (fail early)
-        signals = given() if cfg.signals else signals_of_takes(takes, channels)
+        if not cfg.channels and len(channels) < len(takes[0].channels):
+            log.info(f"channels: the {len(channels)} the modalities read, of the takes' "
+                     f"{len(takes[0].channels)} (set channels=... to choose others)")
+        signals = signals_for(takes, channels, cfg)
         cfg = cfg.replace(channels=channels, signals=literal_signals(signals))
         layout = resolve(cfg, channels, takes[0].info.sample_rate_hz)
         log.info("modalities: " + "; ".join(
@@ -127,7 +151,7 @@ def prepare(takes: list[Take], classes: tuple[str, ...], channels: tuple[str, ..
     else:
         cfg = cfg.replace(channels=channels)
         if cfg.model == "linear" or cfg.front == "spectral":  # signals at their own rate
-            signals = given() if cfg.signals else signals_of_takes(takes, channels)
+            signals = signals_for(takes, channels, cfg)
             if signals:
                 cfg = cfg.replace(signals=literal_signals(signals))
                 log.info("high-rate signals: " + "; ".join(
@@ -216,4 +240,5 @@ def _apply(fn, x: torch.Tensor, log: Log, desc: str, dist: Dist,
     return dist.gather(torch.cat(chunks), len(x))
 
 
-__all__ = ["Prepared", "check_inputs", "prepare", "centered", "log_center", "features"]
+__all__ = ["Prepared", "check_inputs", "modality_inputs", "signals_for", "prepare", "centered",
+           "log_center", "features"]
