@@ -80,9 +80,9 @@ def build_parser() -> argparse.ArgumentParser:
                       help="a label is stable only when its averaged probability is at least "
                       "P (0..1), else it is reported as 'uncertain'; default: the model's, else 0")
     post.add_argument("--hold", type=int_in(1, 100_000), metavar="K",
-                      help="... and only once it has led for K consecutive windows (K hops: "
-                      "0.25 s each at the pen's 25 samples at 100 Hz); default: the model's, "
-                      "else 1")
+                      help="... and only once it has led for K consecutive windows (K of the "
+                      "model's hops, which tactile-check shows: the shipped pen model's 25 "
+                      "samples at 100 Hz are 0.25 s); default: the model's, else 1")
     post.add_argument("--raw", action="store_true",
                       help="no post-processing, whatever the model says: the raw label of "
                       "each window only")
