@@ -150,8 +150,9 @@ def _tradeoff_line(t: dict) -> str:
     acc = ""
     if t["accuracy_int8"] is not None:
         acc = f"; accuracy {t['accuracy_float32']:.4f} -> {t['accuracy_int8']:.4f}"
-    return (f"int8 trade-off: size {t['bytes_float32'] / 1e3:.1f} kB -> "
-            f"{t['bytes_int8'] / 1e3:.1f} kB; batch-1 latency p50 ({t['latency_path']}) "
+    return (f"int8 trade-off: graph size (without the metadata) "
+            f"{t['bytes_float32'] / 1e3:.1f} kB -> {t['bytes_int8'] / 1e3:.1f} kB; "
+            f"batch-1 latency p50 ({t['latency_path']}) "
             f"{t['latency_float32']['p50_ms']:.3f} -> {t['latency_int8']['p50_ms']:.3f} ms; "
             f"label agreement with PyTorch {t['label_agreement']:.4f}{acc}")
 
