@@ -224,13 +224,17 @@ def _fmt(value) -> str:
 
 def _state_text(c: ModelContract) -> str:
     """``layers x hidden``, or for an ensemble (its training config says how many members)
-    ``N members x (layers x hidden)``."""
+    ``N members x (layers x hidden)``; an F-RNN's state says it is one LSTM's per modality."""
     try:
         members = int(json.loads(c.extra.get("training_config", "{}")).get("ensemble", 1))
     except (ValueError, TypeError, AttributeError):
         members = 1
     if members > 1 and c.state_layers % members == 0:
         return f"{members} members x ({c.state_layers // members} x {c.state_hidden})"
+    n = len(c.modalities)
+    if c.model == "f_rnn" and n > 1 and c.state_hidden % n == 0:  # an LSTM per modality
+        return (f"{c.state_layers} x {c.state_hidden}: {n} modalities' LSTMs of "
+                f"{c.state_layers} x {c.state_hidden // n}")
     return f"{c.state_layers} x {c.state_hidden}"
 
 

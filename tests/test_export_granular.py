@@ -179,6 +179,9 @@ def test_check_data_measures_a_granular_model(exported, dataset, capsys, own_ker
     assert check_main([str(root / "model.onnx"), "--data", str(dataset)]) == 0
     out = capsys.readouterr().out
     assert "contract ok (format 2" in out and "accuracy" in out
+    # the state's shape, and for the F-RNN (hidden 8, 2 modalities) what makes its width
+    assert {"f_rnn": "f_rnn (1 x 16: 2 modalities' LSTMs of 1 x 8)", "sf_rnn": "sf_rnn (1 x 8)",
+            "linear": "linear (1 x 1)", "sparse_linear": "sparse_linear (1 x 1)"}[name] in out
     path = "on the native kernels" if native_available() else "on the portable graph"
     assert f"one window at a time, {path})" in out
     assert check_main([str(root / "model.onnx"), "--data", str(dataset), "--no-native"]) == 0
