@@ -1091,6 +1091,25 @@ def test_wait_without_a_port_ends_with_seconds(monkeypatch, capsys):
     assert '"windows": 0' in lines[2] and len(lines) == 3, err
 
 
+def test_wait_for_a_named_port_ends_with_seconds_and_says_so(tmp_path, monkeypatch, capsys):
+    """--port P --wait --seconds S with a port that never appears ended with the summary
+    alone; without --port the same deadline is a line (above)."""
+    from tactile.runtime.commands import run
+
+    monkeypatch.setattr(signal, "signal", lambda *a: None)
+    port = tmp_path / "ttyNOPE"
+    code = run.main(["--model", str(SHIPPED), "--port", str(port), "--wait", "--seconds", "0.4",
+                     "--raw"])
+    out, err = capsys.readouterr()
+    assert code == 0 and out == "", err
+    lines = err.splitlines()
+    assert lines[0].startswith(f"tactile-run: cannot open {port}: ") and \
+        lines[0].endswith("; waiting for it"), err
+    assert re.fullmatch(rf"tactile-run: {re.escape(str(port))} did not open in \d+\.\d s "
+                        r"\(--seconds\); stopping", lines[1]), err
+    assert '"windows": 0' in lines[2] and len(lines) == 3, err
+
+
 def test_a_command_run_in_process_gives_back_the_callers_signal_handlers(tmp_path, capsys):
     """tactile-run and tactile-monitor called from Python (a script, a test) left their
     SIGINT/SIGTERM handlers behind: a later Ctrl-C set the flag of a finished run and was
