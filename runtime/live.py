@@ -233,6 +233,7 @@ class Live:
         st = dict(self.status())
         now, samples = time.monotonic(), st.get("samples")
         then, before = last
+        st["rate_hz"] = None  # null until a status before this one gives a count to measure by
         if samples is not None and before is not None and now > then:
             st["rate_hz"] = round((samples - before) / (now - then), 1)
         with self._lock:

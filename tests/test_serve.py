@@ -269,6 +269,19 @@ def test_close_sends_end_after_everything_queued(live):
     v.close()
 
 
+def test_the_first_status_has_its_rate_null_not_left_out():
+    """A status names every field the page lists; the first had no rate_hz (nothing before it
+    to measure the sample rate by)."""
+    live = Live("127.0.0.1", 0, status=lambda: {"frames": 0, "samples": 0},
+                say=lambda m: None, status_every=3600)  # no status but the one published here
+    try:
+        live._publish_status((time.monotonic(), None))
+        status = json.loads(get(live, "/status")[2])
+        assert status["event"] == "status" and "rate_hz" in status and status["rate_hz"] is None
+    finally:
+        live.close(drain_s=1)
+
+
 def test_status_comes_every_period_with_the_servers_counters():
     n = iter(range(10**6))
     live = Live("127.0.0.1", 0, status=lambda: {"frames": 7, "samples": next(n)},
@@ -281,6 +294,7 @@ def test_status_comes_every_period_with_the_servers_counters():
     assert got[-1]["viewers"] == 1 and got[-1]["rate_hz"] > 0  # samples went up each call
     status = json.loads(get(live, "/status")[2])
     assert status["event"] == "status" and status["frames"] == 7
+
     live.close(drain_s=5)
     while (m := v.next())["event"] != "end":
         assert m["event"] == "status"

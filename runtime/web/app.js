@@ -182,7 +182,7 @@ function drawStrip(now = performance.now()) {
 
 function onStatus(s) {
   const put = (id, v) => { if (v !== undefined) $(id).textContent = v; };
-  put("rate", s.rate_hz); put("frames", s.frames); put("gaps", s.gaps); put("lost", s.samples_lost);
+  put("rate", s.rate_hz ?? "-"); put("frames", s.frames); put("gaps", s.gaps); put("lost", s.samples_lost);
   put("crc", s.crc_errors); put("malformed", s.malformed); put("reconnects", s.reconnects);
   put("stalls", s.stalls); put("dropped", s.dropped);
 }
