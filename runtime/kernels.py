@@ -76,7 +76,10 @@ def register(options, path: str | os.PathLike) -> bool:
         reason = "no kernel library: the package was installed without a C compiler"
     if not _state["said"]:
         _state["said"] = True
-        print(f"tactile: running the portable EMD/sparse-code graphs ({reason})", file=sys.stderr)
+        from tactile.cli import prefix  # the command's name while one runs
+
+        print(f"{prefix() or 'tactile: '}running the portable EMD/sparse-code graphs ({reason})",
+              file=sys.stderr)
     return False
 
 

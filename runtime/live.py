@@ -306,7 +306,9 @@ class _Handler(BaseHTTPRequestHandler):
     server: _Server
     protocol_version = "HTTP/1.1"
     server_version = "tactile"
-    sys_version = ""
+
+    def version_string(self) -> str:  # the Server header: "tactile" (no Python version)
+        return self.server_version
 
     def setup(self) -> None:
         self.timeout = self.server.live.idle_timeout  # applied to the socket by super()

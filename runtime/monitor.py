@@ -234,7 +234,8 @@ def verdict(watch: Watch, decoder: StreamDecoder, end: float) -> str:
     if st.errors:
         notes.append(f"{st.crc_errors} CRC errors, {st.malformed} malformed frames")
     if st.gaps:
-        notes.append(f"{st.gaps} gaps ({st.samples_lost} samples lost)")
+        notes.append(f"{st.gaps} gap{'' if st.gaps == 1 else 's'} ({st.samples_lost} samples "
+                     "lost)")
     off = abs(got / declared - 1) if declared > 0 else math.inf
     if off <= RATE_TOLERANCE:
         head = "alive" + ("" if notes else " and sane")

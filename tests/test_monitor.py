@@ -98,7 +98,7 @@ def test_link_faults_are_counted_and_named(capsys, monkeypatch):
     assert st.crc_errors > 0 and st.gaps > 0
     assert (f"crc {st.crc_errors}  malformed {st.malformed}  gaps {st.gaps} (lost "
             f"{st.samples_lost})") in out.rstrip().splitlines()[-1]
-    assert f"{st.crc_errors} CRC errors" in err and f"{st.gaps} gaps" in err
+    assert f"{st.crc_errors} CRC errors" in err and f"{st.gaps} gap" in err
     assert re.search(r"tactile-monitor: (alive|too fast): ", err) and "sane" not in err
 
 
@@ -112,6 +112,16 @@ def verdict_of(samples: int, seconds: float) -> str:
     watch.handle(dec.feed(data))
     watch.first_data = 1000.0
     return monitor.verdict(watch, dec, 1000.0 + seconds)
+
+
+def test_the_verdict_counts_one_gap_in_the_singular():
+    watch, dec = monitor.Watch(), StreamDecoder()
+    raw = PenSimulator("paper", 1).read(200)
+    data = encode_header(pen_info()) + b"".join(  # samples 100..109 never sent
+        encode_samples(i, i * 10_000, raw[i:i + 10]) for i in range(0, 200, 10) if i != 100)
+    watch.handle(dec.feed(data))
+    watch.first_data = 1000.0
+    assert monitor.verdict(watch, dec, 1002.0).endswith("; 1 gap (10 samples lost)")
 
 
 def test_the_verdict_says_alive_only_at_about_the_declared_rate():

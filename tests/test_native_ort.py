@@ -487,7 +487,8 @@ def test_tactile_run_no_native_runs_the_portable_graphs(exported, fresh_kernels,
         assert main(["--model", str(exported), "--replay", str(take), "--raw", *flag]) == 0
         out, err = capsys.readouterr()
         outs[bool(flag)] = [json.loads(ln) for ln in out.splitlines()]
-        said = err.count("running the portable EMD/sparse-code graphs (native kernels disabled)")
+        said = err.count("tactile-run: running the portable EMD/sparse-code graphs (native "
+                         "kernels disabled)")  # named as the command's lines are
         assert said == (1 if flag else 0), err
     fast, slow = outs[False], outs[True]
     assert len(fast) == len(slow) >= 20

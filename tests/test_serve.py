@@ -276,8 +276,10 @@ def test_the_first_status_has_its_rate_null_not_left_out():
                 say=lambda m: None, status_every=3600)  # no status but the one published here
     try:
         live._publish_status((time.monotonic(), None))
-        status = json.loads(get(live, "/status")[2])
+        code, headers, body = get(live, "/status")
+        status = json.loads(body)
         assert status["event"] == "status" and "rate_hz" in status and status["rate_hz"] is None
+        assert headers["Server"] == "tactile"  # no trailing space, no Python version
     finally:
         live.close(drain_s=1)
 

@@ -50,8 +50,10 @@ def disabled_by_env() -> bool:
         return True
     if value.lower() not in _ON and value not in _warned:
         _warned.add(value)
-        print(f"tactile: TACTILE_NATIVE={value!r} is not one of 0/false/off/no (kernels off) or "
-              "1/true/on/yes: the native kernels stay on", file=sys.stderr)
+        from tactile.cli import prefix  # the command's name while one runs
+
+        print(f"{prefix() or 'tactile: '}TACTILE_NATIVE={value!r} is not one of 0/false/off/no "
+              "(kernels off) or 1/true/on/yes: the native kernels stay on", file=sys.stderr)
     return False
 
 
