@@ -142,6 +142,18 @@ class Screen:
         self.out.flush()
         self.height = 0
 
+    def clear(self) -> None:
+        """On a terminal, erase the block (the next :meth:`show` draws it afresh, below
+        whatever is written meanwhile): a line on stderr between two redraws would otherwise
+        be drawn over and leave a stale row of the block above the new one."""
+        if self.tty and self.height:
+            self.out.write(f"\x1b[{self.height}F\x1b[J")
+            self.out.flush()
+            self.height = 0
+
+
+_screen: Screen | None = None  # the block being redrawn (watch_loop's), for say()
+
 
 def hexdump(offset: int, data: bytes) -> str:
     """``hexdump -C``-style lines: offset, 16 bytes in hex, the printable ones as text."""
@@ -154,7 +166,10 @@ def hexdump(offset: int, data: bytes) -> str:
 
 
 def say(msg: str) -> None:
-    """A diagnostic line on stderr, as ``tactile-monitor`` writes them."""
+    """A diagnostic line on stderr, as ``tactile-monitor`` writes them (above the block a
+    terminal shows: a port lost, a stall, a reconnection stay on the screen)."""
+    if _screen is not None:
+        _screen.clear()
     print(f"tactile-monitor: {msg}", file=sys.stderr, flush=True)
 
 
@@ -173,11 +188,24 @@ def raw_loop(conn: Connection) -> int:
 def watch_loop(conn: Connection, every: float, live=None) -> Watch:
     """Decode until the connection's stop or deadline, show the block every ``every`` s (and at
     the end), feed the live page (a :class:`~tactile.runtime.live.Live`, if given)."""
+    global _screen
     watch, decoder, screen = Watch(), conn.decoder, Screen()
     if live is not None:
         live.status = lambda: {**_link_status(decoder), "reconnects": watch.reconnects,
                                "stalls": watch.stalls}
-    start = last_show = time.monotonic()
+    start = time.monotonic()
+    _screen = screen  # say() erases the block before its line
+    try:
+        _watch(conn, every, live, watch, screen, start)
+    finally:
+        _screen = None
+    _show(screen, watch, conn, time.monotonic(), start)  # the last figures
+    return watch
+
+
+def _watch(conn: Connection, every: float, live, watch: Watch, screen: Screen,
+           start: float) -> None:
+    last_show = start
     for chunk in conn.chunks():
         now = time.monotonic()
         if chunk.data:
@@ -195,8 +223,6 @@ def watch_loop(conn: Connection, every: float, live=None) -> Watch:
         if now - last_show >= every:
             last_show = now
             _show(screen, watch, conn, now, start)
-    _show(screen, watch, conn, time.monotonic(), start)  # the last figures
-    return watch
 
 
 def _show(screen: Screen, watch: Watch, conn: Connection, now: float, start: float) -> None:

@@ -196,6 +196,20 @@ def test_a_terminal_gets_the_block_redrawn_in_place():
     assert plain.out.getvalue() == "-- 1.0 s\na\n"
 
 
+def test_a_line_on_stderr_goes_above_the_block_not_under_its_redraw(monkeypatch, capsys):
+    """On a terminal, a link line (port lost, reconnected, no data) between two redraws was
+    drawn over by the next one, which also left a stale row of the block above it."""
+    screen = monitor.Screen(Tty())
+    monkeypatch.setattr(monitor, "_screen", screen)  # as watch_loop sets it
+    screen.show(["a", "b", "c"], 0.5)
+    monitor.say("port lost")
+    screen.show(["a", "b"], 1.0)
+    assert screen.out.getvalue() == ("\x1b[2Ka\n\x1b[2Kb\n\x1b[2Kc\n\x1b[J"
+                                     "\x1b[3F\x1b[J"  # the block erased, then the line...
+                                     "\x1b[2Ka\n\x1b[2Kb\n\x1b[J")  # ...and a fresh block
+    assert capsys.readouterr().err == "tactile-monitor: port lost\n"
+
+
 def test_flat_and_saturated_channels_are_named():
     info = DeviceInfo(100.0, (ChannelSpec("tip", "N", 0.01), ChannelSpec("ax", "g", 1.0),
                               ChannelSpec("ok", "g", 1.0)))
