@@ -199,10 +199,13 @@ def check_device(model: Model, info: DeviceInfo) -> np.ndarray:
         say(f"CSV device: its values are taken in the model's units "
             f"{list(model.contract.units)}, at the model's {model.contract.sample_rate_hz:g} Hz")
     elif got_units != model.contract.units:
+        odd = [(name, g, w) for name, g, w in zip(want, got_units, model.contract.units)
+               if g != w]
+        name, g, w = odd[0]
+        more = f"; {len(odd) - 1} more channel{'s' * (len(odd) > 2)} differ" if len(odd) > 1 \
+            else ""
         raise ModelContractError(
-            f"device units {list(got_units)} do not match the model's "
-            f"{list(model.contract.units)}"
-        )
+            f"device units differ from the model's: {name} in {g!r}, the model's in {w!r}{more}")
     if not math.isclose(info.sample_rate_hz, model.contract.sample_rate_hz, rel_tol=1e-3):
         raise ModelContractError(
             f"device rate {info.sample_rate_hz:g} Hz does not match the model's "

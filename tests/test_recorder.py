@@ -591,7 +591,13 @@ def test_bad_recordings_are_refused(tmp_path):
     assert len(read_take(csv).seq) == 5
     text = csv.read_text()
     csv.write_text(text.replace("seq,t_us,pressure_0", "seq,t_us,pressure_9"))
-    with pytest.raises(RecordingError, match="columns"):
+    with pytest.raises(RecordingError, match=r"t.csv: its header does not match the metadata's "
+                       r"channels: column 3 is 'pressure_9', the metadata says 'pressure_0' "
+                       r"\(10 columns, the metadata 10\)$"):  # the first difference, named
+        read_take(csv)
+    csv.write_text(text.replace(",gyro_z\n", "\n", 1))
+    with pytest.raises(RecordingError, match=r"column 10 is missing, the metadata says 'gyro_z' "
+                       r"\(9 columns"):
         read_take(csv)
     csv.write_text(text + "2,0,1,1,1,1,1,1,1,1\n")
     with pytest.raises(RecordingError, match="seq not increasing"):

@@ -791,7 +791,7 @@ def test_a_device_with_other_units_or_rate_is_refused(models, tmp_path):
         device["channels"][0]["unit"] = "mV"
 
     cases = [(["--replay", str(edited_take(models, tmp_path, "units", millivolts))],
-              "device units ['mV'", "model's ['N'"),
+              "device units differ from the model's: pressure_0 in 'mV'", "model's in 'N'"),
              (["--port", "sim://?texture=paper&speed=max&seconds=2&rate=50"],
               "device rate 50 Hz", "model's 100 Hz")]
     for args, device_side, model_side in cases:
@@ -1204,7 +1204,8 @@ def test_device_units_must_be_the_models():
     c = model.contract
     chans = [ChannelSpec(n, "mV" if n == "pressure_0" else u, 1.0)
              for n, u in zip(c.channels, c.units)]
-    with pytest.raises(ModelContractError, match=r"device units \['mV'.* the model's \['N'"):
+    with pytest.raises(ModelContractError, match=r"^device units differ from the model's: "
+                       r"pressure_0 in 'mV', the model's in 'N'$"):
         check_device(model, DeviceInfo(c.sample_rate_hz, tuple(chans), "pen"))
 
 

@@ -62,8 +62,13 @@ def _read_rows(csv_path: Path, meta: dict, info: DeviceInfo) -> Take:
     columns = head_text.split(",") if head_text else []
     expected = [*FIXED_COLUMNS, *(header_cell(n) for n in info.channel_names)]
     if columns != expected:
-        raise RecordingError(f"{csv_path}: columns {_shown_list(columns)} do not match the "
-                             f"metadata {_shown_list(expected)}")
+        k = next((i for i, (a, b) in enumerate(zip(columns, expected)) if a != b),
+                 min(len(columns), len(expected)))
+        here = repr(columns[k]) if k < len(columns) else "missing"
+        there = repr(expected[k]) if k < len(expected) else "no column there"
+        raise RecordingError(f"{csv_path}: its header does not match the metadata's channels: "
+                             f"column {k + 1} is {here}, the metadata says {there} ("
+                             f"{len(columns)} columns, the metadata {len(expected)})")
     gaps: list[dict] = []
     rows = 0
 
@@ -157,11 +162,6 @@ def _mismatch(meta: dict, rows: int, last: int | None, truncated: bool) -> str |
     said = f"{want}" + (f" up to seq {want_last}" if want_last is not None else "")
     return (f"holds {held}{cut} where its JSON says the finished take had {said}: rows were "
             "lost or added after recording")
-
-
-def _shown_list(items: list[str]) -> str:
-    text = repr(items)
-    return text if len(text) <= 200 else text[:197] + "..."
 
 
 _DECIMAL = re.compile(rb"^[^#\n]*[.eE]", re.MULTILINE)
