@@ -383,6 +383,34 @@ def test_eval_recognises_the_test_split_by_content_not_by_name(trained, dataset,
     assert out["scope"].startswith("every take") and victim.name in out["scope"]
 
 
+def test_eval_on_takes_the_run_trained_on_says_the_figures_are_not_a_test(trained, dataset,
+                                                                          tmp_path, capsys):
+    """tactile-eval on a folder without the run's test takes evaluates every take it holds, and
+    said nothing when those were the run's training or validation takes (accuracy 0.99, per
+    take 1.000, read as a test). The run keeps the fingerprints of the takes it read."""
+    run, _ = trained
+    ck = torch.load(run / "checkpoint.pt", weights_only=True)
+    takes = {t.path.name: t for t in load_dataset(dataset)}
+    seen = [n for n in takes if n not in ck["test_rows"]]
+    assert sorted(ck["seen_fingerprints"]) == sorted({takes[n].fingerprint() for n in seen})
+    folder = tmp_path / "mine"
+    folder.mkdir()
+    for n in [*seen[:2], sorted(ck["test_rows"])[0]]:  # two seen takes and a test take
+        for suffix in (".csv", ".json"):
+            shutil.copy(dataset / Path(n).with_suffix(suffix), folder)
+    assert eval_main([str(run), str(folder), "--json"]) == 0
+    said = capsys.readouterr()
+    out = json.loads(said.out)
+    assert out["scope"].startswith("every take") and sorted(out["seen_takes"]) == sorted(seen[:2])
+    assert "these figures are not a test" in out["scope"]
+    assert said.err == (f"tactile-eval: warning: 2 of the takes evaluated are ones the run "
+                        f"trained or validated on (e.g. {out['seen_takes'][0]}): the figures "
+                        "are not a test\n")
+    assert eval_main([str(run), str(dataset), "--json"]) == 0  # its own test split: no word
+    said = capsys.readouterr()
+    assert json.loads(said.out)["seen_takes"] == [] and said.err == ""
+
+
 def test_a_class_named_uncertain_is_refused_before_training(tmp_path, capsys):
     """``uncertain`` is the label stream's name for "no stable label": a dataset with a class so
     named is one line and exit 1, before any training."""

@@ -73,11 +73,12 @@ def plain(obj):
 def save_checkpoint(path: Path, cfg: TrainConfig, model: torch.nn.Module, metrics: dict, *,
                     classes: tuple[str, ...], takes: list[Take],
                     test: dict[int, tuple[int, int]], norm: Norm,
-                    held_out: list | None = None) -> None:
+                    held_out: list | None = None, seen: tuple[int, ...] = ()) -> None:
     """Write the checkpoint ``path``: the weights of ``model``, the resolved ``cfg`` (whose
     ``channels`` are the model's inputs, in order), ``classes``, the channels' units and the
     sample rate (of ``takes``, the dataset's takes), ``norm``, the test split's rows (``test``:
-    take index -> (first, end) rows) with each test take's fingerprint, and ``metrics``; with
+    take index -> (first, end) rows) with each test take's fingerprint, the fingerprints of
+    the takes training or validation read (``seen``: take indices), and ``metrics``; with
     ``held_out`` (a refit's run), the first training's label streams of the validation takes
     (:class:`~tactile.postprocess.metrics.WindowStream`: what the label stream's defaults
     are calibrated on, the final model having trained on those takes)."""
@@ -98,6 +99,7 @@ def save_checkpoint(path: Path, cfg: TrainConfig, model: torch.nn.Module, metric
         "center_index": norm.center_index,
         "test_rows": {names[i]: list(r) for i, r in test.items()},
         "test_fingerprints": {names[i]: takes[i].fingerprint() for i in test},
+        "seen_fingerprints": sorted({takes[i].fingerprint() for i in seen}),
         "metrics": plain(metrics),
         "state_dict": model.state_dict(),
     }
@@ -212,6 +214,9 @@ def check_checkpoint(ck: dict, path: Path) -> TrainConfig:
             isinstance(k, str) and isinstance(v, str)
             for k, v in ck.get("test_fingerprints", {}).items()),
          "a table of take name -> fingerprint"),
+        ("seen_fingerprints", isinstance(ck.get("seen_fingerprints", []), list) and all(
+            isinstance(v, str) for v in ck.get("seen_fingerprints", [])),
+         "a list of fingerprints"),
         ("metrics", isinstance(ck.get("metrics", {}), dict), "a table"),
         ("state_dict", isinstance(ck.get("state_dict"), dict) and all(
             isinstance(k, str) and isinstance(v, torch.Tensor)

@@ -184,11 +184,18 @@ def evaluate_run(run_dir: Path, data: Path, threads: int | None = None,
     check_model_input(takes, channels, ck.get("units"), rate, data)
     rows, scope, _ = find_test_split(takes, ck.get("test_rows"), ck.get("test_fingerprints"),
                                      str(data))
+    seen = set(ck.get("seen_fingerprints", ()))  # absent in runs saved before it was kept
+    trained = [t.path.name for t in takes if seen and t.fingerprint() in seen] \
+        if rows is None else []  # the run's own test split: none of it was seen
+    if trained:
+        scope += (f"; {len(trained)} of them the run trained or validated on (by content, e.g. "
+                  f"{trained[0]}): these figures are not a test")
     w = cut(takes, classes, channels, cfg.window, cfg.hop, rows)
     probs = predict(model, w)
     s = summary(w.y, probs, classes)
     s.update(per_take(w, probs, [t.path.stem for t in takes]))
     s["scope"] = scope
+    s["seen_takes"] = trained
     s["threads"] = s_threads
     s["shifted"] = shifted(model, takes, classes, channels, rows, cfg.window, cfg.hop, rate)
     s["classes"] = list(classes)

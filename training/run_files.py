@@ -120,7 +120,7 @@ def write_run(out: Path, cfg: TrainConfig, model: Classifier, metrics: dict, his
             write_whole(out / name, data)
         save_checkpoint(out / CHECKPOINT, cfg, model, metrics, classes=prep.classes,
                         takes=prep.takes, test=prep.split.test, norm=prep.norm,
-                        held_out=held_out)
+                        held_out=held_out, seen=(*prep.split.train, *prep.split.val))
     except (OutputError, ConfigError) as e:
         for name in (*files, CHECKPOINT):
             with contextlib.suppress(OSError):

@@ -54,6 +54,10 @@ def _eval(args: argparse.Namespace) -> int:
     # a value given without the others: those of the raw stream (ma:1, p_min 0, hold 1)
     smoothing = override(None, args.smooth, args.p_min, args.hold)
     s = evaluate_run(args.run, args.data, args.threads, smoothing)
+    if s["seen_takes"]:
+        print(f"tactile-eval: warning: {len(s['seen_takes'])} of the takes evaluated are ones "
+              f"the run trained or validated on (e.g. {s['seen_takes'][0]}): the figures are "
+              "not a test", file=sys.stderr)
     if args.json:
         print(json.dumps(s))
         return 0
