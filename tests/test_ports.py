@@ -123,6 +123,30 @@ def test_bytes_that_arrive_while_the_port_opens_are_kept(monkeypatch):
     assert bytes(got) == data
 
 
+def test_bytes_waiting_on_a_device_when_it_opens_are_kept():
+    """The same on a device (here a pty; a USB or UART pen alike): pyserial's posix open()
+    flushes the input queue (tcflush), so what a pen sent before the port was open (its
+    header, as it boots when plugged in) was lost."""
+    import tty
+
+    master, slave = os.openpty()
+    try:
+        tty.setraw(slave)  # the bytes go in as they are (no line editing, no signals)
+        data = encode_header(pen_info()) + bytes(range(256)) * 2
+        os.write(master, data)
+        link = open_port(os.ttyname(slave), 115200)
+        got = bytearray()
+        while len(got) < len(data):
+            chunk, lost = read_some(link, wait=5)
+            assert chunk and lost is None, (len(got), lost)  # no more arrives: all was there
+            got += chunk
+        link.close()
+    finally:
+        os.close(master)
+        os.close(slave)
+    assert bytes(got) == data
+
+
 def test_a_port_is_opened_by_one_program_and_the_holder_is_named(tmp_path):
     """The same pty twice: the second open is refused, naming the holder (here this process),
     and a second tactile-run on it exits 2 in one line naming the first one's pid."""

@@ -94,15 +94,19 @@ def open_port(port: str, baud: int) -> serial.SerialBase:
     try:
         link = serial.serial_for_url(port, baudrate=baud, timeout=0, exclusive=True,
                                      do_not_open=True)
-        # pyserial's open() ends by discarding the input that has arrived (the posix port's
-        # tcflush, the socket's recv until empty): a device that sends as soon as the link is
-        # up (a pen behind a TCP bridge, a burst it held while the link was down) would lose
+        # pyserial's open() ends by discarding the input that has arrived (a posix port's
+        # tcflush by its private _reset_input_buffer, a socket's recv until empty by the public
+        # one): a device that sends as soon as the link is up (a pen that boots when plugged
+        # in, one behind a TCP bridge, a burst it held while the link was down) would lose
         # those samples and its header with them; the decoder finds frames in any bytes
-        link.reset_input_buffer = _keep_input
+        hooks = [n for n in ("reset_input_buffer", "_reset_input_buffer") if hasattr(link, n)]
+        for name in hooks:
+            setattr(link, name, _keep_input)
         try:
             link.open()
         finally:
-            del link.reset_input_buffer
+            for name in hooks:
+                delattr(link, name)
         return link
     except (ValueError, serial.SerialException) as e:
         if getattr(e, "errno", None) in (errno.EWOULDBLOCK, errno.EAGAIN):  # the flock failed
