@@ -275,15 +275,21 @@ def holding_signals():
         held[got[0]](got[0], None)  # raises KeyboardInterrupt, or Terminated
 
 
-def _fill_closed_descriptors() -> None:
+_null_out = None  # the stream that stands in for a closed stdout or stderr
+
+
+def _fill_closed_streams() -> None:
     """A command started with stdin, stdout or stderr closed (``>&-``, ``2>&-``, a service
     manager's choice) gets the null device there: otherwise the next file it opens (a take
     being recorded, an exported model) takes the free descriptor 1 or 2 and any write to
     stdout or stderr, onnxruntime's and PyTorch's own among them, lands in that file, and
     Python, which left ``sys.stdout`` or ``sys.stderr`` None, would end the first ``print``
     with a traceback or send stderr's lines to stdout. The lines of a closed stream are
-    dropped; the command goes on."""
-    for fd, name in ((0, "stdin"), (1, "stdout"), (2, "stderr")):
+    dropped; the command goes on. ``sys.stdout`` or ``sys.stderr`` None (the process started
+    so; its descriptor may since hold another file) writes to the null device, whatever the
+    descriptor holds; the command's ``finally`` puts None back."""
+    global _null_out
+    for fd in (0, 1, 2):
         try:
             os.fstat(fd)
             continue
@@ -293,9 +299,11 @@ def _fill_closed_descriptors() -> None:
         if null != fd:
             os.dup2(null, fd)
             os.close(null)
+    for name in ("stdout", "stderr"):
         if getattr(sys, name) is None:
-            setattr(sys, name, open(fd, "r" if fd == 0 else "w", buffering=1, closefd=False,
-                                    encoding="utf-8", errors="backslashreplace"))
+            if _null_out is None:
+                _null_out = open(os.devnull, "w", encoding="utf-8")  # kept for the process
+            setattr(sys, name, _null_out)
 
 
 class _ReaderMayGo:
@@ -444,7 +452,7 @@ def command(prog: str, *, guarded: bool = False, interruptible: bool = False,
                 term = signal.signal(signal.SIGTERM, _terminate)
             was = (sys.stdout, sys.stderr)
             if depth == 0 and threading.current_thread() is threading.main_thread():
-                _fill_closed_descriptors()
+                _fill_closed_streams()
                 sys.stdout = _Stdout(sys.stdout)  # the outermost command's, as a process has
             if files:
                 sys.stdout, sys.stderr = (s if isinstance(s, _ReaderMayGo) else _ReaderMayGo(s)

@@ -230,6 +230,18 @@ def test_a_closed_stdout_is_the_null_device_not_a_traceback(tmp_path):
     assert (proc.returncode, proc.stderr) == (0, "")
 
 
+def test_a_script_that_runs_commands_twice_with_stdout_closed(tmp_path):
+    """The first command filled the closed descriptor and its ``finally`` put sys.stdout back
+    to None: the second saw an open descriptor and ended at its first line, a traceback."""
+    make_dataset(tmp_path, takes=1, textures=("paper",), seconds=1)
+    script = ("import sys\nfrom tactile.device.commands.data import main\n"
+              f"codes = [main([{str(tmp_path)!r}]) for _ in range(2)]\n"
+              "print(codes, file=sys.stderr)\n")
+    proc = subprocess.run([sys.executable, "-c", script], stderr=subprocess.PIPE, text=True,
+                          timeout=60, preexec_fn=_closing(1))
+    assert (proc.returncode, proc.stderr) == (0, "[0, 0]\n"), proc.stderr
+
+
 def test_a_closed_stderr_keeps_its_lines_out_of_the_label_stream(tmp_path):
     """With stderr closed (`2>&-`: sys.stderr None), print(file=sys.stderr) writes to stdout:
     tactile-run's notes and summary went into the JSON lines of its labels."""
