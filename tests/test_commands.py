@@ -467,6 +467,49 @@ def test_force_stopped_half_way_leaves_every_take_old_or_new(tmp_path, monkeypat
                if p.suffix == ".csv")
 
 
+def test_a_take_put_aside_by_a_killed_replacing_run_is_never_overwritten(tmp_path):
+    """A run killed (kill -9, a power cut) while it replaced a take leaves the old take as
+    NAME.csv.replaced beside a cut new one; a second --force run moved its own cut take onto
+    it, and the only whole copy was gone. Now any run writing that name stops first."""
+    make_dataset(tmp_path, takes=1, textures=("paper",), seconds=1, seed=1)
+    for suffix in (".csv", ".json"):  # as the killed run left them (its new take not begun)
+        (tmp_path / f"paper-user000{suffix}").rename(tmp_path / f"paper-user000{suffix}.replaced")
+    before = {p.name: p.read_bytes() for p in tmp_path.iterdir()}
+    for force in (False, True):
+        with pytest.raises(RecordingError, match=r"paper-user000.csv.replaced: the take a "
+                           r"stopped run was replacing with --force .* put it back"):
+            make_dataset(tmp_path, takes=1, textures=("paper",), seconds=1, seed=2, force=force)
+    assert {p.name: p.read_bytes() for p in tmp_path.iterdir()} == before
+
+
+def test_a_take_half_moved_aside_is_put_back(tmp_path, monkeypatch):
+    """An error between moving a take's two files aside (the disk, or a signal before they were
+    held) left its .json without its .csv: a take no reader takes."""
+    from tactile.device.recordings.take import whole_take
+
+    make_dataset(tmp_path, takes=1, textures=("paper",), seconds=1, seed=1)
+    before = {p.name: p.read_bytes() for p in tmp_path.iterdir()}
+    real, calls = os.replace, []
+
+    def replace(a, b):
+        calls.append(a)
+        if len(calls) == 2:
+            raise OSError(5, "Input/output error")
+        return real(a, b)
+
+    monkeypatch.setattr(os, "replace", replace)
+    with pytest.raises(OSError, match="Input/output error"):
+        with whole_take(tmp_path, "paper-user000", replace=True):
+            raise AssertionError("not reached: the moves failed")
+    monkeypatch.setattr(os, "replace", real)
+    assert {p.name: p.read_bytes() for p in tmp_path.iterdir()} == before
+    with pytest.raises(RecordingError, match=r"paper-user000.csv: written since the folder was "
+                       r"checked .* --force to replace it"):
+        with whole_take(tmp_path, "paper-user000"):  # no --force: a take there is not replaced
+            raise AssertionError("not reached")
+    assert {p.name: p.read_bytes() for p in tmp_path.iterdir()} == before
+
+
 def test_a_take_of_the_same_name_in_a_sub_folder_is_refused_even_with_force(tmp_path):
     """A second simulated dataset (or import) into the parent folder of one wrote takes of the
     same names beside it, and no command could then read the parent as a dataset."""

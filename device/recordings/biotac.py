@@ -27,9 +27,9 @@ the file and the dataset, exit code 1. Timestamps that go back, or jump by more 
 between two frames (frames lost, or the recording computer's clock set), are imported all the
 same, in file order (the order the frames were recorded in), with one ``warning:`` line per
 trial naming the first such frame. A take of the same name already in the output folder is
-refused too (importing twice would duplicate data), or replaced with ``--force``: the old takes
-are deleted only once every input has passed its checks (the takes' metadata included), so a bad
-input leaves them as they were.
+refused too (importing twice would duplicate data), or replaced with ``--force``: each old take
+only once every input has passed its checks (the takes' metadata included), so a bad input
+leaves them as they were, and then only once its new take is whole.
 """
 
 from __future__ import annotations
@@ -290,13 +290,11 @@ def import_biotac(files: list[Path], out: Path, force: bool = False,
         paths = []
         for t in trials:
             raw, stamps = read_trial(handles[t.file], t)
-            with whole_take(out, t.group), TakeWriter(
+            with whole_take(out, t.group, force, done=written), TakeWriter(
                     out, t.label, info, f"biotac:{t.file.name}", name=t.group,
                     extra=_metadata(t, stamps)) as w:
                 w.write(0, 0, raw)
             paths.append(w.csv_path)
-            if written is not None:  # said as it is whole: a stop later leaves it
-                written(w.csv_path)
         return paths
     finally:
         for f in handles.values():

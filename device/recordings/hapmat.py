@@ -217,12 +217,10 @@ def import_hapmat(source: Path, out: Path, force: bool = False,
             "notes": "accel has gravity removed upstream; gyro from rota_* (rad/s -> deg/s)",
         }
         name = f"hapmat-{label}"
-        with whole_take(out, name), TakeWriter(out, label, info, f"hapmat:{source.name}",
-                                               name=name, extra=extra) as w:
+        with whole_take(out, name, force, done=written), TakeWriter(
+                out, label, info, f"hapmat:{source.name}", name=name, extra=extra) as w:
             w.write(0, 0, values)
         paths.append(w.csv_path)
-        if written is not None:  # said as it is whole: a stop later leaves it
-            written(w.csv_path)
     return paths
 
 

@@ -18,7 +18,7 @@ import hashlib
 import os
 import re
 import unicodedata
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -117,8 +117,9 @@ def replace_takes(folder: Path, stems: list[str], force: bool,
     replaces each when its new take is whole (so that a command stopped half-way leaves every
     take, old or new, whole). With ``info`` (the new takes' device), a folder whose other takes
     have other channels, units or another rate is refused too: the takes would make a dataset
-    no command can read; so is a folder with a take of one of those names in a sub-folder, even
-    with ``force``."""
+    no command can read; so is a folder with a take of one of those names in a sub-folder, or
+    one put aside by a replacing run that was killed (``NAME.csv.replaced``), even with
+    ``force``."""
     if info is not None:
         check_joins(folder, set(stems), info)
     names = set(stems)  # a dataset's readers refuse two takes (.csv + .json) of one name
@@ -127,6 +128,13 @@ def replace_takes(folder: Path, stems: list[str], force: bool,
     if deeper is not None:
         raise RecordingError(f"{deeper}: a take of that name in a sub-folder of {folder} (a "
                              "dataset's takes need names of their own): choose another folder")
+    aside = [p for s in dict.fromkeys(stems) for p in (folder / f"{s}.csv{ASIDE}",
+                                                        folder / f"{s}.json{ASIDE}")
+             if p.exists()]
+    if aside:  # left by a replacing run that was killed: maybe the only whole copy of a take
+        raise RecordingError(f"{aside[0]}: the take a stopped run was replacing with --force "
+                             f"(the take of that name may be cut short): put it back (both "
+                             f"files, without {ASIDE}) or delete it, then run again")
     found = [p for s in dict.fromkeys(stems)  # a name given twice is one take's files
              for p in (folder / f"{s}.csv", folder / f"{s}.json") if p.exists()]
     if found and not force:
@@ -136,40 +144,65 @@ def replace_takes(folder: Path, stems: list[str], force: bool,
 
 
 KEPT = "; the take keeps what came before"  # a recorder's take, after a write that failed
+ASIDE = ".replaced"  # a take being replaced, while its new one is written (whole_take)
 
 
 @contextlib.contextmanager
-def whole_take(folder: Path, stem: str) -> Iterator[None]:
+def whole_take(folder: Path, stem: str, replace: bool = False,
+               done: Callable[[Path], object] | None = None) -> Iterator[None]:
     """Around the writing of one take that a command derives (an import, a simulated take):
     when the writing stops half-way (Ctrl-C, a full disk), the take's files are removed, so
     that the folder holds whole takes only (a recorder's take, which holds what was recorded,
-    is kept instead), and the writer's error says so. A take of that name already there (one
-    that :func:`replace_takes` lets ``--force`` replace) is moved aside (``NAME.csv.replaced``)
-    while the new one is written, put back when the writing stops half-way, and deleted once
-    the new take is whole."""
+    is kept instead), and the writer's error says so. With ``replace`` (``--force``, which
+    :func:`replace_takes` allowed), a take of that name already there is moved aside
+    (``NAME.csv.replaced``) while the new one is written, put back when the writing stops
+    half-way, and deleted once the new take is whole; without, one that has appeared since
+    is refused. ``done(csv path)``: called once the new take is whole. The moves, the clean-up
+    and ``done`` hold Ctrl-C and SIGTERM until they end (:func:`tactile.cli.holding_signals`):
+    no take is left half moved, and a take that stays is one ``done`` was told of."""
+    from tactile.cli import holding_signals
+
     paths = [folder / f"{stem}{suffix}" for suffix in (".csv", ".json")]
-    aside = []
-    for path in paths:
-        if path.exists():
-            old = path.with_name(path.name + ".replaced")
-            os.replace(path, old)
-            aside.append((old, path))
+    aside: list[tuple[Path, Path]] = []
+    with holding_signals():
+        try:
+            for path in paths:
+                if path.exists():
+                    if not replace:
+                        raise RecordingError(f"{path}: written since the folder was checked "
+                                             "(another program writing there?): choose another "
+                                             "folder, or --force to replace it")
+                    old = path.with_name(path.name + ASIDE)
+                    os.replace(path, old)
+                    aside.append((old, path))
+        except BaseException:
+            _put_back(aside)
+            raise
     try:
         yield
     except BaseException as e:
-        removed = False
-        for path in paths:
-            removed |= path.exists()
-            path.unlink(missing_ok=True)
-        for old, path in aside:  # the take it was to replace, as it was
-            os.replace(old, path)
+        with holding_signals():
+            removed = False
+            for path in paths:
+                removed |= path.exists()
+                path.unlink(missing_ok=True)
+            _put_back(aside)
         if removed and isinstance(e, RecordingError):  # a write, or the data, refused
             kept = "the take it was to replace is kept" if aside else "the take is removed"
             raise RecordingError(str(e).removesuffix(KEPT) + f"; {kept} (the folder keeps "
                                  "whole takes only)") from None
         raise
-    for old, _ in aside:
-        old.unlink()
+    with holding_signals():
+        for old, _ in aside:
+            old.unlink()
+        if done is not None:
+            done(paths[0])
+
+
+def _put_back(aside: list[tuple[Path, Path]]) -> None:
+    """The files :func:`whole_take` moved aside, back under their names."""
+    for old, path in aside:
+        os.replace(old, path)
 
 
 def check_joins(folder: Path, stems: set[str], info: DeviceInfo) -> None:
