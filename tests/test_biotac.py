@@ -462,6 +462,7 @@ def test_a_granular_model_without_channels_reads_only_its_modalities_channels(tm
     config = tmp_path / "f0.toml"
     config.write_text('model = "f_rnn"\nwindow = 20\nhop = 10\nepochs = 1\nhidden = 4\n'
                       'layers = 1\nthreads = 1\n'
+                      '[signals]\nf0_pac = ["f0_pac_*"]\nf1_pac = ["f1_pac_*"]\n'  # f1: unread
                       '[modalities.vibration]\nchannels = ["f0_pac"]\nimfs = 0\nsteps = 22\n'
                       '[modalities.pressure]\nchannels = ["f0_pdc"]\nimfs = 0\nsteps = 2\n')
     code = train_main([str(data), "--out", str(tmp_path / "run"), "--config", str(config)])
@@ -472,10 +473,10 @@ def test_a_granular_model_without_channels_reads_only_its_modalities_channels(tm
     assert len(ck["mean"]) == 23
     assert "channels: the 23 the modalities read, of the takes' 88" in err
     code = train_main([str(data), "--out", str(tmp_path / "both"), "--config", str(config),
-                       "--set", "channels=f0_pdc,f1_pdc,f0_pac_*", "--quiet"])
+                       "--set", "channels=f0_pdc,f1_pdc,f0_pac_*,f1_pac_*", "--quiet"])
     assert code == 0, capsys.readouterr().err  # a `channels` setting is kept as it is
     assert load_checkpoint(tmp_path / "both")[1]["channels"] == [
-        "f0_pdc", "f1_pdc", *(f"f0_pac_{i:02d}" for i in range(22))]
+        "f0_pdc", "f1_pdc", *(f"f{k}_pac_{i:02d}" for k in (0, 1) for i in range(22))]
 
 
 @pytest.mark.skipif(not BOLT.is_dir(), reason=f"BioTac BOLT recordings absent ({BOLT})")

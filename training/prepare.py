@@ -139,10 +139,15 @@ def prepare(takes: list[Take], classes: tuple[str, ...], channels: tuple[str, ..
                  f"{takes[0].info.sample_rate_hz:g} Hz, not as the signal (select all of them to "
                  "read it at its own rate)")
     if cfg.modalities:  # the high-rate signals as exact names, then the layout (fail early)
-        if not cfg.channels and len(channels) < len(takes[0].channels):
+        narrowed = not cfg.channels and len(channels) < len(takes[0].channels)
+        if narrowed:  # (check_inputs kept the channels the modalities read)
             log.info(f"channels: the {len(channels)} the modalities read, of the takes' "
                      f"{len(takes[0].channels)} (set channels=... to choose others)")
-        signals = signals_for(takes, channels, cfg)
+            kept = set(channels)  # the signals of those: a [signals] entry no modality
+            signals = tuple((n, c) for n, c in signals_for(takes, takes[0].channels, cfg)
+                            if set(c) <= kept)  # reads names channels no longer there
+        else:
+            signals = signals_for(takes, channels, cfg)
         cfg = cfg.replace(channels=channels, signals=literal_signals(signals))
         layout = resolve(cfg, channels, takes[0].info.sample_rate_hz)
         log.info("modalities: " + "; ".join(
