@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import math
 import sys
+import threading
 import time
 from collections import deque
 from dataclasses import dataclass, field
@@ -124,8 +125,16 @@ class Screen:
         self.out = sys.stdout if out is None else out
         self.tty = self.out.isatty()
         self.height = 0  # lines drawn last time (terminal only)
+        self.drawing = False
 
     def show(self, lines: list[str], elapsed: float) -> None:
+        self.drawing = True  # (a signal's line written meanwhile leaves the block alone)
+        try:
+            self._show(lines, elapsed)
+        finally:
+            self.drawing = False
+
+    def _show(self, lines: list[str], elapsed: float) -> None:
         if self.tty:
             up = f"\x1b[{self.height}F" if self.height else ""
             text = up + "".join(f"\x1b[2K{ln}\n" for ln in lines)
@@ -146,7 +155,7 @@ class Screen:
         """On a terminal, erase the block (the next :meth:`show` draws it afresh, below
         whatever is written meanwhile): a line on stderr between two redraws would otherwise
         be drawn over and leave a stale row of the block above the new one."""
-        if self.tty and self.height:
+        if self.tty and self.height and not self.drawing:
             self.out.write(f"\x1b[{self.height}F\x1b[J")
             self.out.flush()
             self.height = 0
@@ -168,8 +177,9 @@ def hexdump(offset: int, data: bytes) -> str:
 def say(msg: str) -> None:
     """A diagnostic line on stderr, as ``tactile-monitor`` writes them (above the block a
     terminal shows: a port lost, a stall, a reconnection stay on the screen)."""
-    if _screen is not None:
-        _screen.clear()
+    if _screen is not None and sys.stderr.isatty() and \
+            threading.current_thread() is threading.main_thread():  # (the page's server
+        _screen.clear()  # thread says things too: it leaves the drawing to the main one)
     print(f"tactile-monitor: {msg}", file=sys.stderr, flush=True)
 
 

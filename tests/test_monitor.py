@@ -201,6 +201,7 @@ def test_a_line_on_stderr_goes_above_the_block_not_under_its_redraw(monkeypatch,
     drawn over by the next one, which also left a stale row of the block above it."""
     screen = monitor.Screen(Tty())
     monkeypatch.setattr(monitor, "_screen", screen)  # as watch_loop sets it
+    monkeypatch.setattr(sys.stderr, "isatty", lambda: True)  # the same terminal
     screen.show(["a", "b", "c"], 0.5)
     monitor.say("port lost")
     screen.show(["a", "b"], 1.0)
@@ -208,6 +209,10 @@ def test_a_line_on_stderr_goes_above_the_block_not_under_its_redraw(monkeypatch,
                                      "\x1b[3F\x1b[J"  # the block erased, then the line...
                                      "\x1b[2Ka\n\x1b[2Kb\n\x1b[J")  # ...and a fresh block
     assert capsys.readouterr().err == "tactile-monitor: port lost\n"
+    monkeypatch.setattr(sys.stderr, "isatty", lambda: False)  # stderr to a file (2>log)
+    drawn = screen.out.getvalue()
+    monitor.say("port lost")
+    assert screen.out.getvalue() == drawn  # the block stays as it is
 
 
 def test_flat_and_saturated_channels_are_named():
