@@ -77,7 +77,7 @@ from tactile.training.data import classes_of, pick_channels, split_takes, split_
 from tactile.training.evaluate import per_take
 from tactile.training.modality import signals_of_takes
 from tactile.training.overrides import parse_sets
-from tactile.training.run_files import libraries
+from tactile.training.run_files import libraries_line
 
 SHARED = Path(__file__).resolve().parents[2] / "shared" / "datasets"
 HAPMAT = SHARED / "hapmat" / "hapmat_stick_imu.npz"
@@ -701,9 +701,7 @@ def main(argv: list[str] | None = None) -> int:
                       for label, *sets in args.candidate or []]
     except ConfigError as e:
         p.error(str(e))
-    here = ", ".join(f"{k} {v}" for k, v in libraries().items())
-    print(f"<!-- libraries here: {here} (a reused run's own are in its metrics.json) -->",
-          flush=True)
+    print(libraries_line(), flush=True)
     data = {}
     for name in args.only or DATASETS:
         got = prepare(name, args.out, args.cache)

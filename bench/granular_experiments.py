@@ -562,11 +562,9 @@ def main(argv: list[str] | None = None) -> int:
     sets = [*BUDGETS[args.budget], *args.set]
     jobs = jobs_for(todo, args.seeds, data, args.cache, sets, args.configs)
     if not args.report:
-        from tactile.training.run_files import libraries
+        from tactile.training.run_files import libraries_line
 
-        here = ", ".join(f"{k} {v}" for k, v in libraries().items())
-        print(f"<!-- libraries here: {here} (a reused run's own are in its metrics.json) -->",
-              flush=True)
+        print(libraries_line(), flush=True)
         # seed-major: every row gets its first seed before any row gets its second
         order = sorted(jobs, key=lambda j: (args.seeds.index(j.seed), todo.index(j.row)))
         memo = EMDMemo(args.cache / "emd")

@@ -202,8 +202,8 @@ def check_device(model: Model, info: DeviceInfo) -> np.ndarray:
         odd = [(name, g, w) for name, g, w in zip(want, got_units, model.contract.units)
                if g != w]
         name, g, w = odd[0]
-        more = f"; {len(odd) - 1} more channel{'s' * (len(odd) > 2)} differ" if len(odd) > 1 \
-            else ""
+        more = (f"; {len(odd) - 1} more channel{'s differ' if len(odd) > 2 else ' differs'}"
+                if len(odd) > 1 else "")
         raise ModelContractError(
             f"device units differ from the model's: {name} in {g!r}, the model's in {w!r}{more}")
     if not math.isclose(info.sample_rate_hz, model.contract.sample_rate_hz, rel_tol=1e-3):

@@ -595,6 +595,10 @@ def test_bad_recordings_are_refused(tmp_path):
                        r"channels: column 3 is 'pressure_9', the metadata says 'pressure_0' "
                        r"\(10 columns, the metadata 10\)$"):  # the first difference, named
         read_take(csv)
+    csv.write_text("x" * 5000 + "\n" + text.split("\n", 1)[1])  # no take's header at all
+    with pytest.raises(RecordingError, match=r"column 1 is 'x{60}'\.\.\. \(5000 chars\), the "
+                       r"metadata says 'seq' \(1 column, the metadata 10\)"):  # cut, not all 5000
+        read_take(csv)
     csv.write_text(text.replace(",gyro_z\n", "\n", 1))
     with pytest.raises(RecordingError, match=r"column 10 is missing, the metadata says 'gyro_z' "
                        r"\(9 columns"):

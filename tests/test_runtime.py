@@ -1105,8 +1105,8 @@ def test_wait_for_a_named_port_ends_with_seconds_and_says_so(tmp_path, monkeypat
     lines = err.splitlines()
     assert lines[0].startswith(f"tactile-run: cannot open {port}: ") and \
         lines[0].endswith("; waiting for it"), err
-    assert re.fullmatch(rf"tactile-run: {re.escape(str(port))} did not open in \d+\.\d s "
-                        r"\(--seconds\); stopping", lines[1]), err
+    assert lines[1] == f"tactile-run: {port} did not open before the end of --seconds; " \
+        "stopping", err
     assert '"windows": 0' in lines[2] and len(lines) == 3, err
 
 

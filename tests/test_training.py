@@ -409,6 +409,13 @@ def test_eval_on_takes_the_run_trained_on_says_the_figures_are_not_a_test(traine
     assert eval_main([str(run), str(dataset), "--json"]) == 0  # its own test split: no word
     said = capsys.readouterr()
     assert json.loads(said.out)["seen_takes"] == [] and said.err == ""
+    old = tmp_path / "old"  # a run saved before the checkpoint kept them: not known, null
+    shutil.copytree(run, old)
+    del ck["seen_fingerprints"]
+    torch.save(ck, old / "checkpoint.pt")
+    assert eval_main([str(old), str(folder), "--json"]) == 0
+    said = capsys.readouterr()
+    assert json.loads(said.out)["seen_takes"] is None and said.err == ""
 
 
 def test_a_class_named_uncertain_is_refused_before_training(tmp_path, capsys):

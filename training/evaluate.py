@@ -184,9 +184,13 @@ def evaluate_run(run_dir: Path, data: Path, threads: int | None = None,
     check_model_input(takes, channels, ck.get("units"), rate, data)
     rows, scope, _ = find_test_split(takes, ck.get("test_rows"), ck.get("test_fingerprints"),
                                      str(data))
-    seen = set(ck.get("seen_fingerprints", ()))  # absent in runs saved before it was kept
-    trained = [t.path.name for t in takes if seen and t.fingerprint() in seen] \
-        if rows is None else []  # the run's own test split: none of it was seen
+    seen = ck.get("seen_fingerprints")
+    if seen is None:  # a run saved before they were kept: not known
+        trained = None
+    elif rows is not None:  # the run's own test split: none of it was seen
+        trained = []
+    else:
+        trained = [t.path.name for t in takes if t.fingerprint() in set(seen)]
     if trained:
         scope += (f"; {len(trained)} of them the run trained or validated on (by content, e.g. "
                   f"{trained[0]}): these figures are not a test")

@@ -46,6 +46,13 @@ def libraries() -> dict[str, str]:
     return found
 
 
+def libraries_line() -> str:
+    """The benches' line of the :func:`libraries` this process runs on (a reused run's own are
+    in its metrics.json)."""
+    here = ", ".join(f"{k} {v}" for k, v in libraries().items())
+    return f"<!-- libraries here: {here} (a reused run's own are in its metrics.json) -->"
+
+
 def test_metrics(model: Classifier, prep: Prepared, feats: torch.Tensor) -> dict:
     """Window and per-take figures on the test split (``feats``: its windows' features)."""
     probs = predict(model, prep.parts["test"], feats=feats)
@@ -177,4 +184,5 @@ def plots(history: dict, metrics: dict, classes: tuple[str, ...]) -> dict[str, b
     return pictures
 
 
-__all__ = ["libraries", "test_metrics", "run_metrics", "held_out_streams", "write_run", "plots"]
+__all__ = ["libraries", "libraries_line", "test_metrics", "run_metrics", "held_out_streams",
+           "write_run", "plots"]

@@ -64,11 +64,12 @@ def _read_rows(csv_path: Path, meta: dict, info: DeviceInfo) -> Take:
     if columns != expected:
         k = next((i for i, (a, b) in enumerate(zip(columns, expected)) if a != b),
                  min(len(columns), len(expected)))
-        here = repr(columns[k]) if k < len(columns) else "missing"
-        there = repr(expected[k]) if k < len(expected) else "no column there"
+        here = _cell(columns[k]) if k < len(columns) else "missing"
+        there = _cell(expected[k]) if k < len(expected) else "no column there"
         raise RecordingError(f"{csv_path}: its header does not match the metadata's channels: "
                              f"column {k + 1} is {here}, the metadata says {there} ("
-                             f"{len(columns)} columns, the metadata {len(expected)})")
+                             f"{len(columns)} column{'s' * (len(columns) != 1)}, the "
+                             f"metadata {len(expected)})")
     gaps: list[dict] = []
     rows = 0
 
@@ -162,6 +163,12 @@ def _mismatch(meta: dict, rows: int, last: int | None, truncated: bool) -> str |
     said = f"{want}" + (f" up to seq {want_last}" if want_last is not None else "")
     return (f"holds {held}{cut} where its JSON says the finished take had {said}: rows were "
             "lost or added after recording")
+
+
+def _cell(text: str, most: int = 60) -> str:
+    """A header cell for an error line, cut to ``most`` characters (a file that is no take
+    may have a whole line there)."""
+    return repr(text) if len(text) <= most else repr(text[:most]) + f"... ({len(text)} chars)"
 
 
 _DECIMAL = re.compile(rb"^[^#\n]*[.eE]", re.MULTILINE)
