@@ -61,14 +61,15 @@ def run(prog: str, body: Callable[[argparse.Namespace], int], args: argparse.Nam
     except (TactileError, OSError, ValueError, MemoryError, RuntimeError) as e:
         msg = _out_of_memory(e) if isinstance(e, (MemoryError, RuntimeError)) else (
             str(e).splitlines()[0] if str(e) else type(e).__name__)
+        code = exit_code(e)
         if isinstance(e, OSError) and e.filename is None and _stdout_failed():
-            msg = f"stdout: cannot write ({e.strerror or e})"
+            msg, code = f"stdout: cannot write ({e.strerror or e})", EXIT_OUTPUT
         if msg is None:  # a RuntimeError that is not an allocation: a defect, shown as one
             raise
         if getattr(args, "debug", False):  # the traceback, then the same line and exit code
             traceback.print_exc()
         print(f"{prog}: error: {msg}", file=sys.stderr)
-        return exit_code(e)
+        return code
 
 
 def _stdout_failed() -> bool:
@@ -235,10 +236,12 @@ def _guard_start() -> None:
 @contextlib.contextmanager
 def holding_signals():
     """Ctrl-C (and SIGTERM where the command takes it as Ctrl-C) held back while the block
-    imports libraries, then raised where the block ends. An import stopped midway can leave a
-    library half-built, so that a later import fails with another error (numpy's
-    ``RecursionError`` under onnx, seen on ``tactile-export``) instead of the
-    ``KeyboardInterrupt`` that ends the command with its one line. A second signal while held
+    runs, then raised where the block ends: around imports, and around steps that must not
+    stop half-way (moving a take aside and back, :func:`tactile.device.recordings.take.
+    whole_take`). An import stopped midway can leave a library half-built, so that a later
+    import fails with another error (numpy's ``RecursionError`` under onnx, seen on
+    ``tactile-export``) instead of the ``KeyboardInterrupt`` that ends the command with its
+    one line. A second signal while held
     ends the process at once, by that signal (an import stuck on a slow disk can still be
     stopped); an error raised in the block wins over a held signal. The handlers are swapped
     with the signals blocked, so that none runs between two swaps. Off the main thread, and
@@ -302,7 +305,8 @@ def _fill_closed_streams() -> None:
     for name in ("stdout", "stderr"):
         if getattr(sys, name) is None:
             if _null_out is None:
-                _null_out = open(os.devnull, "w", encoding="utf-8")  # kept for the process
+                _null_out = open(os.devnull, "w", encoding="utf-8",  # kept for the process
+                                 errors="backslashreplace")  # (as Python's own stderr)
             setattr(sys, name, _null_out)
 
 

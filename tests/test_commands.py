@@ -256,6 +256,26 @@ def test_a_closed_stderr_keeps_its_lines_out_of_the_label_stream(tmp_path):
     assert all(isinstance(json.loads(line), dict) for line in lines), lines[:3]
 
 
+def test_stdout_that_fails_with_an_io_error_is_exit_4_in_every_command(tmp_path, monkeypatch,
+                                                                       capsys):
+    """README: exit 4 when stdout cannot be written; an I/O error (not a full disk) gave 1
+    outside tactile-run, whose label writer says 4."""
+    from tactile.device.commands.data import main
+
+    class Failing:
+        def write(self, text):
+            raise OSError(5, "Input/output error")
+
+        def flush(self):
+            pass
+
+    make_dataset(tmp_path, takes=1, textures=("paper",), seconds=1)
+    monkeypatch.setattr(sys, "stdout", Failing())
+    assert main([str(tmp_path)]) == 4
+    assert capsys.readouterr().err == "tactile-data: error: stdout: cannot write " \
+                                      "(Input/output error)\n"
+
+
 def test_export_checks_its_output_path_before_any_work(tmp_path):
     # the run folder does not exist either: the output is checked first, and nothing is made
     code, _, err = cli("tactile-export", str(tmp_path / "run"), "-o", str(tmp_path))
@@ -476,8 +496,9 @@ def test_a_take_put_aside_by_a_killed_replacing_run_is_never_overwritten(tmp_pat
         (tmp_path / f"paper-user000{suffix}").rename(tmp_path / f"paper-user000{suffix}.replaced")
     before = {p.name: p.read_bytes() for p in tmp_path.iterdir()}
     for force in (False, True):
-        with pytest.raises(RecordingError, match=r"paper-user000.csv.replaced: the take a "
-                           r"stopped run was replacing with --force .* put it back"):
+        with pytest.raises(RecordingError, match=r"paper-user000.csv.replaced: left by a run "
+                           r"that was replacing take paper-user000 with --force and was killed: "
+                           r"if paper-user000.csv is missing or cut short"):
             make_dataset(tmp_path, takes=1, textures=("paper",), seconds=1, seed=2, force=force)
     assert {p.name: p.read_bytes() for p in tmp_path.iterdir()} == before
 
@@ -508,6 +529,52 @@ def test_a_take_half_moved_aside_is_put_back(tmp_path, monkeypatch):
         with whole_take(tmp_path, "paper-user000"):  # no --force: a take there is not replaced
             raise AssertionError("not reached")
     assert {p.name: p.read_bytes() for p in tmp_path.iterdir()} == before
+
+
+def test_ctrl_c_while_a_take_is_moved_aside_puts_it_back(tmp_path, monkeypatch):
+    """The Ctrl-C held while the take's files moved aside was raised after the code that puts
+    them back on an error: the take stayed aside, and every later run refused its name."""
+    from tactile.device.recordings.take import whole_take
+
+    make_dataset(tmp_path, takes=1, textures=("paper",), seconds=1, seed=1)
+    before = {p.name: p.read_bytes() for p in tmp_path.iterdir()}
+    real, sent = os.replace, []
+
+    def replace(a, b):  # the user presses Ctrl-C once, as the first file moves
+        if not sent:
+            sent.append(a)
+            os.kill(os.getpid(), signal.SIGINT)
+        return real(a, b)
+
+    monkeypatch.setattr(os, "replace", replace)
+    with pytest.raises(KeyboardInterrupt):
+        with whole_take(tmp_path, "paper-user000", replace=True):
+            raise AssertionError("not reached: the signal ends it first")
+    assert {p.name: p.read_bytes() for p in tmp_path.iterdir()} == before
+
+
+def test_a_take_another_program_writes_meanwhile_is_left_alone(tmp_path):
+    """The writer took NAME-2 when NAME appeared after the check, and on an error the clean-up
+    deleted the other program's NAME. Now the derived take is that name or nothing, and both
+    the other program's take and the one being replaced stay."""
+    from tactile.device.recordings.take import whole_take
+    from tactile.device.recordings.writer import TakeWriter
+    from tactile.device.sim import PenSimulator
+
+    make_dataset(tmp_path, takes=1, textures=("paper",), seconds=1, seed=1)
+    old = (tmp_path / "paper-user000.csv").read_bytes()
+    info = PenSimulator("paper").info
+    with pytest.raises(RecordingError, match=r"paper-user000.csv: written since the folder was "
+                       r"checked .*; the take it was to replace waits as "
+                       r"paper-user000.csv.replaced"):
+        with whole_take(tmp_path, "paper-user000", replace=True):
+            for suffix in (".csv", ".json"):  # the other program's take
+                (tmp_path / f"paper-user000{suffix}").write_text("theirs")
+            with TakeWriter(tmp_path, "paper", info, name="paper-user000", exact=True) as w:
+                w.write(0, 0, np.zeros((3, 8), np.int16))
+    assert (tmp_path / "paper-user000.csv").read_text() == "theirs"
+    assert (tmp_path / "paper-user000.csv.replaced").read_bytes() == old
+    assert not list(tmp_path.glob("paper-user000-*"))
 
 
 def test_a_take_of_the_same_name_in_a_sub_folder_is_refused_even_with_force(tmp_path):

@@ -185,10 +185,10 @@ def evaluate_run(run_dir: Path, data: Path, threads: int | None = None,
     rows, scope, _ = find_test_split(takes, ck.get("test_rows"), ck.get("test_fingerprints"),
                                      str(data))
     seen = ck.get("seen_fingerprints")
-    if seen is None:  # a run saved before they were kept: not known
-        trained = None
-    elif rows is not None:  # the run's own test split: none of it was seen
+    if rows is not None:  # the run's own test split: none of it was seen
         trained = []
+    elif seen is None:  # a run saved before they were kept: not known
+        trained = None
     else:
         trained = [t.path.name for t in takes if t.fingerprint() in set(seen)]
     if trained:

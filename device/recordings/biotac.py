@@ -292,7 +292,7 @@ def import_biotac(files: list[Path], out: Path, force: bool = False,
             raw, stamps = read_trial(handles[t.file], t)
             with whole_take(out, t.group, force, done=written), TakeWriter(
                     out, t.label, info, f"biotac:{t.file.name}", name=t.group,
-                    extra=_metadata(t, stamps)) as w:
+                    extra=_metadata(t, stamps), exact=True) as w:
                 w.write(0, 0, raw)
             paths.append(w.csv_path)
         return paths

@@ -218,7 +218,8 @@ def import_hapmat(source: Path, out: Path, force: bool = False,
         }
         name = f"hapmat-{label}"
         with whole_take(out, name, force, done=written), TakeWriter(
-                out, label, info, f"hapmat:{source.name}", name=name, extra=extra) as w:
+                out, label, info, f"hapmat:{source.name}", name=name, extra=extra,
+                exact=True) as w:
             w.write(0, 0, values)
         paths.append(w.csv_path)
     return paths

@@ -128,13 +128,14 @@ def replace_takes(folder: Path, stems: list[str], force: bool,
     if deeper is not None:
         raise RecordingError(f"{deeper}: a take of that name in a sub-folder of {folder} (a "
                              "dataset's takes need names of their own): choose another folder")
-    aside = [p for s in dict.fromkeys(stems) for p in (folder / f"{s}.csv{ASIDE}",
-                                                        folder / f"{s}.json{ASIDE}")
-             if p.exists()]
+    aside = next(((s, p) for s in dict.fromkeys(stems) for p in (
+        folder / f"{s}.csv{ASIDE}", folder / f"{s}.json{ASIDE}") if p.exists()), None)
     if aside:  # left by a replacing run that was killed: maybe the only whole copy of a take
-        raise RecordingError(f"{aside[0]}: the take a stopped run was replacing with --force "
-                             f"(the take of that name may be cut short): put it back (both "
-                             f"files, without {ASIDE}) or delete it, then run again")
+        s, p = aside
+        raise RecordingError(f"{p}: left by a run that was replacing take {s} with --force and "
+                             f"was killed: if {s}.csv is missing or cut short (tactile-data "
+                             f"says so), move the {ASIDE} files back in its place, else delete "
+                             "them; then run again")
     found = [p for s in dict.fromkeys(stems)  # a name given twice is one take's files
              for p in (folder / f"{s}.csv", folder / f"{s}.json") if p.exists()]
     if found and not force:
@@ -150,7 +151,8 @@ ASIDE = ".replaced"  # a take being replaced, while its new one is written (whol
 @contextlib.contextmanager
 def whole_take(folder: Path, stem: str, replace: bool = False,
                done: Callable[[Path], object] | None = None) -> Iterator[None]:
-    """Around the writing of one take that a command derives (an import, a simulated take):
+    """Around the writing of one take that a command derives (an import, a simulated take),
+    by a :class:`~tactile.device.recordings.writer.TakeWriter` named ``stem`` with ``exact``:
     when the writing stops half-way (Ctrl-C, a full disk), the take's files are removed, so
     that the folder holds whole takes only (a recorder's take, which holds what was recorded,
     is kept instead), and the writer's error says so. With ``replace`` (``--force``, which
@@ -161,32 +163,38 @@ def whole_take(folder: Path, stem: str, replace: bool = False,
     and ``done`` hold Ctrl-C and SIGTERM until they end (:func:`tactile.cli.holding_signals`):
     no take is left half moved, and a take that stays is one ``done`` was told of."""
     from tactile.cli import holding_signals
+    from tactile.device.recordings.writer import TakeExists
 
     paths = [folder / f"{stem}{suffix}" for suffix in (".csv", ".json")]
     aside: list[tuple[Path, Path]] = []
-    with holding_signals():
-        try:
+    try:
+        with holding_signals():  # (a signal held here is raised as the block ends: below)
             for path in paths:
                 if path.exists():
                     if not replace:
                         raise RecordingError(f"{path}: written since the folder was checked "
-                                             "(another program writing there?): choose another "
-                                             "folder, or --force to replace it")
+                                             "(another program writing there?): choose "
+                                             "another folder, or --force to replace it")
                     old = path.with_name(path.name + ASIDE)
                     os.replace(path, old)
                     aside.append((old, path))
-        except BaseException:
+    except BaseException:
+        with holding_signals():
             _put_back(aside)
-            raise
+        raise
     try:
         yield
+    except TakeExists as e:  # another program's take has the name: its files stay, ours too
+        kept = f"; the take it was to replace waits as {aside[0][0].name}" if aside else ""
+        raise RecordingError(f"{e}{kept}") from None
     except BaseException as e:
-        with holding_signals():
-            removed = False
-            for path in paths:
-                removed |= path.exists()
-                path.unlink(missing_ok=True)
-            _put_back(aside)
+        with contextlib.suppress(KeyboardInterrupt):  # the error, not a Ctrl-C meanwhile, is
+            with holding_signals():  # what the command ends with (its files are in order)
+                removed = False
+                for path in paths:
+                    removed |= path.exists()
+                    path.unlink(missing_ok=True)
+                _put_back(aside)
         if removed and isinstance(e, RecordingError):  # a write, or the data, refused
             kept = "the take it was to replace is kept" if aside else "the take is removed"
             raise RecordingError(str(e).removesuffix(KEPT) + f"; {kept} (the folder keeps "
@@ -197,8 +205,6 @@ def whole_take(folder: Path, stem: str, replace: bool = False,
             old.unlink()
         if done is not None:
             done(paths[0])
-
-
 def _put_back(aside: list[tuple[Path, Path]]) -> None:
     """The files :func:`whole_take` moved aside, back under their names."""
     for old, path in aside:

@@ -57,6 +57,8 @@ class TakeWriter:
         name: file stem; default ``<label>-<UTC time>``, made unique in the folder.
         extra: more metadata (e.g. ``{"session": 3}``).
         flush_every_s: period of the clock, seconds.
+        exact: the take is named ``name`` or not written (:class:`TakeExists`): a derived
+            take (an import, a simulated take) whose name the command checked.
     """
 
     def __init__(
@@ -68,6 +70,7 @@ class TakeWriter:
         name: str | None = None,
         extra: dict | None = None,
         flush_every_s: float = 1.0,
+        exact: bool = False,
     ) -> None:
         check_label(label)
         if not (isinstance(flush_every_s, int | float) and 0 < flush_every_s < math.inf):
@@ -99,7 +102,7 @@ class TakeWriter:
         self._told = False  # whether a caller has been raised that error
         self._dirty = True
         self.flushes = 0
-        self.csv_path, self._fd = _create(self.folder, stem)
+        self.csv_path, self._fd = _create(self.folder, stem, exact)
         self.json_path = self.csv_path.with_suffix(".json")
         try:
             self._append((",".join(columns) + "\n").encode("utf-8"), self.csv_path)
@@ -241,8 +244,9 @@ class TakeWriter:
         self.close(complete=kind is None)  # a block that raised did not finish the take
 
 
-def _create(folder: Path, stem: str) -> tuple[Path, int]:
-    """A new ``.csv`` named after ``stem`` (``-2``, ``-3``... if taken), opened exclusively."""
+def _create(folder: Path, stem: str, exact: bool = False) -> tuple[Path, int]:
+    """A new ``.csv`` named after ``stem`` (``-2``, ``-3``... if taken; with ``exact``, that
+    name or :class:`TakeExists`), opened exclusively."""
     k = 1
     while True:
         path = folder / (f"{stem}.csv" if k == 1 else f"{stem}-{k}.csv")
@@ -253,7 +257,15 @@ def _create(folder: Path, stem: str) -> tuple[Path, int]:
                 pass
             except OSError as e:
                 raise RecordingError(f"{path}: cannot create ({_why(e)})") from None
+        if exact:
+            raise TakeExists(f"{path}: written since the folder was checked (another program "
+                             "writing there?): choose another folder")
         k += 1
 
 
-__all__ = ["TakeWriter"]
+class TakeExists(RecordingError):
+    """A take of the exact name a derived take must have (``TakeWriter(exact=True)``) is
+    there: another program wrote it meanwhile."""
+
+
+__all__ = ["TakeExists", "TakeWriter"]

@@ -80,8 +80,9 @@ def make_dataset(
                               "session": dataclasses.asdict(sim.session)},
             }
             name = f"{texture}-user{k:03d}"
-            with whole_take(out, name, force), TakeWriter(out, texture, sim.info, "simulator",
-                                                          name=name, extra=extra) as w:
+            with whole_take(out, name, force), TakeWriter(
+                    out, texture, sim.info, "simulator", name=name, extra=extra,
+                    exact=True) as w:
                 for start in range(0, n, 6000):
                     raw = sim.read(min(6000, n - start))
                     w.write(start, round(start * 1e6 / rate_hz), raw)
