@@ -241,9 +241,9 @@ def holding_signals():
     whole_take`). An import stopped midway can leave a library half-built, so that a later
     import fails with another error (numpy's ``RecursionError`` under onnx, seen on
     ``tactile-export``) instead of the ``KeyboardInterrupt`` that ends the command with its
-    one line. A second signal while held
-    ends the process at once, by that signal (an import stuck on a slow disk can still be
-    stopped); an error raised in the block wins over a held signal. The handlers are swapped
+    one line. A second signal while held ends the process at once, by that signal (an import
+    stuck on a slow disk can still be stopped); an error raised in the block wins over a held
+    signal. The handlers are swapped
     with the signals blocked, so that none runs between two swaps. Off the main thread, and
     for a signal whose handler is a caller's own, the block runs as it is."""
     held = {}
