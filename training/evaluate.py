@@ -190,7 +190,8 @@ def evaluate_run(run_dir: Path, data: Path, threads: int | None = None,
     elif seen is None:  # a run saved before they were kept: not known
         trained = None
     else:
-        trained = [t.path.name for t in takes if t.fingerprint() in set(seen)]
+        seen = set(seen)
+        trained = [t.path.name for t in takes if t.fingerprint() in seen]
     if trained:
         scope += (f"; {len(trained)} of them the run trained or validated on (by content, e.g. "
                   f"{trained[0]}): these figures are not a test")

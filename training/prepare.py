@@ -143,9 +143,11 @@ def prepare(takes: list[Take], classes: tuple[str, ...], channels: tuple[str, ..
         if narrowed:  # (check_inputs kept the channels the modalities read)
             log.info(f"channels: the {len(channels)} the modalities read, of the takes' "
                      f"{len(takes[0].channels)} (set channels=... to choose others)")
-            kept = set(channels)  # the signals of those: a [signals] entry no modality
+            # the signals among those (a [signals] entry that no modality reads names
+            # channels no longer there: left out, not an error)
+            kept = set(channels)
             signals = tuple((n, c) for n, c in signals_for(takes, takes[0].channels, cfg)
-                            if set(c) <= kept)  # reads names channels no longer there
+                            if set(c) <= kept)
         else:
             signals = signals_for(takes, channels, cfg)
         cfg = cfg.replace(channels=channels, signals=literal_signals(signals))

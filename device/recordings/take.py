@@ -205,6 +205,8 @@ def whole_take(folder: Path, stem: str, replace: bool = False,
             old.unlink()
         if done is not None:
             done(paths[0])
+
+
 def _put_back(aside: list[tuple[Path, Path]]) -> None:
     """The files :func:`whole_take` moved aside, back under their names."""
     for old, path in aside:
