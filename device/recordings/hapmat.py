@@ -183,8 +183,8 @@ def import_hapmat(source: Path, out: Path, force: bool = False,
                   written: Callable[[Path], object] | None = None) -> list[Path]:
     """Write one take per material (``hapmat-<material>``) from the bundled ``.npz`` or the
     upstream folder of CSVs; returns the CSV paths. Takes of those names already in ``out`` are
-    refused, or replaced with ``force``. ``written(path)``, when given, is
-    called as each take is whole."""
+    refused, or replaced with ``force``. ``written(path)``, when given, is called as each
+    take is whole."""
     source = Path(source)
     if not source.exists():
         raise RecordingError(f"{source}: no such file or folder (give the 'HapMat dataset' "
