@@ -145,6 +145,13 @@ def replace_takes(folder: Path, stems: list[str], force: bool,
 
 
 KEPT = "; the take keeps what came before"  # a recorder's take, after a write that failed
+
+
+class TakeExists(RecordingError):
+    """A take of the exact name a derived take must have (``TakeWriter(exact=True)``) is
+    there: another program wrote it meanwhile."""
+
+
 ASIDE = ".replaced"  # a take being replaced, while its new one is written (whole_take)
 
 
@@ -163,7 +170,6 @@ def whole_take(folder: Path, stem: str, replace: bool = False,
     and ``done`` hold Ctrl-C and SIGTERM until they end (:func:`tactile.cli.holding_signals`):
     no take is left half moved, and a take that stays is one ``done`` was told of."""
     from tactile.cli import holding_signals
-    from tactile.device.recordings.writer import TakeExists
 
     paths = [folder / f"{stem}{suffix}" for suffix in (".csv", ".json")]
     aside: list[tuple[Path, Path]] = []
@@ -264,5 +270,5 @@ def _why(e: OSError) -> str:
     return e.strerror or str(e) or type(e).__name__
 
 
-__all__ = ["FIXED_COLUMNS", "GAP_LINE", "LABEL_RULE", "Take", "check_label", "dataset_folder",
-           "header_cell", "replace_takes"]
+__all__ = ["FIXED_COLUMNS", "GAP_LINE", "LABEL_RULE", "Take", "TakeExists", "check_label",
+           "dataset_folder", "header_cell", "replace_takes"]

@@ -24,6 +24,7 @@ from tactile.device.recordings.take import (
     _REASON,
     FIXED_COLUMNS,
     KEPT,
+    TakeExists,
     _why,
     check_label,
     dataset_folder,
@@ -263,9 +264,4 @@ def _create(folder: Path, stem: str, exact: bool = False) -> tuple[Path, int]:
         k += 1
 
 
-class TakeExists(RecordingError):
-    """A take of the exact name a derived take must have (``TakeWriter(exact=True)``) is
-    there: another program wrote it meanwhile."""
-
-
-__all__ = ["TakeExists", "TakeWriter"]
+__all__ = ["TakeWriter"]
