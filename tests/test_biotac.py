@@ -424,17 +424,22 @@ def test_without_h5py_the_command_names_its_extra():
         "pip install 'tactile-pen[biotac]'"], out.stderr
 
 
+def two_objects(tmp_path: Path) -> Path:
+    """Takes of two objects x three repetitions of 60 frames, imported into tmp_path/data."""
+    for obj in ("cork", "glass_bottle"):
+        write_h5(tmp_path / f"{obj}.h5",
+                 {f"{obj}_pdc100_1cm_{r:02d}": 60 for r in (1, 2, 3)}, seed=len(obj))
+    import_biotac(sorted(tmp_path.glob("*.h5")), tmp_path / "data")
+    return tmp_path / "data"
+
+
 def test_tactile_train_cuts_windows_from_88_channel_takes(tmp_path, capsys):
     """Two objects x three repetitions; split by user (= repetition): one each for train,
     validation and test. One epoch of a tiny LSTM: the point is that 88 channels go through."""
     from tactile.training.checkpoint import load_checkpoint
     from tactile.training.commands.train import main as train_main
 
-    for obj in ("cork", "glass_bottle"):
-        write_h5(tmp_path / f"{obj}.h5",
-                 {f"{obj}_pdc100_1cm_{r:02d}": 60 for r in (1, 2, 3)}, seed=len(obj))
-    data = tmp_path / "data"
-    import_biotac(sorted(tmp_path.glob("*.h5")), data)
+    data = two_objects(tmp_path)
     run = tmp_path / "run"
     code = train_main([str(data), "--out", str(run), "--quiet", "--set", "epochs=1",
                        "--set", "window=20", "--set", "hop=10", "--set", "hidden=8",
@@ -454,11 +459,7 @@ def test_a_granular_model_without_channels_reads_only_its_modalities_channels(tm
     from tactile.training.checkpoint import load_checkpoint
     from tactile.training.commands.train import main as train_main
 
-    for obj in ("cork", "glass_bottle"):
-        write_h5(tmp_path / f"{obj}.h5",
-                 {f"{obj}_pdc100_1cm_{r:02d}": 60 for r in (1, 2, 3)}, seed=len(obj))
-    data = tmp_path / "data"
-    import_biotac(sorted(tmp_path.glob("*.h5")), data)
+    data = two_objects(tmp_path)
     config = tmp_path / "f0.toml"
     config.write_text('model = "f_rnn"\nwindow = 20\nhop = 10\nepochs = 1\nhidden = 4\n'
                       'layers = 1\nthreads = 1\n'

@@ -436,20 +436,25 @@ def test_takes_of_another_rate_or_channels_are_not_written_into_a_dataset(tmp_pa
                "--textures", "desk")[0] == 0  # the same pen: added
 
 
-def test_a_derived_take_stopped_half_way_is_removed(tmp_path, monkeypatch):
-    """Ctrl-C in an import (or a simulated dataset) left its last take cut, `complete: false`,
-    read later as if it were a recording. Whole takes stay; the half-written one goes."""
+def ctrl_c_at_write(monkeypatch, n: int) -> None:
+    """A Ctrl-C (KeyboardInterrupt) from TakeWriter.write at its ``n``-th call."""
     from tactile.device.recordings.writer import TakeWriter
 
     real, calls = TakeWriter.write, []
 
     def write(self, *a, **k):
         calls.append(1)
-        if len(calls) == 3:  # the second take's first chunk: its files are open
+        if len(calls) == n:
             raise KeyboardInterrupt
         return real(self, *a, **k)
 
     monkeypatch.setattr(TakeWriter, "write", write)
+
+
+def test_a_derived_take_stopped_half_way_is_removed(tmp_path, monkeypatch):
+    """Ctrl-C in an import (or a simulated dataset) left its last take cut, `complete: false`,
+    read later as if it were a recording. Whole takes stay; the half-written one goes."""
+    ctrl_c_at_write(monkeypatch, 3)  # the second take's first chunk: its files are open
     with pytest.raises(KeyboardInterrupt):
         make_dataset(tmp_path, takes=1, textures=("paper", "desk"), seconds=70)  # 2 chunks
     assert sorted(p.name for p in tmp_path.iterdir()) == ["paper-user000.csv",
@@ -461,27 +466,17 @@ def test_force_stopped_half_way_leaves_every_take_old_or_new(tmp_path, monkeypat
     import (or a simulated dataset) with --force left the folder without the takes not yet
     rewritten. Now each is replaced when its new take is whole; the one being written when
     it stopped is the old one again, byte for byte."""
-    from tactile.device.recordings.writer import TakeWriter
-
     textures = ("paper", "desk", "mouse_pad")
     make_dataset(tmp_path, takes=1, textures=textures, seconds=2, seed=1)
     before = {p.name: p.read_bytes() for p in tmp_path.iterdir()}
-    real, calls = TakeWriter.write, []
-
-    def write(self, *a, **k):
-        calls.append(1)
-        if len(calls) == 2:  # the second take's first chunk: its files are open
-            raise KeyboardInterrupt
-        return real(self, *a, **k)
-
-    monkeypatch.setattr(TakeWriter, "write", write)
+    ctrl_c_at_write(monkeypatch, 2)  # the second take's first chunk: its files are open
     with pytest.raises(KeyboardInterrupt):
         make_dataset(tmp_path, takes=1, textures=textures, seconds=2, seed=2, force=True)
     after = {p.name: p.read_bytes() for p in tmp_path.iterdir()}
     assert sorted(after) == sorted(before)  # six files: no take missing, nothing aside
     changed = sorted(n for n in after if after[n] != before[n])
     assert changed == ["paper-user000.csv", "paper-user000.json"]  # the one written whole
-    monkeypatch.setattr(TakeWriter, "write", real)
+    monkeypatch.undo()  # the writer as it is
     make_dataset(tmp_path, takes=1, textures=textures, seconds=2, seed=2, force=True)
     assert all(p.read_bytes() != before[p.name] for p in tmp_path.iterdir()
                if p.suffix == ".csv")
@@ -759,17 +754,8 @@ def test_an_import_stopped_half_way_lists_the_takes_it_wrote(tmp_path, monkeypat
     """Ctrl-C in an import said `interrupted` and nothing else: the paths went to stdout at
     the end only, so the takes it had written whole (which stay) were not listed."""
     from tactile.device.commands.import_hapmat import main
-    from tactile.device.recordings.writer import TakeWriter
 
-    real, calls = TakeWriter.write, []
-
-    def write(self, *a, **k):
-        calls.append(1)
-        if len(calls) == 2:  # the second take
-            raise KeyboardInterrupt
-        return real(self, *a, **k)
-
-    monkeypatch.setattr(TakeWriter, "write", write)
+    ctrl_c_at_write(monkeypatch, 2)  # the second take
     out = tmp_path / "out"
     assert main([str(_hapmat_npz(tmp_path / "h.npz")), "--out", str(out)]) == 130
     said = capsys.readouterr()
