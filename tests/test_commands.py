@@ -922,13 +922,48 @@ def test_plot_groups_many_channels_into_panels():
     names = ([f"f0_pac_{i:02d}" for i in range(22)] + ["f0_pdc", "f0_tac", "f0_tdc"]
              + [f"f0_ele_{i:02d}" for i in range(19)])
     info = DeviceInfo(100.0, tuple(ChannelSpec(n, "count", 1.0) for n in names))
-    groups = panels(info.channels)
+    groups = {(p.name, p.unit): p.index for p in panels(info.channels)}
     assert {k: len(v) for k, v in groups.items()} == {
         ("f0_pac", "count"): 22, ("f0", "count"): 3, ("f0_ele", "count"): 19}
     assert sorted(i for v in groups.values() for i in v) == list(range(len(names)))
     assert len(groups[("f0", "count")]) <= LEGEND_MAX < len(groups[("f0_pac", "count")])
-    pen = {k: len(v) for k, v in panels(pen_info().channels).items()}
+    pen = {(p.name, p.unit): len(p.index) for p in panels(pen_info().channels)}
     assert pen == {("pressure", "N"): 2, ("accel", "g"): 3, ("gyro", "deg/s"): 3}
+
+
+def test_plot_draws_a_declared_high_rate_signal_as_one_trace_at_its_rate(tmp_path):
+    """A BioTac's 2.2 kHz vibration was drawn as 22 overlapping 100 Hz traces (each every 22nd
+    sample); a declared signal is now one trace, its sub-samples at their times in the order the
+    declaration gives (here not the columns' order)."""
+    from tactile.device.protocol import ChannelSpec, DeviceInfo
+    from tactile.device.recordings.plot import _traces, panels
+
+    r, rate, tone = 4, 100.0, 70.0  # 400 Hz signal; a 70 Hz tone aliases at 100 Hz
+    order = [f"v_{k}" for k in range(r)]
+    cols = ["p", *order[::-1]]  # columns: p, v_3, v_2, v_1, v_0
+    info = DeviceInfo(rate, tuple(ChannelSpec(n, "g", 1.0) for n in cols))
+    shown = panels(info.channels, {"v": order})
+    assert [(p.name, p.index, p.signal) for p in shown] == [("p", [0], False),
+                                                            ("v", [4, 3, 2, 1], True)]
+    seq = np.r_[0:30, 40:70]  # a gap of 10 frames
+    t = seq / rate
+    values = np.zeros((len(seq), len(cols)))
+    for k in range(r):  # sub-sample k of frame n is at n / rate + k / (r * rate)
+        values[:, cols.index(f"v_{k}")] = np.sin(2 * np.pi * tone * (t + k / (r * rate)))
+    segments = [(0, 30), (30, 60)]
+    [(label, ts, ys)] = list(_traces(shown[1], info.channels, values, t, segments, rate))
+    assert label == "v (4 per frame, 400 Hz)"
+    assert len(ts) == len(ys) == 60 * r + 2 and np.isnan(ys[30 * r]) and np.isnan(ts[30 * r])
+    ok = ~np.isnan(ts)
+    assert np.all(np.diff(ts[:30 * r]) > 0) and np.all(np.diff(ts[30 * r + 1:-1]) > 0)
+    np.testing.assert_allclose(np.diff(ts[:30 * r]), 1 / (r * rate), atol=1e-12)
+    np.testing.assert_allclose(ys[ok], np.sin(2 * np.pi * tone * ts[ok]), atol=1e-12)
+    with TakeWriter(tmp_path, "x", info, "test", name="x",
+                    extra={"signals": {"v": order}}) as w:
+        w.write(0, 0, np.round(values[:30] * 1000).astype(np.int16))
+    png = tmp_path / "x.png"
+    code, _, err = cli("tactile-plot", str(tmp_path / "x.csv"), "-o", str(png))
+    assert code == 0 and png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n", err
 
 
 @pytest.mark.parametrize("name", ["noext", "x.txt"])

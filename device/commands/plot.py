@@ -1,6 +1,7 @@
 """``tactile-plot``: a take's channels over time, or a dataset's minutes per class and user.
 
     tactile-plot data/sim/paper-user000.csv -o take.png     # channels in units, gaps marked
+                                                           # (a declared signal at its rate)
     tactile-plot data/sim --summary -o summary.png         # minutes and gaps per class and user
 
 Needs matplotlib (the ``[train]`` extra).
@@ -15,8 +16,9 @@ from tactile.cli import Parser, add_debug, command, holding_signals, path_given,
 
 
 def build_parser() -> argparse.ArgumentParser:
-    p = Parser(prog="tactile-plot", description="Plot a take's channels over time, or with "
-               "--summary a dataset's minutes and gaps per class and user.")
+    p = Parser(prog="tactile-plot", description="Plot a take's channels over time (a high-rate "
+               "signal the take declares as one trace at its rate), or with --summary a "
+               "dataset's minutes and gaps per class and user.")
     p.add_argument("source", type=path_given, help="a take's .csv file, or a dataset folder with "
                    "--summary")
     p.add_argument("-o", "--out", type=path_given, required=True,

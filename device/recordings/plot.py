@@ -7,6 +7,7 @@ module does not need it.
 
 from __future__ import annotations
 
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -38,49 +39,88 @@ def image_formats() -> dict[str, str]:
     return kinds
 
 
-def panels(channels) -> dict[tuple[str, str], list[int]]:
-    """Channel indices grouped into panels by (name without its last ``_part``, unit): the pen's
-    pressure / accel / gyro, a BioTac finger's ``f0_pac_*`` / ``f0_ele_*`` / the rest."""
+@dataclass(frozen=True)
+class Panel:
+    """One panel of a take's plot: ``index`` its channels' columns; ``signal``: they are one
+    high-rate signal's sub-samples in time order (one trace at ``len(index)`` x the frame
+    rate), else separate channels (one trace each)."""
+
+    name: str
+    unit: str
+    index: list[int]
+    signal: bool
+
+
+def panels(channels, signals: dict[str, list[str]] | None = None) -> list[Panel]:
+    """The panels of a take's plot: each declared high-rate signal (``signals``: name -> its
+    sub-sample channels in time order, as a take's JSON declares them) one panel of its own, drawn
+    as one trace at its true rate; the other channels grouped by (name without its last
+    ``_part``, unit): the pen's pressure / accel / gyro, a BioTac finger's ``f0_ele_*`` / the
+    rest. Panels come in the order of their first column in the take."""
+    index = {c.name: i for i, c in enumerate(channels)}
+    out: list[Panel] = []
+    taken: set[int] = set()
+    for name, names in (signals or {}).items():
+        idx = [index[c] for c in names]
+        units = list(dict.fromkeys(channels[i].unit or "-" for i in idx))
+        out.append(Panel(name, "/".join(units), idx, True))
+        taken.update(idx)
     groups: dict[tuple[str, str], list[int]] = {}
     for i, c in enumerate(channels):
-        groups.setdefault((c.name.rsplit("_", 1)[0], c.unit or "-"), []).append(i)
-    return groups
+        if i not in taken:
+            groups.setdefault((c.name.rsplit("_", 1)[0], c.unit or "-"), []).append(i)
+    out += [Panel(name, unit, idx, False) for (name, unit), idx in groups.items()]
+    return sorted(out, key=lambda panel: min(panel.index))  # in the take's column order
+
+
+def _traces(panel: Panel, channels, values: np.ndarray, t: np.ndarray, segments, rate: float):
+    """(label, times, values) of each trace of ``panel``, NaN between gap-free segments (no line
+    drawn across a gap). A signal's ``r`` sub-samples of the frame at time ``t`` are at
+    ``t + k / (r x rate)``."""
+    cols = [panel.index] if panel.signal else [[i] for i in panel.index]
+    r = len(panel.index) if panel.signal else 1
+    offsets = np.arange(r) / (r * rate)
+    for c in cols:
+        ys, ts = [], []
+        for a, b in segments:
+            ys += [values[a:b][:, c].astype(float).reshape(-1), [np.nan]]
+            ts += [(t[a:b, None] + offsets).reshape(-1), [np.nan]]
+        label = (f"{panel.name} ({r} per frame, {r * rate:g} Hz)" if panel.signal
+                 else channels[c[0]].name)
+        yield label, np.concatenate(ts), np.concatenate(ys)
 
 
 def plot_take(take: Take, out: Path) -> None:
-    """One panel per group of channels (:func:`panels`), values in their units, time in seconds
-    from the first sample, every gap a red band over all panels; the title names the label and
-    source."""
+    """One panel per group of channels or declared high-rate signal (:func:`panels`), values in
+    their units, time in seconds from the first sample, every gap a red band over all panels;
+    the title names the label and source."""
     plt = _pyplot()
     rate = take.info.sample_rate_hz
     t = (take.seq - take.seq[0]) / rate if len(take.seq) else np.zeros(0)
     values = take.values()
-    groups = panels(take.info.channels)
-    fig, axes = plt.subplots(len(groups), 1, figsize=(10, 1.8 + 1.6 * len(groups)),
+    channels = take.info.channels
+    signals = take.meta.get("signals", {})
+    shown = panels(channels, signals)
+    fig, axes = plt.subplots(len(shown), 1, figsize=(10, 1.8 + 1.6 * len(shown)),
                              sharex=True, squeeze=False)
     segments = take.segments()
-    for ax, ((_, unit), idx) in zip(axes[:, 0], groups.items()):
-        for i in idx:
-            y = values[:, i].astype(float).copy()
-            ys = np.full(len(y) + len(segments), np.nan)  # NaN between segments: no line
-            ts = np.full(len(y) + len(segments), np.nan)
-            k = 0
-            for a, b in segments:
-                ys[k:k + b - a], ts[k:k + b - a] = y[a:b], t[a:b]
-                k += b - a + 1
-            ax.plot(ts, ys, lw=0.7, label=take.info.channels[i].name)
+    for ax, panel in zip(axes[:, 0], shown):
+        for label, ts, ys in _traces(panel, channels, values, t, segments, rate):
+            ax.plot(ts, ys, lw=0.7 if not panel.signal else 0.4, label=label)
         for (_, b), (a, _) in zip(segments[:-1], segments[1:]):
             ax.axvspan(t[b - 1], t[a], color="red", alpha=0.25, lw=0)
-        names = [take.info.channels[i].name for i in idx]
-        if len(idx) <= LEGEND_MAX:
-            ax.set_ylabel(unit)
-            ax.legend(loc="upper right", fontsize=7, ncol=min(len(idx), 4))
+        if panel.signal or len(panel.index) <= LEGEND_MAX:
+            ax.set_ylabel(panel.unit)
+            ax.legend(loc="upper right", fontsize=7, ncol=min(len(panel.index), 4))
         else:
-            ax.set_ylabel(f"{unit}\n{names[0]}..{names[-1]}", fontsize=7)
+            names = [channels[i].name for i in panel.index]
+            ax.set_ylabel(f"{panel.unit}\n{names[0]}..{names[-1]}", fontsize=7)
     axes[-1, 0].set_xlabel("time (s)")
     gaps = max(len(segments) - 1, 0)
+    fast = "".join(f", {name} at {len(names) * rate:g} Hz" for name, names in signals.items())
     fig.suptitle(f"{take.path.name}: label {take.label!r}, source {take.meta.get('source', '')!r}"
-                 f"\n{len(take.seq)} samples at {rate:g} Hz, {gaps} gaps (red)", fontsize=9)
+                 f"\n{len(take.seq)} samples at {rate:g} Hz{fast}, {gaps} gaps (red)",
+                 fontsize=9)
     fig.tight_layout()
     _save(fig, out)
 
@@ -119,4 +159,4 @@ def _save(fig, out: Path) -> None:
     write_whole(out, data)
 
 
-__all__ = ["LEGEND_MAX", "image_formats", "panels", "plot_summary", "plot_take"]
+__all__ = ["LEGEND_MAX", "Panel", "image_formats", "panels", "plot_summary", "plot_take"]
