@@ -64,7 +64,7 @@ def from_dataset(ck: dict, data: Path) -> Probe:
         raise RecordingError(f"{data}: labels {unknown} are not among the model's "
                              f"{list(classes)}")
     check_model_input(takes, tuple(ck["channels"]), ck.get("units"), ck.get("sample_rate_hz"),
-                      data)
+                      data, tuple((cfg.get("signals") or {}).items()))
     rows, source, _ = find_test_split(takes, ck.get("test_rows"), ck.get("test_fingerprints"),
                                  data.name)
     w = cut(takes, classes, tuple(ck["channels"]), cfg["window"], cfg["hop"], rows)

@@ -345,10 +345,15 @@ def replay(path: Path, runner: Runner, stop: dict, deadline: float = math.inf,
     line that says where it stopped)."""
     from tactile.device.recordings import read_take
     from tactile.device.recordings.reader import say_mismatch
+    from tactile.device.recordings.take_meta import signal_order_differs
 
     take = read_take(path)
     if len(take.seq) == 0:
         raise RecordingError(f"{path}: the take holds no samples")
+    differs = signal_order_differs(take.meta.get("signals", {}), [
+        (s.name, s.channels) for s in runner.model.contract.signals])
+    if differs:  # the channels go by name: each frame's sub-samples would be reordered
+        raise ModelContractError(f"{path}: {differs}")
     say_mismatch(take)
     if take.truncated:
         say(f"{path}: its last row was cut short (the recording stopped mid-write); "

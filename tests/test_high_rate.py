@@ -271,3 +271,54 @@ def test_config_signal_patterns_join_the_sub_samples_in_recording_order(tmp_path
     model, ck = load_checkpoint(run)
     assert ck["config"]["signals"] == {"f0_pac": list(PAC)}
     assert signal_index(model.cfg, channels) == [list(range(1, 23))]
+
+
+def test_a_take_declaring_another_time_order_is_refused(tmp_path, capsys):
+    """A take whose JSON declares a signal's sub-samples in another time order than the
+    model's was read without a word: channels go by name, so each frame's samples reached the
+    model reordered (here reversed). Replay (exit 3), evaluation and the export's windows now
+    refuse it naming the first pair; training refuses it against a [signals] setting (which
+    reads the recording order)."""
+    import shutil
+
+    from tactile.errors import ConfigError, RecordingError
+    from tactile.export.windows import from_dataset
+    from tactile.runtime.commands.run import main as run_main
+    from tactile.training.checkpoint import load_checkpoint
+    from tactile.training.evaluate import evaluate_run
+    from tactile.training.train import train
+
+    data = biotac_takes(tmp_path, frames=60)
+    run = tmp_path / "run"
+    channels = ("f0_pdc", *PAC)
+    train(data, run, TrainConfig(channels=channels, epochs=1, threads=1, batch_size=16),
+          progress=False)
+    flipped = tmp_path / "flipped"
+    shutil.copytree(data, flipped)
+    for meta_path in flipped.glob("*.json"):
+        meta = json.loads(meta_path.read_text())
+        meta["signals"]["f0_pac"] = meta["signals"]["f0_pac"][::-1]
+        meta_path.write_text(json.dumps(meta))
+    take = sorted(flipped.glob("*.csv"))[0]
+    said = (f"{take}: its signal 'f0_pac' has f0_pac_01 before f0_pac_00, the model's signal "
+            "'f0_pac' f0_pac_00 before f0_pac_01 (sub-samples in time order)")
+    _, ck = load_checkpoint(run)
+    with pytest.raises(RecordingError) as e:
+        evaluate_run(run, flipped)
+    assert str(e.value) == said
+    with pytest.raises(RecordingError) as e:
+        from_dataset(ck, flipped)
+    assert str(e.value) == said
+    with pytest.raises(ConfigError, match="the config's signal 'f0_pac' f0_pac_00 before "
+                                          "f0_pac_01 .* in the order the takes record them"):
+        train(flipped, tmp_path / "run2", TrainConfig(
+            channels=channels, epochs=1, threads=1, batch_size=16,
+            signals=(("f0_pac", ("f0_pac_*",)),)), progress=False)
+    from tactile.export.exporter import export_run
+
+    model = tmp_path / "m.onnx"
+    export_run(run, model, log=lambda s: None)
+    capsys.readouterr()
+    assert run_main(["--model", str(model), "--replay", str(take)]) == 3
+    assert capsys.readouterr().err == f"tactile-run: error: {said}\n"
+    assert run_main(["--model", str(model), "--replay", str(sorted(data.glob("*.csv"))[0])]) == 0

@@ -14,6 +14,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from tactile.device.recordings import Take
+from tactile.device.recordings.take_meta import signal_order_differs
 from tactile.errors import ConfigError, RecordingError
 from tactile.training.config import SELECTOR, TrainConfig
 
@@ -89,13 +90,18 @@ def pick_channels(take: Take, patterns: tuple[str, ...]) -> tuple[str, ...]:
 
 
 def check_model_input(takes: list[Take], channels: tuple[str, ...], units, rate_hz,
-                      data: object) -> None:
+                      data: object, signals=()) -> None:
     """The takes carry what a trained model reads, as ``tactile-run`` checks a device: each
     of ``channels`` (missing: :func:`channel_index`'s error), in the model's unit (``units``,
     in ``channels``' order; None: not recorded, not checked), at the model's rate
-    (``rate_hz``; None: not checked). Else a :class:`RecordingError` naming the first
-    difference and ``data`` (the folder): a model's figures on windows it would misread."""
+    (``rate_hz``; None: not checked), and no take declares a high-rate signal's sub-samples in
+    another time order than the model's ``signals`` ((name, channels) pairs). Else a
+    :class:`RecordingError` naming the first difference and ``data`` (the folder): a model's
+    figures on windows it would misread."""
     for take in takes:
+        differs = signal_order_differs(take.meta.get("signals", {}), signals)
+        if differs:
+            raise RecordingError(f"{take.path}: {differs}")
         index = channel_index(take, channels)
         if units is not None:
             got = [take.info.channels[i].unit for i in index]

@@ -181,7 +181,7 @@ def evaluate_run(run_dir: Path, data: Path, threads: int | None = None,
         raise RecordingError(f"{data}: labels {unknown} are not among the model's {list(classes)}")
     channels = tuple(ck["channels"])
     rate = float(ck["sample_rate_hz"])
-    check_model_input(takes, channels, ck.get("units"), rate, data)
+    check_model_input(takes, channels, ck.get("units"), rate, data, cfg.signals)
     rows, scope, _ = find_test_split(takes, ck.get("test_rows"), ck.get("test_fingerprints"),
                                      str(data))
     seen = ck.get("seen_fingerprints")

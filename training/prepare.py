@@ -18,6 +18,7 @@ import torch
 from tqdm import tqdm
 
 from tactile.device.recordings import Take
+from tactile.device.recordings.take_meta import signal_order_differs
 from tactile.errors import ConfigError, RecordingError
 from tactile.postprocess.smoothing import UNCERTAIN
 from tactile.training import feature_pass
@@ -164,6 +165,11 @@ def prepare(takes: list[Take], classes: tuple[str, ...], channels: tuple[str, ..
                 log.info("high-rate signals: " + "; ".join(
                     f"{n} ({len(c)} sub-samples a frame, "
                     f"{takes[0].info.sample_rate_hz * len(c):g} Hz)" for n, c in signals))
+    for take in takes:  # [signals] reads sub-samples in recording order: no take may disagree
+        differs = signal_order_differs(take.meta.get("signals", {}), signals, "the config's")
+        if differs:
+            raise ConfigError(f"{take.path.name}: {differs}; [signals] takes a signal's channels "
+                              "in the order the takes record them")
     split, parts = split_windows(takes, classes, channels, cfg)
     log.info(f"classes {list(classes)}; windows train {len(parts['train'])}, "
              f"val {len(parts['val'])}, test {len(parts['test'])}; split {split.description}")

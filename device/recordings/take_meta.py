@@ -177,3 +177,22 @@ def _check_signals(signals: dict, channels: tuple[str, ...], path: Path) -> None
                 raise RecordingError(f"{path}: key 'signals.{name}': channel {c!r} is in "
                                      f"signal {owner[c]!r} too")
             owner[c] = name
+
+
+def signal_order_differs(declared: dict, signals, whose: str = "the model's") -> str | None:
+    """Where a take's declared time order of a high-rate signal's sub-samples contradicts a
+    model's. ``declared``: the take's ``signals`` (name -> channels in time order);
+    ``signals``: the model's (``whose``, in the phrase), as (name, channels in time order)
+    pairs. None when every pair of channels that both name is in the same order; else a phrase
+    naming the first pair that is not. Channels are matched by name, so such a take would reach
+    the model with each frame's sub-samples in another order: windows it would misread, without
+    a word."""
+    for model_name, channels in signals:
+        for name, names in declared.items():
+            at = {c: k for k, c in enumerate(names)}
+            both = [c for c in channels if c in at]
+            for a, b in zip(both, both[1:]):
+                if at[a] > at[b]:
+                    return (f"its signal {name!r} has {b} before {a}, {whose} signal "
+                            f"{model_name!r} {a} before {b} (sub-samples in time order)")
+    return None
