@@ -291,7 +291,10 @@ def _accuracy(loaded, c: ModelContract, data: Path) -> None:
     from tactile.export.windows import from_dataset
 
     ck = {"classes": list(c.classes), "channels": list(c.channels), "units": list(c.units),
-          "sample_rate_hz": c.sample_rate_hz, "config": {"window": c.window, "hop": c.hop}}
+          "sample_rate_hz": c.sample_rate_hz, "config": {
+              "window": c.window, "hop": c.hop,
+              "signals": {s.name: list(s.channels) for s in c.signals}},
+          "seen_fingerprints": c.training_metrics.get("seen_fingerprints")}
     takes = c.training_metrics.get("test_takes")
     if isinstance(takes, dict):  # the run's test split, recorded at export (read defensively)
         ck["test_rows"] = {n: v.get("rows") for n, v in takes.items() if isinstance(v, dict)}

@@ -66,7 +66,7 @@ def contract_for(ck: dict, parity: dict, quantization: str = "none",
         state_hidden=int(hidden),
         preprocessing=preprocessing,
         package_version=tactile.__version__,
-        training_metrics={**_metrics(ck.get("metrics", {})), **_test_takes(ck)},
+        training_metrics={**_metrics(ck.get("metrics", {})), **_test_takes(ck), **_seen(ck)},
         parity=parity,
         quantization=quantization,
         extra=extra,
@@ -141,6 +141,16 @@ def _test_takes(ck: dict) -> dict:
     fps = fps if isinstance(fps, dict) else {}
     return {"test_takes": {str(n): {"rows": [int(v) for v in r], "fingerprint": (
         fps.get(n) if isinstance(fps.get(n), str) else None)} for n, r in rows.items()}}
+
+
+def _seen(ck: dict) -> dict:
+    """``{"seen_fingerprints": [...]}``: the takes the run trained or validated on, by content
+    (:meth:`~tactile.device.recordings.Take.fingerprint`), so that ``tactile-check --data``
+    says when its figure is on some of them; empty for a run that kept none."""
+    seen = ck.get("seen_fingerprints")
+    if not isinstance(seen, list) or not all(isinstance(v, str) for v in seen):
+        return {}
+    return {"seen_fingerprints": list(seen)}
 
 
 def _finite(v):

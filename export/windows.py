@@ -17,7 +17,7 @@ from tactile.device.protocol import PEN_CHANNELS
 from tactile.device.recordings import load_dataset
 from tactile.device.sim import TEXTURES, PenSimulator
 from tactile.errors import RecordingError
-from tactile.training.data import check_model_input, cut, find_test_split
+from tactile.training.data import check_model_input, cut, find_test_split, seen_note, seen_takes
 
 CARRY_STEPS = 24
 """Consecutive windows per simulated or random run (the contract asks for >= 20)."""
@@ -67,6 +67,8 @@ def from_dataset(ck: dict, data: Path) -> Probe:
                       data, tuple((cfg.get("signals") or {}).items()))
     rows, source, _ = find_test_split(takes, ck.get("test_rows"), ck.get("test_fingerprints"),
                                  data.name)
+    if rows is None:  # every take of DATA: say which of them the run has seen
+        source += seen_note(seen_takes(takes, ck.get("seen_fingerprints")))
     w = cut(takes, classes, tuple(ck["channels"]), cfg["window"], cfg["hop"], rows)
     order = np.lexsort((w.start, w.run))
     bounds = np.flatnonzero(np.diff(w.run[order])) + 1

@@ -322,3 +322,8 @@ def test_a_take_declaring_another_time_order_is_refused(tmp_path, capsys):
     assert run_main(["--model", str(model), "--replay", str(take)]) == 3
     assert capsys.readouterr().err == f"tactile-run: error: {said}\n"
     assert run_main(["--model", str(model), "--replay", str(sorted(data.glob("*.csv"))[0])]) == 0
+    from tactile.export.commands.check import main as check_main  # the file's own contract
+
+    capsys.readouterr()
+    assert check_main([str(model), "--data", str(flipped)]) == 1
+    assert capsys.readouterr().err == f"tactile-check: error: {said}\n"

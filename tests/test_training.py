@@ -383,6 +383,45 @@ def test_eval_recognises_the_test_split_by_content_not_by_name(trained, dataset,
     assert out["scope"].startswith("every take") and victim.name in out["scope"]
 
 
+def _seen_and_test(ck: dict, dataset: Path, folder: Path) -> Path:
+    """A folder of two takes the run trained or validated on and one of its test takes."""
+    folder.mkdir()
+    seen = sorted(n.name for n in dataset.glob("*.csv") if n.name not in ck["test_rows"])
+    for n in [*seen[:2], sorted(ck["test_rows"])[0]]:
+        for suffix in (".csv", ".json"):
+            shutil.copy(dataset / Path(n).with_suffix(suffix), folder)
+    return folder
+
+
+def test_export_and_check_on_takes_the_run_trained_on_say_so(trained, dataset, tmp_path,
+                                                             capsys):
+    """tactile-export --data and tactile-check --data measured on every take of a folder
+    without a word when some were the run's training or validation takes (tactile-eval
+    warned); their source now says how many, and the file carries the fingerprints for
+    tactile-check, which has no run folder."""
+    from tactile.export.commands.check import main as check_main
+    from tactile.export.exporter import export_run
+    from tactile.export.windows import from_dataset
+
+    run, _ = trained
+    ck = torch.load(run / "checkpoint.pt", weights_only=True)
+    folder = _seen_and_test(ck, dataset, tmp_path / "mine")
+    seen = sorted(n.name for n in folder.glob("*.csv") if n.name not in ck["test_rows"])
+    note = (f"; 2 of them the run trained or validated on (by content, e.g. {seen[0]}): these "
+            "figures are not a test")
+    assert from_dataset(ck, folder).source == f"every take of mine (3 takes){note}"
+    assert not from_dataset(ck, dataset).source.endswith("not a test")  # its test split
+    model = tmp_path / "m.onnx"
+    report = export_run(run, model, data=folder, log=lambda s: None)
+    assert report["parity"]["source"].startswith(f"every take of mine (3 takes){note}")
+    capsys.readouterr()
+    assert check_main([str(model), "--data", str(folder)]) == 0
+    out = capsys.readouterr().out
+    assert f"measured on      every take of mine (3 takes){note}: " in out, out
+    assert check_main([str(model), "--data", str(dataset)]) == 0
+    assert "not a test" not in capsys.readouterr().out
+
+
 def test_eval_on_takes_the_run_trained_on_says_the_figures_are_not_a_test(trained, dataset,
                                                                           tmp_path, capsys):
     """tactile-eval on a folder without the run's test takes evaluates every take it holds, and
@@ -393,11 +432,7 @@ def test_eval_on_takes_the_run_trained_on_says_the_figures_are_not_a_test(traine
     takes = {t.path.name: t for t in load_dataset(dataset)}
     seen = [n for n in takes if n not in ck["test_rows"]]
     assert sorted(ck["seen_fingerprints"]) == sorted({takes[n].fingerprint() for n in seen})
-    folder = tmp_path / "mine"
-    folder.mkdir()
-    for n in [*seen[:2], sorted(ck["test_rows"])[0]]:  # two seen takes and a test take
-        for suffix in (".csv", ".json"):
-            shutil.copy(dataset / Path(n).with_suffix(suffix), folder)
+    folder = _seen_and_test(ck, dataset, tmp_path / "mine")
     assert eval_main([str(run), str(folder), "--json"]) == 0
     said = capsys.readouterr()
     out = json.loads(said.out)

@@ -313,6 +313,24 @@ def channel_stats(w: Windows) -> tuple[np.ndarray, np.ndarray]:
     return mean.astype(np.float32), std.astype(np.float32)
 
 
+def seen_takes(takes: list[Take], seen: object) -> list[str] | None:
+    """The file names of ``takes`` that a run trained or validated on, by content: ``seen`` is
+    its ``seen_fingerprints`` (read defensively); None when the run kept none (saved before
+    they were kept, or a file exported from such a run): not known."""
+    if not isinstance(seen, (list, tuple)) or not all(isinstance(v, str) for v in seen):
+        return None
+    known = set(seen)
+    return [t.path.name for t in takes if t.fingerprint() in known]
+
+
+def seen_note(names: list[str] | None) -> str:
+    """What a figure on takes a run has seen is (empty when none were, or it is not known)."""
+    if not names:
+        return ""
+    return (f"; {len(names)} of them the run trained or validated on (by content, e.g. "
+            f"{names[0]}): these figures are not a test")
+
+
 def find_test_split(takes: list[Take], test_rows: object, fingerprints: object,
                folder: str) -> tuple[dict[int, tuple[int, int]] | None, str, bool]:
     """Which rows of ``takes`` are a run's test split, recognised by content.

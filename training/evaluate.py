@@ -21,7 +21,14 @@ from tactile.errors import ConfigError, RecordingError
 from tactile.training import feature_pass
 from tactile.training.checkpoint import load_checkpoint
 from tactile.training.config import apply_threads, resolve_threads
-from tactile.training.data import Windows, check_model_input, cut, find_test_split
+from tactile.training.data import (
+    Windows,
+    check_model_input,
+    cut,
+    find_test_split,
+    seen_note,
+    seen_takes,
+)
 from tactile.training.label_stream import stream_figures
 from tactile.training.model import TextureModel
 
@@ -184,17 +191,9 @@ def evaluate_run(run_dir: Path, data: Path, threads: int | None = None,
     check_model_input(takes, channels, ck.get("units"), rate, data, cfg.signals)
     rows, scope, _ = find_test_split(takes, ck.get("test_rows"), ck.get("test_fingerprints"),
                                      str(data))
-    seen = ck.get("seen_fingerprints")
-    if rows is not None:  # the run's own test split: none of it was seen
-        trained = []
-    elif seen is None:  # a run saved before they were kept: not known
-        trained = None
-    else:
-        seen = set(seen)
-        trained = [t.path.name for t in takes if t.fingerprint() in seen]
-    if trained:
-        scope += (f"; {len(trained)} of them the run trained or validated on (by content, e.g. "
-                  f"{trained[0]}): these figures are not a test")
+    # the run's own test split: none of it was seen; else which takes were (None: not known)
+    trained = [] if rows is not None else seen_takes(takes, ck.get("seen_fingerprints"))
+    scope += seen_note(trained)
     w = cut(takes, classes, channels, cfg.window, cfg.hop, rows)
     probs = predict(model, w)
     s = summary(w.y, probs, classes)
