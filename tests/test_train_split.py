@@ -90,6 +90,30 @@ def test_a_selector_of_single_takes_says_when_their_users_also_train(takes):
         assert split_takes(takes, cfg).shared is None  # whole users, or split by take
 
 
+def test_a_copied_take_in_training_and_in_test_is_named(takes, tmp_path):
+    """The same recording under two names was only "read twice" on loading, and landed in
+    training and in test without a word on the split; the split now names the pair and the
+    part whose figures it makes no test."""
+    import shutil
+
+    from tactile.device.recordings import read_take
+
+    for suffix in (".csv", ".json"):
+        shutil.copy(takes[0].path.with_suffix(suffix), tmp_path / f"again{suffix}")
+    meta = json.loads((tmp_path / "again.json").read_text())
+    meta["user"] = "zoe"
+    (tmp_path / "again.json").write_text(json.dumps(meta))
+    both = [*takes, read_take(tmp_path / "again.csv")]
+    first = takes[0].path.name  # non_contact-user000, user alice
+    s = split_takes(both, TrainConfig(test="user:zoe", val="user:bob", seed=0))
+    assert s.shared == (f"again.csv and {first} hold the same recording, one in training and "
+                        "one in test: the test figures include a recording trained on")
+    s = split_takes(both, TrainConfig(test="user:alice", val="user:zoe", seed=0))
+    assert s.shared == (f"again.csv and {first} hold the same recording, one in validation "
+                        "and one in test: the test figures include a recording validated on")
+    assert split_takes(both, TrainConfig(test="user:alice,zoe", seed=0)).shared is None
+
+
 @pytest.mark.parametrize("spec,message", [
     ("session:1", "no take has a 'session' field (fields: "),
     ("user:zed", "matches no take (user values: alice, bob, carol"),

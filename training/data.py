@@ -14,6 +14,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from tactile.device.recordings import Take
+from tactile.device.recordings.reader import copies
 from tactile.device.recordings.take_meta import signal_order_differs
 from tactile.errors import ConfigError, RecordingError
 from tactile.training.config import SELECTOR, TrainConfig
@@ -291,6 +292,14 @@ def split_takes(takes: list[Take], cfg: TrainConfig) -> Split:
             shared.append(f"{who} takes in {part} and in training ({key}={getattr(cfg, key)!r} "
                           f"names takes, not whole {unit}s): the {part} figures include "
                           f"{unit}s seen in training")
+    part_of = {**{i: "training" for i in train}, **{i: "validation" for i in val},
+               **{i: "test" for i in test}}
+    for i, j in copies(takes):  # a copied take in two parts: its figures are no test
+        a, b = sorted((part_of[i], part_of[j]), key=("training", "validation", "test").index)
+        if a != b:
+            shared.append(f"{takes[i].path.name} and {takes[j].path.name} hold the same "
+                          f"recording, one in {a} and one in {b}: the {b} figures include "
+                          f"a recording {'trained' if a == 'training' else 'validated'} on")
     return Split({i: whole[i] for i in sorted(train)}, {i: whole[i] for i in sorted(val)},
                  {i: whole[i] for i in sorted(test)}, description, "; ".join(shared) or None)
 

@@ -291,22 +291,32 @@ def load_dataset(folder: str | os.PathLike) -> list[Take]:
     return takes
 
 
+def copies(takes: list[Take]) -> list[tuple[int, int]]:
+    """Pairs (i, j), i > j, of takes that hold the same recording under two names (a copied
+    take), j the first of its kind in ``takes``' order. Only takes of one label and length are
+    fingerprinted, so most datasets cost little or no hashing."""
+    alike: dict[tuple, list[int]] = {}
+    for i, t in enumerate(takes):
+        alike.setdefault((t.label, len(t.seq), t.raw.shape), []).append(i)
+    pairs = []
+    for group in (g for g in alike.values() if len(g) > 1):
+        by_print: dict[str, int] = {}
+        for i in group:
+            j = by_print.setdefault(takes[i].fingerprint(), i)
+            if j != i:
+                pairs.append((i, j))
+    return sorted(pairs)
+
+
 def say_copies(takes: list[Take]) -> None:
     """Name on stderr, once per process, takes that hold the same recording under two names
-    (a copied take: read twice, it can land in training and in test). Only takes of one
-    label and length are fingerprinted, so most datasets cost little or no hashing."""
-    alike: dict[tuple, list[Take]] = {}
-    for t in takes:
-        alike.setdefault((t.label, len(t.seq), t.raw.shape), []).append(t)
-    for group in (g for g in alike.values() if len(g) > 1):
-        by_print: dict[str, Take] = {}
-        for t in group:
-            other = by_print.setdefault(t.fingerprint(), t)
-            if other is not t and ("copy", t.path) not in _SAID:
-                _SAID.add(("copy", t.path))
-                print(f"{prefix()}warning: {t.path}: the same recording as {other.path} "
-                      "(label, samples and times): it is read twice", file=sys.stderr,
-                      flush=True)
+    (:func:`copies`: read twice, it can land in training and in test)."""
+    for i, j in copies(takes):
+        t, other = takes[i], takes[j]
+        if ("copy", t.path) not in _SAID:
+            _SAID.add(("copy", t.path))
+            print(f"{prefix()}warning: {t.path}: the same recording as {other.path} "
+                  "(label, samples and times): it is read twice", file=sys.stderr, flush=True)
 
 
-__all__ = ["iter_takes", "load_dataset", "load_numbers", "read_take", "say_mismatch"]
+__all__ = ["copies", "iter_takes", "load_dataset", "load_numbers", "read_take", "say_mismatch"]
