@@ -108,8 +108,21 @@ class Parser(argparse.ArgumentParser):
 
         self.add_argument("--version", action="version", version=f"%(prog)s {__version__}")
 
+    def parse_known_args(self, args=None, namespace=None):  # type: ignore[override]
+        self._given = list(sys.argv[1:] if args is None else args)  # for error()'s hint
+        return super().parse_known_args(args, namespace)
+
     def error(self, message: str):  # type: ignore[override]
-        print(f"{self.prog}: error: {message} (see --help)", file=sys.stderr)
+        hint = ""
+        m = re.fullmatch(r"argument ([^:]*/)?(--[\w-]+): expected one argument", message)
+        given = getattr(self, "_given", [])
+        if m and m.group(2) in given:  # ``--smooth -1s``: argparse took -1s for an option
+            k = given.index(m.group(2))
+            after = given[k + 1].split("=")[0] if k + 1 < len(given) else ""
+            if after.startswith("-") and after not in self._option_string_actions:
+                hint = (f"; a value that starts with '-' goes after '=': "
+                        f"{m.group(2)}={given[k + 1]}")
+        print(f"{self.prog}: error: {message}{hint} (see --help)", file=sys.stderr)
         sys.exit(EXIT_USAGE)
 
 

@@ -192,6 +192,20 @@ def test_an_empty_path_is_a_usage_error(name, args, option, tmp_path):
     assert err == f"{name}: error: argument {option}: an empty path (see --help)\n", err
 
 
+def test_a_value_that_starts_with_a_dash_is_told_to_go_after_an_equals_sign():
+    """`--smooth -1s` said only argparse's "expected one argument" (it takes -1s for an
+    option); the line now shows the form that passes the value. A forgotten value followed by
+    another option keeps argparse's line alone."""
+    code, _, err = cli("tactile-run", "--model", "m.onnx", "--replay", "t.csv", "--smooth",
+                       "-1s")
+    assert code == 1 and err == (
+        "tactile-run: error: argument --smooth: expected one argument; a value that starts "
+        "with '-' goes after '=': --smooth=-1s (see --help)\n"), err
+    code, _, err = cli("tactile-run", "--model", "m.onnx", "--replay", "--smooth", "1s")
+    assert code == 1 and err == (
+        "tactile-run: error: argument --replay: expected one argument (see --help)\n"), err
+
+
 @pytest.mark.skipif(not Path("/dev/full").exists(), reason="no /dev/full on this system")
 @pytest.mark.parametrize("name, args", [("data", ["--json"]), ("sim", ["--pty", "--seconds",
                                                                       "1"])])
