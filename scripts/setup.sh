@@ -16,10 +16,14 @@ if [ ! -x .venv/bin/python ]; then
 fi
 stamp=.venv/.tactile-installed
 if [ ! -f "$stamp" ] || [ pyproject.toml -nt "$stamp" ]; then
-  # torch first, pinned: the CPU build. A bare "torch" requirement would pull a multi-GB CUDA
-  # build; the project itself only asks for torch>=2.4, which this pin satisfies.
+  # torch first, pinned: the CPU build, 2.13.0+cpu, where pip finds it (a local wheel or a
+  # configured index), else from PyTorch's CPU index. A bare "torch" requirement from PyPI would
+  # pull a multi-GB CUDA build; the project itself only asks for torch>=2.4.
   # (pip's own failure stops the script: only the filter's "nothing left to print" is excused)
-  .venv/bin/python -m pip install -q "torch==2.13.0" 2>&1 | { grep -v "is ignored" || true; }
+  if ! .venv/bin/python -m pip install -q "torch==2.13.0+cpu" 2>/dev/null; then
+    .venv/bin/python -m pip install -q "torch==2.13.0" \
+      --index-url https://download.pytorch.org/whl/cpu 2>&1 | { grep -v "is ignored" || true; }
+  fi
   .venv/bin/python -m pip install -q -e ".[train,dev]" 2>&1 | { grep -v "is ignored" || true; }
   .venv/bin/python -c "import torch, onnxruntime, serial, PyEMD" # and so does a broken install
   touch "$stamp"
