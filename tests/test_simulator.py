@@ -76,6 +76,17 @@ def test_explicit_session_is_used() -> None:
     assert PenSimulator("desk", seed=2).session == PenSimulator("desk", seed=2).session
 
 
+def test_the_default_session_is_one_person_of_the_random_ranges() -> None:
+    """Session()'s defaults (what `Session(force=2.0)` starts from, simulator.md's example)
+    rocked the pen the other way from every random person and gripped it twice as stiffly as
+    any; each field now lies within what Session.random draws (over 2,000 draws)."""
+    rng = np.random.default_rng(0)
+    drawn = [dataclasses.asdict(Session.random(rng)) for _ in range(2000)]
+    for name, value in dataclasses.asdict(Session()).items():
+        values = [d[name] for d in drawn]
+        assert min(values) <= value <= max(values), (name, value, min(values), max(values))
+
+
 def test_unknown_texture_and_bad_settings_raise_config_error() -> None:
     with pytest.raises(ConfigError, match="velvet.*desk.*non_contact"):
         PenSimulator("velvet")

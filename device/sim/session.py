@@ -25,28 +25,30 @@ class Session:
     its centre frequency; grip_stiffness: N*m/rad of the fingers resisting rod rotation; grip_hz
     and grip_damping: resonance of the rod rocking in the grip; hand_stiffness: N/m of the arm
     behind the push; pause_rate: pauses per second; lift_prob: chance a stroke is in the air.
+
+    The defaults are one person inside the ranges :meth:`random` draws from.
     """
 
     speed: float = 0.08
-    speed_jitter: float = 0.25
+    speed_jitter: float = 0.2
     stroke_length: float = 0.05
     force: float = 1.5
-    force_wander: float = 0.12
+    force_wander: float = 0.07
     push_bias: float = 0.05
     tilt_deg: float = 25.0
     lean_deg: float = 0.0
     roll_deg: float = 0.0
-    rock_rad_per_m: float = 2.0
-    twist_rad_per_m: float = 0.5
-    swing_rad_per_m: float = 1.0
+    rock_rad_per_m: float = -2.0
+    twist_rad_per_m: float = 0.25
+    swing_rad_per_m: float = 0.5
     tremor_dps: float = 1.0
     tremor_hz: float = 9.0
-    grip_stiffness: float = 6.0
+    grip_stiffness: float = 2.1
     grip_hz: float = 20.0
-    grip_damping: float = 0.25
+    grip_damping: float = 0.5
     hand_stiffness: float = 1000.0
     pause_rate: float = 0.04
-    lift_prob: float = 0.03
+    lift_prob: float = 0.02
 
     def __post_init__(self) -> None:
         positive = (
