@@ -74,15 +74,16 @@ def build_parser() -> argparse.ArgumentParser:
         "calibrated at export); a file without any runs raw unless an option is given")
     post.add_argument("--smooth", type=_smooth, metavar="N|Ts",
                       help="average the class probabilities over the last N windows (e.g. 5), "
-                      "or exponentially with a time constant of T seconds (e.g. 1.5s); "
-                      "default: the model's, else 1 window")
+                      "or exponentially with a time constant of T seconds (e.g. 1.5s); the "
+                      "metadata's ma:N and ema:T are taken too; default: the model's, else 1 "
+                      "window")
     post.add_argument("--p-min", type=float_in(0.0, 1.0, low_open=False), metavar="P",
                       help="a label is stable only when its averaged probability is at least "
                       "P (0..1), else it is reported as 'uncertain'; default: the model's, else 0")
     post.add_argument("--hold", type=int_in(1, 100_000), metavar="K",
-                      help="... and only once it has led for K consecutive windows (K of the "
-                      "model's hops, which tactile-check shows: the shipped pen model's 25 "
-                      "samples at 100 Hz are 0.25 s); default: the model's, else 1")
+                      help="... and only once it has led for K consecutive windows (K hops: "
+                      "--hop's, else the model's, which tactile-check shows: the shipped pen "
+                      "model's 25 samples at 100 Hz are 0.25 s); default: the model's, else 1")
     post.add_argument("--raw", action="store_true",
                       help="no post-processing, whatever the model says: the raw label of "
                       "each window only")
