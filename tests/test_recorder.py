@@ -719,6 +719,24 @@ def test_hostile_channel_names_round_trip(tmp_path):
     assert head == "seq,t_us,a%2Cb,x%0Ay,q%22uote,%23hash,100%25,tab%09here,ünïcødé,雨,ok"
 
 
+def test_a_label_spelled_otherwise_in_the_folder_is_refused_before_the_port_opens(tmp_path):
+    """`tactile-record --label Paper` into a folder of `paper` takes wrote its take, and left
+    a folder every reader refuses ("differ only in case"); it now stops before the port opens,
+    naming the spelling the folder has, and writes nothing."""
+    pen = record("sim://?texture=paper&seed=1&speed=max", "paper", tmp_path, seconds=0.5,
+                 progress=False).takes[0]
+    with pytest.raises(RecordingError) as e:
+        Recorder(tmp_path, "Paper", "test")
+    assert str(e.value) == (f"{tmp_path}: holds takes labelled 'paper' ({pen.stem}.json), the "
+                            "label 'Paper' but for case: one class, which a dataset spells one "
+                            "way; record it as 'paper'")
+    assert record_main(["--port", "sim://?texture=paper&seed=1&speed=max", "--label", "PAPER",
+                        "--out", str(tmp_path), "--seconds", "0.5"]) == 1
+    assert sorted(p.name for p in tmp_path.iterdir()) == [pen.name, pen.with_suffix(".json").name]
+    Recorder(tmp_path, "paper", "test")  # the folder's own spelling, and other classes: fine
+    Recorder(tmp_path, "desk", "test")
+
+
 def test_a_folder_of_another_devices_takes_is_refused_before_a_take(tmp_path, capsys):
     """Recording a 3-channel device into a folder of pen takes: refused at its header, before
     any take (exit 1, one line naming the folder and a take of it); the pen's take is

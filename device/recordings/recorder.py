@@ -21,7 +21,7 @@ from tactile.cli import started
 from tactile.device.link.connection import Connection, LinkSettings, Lost, Reconnected
 from tactile.device.protocol.decoder import Gap, Header, Samples, StreamDecoder
 from tactile.device.protocol.info import DeviceInfo
-from tactile.device.recordings.take import check_joins
+from tactile.device.recordings.take import check_joins, check_label_joins
 from tactile.device.recordings.writer import TakeWriter
 from tactile.errors import DeviceError, RecordingError
 
@@ -51,6 +51,7 @@ class Recorder:
         self, out: Path, label: str, source: str, extra: dict | None = None,
         seconds: float = math.inf,
     ) -> None:
+        check_label_joins(out, label)  # before the port opens: the label is known now
         self.out, self.label, self.source, self.extra = out, label, source, extra
         self.seconds = seconds
         self.max_samples = math.inf  # set from the device's rate when its header arrives

@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import contextlib
 import hashlib
+import json
 import os
 import re
 import unicodedata
@@ -25,7 +26,7 @@ from pathlib import Path
 import numpy as np
 
 from tactile.device.protocol.info import DeviceInfo
-from tactile.device.recordings.take_meta import LABEL_RULE, check_label, read_meta
+from tactile.device.recordings.take_meta import LABEL_RULE, check_label, class_key, read_meta
 from tactile.errors import RecordingError
 
 FIXED_COLUMNS = ("seq", "t_us")
@@ -233,6 +234,27 @@ def check_joins(folder: Path, stems: set[str], info: DeviceInfo) -> None:
         raise RecordingError(f"{folder}: holds takes of another device ({other.name}: {why}): "
                              "a dataset's takes share channels, units and rate; choose another "
                              "folder")
+
+
+def check_label_joins(folder: Path, label: str) -> None:
+    """:class:`RecordingError` when a take in ``folder`` spells ``label``'s class another way
+    (``paper`` there, ``Paper`` here): the folder's readers refuse one class spelled two ways,
+    so such a take would leave a folder that no command reads. A JSON that cannot be read is
+    left to the readers, which name it."""
+    if not folder.is_dir():
+        return
+    key = class_key(label)
+    for p in sorted(folder.rglob("*.json")):
+        if not p.with_suffix(".csv").is_file():
+            continue
+        try:
+            other = json.loads(p.read_text(encoding="utf-8")).get("label")
+        except (OSError, ValueError, AttributeError):
+            continue
+        if isinstance(other, str) and other != label and class_key(other) == key:
+            raise RecordingError(f"{folder}: holds takes labelled {other!r} ({p.name}), the "
+                                 f"label {label!r} but for case: one class, which a dataset "
+                                 f"spells one way; record it as {other!r}")
 
 
 def _difference(have: DeviceInfo, info: DeviceInfo) -> str | None:
