@@ -632,6 +632,18 @@ def test_sigterm_in_a_simulated_dataset_removes_the_take_being_written(tmp_path)
     assert list(out.iterdir()) == []
 
 
+def test_sim_dataset_prints_each_take_as_it_is_written(tmp_path):
+    """tactile-sim --dataset printed nothing on stdout (the importers print each take's path as
+    it is whole, so that a run stopped half-way says which takes stay)."""
+    d = tmp_path / "d"
+    code, out, err = cli("tactile-sim", "--dataset", str(d), "--takes", "2", "--seconds", "1",
+                         "--textures", "paper,desk")
+    assert code == 0, err
+    assert out.splitlines() == [str(d / f"{t}-user{k:03d}.csv") for k in range(2)
+                                for t in ("paper", "desk")]
+    assert err.startswith(f"tactile-sim: 4 takes in {d} (")
+
+
 def test_a_simulated_take_that_cannot_be_written_is_removed_and_the_line_says_so(tmp_path):
     """A write refused by the operating system (RLIMIT_FSIZE: EFBIG, as a full disk gives
     ENOSPC) removes the derived take being written, as the docs say; the line said "the take

@@ -77,8 +77,10 @@ def _main(args: argparse.Namespace) -> int:
     if args.dataset is not None:
         textures = tuple(t.strip() for t in args.textures.split(",") if t.strip())
         t0 = time.perf_counter()
+        # each take's path as it is written whole (a stop later leaves those), as the importers
         paths = make_dataset(args.dataset, args.takes, textures, args.seconds or 60.0,
-                             args.seed, args.rate, args.first_take, args.force)
+                             args.seed, args.rate, args.first_take, args.force,
+                             written=lambda p: print(p, flush=True))
         print(f"tactile-sim: {len(paths)} take{'' if len(paths) == 1 else 's'} in {args.dataset} "
               f"({time.perf_counter() - t0:.1f} s)", file=sys.stderr)
         return 0

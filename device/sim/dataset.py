@@ -9,6 +9,7 @@ import dataclasses
 import math
 import shutil
 import zlib
+from collections.abc import Callable
 from pathlib import Path
 
 from tactile.device.recordings.take import dataset_folder, replace_takes, whole_take
@@ -31,12 +32,14 @@ def make_dataset(
     rate_hz: float = 100.0,
     first_take: int = 0,
     force: bool = False,
+    written: Callable[[Path], object] | None = None,
 ) -> list[Path]:
     """Write ``takes`` takes per texture; take k of every texture is simulated user k.
 
     Takes are named ``<texture>-user<k>``: a folder that already holds one of them is refused
     (so that a second run neither overwrites nor duplicates a dataset), unless ``force``, which
     replaces those takes. Other takes in the folder are left alone (``first_take`` adds users).
+    ``written(path)``, when given, is called as each take is whole (its ``.csv``).
     """
     if not textures:
         raise ConfigError(f"no texture given: give one or more of {', '.join(TEXTURES)}")
@@ -80,7 +83,7 @@ def make_dataset(
                               "session": dataclasses.asdict(sim.session)},
             }
             name = f"{texture}-user{k:03d}"
-            with whole_take(out, name, force), TakeWriter(
+            with whole_take(out, name, force, done=written), TakeWriter(
                     out, texture, sim.info, "simulator", name=name, extra=extra,
                     exact=True) as w:
                 for start in range(0, n, 6000):

@@ -10,8 +10,9 @@ Lines by default; ``--format text|csv``); each window's label is the raw one and
 that is stable or ``uncertain``. Diagnostics go to stderr: a status line every few seconds, a
 line for each stall and reconnection, and a summary at the end. Exit codes:
 0 stopped cleanly (SIGINT/SIGTERM, end of replay or of ``--seconds``), 1 bad arguments, 2 port
-cannot be opened or no pen found, 3 the model or the device does not honour the contract, 4
-stdout cannot be written (a full disk: the summary still goes to stderr).
+cannot be opened or no pen found, 3 the model file is missing or not a usable model, or the
+model or the device does not honour the contract, 4 stdout cannot be written (a full disk, an
+I/O error: the summary still goes to stderr).
 """
 
 from __future__ import annotations
@@ -50,8 +51,8 @@ def build_parser() -> argparse.ArgumentParser:
         prog="tactile-run",
         description="Read the pen, print one label per window (stdout), keep going.",
         epilog="exit codes: 0 stopped cleanly, 1 bad arguments, 2 port cannot be opened or no "
-        "pen found, 3 model or device does not honour the contract, 4 stdout cannot be written "
-        "(a full disk)",
+        "pen found, 3 model missing, not a usable model file, or model or device does not "
+        "honour the contract, 4 stdout cannot be written (a full disk, an I/O error)",
     )
     p.add_argument("--model", required=True, type=path_given,
                    help="the .onnx file from tactile-export")
