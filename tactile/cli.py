@@ -126,6 +126,18 @@ class Parser(argparse.ArgumentParser):
         sys.exit(EXIT_USAGE)
 
 
+def smooth_given(text: str) -> str:
+    """An argparse type: a label stream's ``--smooth`` (``N`` windows, ``Ts``, ``ma:N`` or
+    ``ema:T``), checked here so that a bad value is argparse's one line naming the option."""
+    from tactile.postprocess.smoothing import parse_smooth_option
+
+    try:
+        parse_smooth_option(text)
+    except ConfigError as e:
+        raise argparse.ArgumentTypeError(str(e)) from None
+    return text
+
+
 def int_in(low: int, high: int | None = None) -> Callable[[str], int]:
     """An argparse type: an integer in ``low .. high`` (no upper bound when ``high`` is None)."""
 
@@ -547,5 +559,5 @@ def link_values(args: argparse.Namespace) -> tuple[int, float]:
 
 
 __all__ = ["ConfigError", "Parser", "run", "add_debug", "add_port_options", "exit_code",
-           "float_in", "int_in", "link_values", "parse_address", "path_given", "EXIT_DEVICE",
-           "EXIT_USAGE"]
+           "float_in", "int_in", "link_values", "parse_address", "path_given", "smooth_given",
+           "EXIT_DEVICE", "EXIT_USAGE"]

@@ -192,6 +192,21 @@ def test_an_empty_path_is_a_usage_error(name, args, option, tmp_path):
     assert err == f"{name}: error: argument {option}: an empty path (see --help)\n", err
 
 
+@pytest.mark.parametrize("option, value, says", [
+    ("--p-min", "2", "2 must be >= 0.0 and <= 1.0"), ("--hold", "0", "0 must be in 1..100000"),
+    ("--hold", "x", "'x' is not an integer"), ("--smooth", "bogus", "'bogus': expected N"),
+])
+def test_eval_label_stream_options_are_checked_as_tactile_run_checks_them(tmp_path, option,
+                                                                          value, says):
+    """tactile-eval read --p-min, --hold and --smooth as any number or text and checked them
+    after its run folder: a line without the option's name (`p_min 2.0: must be a number from
+    0 to 1`), after loading; now argparse's line naming the option, before anything is read."""
+    code, out, err = cli("tactile-eval", str(tmp_path / "run"), str(tmp_path / "data"), option,
+                         value)
+    assert (code, out) == (1, "")
+    assert err.startswith(f"tactile-eval: error: argument {option}: {says}"), err
+
+
 def test_a_value_that_starts_with_a_dash_is_told_to_go_after_an_equals_sign():
     """`--smooth -1s` said only argparse's "expected one argument" (it takes -1s for an
     option); the line now shows the form that passes the value. A forgotten value followed by

@@ -33,6 +33,7 @@ from tactile.cli import (
     link_values,
     path_given,
     run,
+    smooth_given,
 )
 
 if TYPE_CHECKING:  # the library is imported when the command runs, after its arguments
@@ -73,7 +74,7 @@ def build_parser() -> argparse.ArgumentParser:
         "post-processing of the labels",
         "each option replaces the model's default (its file's postprocess.* metadata, "
         "calibrated at export); a file without any runs raw unless an option is given")
-    post.add_argument("--smooth", type=_smooth, metavar="N|Ts",
+    post.add_argument("--smooth", type=smooth_given, metavar="N|Ts",
                       help="average the class probabilities over the last N windows (e.g. 5), "
                       "or exponentially with a time constant of T seconds (e.g. 1.5s); the "
                       "metadata's ma:N and ema:T are taken too; default: the model's, else 1 "
@@ -97,19 +98,6 @@ def build_parser() -> argparse.ArgumentParser:
     add_port_options(p, "the channels, labels and link")
     add_debug(p)
     return p
-
-
-def _smooth(text: str) -> str:
-    """``--smooth``: ``N`` windows or ``Ts`` (checked here, so that a bad value is argparse's
-    one line)."""
-    from tactile.errors import ConfigError
-    from tactile.postprocess.smoothing import parse_smooth_option
-
-    try:
-        parse_smooth_option(text)
-    except ConfigError as e:
-        raise argparse.ArgumentTypeError(str(e)) from None
-    return text
 
 
 POST_OPTIONS = ("smooth", "p_min", "hold")

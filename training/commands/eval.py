@@ -20,10 +20,12 @@ from tactile.cli import (
     Parser,
     add_debug,
     command,
+    float_in,
     holding_signals,
     int_in,
     path_given,
     run,
+    smooth_given,
 )
 
 
@@ -35,12 +37,12 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--threads", type=int_in(1, MAX_THREADS), metavar="N",
                    help=f"torch threads, at most {MAX_THREADS} (default: the run's threads "
                    "setting)")
-    p.add_argument("--smooth", metavar="S", help="label stream: the averaging (N windows, Ts, "
-                   "ma:N or ema:T) instead of the calibrated setting's")
-    p.add_argument("--p-min", type=float, metavar="P", help="label stream: the stable label's "
-                   "least averaged probability (0..1)")
-    p.add_argument("--hold", type=int, metavar="K", help="label stream: windows a class must "
-                   "lead before it is stable")
+    p.add_argument("--smooth", type=smooth_given, metavar="S", help="label stream: the "
+                   "averaging (N windows, Ts, ma:N or ema:T) instead of the calibrated setting's")
+    p.add_argument("--p-min", type=float_in(0.0, 1.0, low_open=False), metavar="P",
+                   help="label stream: the stable label's least averaged probability (0..1)")
+    p.add_argument("--hold", type=int_in(1, 100_000), metavar="K", help="label stream: windows "
+                   "a class must lead before it is stable (1..100000)")
     add_debug(p)
     return p
 
