@@ -746,6 +746,16 @@ def test_data_summary_counts_takes_minutes_windows_and_gaps(tmp_path):
     assert code == 1 and "not a folder" in err
 
 
+def test_data_summary_counts_one_of_a_kind_in_the_singular(tmp_path):
+    """`1 takes`, `1 gaps`: the counts now agree with their nouns."""
+    _take(tmp_path, "paper", 0, [range(0, 60), range(70, 130)])
+    code, out, err = cli("tactile-data", str(tmp_path))
+    assert code == 0, err
+    assert out.splitlines()[0] == (f"{tmp_path}: 1 take, 1 class, 1 user, 0.0 min, 1 gap "
+                                   "(10 samples lost)"), out
+    assert out.splitlines()[2] == "4 windows of 50 samples every 10", out
+
+
 def test_data_summary_lists_users_in_number_order(tmp_path):
     """Users were sorted as text (10 before 2, user10 before user2) in ``tactile-data`` and
     ``tactile-plot --summary``; runs of digits now sort as numbers."""

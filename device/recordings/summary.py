@@ -75,12 +75,17 @@ def summarise(takes: list[Take], window: int, hop: int) -> dict:
 def text(s: dict, folder: Path) -> str:
     """The summary as the lines ``tactile-data`` prints."""
     t = s["total"]
+
+    def n(count: int, one: str, many: str = "") -> str:  # 1 take, 2 takes; 1 class, 2 classes
+        return f"{count} {one if count == 1 else many or one + 's'}"
+
     lines = [
-        f"{folder}: {s['takes']} takes, {len(s['classes'])} classes, {len(s['users'])} users, "
-        f"{t['minutes']:.1f} min, {t['gaps']} gaps ({t['samples_lost']} samples lost)",
-        f"{len(s['channels'])} channels at {s['sample_rate_hz']:g} Hz: "
+        f"{folder}: {n(s['takes'], 'take')}, {n(len(s['classes']), 'class', 'classes')}, "
+        f"{n(len(s['users']), 'user')}, {t['minutes']:.1f} min, {n(t['gaps'], 'gap')} "
+        f"({n(t['samples_lost'], 'sample')} lost)",
+        f"{n(len(s['channels']), 'channel')} at {s['sample_rate_hz']:g} Hz: "
         + ", ".join(f"{c['name']} ({c['unit']})" for c in s["channels"]),
-        f"{t['windows']} windows of {s['window']} samples every {s['hop']}",
+        f"{n(t['windows'], 'window')} of {s['window']} samples every {s['hop']}",
     ]
     for title, rows in (("class", s["per_class"]), ("user", s["per_user"])):
         width = max(len(title), *(len(k) for k in rows))

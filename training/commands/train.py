@@ -34,7 +34,8 @@ def build_parser() -> argparse.ArgumentParser:
                    help="dataset folder (takes: .csv + .json); with --resume, default: the "
                         "run's own")
     p.add_argument("--out", type=path_given, help="run folder to write (must not hold a run)")
-    p.add_argument("--config", type=path_given, help="TOML file of settings (see TrainConfig)")
+    p.add_argument("--config", type=path_given, help="TOML file of settings (docs/training.md, "
+                   "'Data' and 'Model'; all of them: TrainConfig in training/config.py)")
     p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
                    help="override one setting, e.g. --set hidden=32 --set emd_channels=accel_z")
     p.add_argument("--resume", type=path_given, metavar="RUN",
