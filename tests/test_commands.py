@@ -647,6 +647,15 @@ def test_sigterm_in_a_simulated_dataset_removes_the_take_being_written(tmp_path)
     assert list(out.iterdir()) == []
 
 
+@pytest.mark.skipif(not Path("/proc/self").exists(), reason="no /proc on this system")
+def test_sim_dataset_on_a_filesystem_without_a_disk_is_not_called_full():
+    """`--dataset /proc/zz` said "the disk of /proc/zz has 0 bytes free": /proc has no disk
+    at all; the folder's own error names what is wrong."""
+    code, _, err = cli("tactile-sim", "--dataset", "/proc/zz", "--takes", "1", "--seconds", "1")
+    assert code == 1 and err == ("tactile-sim: error: /proc/zz: cannot make the dataset folder "
+                                 "(No such file or directory)\n"), err
+
+
 def test_sim_dataset_prints_each_take_as_it_is_written(tmp_path):
     """tactile-sim --dataset printed nothing on stdout (the importers print each take's path as
     it is whole, so that a run stopped half-way says which takes stay)."""

@@ -64,7 +64,7 @@ def make_dataset(
     need = min(takes * len(textures) * least_take_bytes(seconds, rate_hz), 1e308)  # not inf
     there = next((p for p in (Path(out), *Path(out).parents) if p.is_dir()), Path("."))
     free = shutil.disk_usage(there).free
-    if need > free:
+    if need > free and shutil.disk_usage(there).total > 0:  # (/proc has no disk: not "full")
         raise ConfigError(f"--seconds {seconds:g} x {takes * len(textures)} takes at "
                           f"{rate_hz:g} Hz: at least {_size(need)}, and the disk of {out} has "
                           f"{_size(free)} free")
