@@ -457,7 +457,7 @@ def feed_in_reads(dec: StreamDecoder, data: bytes, r: random.Random) -> list:
         k = r.randint(*sizes)
         events += dec.feed(data[i : i + k])
         i += k
-    return events
+    return events + dec.finish()  # the stream ends: what it still holds back
 
 
 def run_case(seed: int, index: int, t: Totals) -> None:

@@ -188,9 +188,10 @@ def check_device(model: Model, info: DeviceInfo) -> np.ndarray:
         raise ModelContractError(
             f"the device sends no {_names(missing)}: the model reads {len(want)} channel"
             f"{'s' * (len(want) != 1)} ({_names(list(want))}), the device sends {len(got)} "
-            f"({_names(list(got))})" + ("; a CSV device names its channels in a names line before "
-                                    "its first row, which this port did not get (opened after "
-                                    "it): restart the board with the port open" if unnamed
+            f"({_names(list(got))})" + ("; a CSV device names its channels in a names line, which "
+                                    "this port did not get (opened after it, and none came in "
+                                    "the next 2 s of rows): restart the board with the port "
+                                    "open, or have it repeat its names line" if unnamed
                                     else "")
         )
     columns = np.array([where[name] for name in want], np.intp)

@@ -10,6 +10,8 @@ from hypothesis import strategies as st
 
 from tactile.device.protocol import (
     MAX_ENCODED,
+    ChannelSpec,
+    DeviceInfo,
     Gap,
     Header,
     Samples,
@@ -347,6 +349,7 @@ def test_csv_lines_too_wide_or_names_too_long_never_raise():
     assert d.feed(wide) == [] and d.feed(wide) == []
     long_name = b"x" * 33 + b",b,c\n"
     events = d.feed(b"\n" + long_name + b"1,2,3\n4,5,6\n7,8,9\n" + row + b"10,11,12\n")
+    events += d.finish()  # (rows of a stream opened mid-run wait for a names line)
     seqs, rows = delivered(events)
     assert seqs.tolist() == [0, 1, 2, 4]  # the 33-field row is one rejected sample
     np.testing.assert_array_equal(rows, [[1, 2, 3], [4, 5, 6], [7, 8, 9], [10, 11, 12]])
@@ -400,15 +403,63 @@ def test_work_per_byte_is_bounded(monkeypatch, mode, data, read):
 
 
 def test_csv_opened_mid_line_takes_its_width_from_agreeing_lines():
-    events = StreamDecoder().feed(b"12,13\n1,2,3\n4,5,6\n7,8,9\n")
+    dec = StreamDecoder()
+    events = dec.feed(b"12,13\n1,2,3\n4,5,6\n7,8,9\n") + dec.finish()
     header = next(e for e in events if isinstance(e, Header))
     assert header.info.channel_names == ("ch0", "ch1", "ch2")
     seqs, rows = delivered(events)
     assert seqs.tolist() == [0, 1, 2]
     np.testing.assert_array_equal(rows, [[1, 2, 3], [4, 5, 6], [7, 8, 9]])
     # cut within the first number: that line is not taken (its value would be wrong)
-    events = StreamDecoder().feed(b"5.25,3,4\n15.5,1,2\n16,1,2\n17,1,2\n")
+    dec = StreamDecoder()
+    events = dec.feed(b"5.25,3,4\n15.5,1,2\n16,1,2\n17,1,2\n") + dec.finish()
     assert delivered(events)[1][:, 0].tolist() == [15.5, 16, 17]
+
+
+def _rows(first: int, n: int) -> bytes:
+    return b"".join(b"%d,%d,%d\n" % (i, -i, 2 * i) for i in range(first, first + n))
+
+
+def test_csv_opened_mid_run_takes_the_names_a_board_repeats():
+    """A port opened on a running board that repeats its names line got ch0..chN, and each
+    names line after that was a rejected row (a lost sample, a gap that cut the windows):
+    the rows now wait for a names line of their width, which names them all, and the later
+    repeats are skipped."""
+    dec = StreamDecoder()
+    events = dec.feed(b"7,-7,14\n" + _rows(8, 92))  # opened within row 7: it is not taken
+    assert events == []  # held: the board's names line may follow
+    events = dec.feed(b"a,b,c\n" + _rows(100, 100) + b"a,b,c\n" + _rows(200, 5))
+    assert [e for e in events if isinstance(e, Header)] == [Header(DeviceInfo(
+        100.0, tuple(ChannelSpec(n, "") for n in "abc"), "csv"))]
+    seqs, rows = delivered(events)
+    assert seqs.tolist() == list(range(197)) and rows[:, 0].tolist() == list(range(8, 205))
+    assert not [e for e in events if isinstance(e, Gap)] and dec.stats.gaps == 0
+    assert dec.stats.csv_rejected == 1 and dec.stats.samples == 197  # the cut first line
+
+
+def test_csv_opened_mid_run_without_names_goes_on_unnamed_after_two_seconds_of_rows():
+    """Rows with no names line wait 2 s of rows at the CSV rate (100 Hz: 200 lines), then go
+    on as ch0..; a stream that ends before gives its rows from finish(); a reconnection among
+    the held rows is a restart gap in its place."""
+    dec = StreamDecoder()
+    assert dec.feed(b"0,0,0\n" + _rows(1, 198)) == []
+    events = dec.feed(_rows(199, 3))
+    assert next(e for e in events if isinstance(e, Header)).info.channel_names == (
+        "ch0", "ch1", "ch2")
+    assert delivered(events)[1][:, 0].tolist() == list(range(1, 202))
+    assert dec.feed(b"a,b,c\n") == [] and dec.stats.csv_rejected == 2  # too late: rejected
+
+    dec = StreamDecoder(csv_rate_hz=20.0)  # 2 s are 40 rows; at least 64 are waited for
+    assert dec.feed(b"0,0,0\n" + _rows(1, 30)) == []
+    dec.reconnected()
+    assert dec.feed(b"1,62\n" + _rows(32, 10)) == []  # the line the link re-opened within
+    events = dec.finish()
+    seqs, rows = delivered(events)
+    assert rows[:, 0].tolist() == [*range(1, 31), *range(32, 42)]
+    # as a named stream has them: the break, then the cut line as one rejected row
+    assert [e for e in events if isinstance(e, Gap)] == [Gap(30, 0, "restart"),
+                                                         Gap(31, 1, "rejected")]
+    assert dec.finish() == []
 
 
 def test_csv_width_from_a_run_of_rows_not_from_a_stray_line():

@@ -719,6 +719,30 @@ def test_hostile_channel_names_round_trip(tmp_path):
     assert head == "seq,t_us,a%2Cb,x%0Ay,q%22uote,%23hash,100%25,tab%09here,ünïcødé,雨,ok"
 
 
+def test_a_csv_board_opened_mid_run_records_under_the_names_it_repeats(tmp_path):
+    """A CSV board that repeats its names line, recorded from the middle of its run, gave a
+    take of ch0..ch2 with a `rejected` gap at every names line (no sample was lost); now the
+    take has the board's names and no gap. Rows still held for want of names when the
+    recording ends are written, not dropped."""
+    def rows(first, n):
+        return b"".join(b"%d,%d,%d\n" % (i, -i, 2 * i) for i in range(first, first + n))
+
+    rec, dec = Recorder(tmp_path / "named", "paper", "test"), StreamDecoder()
+    rec.handle(dec.feed(b"7,-7,14\n" + rows(8, 92) + b"a,b,c\n" + rows(100, 100)
+                        + b"a,b,c\n" + rows(200, 5)), dec)
+    rec.close(dec)
+    take = read_take(rec.result.takes[0])
+    assert take.channels == ("a", "b", "c") and take.meta["gaps"] == []
+    assert take.raw[:, 0].tolist() == list(range(8, 205)) and take.seq.tolist() == list(
+        range(197))
+    rec, dec = Recorder(tmp_path / "unnamed", "paper", "test"), StreamDecoder()
+    assert rec.handle(dec.feed(b"7,-7,14\n" + rows(8, 40)), dec) == 0  # held for names
+    rec.close(dec)
+    take = read_take(rec.result.takes[0])
+    assert take.channels == ("ch0", "ch1", "ch2") and take.raw[:, 0].tolist() == list(
+        range(8, 48)) and take.meta["complete"]
+
+
 def test_a_label_spelled_otherwise_in_the_folder_is_refused_before_the_port_opens(tmp_path):
     """`tactile-record --label Paper` into a folder of `paper` takes wrote its take, and left
     a folder every reader refuses ("differ only in case"); it now stops before the port opens,

@@ -1345,13 +1345,45 @@ def test_an_unnamed_csv_device_is_refused_saying_why():
     model = Model(SHIPPED)
     unnamed = DeviceInfo(100.0, tuple(ChannelSpec(f"ch{i}", "") for i in range(8)), "csv")
     with pytest.raises(ModelContractError, match=r"the device sends no pressure_0, .*; a CSV "
-                       r"device names its channels in a names line before its first row, "
-                       r"which this port did not get \(opened after it\): restart the board"):
+                       r"device names its channels in a names line, which this port did not "
+                       r"get \(opened after it, and none came in the next 2 s of rows\): "
+                       r"restart the board with the port open, or have it repeat its names "
+                       r"line"):
         check_device(model, unnamed)
     other = DeviceInfo(100.0, tuple(ChannelSpec(f"x{i}", "") for i in range(8)), "csv")
     with pytest.raises(ModelContractError) as e:
         check_device(model, other)
     assert "names line" not in str(e.value)  # named, just not the model's channels
+
+
+def test_a_csv_board_that_repeats_its_names_is_labelled_from_mid_run():
+    """tactile-run on a CSV board opened mid-run refused it (ch0..ch7: exit 3) although the
+    board repeated its names line every second; the rows now wait for that line and are
+    labelled from the first of them, without a gap."""
+    import io
+
+    from tactile.device.protocol import StreamDecoder
+    from tactile.runtime.runner import Printer, Runner, Summary
+
+    model = Model(SHIPPED)
+    names = ",".join(model.contract.channels).encode() + b"\n"
+    sim = PenSimulator("paper", seed=3)
+    scale = np.array([c.scale for c in sim.info.channels])
+    offset = np.array([c.offset for c in sim.info.channels])
+    values = sim.read(400) * scale + offset
+    lines = [(",".join(f"{v:.5g}" for v in row) + "\n").encode() for row in values]
+    stream = b"".join((names if k % 100 == 0 else b"") + line for k, line in enumerate(lines))
+    stream = stream[stream.index(lines[30]) + 5:]  # the port opened within row 30
+    out = io.StringIO()
+    runner = Runner(model, Stream.for_model(model), Printer("jsonl", model.contract.classes, out),
+                    Summary())
+    dec = StreamDecoder()
+    for i in range(0, len(stream), 97):
+        runner.handle(dec.feed(stream[i : i + 97]))
+    runner.handle(dec.finish())
+    events = [json.loads(line) for line in out.getvalue().splitlines()]
+    assert events and not [e for e in events if "event" in e], events[:3]
+    assert [e["seq"] for e in events] == list(range(49, 369, 25))  # rows 31..399: seq 0..368
 
 
 def test_csv_output_gives_events_their_own_column():

@@ -9,6 +9,7 @@ buffer, counters and ``_csv_*`` fields, which ``StreamDecoder.__init__`` sets.
 
 from __future__ import annotations
 
+import math
 import re
 
 import numpy as np
@@ -25,6 +26,9 @@ from tactile.device.protocol.info import (
 MAX_CSV_LINE = 4096  # bytes; a longer line without a newline is discarded
 CSV_AGREE = 3  # readable CSV lines of one width in a row that decide the stream's width
 CSV_HOLD = 64  # lines held at most while the CSV width is undecided
+CSV_NAMES_WAIT_S = 2.0  # a stream opened mid-run: rows held this long for a names line...
+CSV_NAMES_WAIT_MAX = 2048  # ... and at most this many lines
+_RESTART = ("restart",)  # in the lines held for names: the link was re-opened here
 _NAME = re.compile(r"[A-Za-z_][A-Za-z0-9_./\-]*")
 # Plain decimal numbers as a board prints them: sign, digits, point, exponent. Nothing else
 # (no "1_0", "0x10", "inf", "nan", non-ASCII digits).
@@ -61,6 +65,9 @@ class CsvLines:
         return events
 
     def _csv_reject(self, nbytes: int) -> None:
+        if self._csv_wait is not None:  # in its place among the rows held for names
+            self._csv_wait.append((None, nbytes))
+            return
         self.stats.csv_rejected += 1
         self.stats.bytes_discarded += nbytes
         if self.info is not None:  # before the first row, a bad line is not a lost sample
@@ -69,6 +76,9 @@ class CsvLines:
     def _on_line(self, line: bytes, events: list[Event]) -> None:
         kind = csv_kind(line)
         if kind == "skip":
+            return
+        if self._csv_wait is not None:
+            self._wait_line(kind, len(line) + 1, events)
             return
         if self._csv_width is not None:
             self._csv_line(kind, len(line) + 1, events)
@@ -84,10 +94,48 @@ class CsvLines:
         if count >= CSV_AGREE:
             self._csv_width = width
             held, self._csv_held = self._csv_held, []
+            if self._mid_run and not any(k is not None and k[0] == "names" and k[1] == width
+                                         for k, _ in held):
+                self._csv_wait = held  # opened mid-run, no names yet: they may follow
+                return
             for k, nbytes in held:
                 self._csv_line(k, nbytes, events)
         elif len(self._csv_held) > CSV_HOLD:
             self._csv_reject(self._csv_held.pop(0)[1])
+
+    def _wait_line(self, kind, nbytes: int, events: list[Event]) -> None:
+        """A line while the rows of a stream opened mid-run wait for a names line: one of the
+        stream's width names them all (a board that repeats its names line, which the port
+        opened after); after :data:`CSV_NAMES_WAIT_S` of rows (at the CSV rate, at most
+        :data:`CSV_NAMES_WAIT_MAX` lines) they go on as ``ch0``, ``ch1``..."""
+        if kind is not None and kind[0] == "names" and kind[1] == self._csv_width:
+            self._csv_names = kind[2]
+            self._release_wait(events)
+            return  # (the line itself: the names just taken, so nothing)
+        self._csv_wait.append((kind, nbytes))
+        limit = min(max(CSV_HOLD, math.ceil(CSV_NAMES_WAIT_S * self.csv_rate_hz)),
+                    CSV_NAMES_WAIT_MAX)
+        if len(self._csv_wait) >= limit:
+            self._release_wait(events)
+
+    def _release_wait(self, events: list[Event]) -> None:
+        """The lines held for a names line, decoded in order (a re-opened link's ``restart``
+        gap where it happened)."""
+        held, self._csv_wait = self._csv_wait, None
+        for k, nbytes in held:
+            if k is _RESTART:
+                self._restart_pending = self.info is not None  # (before any row: no break)
+            else:
+                self._csv_line(k, nbytes, events)
+
+    def finish(self) -> list[Event]:
+        """The events of what is decoded but held back: the rows of a stream opened mid-run
+        still waiting for a names line (then named ``ch0``, ``ch1``...). Call it when the
+        stream ends (a recorder closing its take), so that no row is left undelivered."""
+        events: list[Event] = []
+        if self._csv_wait is not None:
+            self._release_wait(events)
+        return events
 
     def _csv_line(self, kind, nbytes: int, events: list[Event]) -> None:
         """One line once the width is decided."""
@@ -158,4 +206,5 @@ def csv_kind(line: bytes):
     return None
 
 
-__all__ = ["CsvLines", "csv_kind", "MAX_CSV_LINE", "CSV_AGREE", "CSV_HOLD"]
+__all__ = ["CsvLines", "csv_kind", "MAX_CSV_LINE", "CSV_AGREE", "CSV_HOLD",
+           "CSV_NAMES_WAIT_S", "CSV_NAMES_WAIT_MAX"]

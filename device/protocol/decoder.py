@@ -34,7 +34,7 @@ from tactile.device.protocol.codec import (
     SamplesFrame,
     find_frame,
 )
-from tactile.device.protocol.csv_lines import MAX_CSV_LINE, CsvLines, csv_kind
+from tactile.device.protocol.csv_lines import _RESTART, MAX_CSV_LINE, CsvLines, csv_kind
 from tactile.device.protocol.events import DecoderStats, Event, Gap, Header, Samples
 from tactile.device.protocol.info import DeviceInfo
 from tactile.errors import ConfigError
@@ -98,6 +98,8 @@ class StreamDecoder(CsvLines):
         # csv state
         self._csv_width: int | None = None
         self._csv_held: list = []  # (kind, nbytes) while the width is undecided
+        self._mid_run = not line_start  # a port opened on a running board: names may follow
+        self._csv_wait: list | None = None  # (kind, nbytes) of rows waiting for a names line
         self._csv_run = (0, 0)  # (width, readable lines of that width in a row)
         self._csv_names: tuple[str, ...] | None = None
         self._csv_rejected_run = 0
@@ -157,6 +159,8 @@ class StreamDecoder(CsvLines):
             self._restart_pending = True
         elif self._csv_width is not None and self.info is not None:  # a CSV board: no count
             self._restart_pending = True  # to tell, so its next row comes after the break
+        elif self._csv_wait is not None:  # rows waiting for names: the break goes among them
+            self._csv_wait.append((_RESTART, 0))
 
     @property
     def held(self) -> int:

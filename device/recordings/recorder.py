@@ -171,8 +171,12 @@ class Recorder:
 
     def close(self, decoder: StreamDecoder, complete: bool = True) -> None:
         """Close the take (``complete``: False when the recording ended on an error). Samples
-        still held for want of a header are counted in ``result.unrecorded``."""
-        self._close(decoder, complete)
+        still held for want of a header are counted in ``result.unrecorded``. Rows the decoder
+        still holds back (a CSV board's, waiting for its names line) are written first."""
+        try:
+            self.handle(decoder.finish(), decoder)
+        finally:
+            self._close(decoder, complete)
         self._give_up_early()
         self.result.stats = decoder.stats.as_dict()
 
