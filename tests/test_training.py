@@ -383,6 +383,20 @@ def test_eval_recognises_the_test_split_by_content_not_by_name(trained, dataset,
     assert out["scope"].startswith("every take") and victim.name in out["scope"]
 
 
+def test_metrics_name_every_take_of_each_part(trained, dataset):
+    """metrics.json's `split` is the log's line, cut to a few names ("... (18 in all)"): a
+    baseline on the same split had to guess the training takes. `split_takes` names them all,
+    with their rows."""
+    run, _ = trained
+    ck = torch.load(run / "checkpoint.pt", weights_only=True)
+    parts = json.loads((run / "metrics.json").read_text())["split_takes"]
+    assert sorted([*parts["train"], *parts["val"], *parts["test"]]) == sorted(
+        p.name for p in dataset.glob("*.csv"))
+    assert parts["test"] == {n: list(r) for n, r in ck["test_rows"].items()}
+    takes = {t.path.name: t for t in load_dataset(dataset)}
+    assert all(r == [0, len(takes[n].seq)] for part in parts.values() for n, r in part.items())
+
+
 def _seen_and_test(ck: dict, dataset: Path, folder: Path) -> Path:
     """A folder of two takes the run trained or validated on and one of its test takes."""
     folder.mkdir()

@@ -77,6 +77,9 @@ def run_metrics(model: Classifier, prep: Prepared, feats: torch.Tensor, history:
     metrics.update(
         classes=list(prep.classes), channels=list(cfg.channels), split=prep.split.description,
         split_windows={k: len(w) for k, w in prep.parts.items()},
+        split_takes={part: {prep.takes[i].path.name: [int(a), int(b)] for i, (a, b) in
+                            sorted(getattr(prep.split, part).items())}
+                     for part in ("train", "val", "test")},
         best_epoch=history["best_epoch"],
         val_accuracy=history_acc[history["best_epoch"]] if history_acc else None,
         libraries=libraries(),
