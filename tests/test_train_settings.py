@@ -382,6 +382,23 @@ def test_figures_on_data_the_model_would_misread_are_refused(dataset, tmp_path, 
             assert len(err) == 1 and err[0].endswith(says), err
     assert not (tmp_path / "x.onnx").exists()
     assert eval_main([str(run), str(dataset)]) == 0  # the data it was trained on
+    # a CSV device's takes declare no units: taken in the model's, as tactile-run takes them
+    # (eval and check refused them, naming '' against 'N', where a replay labelled them)
+    import shutil
+
+    for name, device in (("csv", "csv"), ("blank", "pen")):
+        shutil.copytree(dataset, tmp_path / name)
+        for js in (tmp_path / name).glob("*.json"):
+            meta = json.loads(js.read_text())
+            for ch in meta["device"]["channels"]:
+                ch["unit"] = ""
+            meta["device"]["device"] = device
+            js.write_text(json.dumps(meta))
+    capsys.readouterr()
+    assert eval_main([str(run), str(tmp_path / "csv")]) == 0
+    assert check_main([str(onnx), "--data", str(tmp_path / "csv")]) == 0
+    assert eval_main([str(run), str(tmp_path / "blank")]) == 1  # a device that says '' means it
+    assert "pressure_0 is in '', the model reads it in 'N'" in capsys.readouterr().err
 
 
 def test_a_dataset_in_two_units_is_refused(dataset, tmp_path):

@@ -94,7 +94,8 @@ def check_model_input(takes: list[Take], channels: tuple[str, ...], units, rate_
                       data: object, signals=()) -> None:
     """The takes carry what a trained model reads, as ``tactile-run`` checks a device: each
     of ``channels`` (missing: :func:`channel_index`'s error), in the model's unit (``units``,
-    in ``channels``' order; None: not recorded, not checked), at the model's rate
+    in ``channels``' order; None: not recorded, not checked; a take of a CSV device, which
+    declares no units, is taken in the model's), at the model's rate
     (``rate_hz``; None: not checked), and no take declares a high-rate signal's sub-samples in
     another time order than the model's ``signals`` ((name, channels) pairs). Else a
     :class:`RecordingError` naming the first difference and ``data`` (the folder): a model's
@@ -104,7 +105,10 @@ def check_model_input(takes: list[Take], channels: tuple[str, ...], units, rate_
         if differs:
             raise RecordingError(f"{take.path}: {differs}")
         index = channel_index(take, channels)
-        if units is not None:
+        # a CSV device's take declares no units: taken in the model's, as tactile-run takes
+        # a CSV device's values
+        unitless = take.info.device == "csv" and not any(c.unit for c in take.info.channels)
+        if units is not None and not unitless:
             got = [take.info.channels[i].unit for i in index]
             bad = [k for k, (u, want) in enumerate(zip(got, units)) if u != want]
             if bad:
