@@ -29,6 +29,8 @@ from tactile.runtime.units import to_units
 
 INT16 = (-32768, 32767)
 RATE_TOLERANCE = 0.10  # alive: the rate received within 10% of the declared one
+SETTLE_S = 0.5  # the verdict's rate counts from this long after the first bytes...
+SETTLED_MIN_S = 1.0  # ... when at least this much of the run comes after that
 
 
 @dataclass
@@ -43,6 +45,9 @@ class Watch:
     stalls: int = 0
     arrivals: deque = field(default_factory=deque)  # (monotonic s, samples so far)
     first_data: float | None = None  # monotonic time of the first bytes
+    # (monotonic s, samples so far) once SETTLE_S have passed since the first bytes: what the
+    # verdict's rate counts from (a port's backlog, read at once on opening, left out)
+    settled: tuple[float, int] | None = None
 
     def handle(self, events: list) -> None:
         for ev in events:
@@ -220,6 +225,9 @@ def _watch(conn: Connection, every: float, live, watch: Watch, screen: Screen,
         now = time.monotonic()
         if chunk.data:
             watch.first_data = watch.first_data or now
+        if watch.settled is None and watch.first_data is not None \
+                and now - watch.first_data >= SETTLE_S:
+            watch.settled = (now, conn.decoder.stats.samples)  # (this chunk's samples too)
         for ev in chunk.events:
             if isinstance(ev, Header) and (watch.info is None or ev.changed):
                 screen.text(header_text(ev.info, conn.port))
@@ -259,13 +267,18 @@ def _link_status(decoder: StreamDecoder) -> dict:
 
 
 def verdict(watch: Watch, decoder: StreamDecoder, end: float) -> str:
-    """One line: alive (the rate received from the first bytes to ``end``, monotonic s, within
-    :data:`RATE_TOLERANCE` of the declared one; else ``too slow`` or ``too fast``) and sane
-    (no errors, gaps, flat or saturated channels; else each is named)."""
+    """One line: alive (the rate received, within :data:`RATE_TOLERANCE` of the declared one;
+    else ``too slow`` or ``too fast``) and sane (no errors, gaps, flat or saturated channels;
+    else each is named). The rate counts from :data:`SETTLE_S` after the first bytes to
+    ``end`` (monotonic s), when that is at least :data:`SETTLED_MIN_S`: what waited in the
+    port comes at once when it opens, and made a pen at its rate ``too fast``; a shorter run
+    counts from the first bytes."""
     st = decoder.stats
     declared = watch.info.sample_rate_hz if watch.info else math.nan
     seconds = end - watch.first_data if watch.first_data is not None else 0.0
     got = st.samples / seconds if seconds > 0 else math.inf
+    if watch.settled is not None and end - watch.settled[0] >= SETTLED_MIN_S:
+        got = (st.samples - watch.settled[1]) / (end - watch.settled[0])
     notes = watch.problems()
     if st.errors:
         notes.append(f"{st.crc_errors} CRC errors, {st.malformed} malformed frames")

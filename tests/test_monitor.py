@@ -134,6 +134,21 @@ def test_the_verdict_says_alive_only_at_about_the_declared_rate():
                                            "(115.0 Hz received")
 
 
+def test_the_verdict_leaves_out_what_waited_in_the_port():
+    """A pty that held 1.5 s of samples when the monitor opened it gave them at once, and the
+    verdict said `too fast` (151 Hz over 3 s) of a pen at its 100 Hz; the rate now counts
+    from half a second after the first bytes (the samples by then: settled)."""
+    watch, dec = monitor.Watch(), StreamDecoder()
+    raw = PenSimulator("paper", 1).read(450)
+    watch.handle(dec.feed(encode_header(pen_info()) + b"".join(
+        encode_samples(i, i * 10_000, raw[i:i + 10]) for i in range(0, 450, 10))))
+    watch.first_data, watch.settled = 1000.0, (1000.5, 200)  # 150 waiting + 0.5 s at 100 Hz
+    assert monitor.verdict(watch, dec, 1003.0) == (
+        "alive and sane: 450 samples in 3.0 s (100.0 Hz received, 100 Hz declared)")
+    watch.settled = (1002.5, 400)  # too little after it: from the first bytes, as before
+    assert monitor.verdict(watch, dec, 1003.0).startswith("too fast")
+
+
 def test_no_samples_counts_the_bytes_held_waiting_for_a_frame_end_as_not_decodable():
     """Bytes that never end a frame (a wrong device or baud rate: no zero byte, no line end)
     stay held by the decoder, and the error said '0 not decodable' of them."""
