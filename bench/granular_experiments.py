@@ -335,7 +335,8 @@ def _train_job(job: Job, threads: int, say=print) -> None:
                 "cpu_seconds": round(_cpu() - c0, 1)}
         (job.folder / "cost.json").write_text(json.dumps(cost) + "\n")
         say(f"<!-- {job.row.name} seed {job.seed}: val {m['val_accuracy']:.3f} test "
-            f"{m['accuracy']:.3f} novel {m['shifted']['mean']:.3f}, best epoch "
+            f"{m['accuracy']:.3f} novel "
+            f"{(m.get('shifted') or {}).get('mean', float('nan')):.3f}, best epoch "
             f"{m['best_epoch'] + 1} of {m['epochs_run']}, {cost['cpu_seconds']} s CPU "
             f"({cost['wall_seconds']} s wall) -->", flush=True)
     onnx, failed = job.folder / "model.onnx", job.folder / "export-failed.txt"
@@ -430,7 +431,7 @@ def collect(jobs: Sequence[Job], timing: bool = True) -> dict[Row, Figures]:
         f.dims, f.neurons = shape_of(job.folder)
         f.val.append(m["val_accuracy"])
         f.test.append(m["accuracy"])
-        f.novel.append(m["shifted"]["mean"] if m.get("shifted") else float("nan"))
+        f.novel.append((m.get("shifted") or {}).get("mean", float("nan")))
         f.epochs.append(f"{m['best_epoch'] + 1}/{m['epochs_run']}")
         cost = job.folder / "cost.json"
         if cost.exists():

@@ -478,8 +478,8 @@ def test_each_model_beats_chance_on_a_separable_toy_set(runs, model):
     _, m, _ = runs[model]
     assert m["windows"] == 46  # 2 takes x 23 windows of 20 frames every 10
     assert m["accuracy"] >= 0.9, m["accuracy"]  # chance: 0.5
-    assert set(m["shifted"]) == {"-0.2s", "-0.1s", "+0.1s", "+0.2s", "mean"}
-    assert m["shifted"]["mean"] >= 0.8
+    # a hop of 10 frames divides every shift: the shifted windows would be the test windows
+    assert set(m["shifted"]) == {"not_measured"}
 
 
 @pytest.mark.parametrize("model", ["sf_rnn", "f_rnn", "sparse_linear", "linear"])

@@ -333,6 +333,24 @@ def test_windows_that_cannot_shift_one_way_are_left_out_of_the_shifted_check(dat
     assert shifted_line({}) == "shifted windows (robustness): not measured"
 
 
+def test_shifts_the_hop_divides_are_not_a_robustness_figure(dataset, tmp_path, capsys):
+    """At the defaults' hop (10 samples at 100 Hz) every shift of the check (0.1, 0.2 s) is
+    whole hops: the shifted windows were the test windows one or two hops on, and the line
+    printed the test accuracy four times as robustness. Those shifts are left out, and the
+    line says why when none is left; a hop of 20 keeps the 0.1 s shifts."""
+    sets = [f"--set={k}={v}" for k, v in TINY.items()]
+    assert train_main([str(dataset), "--out", str(tmp_path / "r"), *sets]) == 0
+    m = json.loads((tmp_path / "r" / "metrics.json").read_text())
+    assert m["shifted"] == {"not_measured": "the hop (10 samples, 0.1 s) divides every shift, "
+                                            "so the shifted windows are the test windows again"}
+    assert ("shifted windows (robustness): not measured: the hop (10 samples, 0.1 s) divides "
+            "every shift") in capsys.readouterr().out
+    assert train_main([str(dataset), "--out", str(tmp_path / "r20"), *sets, "--set",
+                       "hop=20"]) == 0
+    m = json.loads((tmp_path / "r20" / "metrics.json").read_text())
+    assert set(m["shifted"]) == {"-0.1s", "+0.1s", "mean"}
+
+
 def _in_units(src, dst, unit: str, only: str | None = None) -> None:
     """A copy of dataset ``src`` whose accelerometer channels are in ``unit`` (scale x 9.81:
     the same values in m/s^2), in every take or only in the take named ``only``."""

@@ -132,9 +132,11 @@ def per_take(w: Windows, probs: np.ndarray, names: list[str]) -> dict:
 
 
 def shifted_line(s: dict | None) -> str:
-    """The robustness check as one line: ``shifted windows (robustness): -0.2s 0.812, ...``."""
-    if not s:
-        return "shifted windows (robustness): not measured"
+    """The robustness check as one line: ``shifted windows (robustness): -0.2s 0.812, ...``,
+    or ``not measured`` and why (:func:`shifted`'s ``not_measured``)."""
+    if not s or "not_measured" in s:
+        why = f": {s['not_measured']}" if s else ""
+        return f"shifted windows (robustness): not measured{why}"
     return "shifted windows (robustness): " + ", ".join(f"{k} {v:.3f}" for k, v in s.items())
 
 
@@ -155,11 +157,15 @@ def table(s: dict, classes: tuple[str, ...], title: str = "") -> str:
 
 def shifted(model: TextureModel, takes, classes, channels, rows, window: int, hop: int,
             rate: float) -> dict:
-    """Accuracy on windows moved by each of :data:`SHIFTS_S` (the "novel" set). A shift
-    that leaves no window inside its segment (each test segment holds one window, at its
-    start or end) is left out; with none measured the result is empty ("not measured")."""
+    """Accuracy on windows moved by each of :data:`SHIFTS_S` (the "novel" set). A shift that
+    the hop divides is left out: its windows are the test windows again (one hop on), so its
+    figure would be the test accuracy, not a robustness figure (at the defaults' hop of 10
+    samples at 100 Hz, every shift); so is a shift that leaves no window inside its segment
+    (each test segment holds one window, at its start or end). With none measured the result
+    is ``{"not_measured": why}`` (empty: no window fits at any shift)."""
     out = {}
-    for s in SHIFTS_S:
+    off_grid = [s for s in SHIFTS_S if round(s * rate) % hop]
+    for s in off_grid:
         try:
             w = cut(takes, classes, channels, window, hop, rows, shift=round(s * rate))
         except ConfigError:  # no window fits at this shift: nothing to measure there
@@ -167,6 +173,9 @@ def shifted(model: TextureModel, takes, classes, channels, rows, window: int, ho
         out[f"{s:+.1f}s"] = summary(w.y, predict(model, w), classes)["accuracy"]
     if out:
         out["mean"] = float(np.mean(list(out.values())))
+    elif not off_grid:
+        out["not_measured"] = (f"the hop ({hop} samples, {hop / rate:g} s) divides every "
+                               "shift, so the shifted windows are the test windows again")
     return out
 
 
