@@ -243,7 +243,7 @@ def hapmat(args: argparse.Namespace, base: TrainConfig) -> None:
     first = rows[0][1][0]
     order = tuple(first["classes"])
     print(f"\nLSTM without EMD (seed {args.seeds[0]}), confusion on the test part"
-          f"{novel(first).replace(';', ' (', 1) + ')' if novel(first) else ''}:\n")
+          f"{' (' + novel(first)[2:] + ')' if novel(first) else ''}:\n")
     print(md_table(order, paper_order(first, order), None))
 
 if __name__ == "__main__":
