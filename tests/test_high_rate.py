@@ -327,3 +327,39 @@ def test_a_take_declaring_another_time_order_is_refused(tmp_path, capsys):
     capsys.readouterr()
     assert check_main([str(model), "--data", str(flipped)]) == 1
     assert capsys.readouterr().err == f"tactile-check: error: {said}\n"
+
+
+def test_a_centred_signal_loses_one_mean_not_one_per_sub_sample(tmp_path, capsys):
+    """`center` patterns matching a signal's sub-samples (accel_z_00.. under the default
+    accel_*) removed each sub-sample's own window mean: a comb at every multiple of the frame
+    rate cut out of the signal. The signal is now centred whole, on the mean of all its
+    samples in the window (against a numpy reference), in PyTorch and in the exported file;
+    a checkpoint saved before keeps its per-sub-sample centring."""
+    from tactile.export.exporter import export_run
+    from tactile.training.checkpoint import load_checkpoint
+    from tactile.training.train import train
+
+    cfg = TrainConfig(channels=CHANNELS, signals=SIGNAL)
+    pac = [CHANNELS.index(c) for c in PAC]
+    model = build_model(cfg, 3, torch.zeros(len(CHANNELS)), torch.ones(len(CHANNELS)),
+                        channels=CHANNELS, center_index=[0, pac[3]])
+    assert model.pre.center_groups == [pac]
+    x = np.random.default_rng(0).normal(size=(2, 50, len(CHANNELS))) + 5.0
+    ref = x.copy()
+    ref[..., 0] -= x[..., 0].mean(axis=1, keepdims=True)
+    ref[..., pac] -= x[..., pac].mean(axis=(1, 2), keepdims=True)
+    z = model.pre.normalise(torch.tensor(x, dtype=torch.float32)).numpy()
+    np.testing.assert_allclose(z, ref, atol=1e-5)
+
+    data = biotac_takes(tmp_path, frames=60)
+    run = tmp_path / "run"
+    train(data, run, TrainConfig(channels=("f0_pdc", *PAC), center=("f0_pac_*",), epochs=1,
+                                 threads=1, batch_size=16), progress=True)
+    assert "center: f0_pac as whole signals" in capsys.readouterr().err
+    loaded, ck = load_checkpoint(run)
+    assert ck["center_groups"] == [list(range(1, 23))] == loaded.pre.center_groups
+    report = export_run(run, tmp_path / "m.onnx", log=lambda s: None)
+    assert report["parity"]["passed"]
+    del ck["center_groups"]  # a checkpoint saved before: each sub-sample centred by itself
+    torch.save(ck, run / "checkpoint.pt")
+    assert load_checkpoint(run)[0].pre.center_groups == []

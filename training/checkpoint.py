@@ -97,6 +97,9 @@ def save_checkpoint(path: Path, cfg: TrainConfig, model: torch.nn.Module, metric
         "std": norm.std.tolist(),
         "emd_index": norm.emd_index,
         "center_index": norm.center_index,
+        # the high-rate signals centred whole (absent in older checkpoints: none)
+        "center_groups": [list(g) for g in getattr(getattr(model, "pre", None),
+                                                    "center_groups", [])],
         "test_rows": {names[i]: list(r) for i, r in test.items()},
         "test_fingerprints": {names[i]: takes[i].fingerprint() for i in test},
         "seen_fingerprints": sorted({takes[i].fingerprint() for i in seen}),
@@ -209,6 +212,9 @@ def check_checkpoint(ck: dict, path: Path) -> TrainConfig:
         ("emd_index", _indices(ck.get("emd_index"), n), f"a list of channel indices < {n}"),
         ("center_index", _indices(ck.get("center_index"), n),
          f"a list of channel indices < {n}"),
+        ("center_groups", isinstance(ck.get("center_groups", []), list) and all(
+            _indices(g, n) and g for g in ck.get("center_groups", [])),
+         f"a list of non-empty lists of channel indices < {n}"),
         ("test_rows", _rows(ck.get("test_rows", {})), "a table of take name -> [first, end]"),
         ("test_fingerprints", isinstance(ck.get("test_fingerprints", {}), dict) and all(
             isinstance(k, str) and isinstance(v, str)
@@ -270,7 +276,8 @@ def load_checkpoint(run_dir: Path):
                             torch.tensor(ck["std"]), channels=tuple(ck["channels"]),
                             rate_hz=float(ck["sample_rate_hz"]),
                             emd_index=list(ck["emd_index"]),
-                            center_index=list(ck["center_index"]))
+                            center_index=list(ck["center_index"]),
+                            center_groups=ck.get("center_groups", []))
     except TactileError as e:  # modalities that do not fit the channels
         raise RecordingError(f"{path}: checkpoint key 'config': {e}") from None
     try:

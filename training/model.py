@@ -23,7 +23,10 @@ class Preprocess(nn.Module):
     """(B, T, C) values in the channels' units -> (B, T, C + Ce*K) features.
 
     Each channel is normalised with the training split's mean and std (and the ``center_index``
-    channels have their mean over the window removed); the IMFs of the
+    channels have their mean over the window removed; the channels of each of
+    ``center_groups``, a high-rate signal's sub-samples, the one mean of all their samples in
+    the window: a mean per sub-sample would notch the signal at every multiple of the frame
+    rate); the IMFs of the
     normalised ``emd_index`` channels (``EMD(n_imfs, n_sifts)``, over the window) are appended.
 
     The three stages every preprocessing module exposes (export composes them, running each
@@ -34,12 +37,21 @@ class Preprocess(nn.Module):
 
     def __init__(
         self, mean: Tensor, std: Tensor, emd_index: list[int], n_imfs: int, n_sifts: int,
-        center_index: list[int] | None = None,
+        center_index: list[int] | None = None, center_groups: list[list[int]] | None = None,
     ) -> None:
         super().__init__()
-        mask = torch.zeros(int(mean.numel()))
+        n = int(mean.numel())
+        mask = torch.zeros(n)
         mask[list(center_index or [])] = 1.0
         self.register_buffer("center_mask", mask)  # (C,) 1 where the window mean is removed
+        # with groups, the means to remove as one product: (C, C), a group's rows average it
+        self.center_groups = [list(g) for g in center_groups or []]
+        if self.center_groups:
+            average = torch.diag(mask)  # (symmetric: a group's block is 1/len everywhere)
+            for g in self.center_groups:
+                idx = torch.tensor(g)
+                average[idx[:, None], idx[None, :]] = 1.0 / len(g)
+            self.register_buffer("center_average", average, persistent=False)
         self.register_buffer("mean", mean.float().clone())  # (C,)
         self.register_buffer("std", std.float().clone())  # (C,)
         self.register_buffer("emd_index", torch.tensor(emd_index, dtype=torch.long))  # (Ce,)
@@ -56,6 +68,8 @@ class Preprocess(nn.Module):
         """x (B, T, C) in units -> z (B, T, C) normalised, the centre channels centred."""
         z = (x - self.mean) / self.std  # (B, T, C)
         # offsets (gravity on a tilted pen, a gyroscope's bias) say little of the surface
+        if self.center_groups:  # (B, 1, C) @ (C, C): a signal's sub-samples share one mean
+            return z - z.mean(dim=1, keepdim=True) @ self.center_average
         return z - z.mean(dim=1, keepdim=True) * self.center_mask
 
     def emd_inputs(self, z: Tensor) -> list[Tensor]:
@@ -432,11 +446,20 @@ class TextureModel(Classifier):
 
     def __init__(self, cfg: TrainConfig, n_classes: int, mean: Tensor, std: Tensor,
                  emd_index: list[int], center_index: list[int] | None = None,
-                 signals: list[list[int]] | None = None):
+                 signals: list[list[int]] | None = None,
+                 center_groups: list[list[int]] | None = None):
         super().__init__()
         self.cfg, self.n_classes = cfg, n_classes
         self.signals = [list(s) for s in signals or []]
-        self.pre = Preprocess(mean, std, emd_index, cfg.emd_imfs, cfg.emd_sifts, center_index)
+        # a signal with a centred sub-sample is centred whole, on the mean of all its samples
+        # (center_groups: as a checkpoint recorded them; [] in one saved before, which
+        # centred each sub-sample by itself)
+        centred = set(center_index or [])
+        groups = ([s for s in self.signals if centred & set(s)] if center_groups is None
+                  else [list(g) for g in center_groups])
+        centred |= {i for g in groups for i in g}
+        self.pre = Preprocess(mean, std, emd_index, cfg.emd_imfs, cfg.emd_sifts,
+                              sorted(centred), groups)
         if cfg.model == "lstm":
             heads = [LSTMHead(self.pre.n_features, n_classes, cfg.hidden, cfg.layers,
                               cfg.dropout, cfg.front, cfg.frame, cfg.frame_hop, cfg.wide,

@@ -184,6 +184,10 @@ def prepare(takes: list[Take], classes: tuple[str, ...], channels: tuple[str, ..
     center_index = [] if cfg.modalities else centered(channels, cfg.center)
     if not cfg.modalities:
         log_center(log, channels, cfg.center, center_index)
+        whole = [n for n, names in signals if set(names) & {channels[i] for i in center_index}]
+        if whole:  # (the model centres them: training/model.py, TextureModel)
+            log.info(f"center: {', '.join(whole)} as whole signals (one mean of all their "
+                     "samples in the window, not one per sub-sample)")
     return Prepared(cfg, takes, classes, split, parts, Norm(mean, std, emd_index, center_index))
 
 
