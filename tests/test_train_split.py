@@ -90,6 +90,29 @@ def test_a_selector_of_single_takes_says_when_their_users_also_train(takes):
         assert split_takes(takes, cfg).shared is None  # whole users, or split by take
 
 
+def test_takes_without_users_are_drawn_class_by_class(tmp_path):
+    """Takes with no `user` (every tactile-record take) are each a group, and the draw ignored
+    their classes: with 4 classes of 8 takes a class often had no validation take (early
+    stopping and the label stream's calibration blind to it). Single-class groups are now
+    drawn class by class: every class in every part, at the fractions' proportions."""
+    textures = ("non_contact", "paper", "desk", "cardboard")
+    make_dataset(tmp_path, takes=8, textures=textures, seconds=1, seed=1)
+    for p in tmp_path.glob("*.json"):
+        meta = json.loads(p.read_text())
+        del meta["user"]
+        p.write_text(json.dumps(meta))
+    takes = load_dataset(tmp_path)
+    for seed in range(20):
+        s = split_takes(takes, TrainConfig(seed=seed))
+        for part in (s.train, s.val, s.test):
+            counts = {t: sum(takes[i].label == t for i in part) for t in textures}
+            assert len(set(counts.values())) == 1, (seed, counts)  # 5 / 1 / 2 of each
+        assert (len(s.train), len(s.val), len(s.test)) == (20, 4, 8)
+    s = split_takes(takes, TrainConfig(seed=0, test="name:*-user00[01]"))
+    assert {takes[i].path.stem[-7:] for i in s.test} == {"user000", "user001"}
+    assert {takes[i].label for i in s.val} == set(textures)
+
+
 def test_a_copied_take_in_training_and_in_test_is_named(takes, tmp_path):
     """The same recording under two names was only "read twice" on loading, and landed in
     training and in test without a word on the split; the split now names the pair and the

@@ -260,16 +260,42 @@ def split_takes(takes: list[Take], cfg: TrainConfig) -> Split:
         raise ConfigError(f"test={cfg.test!r} and val={cfg.val!r} both take {name_list(both, 4)}")
     # the random draw, in whole groups, among the takes no selector named
     free = every - (named_test or set()) - (named_val or set())
-    ids = rng.permutation(np.unique(groups[sorted(free)])) if free else np.array([], int)
-    n_test = 0 if named_test is not None else max(1, int(round(len(ids) * cfg.test_fraction)))
-    n_val = 0 if named_val is not None else max(
-        1, int(round((len(ids) - n_test) * cfg.val_fraction)))
-    if len(ids) - n_test - n_val < 1:
-        raise ConfigError(
-            f"{len(np.unique(groups))} {cfg.split}s cannot be split into train, validation and "
-            "test: record more takes, name fewer test/validation takes or use split='time'")
-    drawn_test = set(ids[:n_test].tolist())
-    drawn_val = set(ids[n_test : n_test + n_val].tolist())
+    free_groups = np.unique(groups[sorted(free)]) if free else np.array([], int)
+    labels_of = {int(g): {takes[i].label for i in free if groups[i] == g} for g in free_groups}
+    by_label: dict[str, list[int]] = {}
+    for g, labels in labels_of.items():
+        by_label.setdefault(next(iter(labels)), []).append(g)
+    if len(by_label) > 1 and all(len(v) == 1 for v in labels_of.values()):
+        # groups of one class each (takes with no user): drawn class by class, so that every
+        # class with takes enough has some in validation and in test, and keeps one to train
+        drawn_test, drawn_val = set(), set()
+        for label in sorted(by_label):
+            ids = rng.permutation(by_label[label])
+            n = len(ids)
+            n_test = 0 if named_test is not None else min(
+                max(1, int(round(n * cfg.test_fraction))), n - 1)
+            n_val = 0 if named_val is not None else max(0, min(
+                max(1, int(round((n - n_test) * cfg.val_fraction))), n - n_test - 1))
+            drawn_test |= set(ids[:n_test].tolist())
+            drawn_val |= set(ids[n_test : n_test + n_val].tolist())
+        if (named_test is None and not drawn_test) or (named_val is None and not drawn_val):
+            raise ConfigError(
+                f"{len(np.unique(groups))} {cfg.split}s cannot be split into train, validation "
+                "and test: record more takes, name fewer test/validation takes or use "
+                "split='time'")
+    else:
+        ids = rng.permutation(free_groups)
+        n_test = 0 if named_test is not None else max(
+            1, int(round(len(ids) * cfg.test_fraction)))
+        n_val = 0 if named_val is not None else max(
+            1, int(round((len(ids) - n_test) * cfg.val_fraction)))
+        if len(ids) - n_test - n_val < 1:
+            raise ConfigError(
+                f"{len(np.unique(groups))} {cfg.split}s cannot be split into train, validation "
+                "and test: record more takes, name fewer test/validation takes or use "
+                "split='time'")
+        drawn_test = set(ids[:n_test].tolist())
+        drawn_val = set(ids[n_test : n_test + n_val].tolist())
     test = named_test if named_test is not None else {i for i in free if groups[i] in drawn_test}
     val = named_val if named_val is not None else {i for i in free if groups[i] in drawn_val}
     train = every - test - val
