@@ -765,6 +765,28 @@ def test_data_summary_counts_one_of_a_kind_in_the_singular(tmp_path):
     assert out.splitlines()[2] == "4 windows of 50 samples every 10", out
 
 
+def test_data_summary_names_the_declared_high_rate_signals(tmp_path):
+    """tactile-data listed a BioTac's 22 vibration sub-samples as 22 channels at 100 Hz and
+    said nothing of the 2.2 kHz signal the takes declare."""
+    from tactile.device.protocol import ChannelSpec, DeviceInfo
+
+    info = DeviceInfo(100.0, tuple(ChannelSpec(n, "g") for n in ("p", "v_0", "v_1", "v_2")))
+    for k in range(2):
+        with TakeWriter(tmp_path, "paper", info, "test", name=f"t{k}",
+                        extra={"signals": {"v": ["v_0", "v_1", "v_2"]}}) as w:
+            w.write(0, 0, np.zeros((60, 4), np.int16))
+    code, out, err = cli("tactile-data", str(tmp_path))
+    assert code == 0 and out.splitlines()[2] == (
+        "high-rate signals: v (3 sub-samples a frame, 300 Hz)"), out
+    code, out, _ = cli("tactile-data", str(tmp_path), "--json")
+    assert json.loads(out)["signals"] == [{"name": "v", "channels": 3, "rate_hz": 300.0}]
+    meta = json.loads((tmp_path / "t1.json").read_text())
+    del meta["signals"]
+    (tmp_path / "t1.json").write_text(json.dumps(meta))
+    code, out, _ = cli("tactile-data", str(tmp_path))
+    assert out.splitlines()[2] == "high-rate signals: the takes declare different ones", out
+
+
 def test_data_summary_lists_users_in_number_order(tmp_path):
     """Users were sorted as text (10 before 2, user10 before user2) in ``tactile-data`` and
     ``tactile-plot --summary``; runs of digits now sort as numbers."""

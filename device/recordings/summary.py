@@ -63,9 +63,14 @@ def summarise(takes: list[Take], window: int, hop: int) -> dict:
                 "minutes": round(row["minutes"], 3)}
 
     first = takes[0].info
+    declared = takes[0].meta.get("signals") or {}
+    agree = all((t.meta.get("signals") or {}) == declared for t in takes)
     return {
         "takes": len(takes), "classes": sorted(by_class), "users": sorted(by_user, key=natural),
         "channels": [{"name": c.name, "unit": c.unit} for c in first.channels],
+        # the high-rate signals the takes declare (null: the takes do not all declare the same)
+        "signals": [{"name": k, "channels": len(v), "rate_hz": rate * len(v)}
+                    for k, v in declared.items()] if agree else None,
         "sample_rate_hz": rate, "window": window, "hop": hop, "total": plain(total),
         "per_class": {k: plain(v) for k, v in sorted(by_class.items())},
         "per_user": {k: plain(by_user[k]) for k in sorted(by_user, key=natural)},
@@ -85,6 +90,10 @@ def text(s: dict, folder: Path) -> str:
         f"({n(t['samples_lost'], 'sample')} lost)",
         f"{n(len(s['channels']), 'channel')} at {s['sample_rate_hz']:g} Hz: "
         + ", ".join(f"{c['name']} ({c['unit']})" for c in s["channels"]),
+        *(["high-rate signals: the takes declare different ones"] if s["signals"] is None else
+          ["high-rate signals: " + ", ".join(
+              f"{g['name']} ({g['channels']} sub-samples a frame, {g['rate_hz']:g} Hz)"
+              for g in s["signals"])] if s["signals"] else []),
         f"{n(t['windows'], 'window')} of {s['window']} samples every {s['hop']}",
     ]
     for title, rows in (("class", s["per_class"]), ("user", s["per_user"])):
