@@ -719,6 +719,30 @@ def test_hostile_channel_names_round_trip(tmp_path):
     assert head == "seq,t_us,a%2Cb,x%0Ay,q%22uote,%23hash,100%25,tab%09here,ünïcødé,雨,ok"
 
 
+def test_record_keeps_the_user_and_the_metadata_given(tmp_path, capsys):
+    """tactile-record wrote no `user` (training's default split then made each take its own
+    group) and no session: a script had to edit each take. --user and --meta KEY=VALUE go into
+    the take's JSON (a whole number as one, for ranges); a key of the format, one given twice
+    or not KEY=VALUE is one line, exit 1, before the port opens."""
+    out = tmp_path / "d"
+    assert record_main(["--port", "sim://?texture=paper&seed=1&speed=max", "--label", "paper",
+                        "--out", str(out), "--seconds", "0.5", "--user", "alice", "--meta",
+                        "session=2", "--meta", "room=lab 1", "--quiet"]) == 0
+    (take,) = out.glob("*.csv")
+    meta = read_take(take).meta
+    assert (meta["user"], meta["session"], meta["room"]) == ("alice", 2, "lab 1")
+    capsys.readouterr()
+    for args, says in ((["--meta", "label=desk"], "--meta label: the recordings format's own "
+                                                  "key; choose another"),
+                       (["--meta", "session"], "--meta 'session': expected KEY=VALUE"),
+                       (["--user", "a", "--meta", "user=b"], "--meta user: given twice")):
+        assert record_main(["--port", "sim://?texture=paper", "--label", "paper", "--out",
+                            str(tmp_path / "no"), *args]) == 1
+        err = capsys.readouterr().err
+        assert err.startswith(f"tactile-record: error: {says}"), err
+    assert not (tmp_path / "no").exists()
+
+
 def test_a_csv_board_opened_mid_run_records_under_the_names_it_repeats(tmp_path):
     """A CSV board that repeats its names line, recorded from the middle of its run, gave a
     take of ch0..ch2 with a `rejected` gap at every names line (no sample was lost); now the

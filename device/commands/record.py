@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import argparse
 import math
+import re
 import sys
 
 from tactile.cli import BAUD, Parser, add_debug, command, float_in, int_in, path_given, run
@@ -42,9 +43,35 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--baud", type=int_in(1), default=BAUD, help=f"UART baud rate (default {BAUD})")
     p.add_argument("--csv-rate", type=float_in(0.0), default=100.0,
                    help="rate of a CSV-line device, Hz (it declares none; default 100)")
+    p.add_argument("--user", help="who is recording (the take's 'user': training's default "
+                   "split keeps each user's takes in one part)")
+    p.add_argument("--meta", action="append", default=[], metavar="KEY=VALUE",
+                   help="more of the take's metadata, e.g. --meta session=2 (a whole number "
+                   "is kept as one: test=session:1-3 selects it); repeatable")
     p.add_argument("--quiet", action="store_true", help="no progress lines on stderr")
     add_debug(p)
     return p
+
+
+def take_extra(user: str | None, meta: list[str]) -> dict:
+    """``--user`` and ``--meta KEY=VALUE`` as the take's extra JSON keys; a key the recordings
+    format uses itself, one given twice, or not KEY=VALUE is a :class:`ConfigError`."""
+    from tactile.device.recordings.take_meta import RESERVED_KEYS
+    from tactile.errors import ConfigError
+
+    extra: dict = {} if user is None else {"user": user}
+    for item in meta:
+        key, eq, value = item.partition("=")
+        key = key.strip()
+        if not eq or not re.fullmatch(r"[A-Za-z_][A-Za-z0-9_]*", key):
+            raise ConfigError(f"--meta {item!r}: expected KEY=VALUE (KEY: letters, digits, _)")
+        if key in RESERVED_KEYS:
+            raise ConfigError(f"--meta {key}: the recordings format's own key; choose another")
+        if key in extra:
+            raise ConfigError(f"--meta {key}: given twice" + (" (--user sets user)"
+                                                              if key == "user" else ""))
+        extra[key] = int(value) if re.fullmatch(r"-?[0-9]{1,18}", value) else value
+    return extra
 
 
 def _main(args: argparse.Namespace) -> int:
@@ -55,6 +82,7 @@ def _main(args: argparse.Namespace) -> int:
     from tactile.postprocess.smoothing import UNCERTAIN
 
     check_label(args.label)  # before the port opens: a mistake costs no take
+    extra = take_extra(args.user, args.meta)
     if args.label == UNCERTAIN:  # a take training would refuse
         raise RecordingError(f"label {UNCERTAIN!r}: the label stream reserves it for no stable "
                              "label, so a model cannot have that class: choose another")
@@ -64,7 +92,7 @@ def _main(args: argparse.Namespace) -> int:
         args.port = find_port()
     res = record(
         args.port, args.label, args.out, args.seconds, args.baud, args.csv_rate,
-        progress=not args.quiet, auto=auto,
+        progress=not args.quiet, auto=auto, extra=extra,
     )
     for path in res.takes:
         print(path)

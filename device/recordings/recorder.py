@@ -191,11 +191,13 @@ def record(
     stall_timeout: float = 2.0,
     progress: bool = True,
     auto: bool = False,
+    extra: dict | None = None,
 ) -> RecordResult:
     """Record until ``seconds`` of samples are written, or SIGINT/SIGTERM. ``auto``: ``port``
     was auto-detected, and after an unplug the pen is looked for among the likely pens too (it
-    may come back under another name)."""
-    rec = Recorder(out, label, port, seconds=seconds)
+    may come back under another name). ``extra``: more keys for each take's JSON (``user``,
+    ``session``...)."""
+    rec = Recorder(out, label, port, extra=extra, seconds=seconds)
     decoder = StreamDecoder(csv_rate_hz=csv_rate_hz)
     stop = {"flag": False}
 

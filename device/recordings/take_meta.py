@@ -58,6 +58,10 @@ _META = {
         isinstance(k, str) and k and isinstance(c, list) and c and all(map(_text, c))
         for k, c in v.items()), "an object of signal name -> non-empty list of channel names"),
 }
+RESERVED_KEYS = frozenset(_META)
+"""The keys a take's JSON gives the format itself: a recorder's extra keys (``tactile-record
+--meta``) must be others."""
+
 _DEVICE = {
     "sample_rate_hz": (True, _is_number, "a number"),
     "channels": (True, lambda v: isinstance(v, list) and len(v) > 0, "a non-empty list"),
