@@ -4,6 +4,7 @@ and seed; prints one markdown table (mean and spread over the seeds) for docs/re
     python bench/baselines.py --out runs/baselines                  # 4 datasets x seeds 0, 1, 2
     python bench/baselines.py --out runs/baselines --only small --seeds 0
     python bench/baselines.py --out runs/nested --nested   # refit off / on, validation as test
+    python bench/baselines.py --out runs/mine --data data/mine --seeds 0   # your own takes
 
 Exit status: 0 when the table is printed, 1 for a bad argument or setting (one line, before
 any dataset is made), 2 when every dataset asked for is skipped (each says why) or when a run
@@ -68,7 +69,7 @@ from tactile.cli import Parser
 from tactile.device.protocol import Gap
 from tactile.device.recordings import Take, TakeWriter, import_hapmat, load_dataset
 from tactile.device.sim import TEXTURES, make_dataset
-from tactile.errors import ConfigError
+from tactile.errors import ConfigError, TactileError
 from tactile.training import loop
 from tactile.training import train as train_module
 from tactile.training.checkpoint import SAVED_BEFORE
@@ -97,9 +98,10 @@ CACHE = Path(os.environ.get("XDG_CACHE_HOME", Path.home() / ".cache")) / "tactil
 
 
 def dataset_settings(name: str, given: frozenset[str] = frozenset()) -> dict:
-    """The data settings of dataset ``name`` (:data:`SETTINGS`) but those the command line
-    gives itself (``given``: keys of ``--set`` or a candidate's settings, which win)."""
-    return {k: v for k, v in SETTINGS[name].items() if k not in given}
+    """The data settings of dataset ``name`` (:data:`SETTINGS`; a ``--data`` folder has none)
+    but those the command line gives itself (``given``: keys of ``--set`` or a candidate's
+    settings, which win)."""
+    return {k: v for k, v in SETTINGS.get(name, {}).items() if k not in given}
 
 
 def _keys(pairs: list[str]) -> frozenset[str]:
@@ -657,9 +659,24 @@ def _high_rate_cells(bl: list[dict]) -> str:
 
 
 def main(argv: list[str] | None = None) -> int:
+    """The command (:func:`_main`); a dataset or setting training refuses (a ``--data`` folder
+    it cannot split, say) is its one line, exit 1."""
+    try:
+        return _main(argv)
+    except TactileError as e:
+        print(f"baselines.py: error: {e}", file=sys.stderr)
+        return 1
+
+
+def _main(argv: list[str] | None = None) -> int:
     p = Parser(prog="baselines.py", description=__doc__.split("\n\n")[0])
     p.add_argument("--out", type=Path, required=True, help="folder for datasets and runs")
     p.add_argument("--only", choices=DATASETS, action="append", help="one dataset (repeatable)")
+    p.add_argument("--data", type=Path, action="append", metavar="DIR",
+                   help="your own dataset folder instead (repeatable; with --only as well): "
+                        "the defaults against the baselines on it, with --set's settings only "
+                        "(e.g. --set split=time for one take a class); its row is named by the "
+                        "folder")
     p.add_argument("--seeds", default="0,1,2", help="comma-separated seeds (default 0,1,2)")
     p.add_argument("--cache", type=Path, default=CACHE,
                    help=f"folder for the imported BioTac takes (default {CACHE})")
@@ -701,14 +718,24 @@ def main(argv: list[str] | None = None) -> int:
                       for label, *sets in args.candidate or []]
     except ConfigError as e:
         p.error(str(e))
+    own = {}
+    for folder in args.data or []:
+        name = f"own-{re.sub(r'[^A-Za-z0-9_.-]', '_', folder.resolve().name)}"
+        if not folder.is_dir():
+            p.error(f"--data {folder}: not a folder")
+        if name in own:
+            p.error(f"--data {folder}: a second folder named {folder.resolve().name}")
+        own[name] = folder
     print(libraries_line(), flush=True)
     data = {}
-    for name in args.only or DATASETS:
+    for name in args.only or ([] if own else DATASETS):
         got = prepare(name, args.out, args.cache)
         if isinstance(got, str):
             print(f"<!-- {name}: skipped, {got} -->", flush=True)
             continue
         data[name] = got
+    for name, folder in own.items():
+        data[name] = folder, load_dataset(folder)
     if not data:
         print("baselines.py: every dataset was skipped (the lines above, on stdout): nothing "
               "to run", file=sys.stderr)

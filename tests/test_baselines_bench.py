@@ -454,3 +454,33 @@ def test_signal_features_put_a_tone_in_its_band():
     x2 = x.copy()
     x2[..., 0] = 5.0
     np.testing.assert_array_equal(b.signal_features(x2, [list(range(1, 1 + r))], 100.0), f)
+
+
+def test_your_own_folder_gets_the_defaults_against_the_baselines(tmp_path, capsys):
+    """The comparison ran on the four built-in datasets only: a user with their own takes had
+    to write their own baseline. --data DIR runs it on that folder (--set's settings alone),
+    its row named by the folder; a folder training refuses is one line, exit 1."""
+    from tactile.device.sim import make_dataset
+
+    b = _bench()
+    data = tmp_path / "my takes"
+    make_dataset(data, takes=5, textures=("non_contact", "paper"), seconds=4, seed=1)
+    sets = ["--set", "epochs=1", "--set", "hidden=8", "--set", "layers=1", "--set",
+            "refit=off", "--set", "blend=off"]
+    assert b.main(["--out", str(tmp_path / "out"), "--data", str(data), "--seeds", "0",
+                   *sets]) == 0
+    out = capsys.readouterr().out
+    row = next(line for line in out.splitlines() if line.startswith("| own-my_takes |"))
+    cells = [c.strip() for c in row.split("|")[1:-1]]
+    assert 0 <= float(cells[2]) <= 1 and 0 <= float(cells[4]) <= 1, row  # ours, the baseline
+    assert (tmp_path / "out" / "own-my_takes-seed0" / "metrics.json").is_file()
+    assert "| small |" not in out  # --data alone: the built-in datasets are not run
+    few = tmp_path / "few"
+    make_dataset(few, takes=1, textures=("non_contact", "paper"), seconds=2, seed=1)
+    assert b.main(["--out", str(tmp_path / "out2"), "--data", str(few), "--seeds", "0",
+                   *sets]) == 1
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith("baselines.py: error: "), err
+    with pytest.raises(SystemExit) as e:
+        b.main(["--out", str(tmp_path / "out3"), "--data", str(tmp_path / "none")])
+    assert e.value.code == 1 and "--data" in capsys.readouterr().err
