@@ -75,11 +75,16 @@ def reference_classifier(run: Path):
     mean, std = np.array(ck["mean"]), np.array(ck["std"])
     mask = np.zeros(len(mean))
     mask[list(ck["center_index"])] = 1
+    groups = [list(g) for g in ck.get("center_groups", [])]
+    for g in groups:
+        mask[g] = 0  # centred whole below
     h, c = model.zero_state(1)
 
     def classify(w: np.ndarray) -> None:
         z = (w - mean) / std
         z = z - z.mean(0) * mask
+        for g in groups:  # a high-rate signal: one mean of all its samples
+            z[:, g] -= z[:, g].mean()
         feats = []
         for i in idx:
             rows = emd.emd(z[:, i].astype(np.float64), max_imf=cfg.emd_imfs)

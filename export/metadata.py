@@ -42,6 +42,12 @@ def contract_for(ck: dict, parity: dict, quantization: str = "none",
         "center": [channels[i] for i in ck.get("center_index", [])],
         "emd": emd,
     }
+    groups = ck.get("center_groups") or []
+    if groups:  # high-rate signals centred whole: one mean of all their samples in the window
+        preprocessing["center"] = sorted({*preprocessing["center"],
+                                          *(channels[i] for g in groups for i in g)},
+                                         key=channels.index)
+        preprocessing["center_groups"] = [[channels[i] for i in g] for g in groups]
     if modalities:
         preprocessing["sifts"] = int(cfg["emd_sifts"])
     if high_rate:

@@ -360,6 +360,14 @@ def test_a_centred_signal_loses_one_mean_not_one_per_sub_sample(tmp_path, capsys
     assert ck["center_groups"] == [list(range(1, 23))] == loaded.pre.center_groups
     report = export_run(run, tmp_path / "m.onnx", log=lambda s: None)
     assert report["parity"]["passed"]
+    meta = {p.key: p.value for p in onnx.load(str(tmp_path / "m.onnx")).metadata_props}
+    pre = json.loads(meta["preprocessing"])
+    assert pre["center_groups"] == [list(PAC)] and pre["center"] == list(PAC)
+    # int8: the centring stays float (a MatMul there would be quantised with the weights)
+    export_run(run, tmp_path / "q.onnx", int8=True, log=lambda s: None)
+    nodes = onnx.load(str(tmp_path / "q.onnx")).graph.node
+    assert not [n.name for n in nodes if n.op_type in ("MatMulInteger", "DynamicQuantizeLinear")
+                and "/pre/" in n.name]
     del ck["center_groups"]  # a checkpoint saved before: each sub-sample centred by itself
     torch.save(ck, run / "checkpoint.pt")
     assert load_checkpoint(run)[0].pre.center_groups == []

@@ -114,9 +114,10 @@ def _figures(log_p: np.ndarray, y: np.ndarray) -> tuple[float, float]:
 
 
 def _left_out(model) -> np.ndarray:
-    """The regression's features to leave out: the means of the centred channels (a granular
-    model's preprocessing centres none)."""
-    mask = getattr(model.pre, "center_mask", None)
+    """The regression's features to leave out: the means of the channels centred on their own
+    (0 in every window; a signal centred whole keeps each sub-sample's; a granular model's
+    preprocessing centres none)."""
+    mask = getattr(model.pre, "centred_alone", None)
     return np.flatnonzero(mask.cpu().numpy()) if mask is not None else np.zeros(0, np.int64)
 
 

@@ -44,14 +44,18 @@ class Preprocess(nn.Module):
         mask = torch.zeros(n)
         mask[list(center_index or [])] = 1.0
         self.register_buffer("center_mask", mask)  # (C,) 1 where the window mean is removed
-        # with groups, the means to remove as one product: (C, C), a group's rows average it
+        # the groups' means by elementwise products and sums (no MatMul, which an int8 export
+        # would quantise): (G, C) weights 1/len over each group, (G, C) 1 on its channels
         self.center_groups = [list(g) for g in center_groups or []]
         if self.center_groups:
-            average = torch.diag(mask)  # (symmetric: a group's block is 1/len everywhere)
-            for g in self.center_groups:
-                idx = torch.tensor(g)
-                average[idx[:, None], idx[None, :]] = 1.0 / len(g)
-            self.register_buffer("center_average", average, persistent=False)
+            weight = torch.zeros(len(self.center_groups), n)
+            for k, g in enumerate(self.center_groups):
+                weight[k, g] = 1.0 / len(g)
+            self.register_buffer("group_weight", weight, persistent=False)
+            self.register_buffer("group_mask", (weight > 0).float(), persistent=False)
+            own = mask.clone()
+            own[[i for g in self.center_groups for i in g]] = 0.0
+            self.register_buffer("own_mask", own, persistent=False)
         self.register_buffer("mean", mean.float().clone())  # (C,)
         self.register_buffer("std", std.float().clone())  # (C,)
         self.register_buffer("emd_index", torch.tensor(emd_index, dtype=torch.long))  # (Ce,)
@@ -68,9 +72,17 @@ class Preprocess(nn.Module):
         """x (B, T, C) in units -> z (B, T, C) normalised, the centre channels centred."""
         z = (x - self.mean) / self.std  # (B, T, C)
         # offsets (gravity on a tilted pen, a gyroscope's bias) say little of the surface
-        if self.center_groups:  # (B, 1, C) @ (C, C): a signal's sub-samples share one mean
-            return z - z.mean(dim=1, keepdim=True) @ self.center_average
+        if self.center_groups:  # a signal's sub-samples share one mean
+            m = z.mean(dim=1, keepdim=True)  # (B, 1, C)
+            shared = (m.unsqueeze(2) * self.group_weight).sum(-1)  # (B, 1, G)
+            return z - m * self.own_mask - (shared.unsqueeze(-1) * self.group_mask).sum(2)
         return z - z.mean(dim=1, keepdim=True) * self.center_mask
+
+    @property
+    def centred_alone(self) -> Tensor:
+        """(C,) 1 on the channels centred on their own mean (whose window mean is then 0);
+        a group's channels share one mean, so each keeps its own."""
+        return self.own_mask if self.center_groups else self.center_mask
 
     def emd_inputs(self, z: Tensor) -> list[Tensor]:
         """z (B, T, C) -> [(B, Ce, T)]: the EMD channels (empty list without EMD)."""
