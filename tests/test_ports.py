@@ -560,3 +560,34 @@ def test_without_reconnect_a_loss_comes_after_the_bytes_that_came_with_it():
         srv.close()
     assert isinstance(events[-1], Lost)
     assert sum(len(ev.raw) for ev in events if isinstance(ev, Samples)) == 300
+
+
+def test_a_reopened_csv_board_without_names_is_known_by_its_width():
+    """The probe of a reopened port waited for a header, which a CSV board opened mid-run now
+    gives only with its names line or after 2 s of rows: a board without names (or one slow to
+    boot) was never taken back ("no header in 3.0 s"). Rows of the pen's width at its rate
+    are enough (a CSV device is known by those); another width is another device."""
+    from tactile.device.link.ports import PenId, probe
+    from tactile.device.protocol import ChannelSpec, DeviceInfo, StreamDecoder
+
+    class Board:  # a CSV board: 20 rows a read, no names line
+        def __init__(self, width):
+            self.width, self.sent = width, 0
+
+        def fileno(self):
+            raise AttributeError
+
+        def read(self, limit):
+            rows = b"".join(b",".join(b"%d" % (i + k) for k in range(self.width)) + b"\n"
+                            for i in range(self.sent, self.sent + 20))
+            self.sent += 20
+            return rows
+
+        def close(self):
+            pass
+
+    pen = PenId(DeviceInfo(100.0, tuple(ChannelSpec(f"ch{i}", "") for i in range(3)), "csv"))
+    got = probe(Board(3), pen, lambda: StreamDecoder(csv_rate_hz=100.0), {"flag": False})
+    assert got.why is None and got.data.startswith(b"0,1,2\n")
+    got = probe(Board(4), pen, lambda: StreamDecoder(csv_rate_hz=100.0), {"flag": False})
+    assert got.why == "4 CSV channels, not 3" and got.other

@@ -291,10 +291,12 @@ def probe(
             events = dec.feed(data) if data else []
         except TactileError as e:  # a decoder that gives up on these bytes: not our pen
             return Probe(f"unreadable ({e})", other=True)
-        for ev in events:
-            if isinstance(ev, Header):
-                why = pen.differs(ev.info)
-                return Probe(data=bytes(got)) if why is None else Probe(why, other=True)
+        # a header, or a CSV board's rows waiting for a names line (known by their width)
+        shown = [ev.info for ev in events if isinstance(ev, Header)] or [
+            i for i in (dec.waiting_info,) if i is not None]
+        if shown:
+            why = pen.differs(shown[0])
+            return Probe(data=bytes(got)) if why is None else Probe(why, other=True)
         if lost is not None:
             return Probe(f"lost again ({lost})")
     if stop["flag"]:

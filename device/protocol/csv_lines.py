@@ -128,6 +128,16 @@ class CsvLines:
             else:
                 self._csv_line(k, nbytes, events)
 
+    @property
+    def waiting_info(self) -> DeviceInfo | None:
+        """While the rows of a stream opened mid-run wait for a names line: the device they
+        show so far (its width at the CSV rate, unnamed); else None. What a reopened port's
+        probe compares (a CSV device is known by its width and rate, not its names)."""
+        if self._csv_wait is None or self._csv_width is None:
+            return None
+        return DeviceInfo(self.csv_rate_hz, tuple(ChannelSpec(f"ch{i}", "")
+                                                  for i in range(self._csv_width)), "csv")
+
     def finish(self) -> list[Event]:
         """The events of what is decoded but held back: the rows of a stream opened mid-run
         still waiting for a names line (then named ``ch0``, ``ch1``...). Call it when the
