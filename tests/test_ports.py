@@ -570,7 +570,7 @@ def test_a_reopened_csv_board_without_names_is_known_by_its_width():
     from tactile.device.link.ports import PenId, probe
     from tactile.device.protocol import ChannelSpec, DeviceInfo, StreamDecoder
 
-    class Board:  # a CSV board: 20 rows a read, no names line
+    class Board:  # a CSV board: 60 rows (under the names wait's 200), no names line
         def __init__(self, width):
             self.width, self.sent = width, 0
 
@@ -578,9 +578,10 @@ def test_a_reopened_csv_board_without_names_is_known_by_its_width():
             raise AttributeError
 
         def read(self, limit):
+            n = min(20, 60 - self.sent)
             rows = b"".join(b",".join(b"%d" % (i + k) for k in range(self.width)) + b"\n"
-                            for i in range(self.sent, self.sent + 20))
-            self.sent += 20
+                            for i in range(self.sent, self.sent + n))
+            self.sent += n
             return rows
 
         def close(self):
