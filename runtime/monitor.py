@@ -45,8 +45,10 @@ class Watch:
     stalls: int = 0
     arrivals: deque = field(default_factory=deque)  # (monotonic s, samples so far)
     first_data: float | None = None  # monotonic time of the first bytes
-    # (monotonic s, samples so far) once SETTLE_S have passed since the first bytes: what the
-    # verdict's rate counts from (a port's backlog, read at once on opening, left out)
+    first_samples: float | None = None  # ... and of the first samples decoded
+    # (monotonic s, samples so far) once SETTLE_S have passed since the first samples: what
+    # the verdict's rate counts from (a port's backlog, read at once on opening, left out;
+    # a CSV board's rows held for its names line come at once too)
     settled: tuple[float, int] | None = None
 
     def handle(self, events: list) -> None:
@@ -214,6 +216,7 @@ def watch_loop(conn: Connection, every: float, live=None) -> Watch:
         _watch(conn, every, live, watch, screen, start)
     finally:
         _screen = None
+    watch.handle(conn.decoder.finish())  # rows a CSV board's names line was awaited for
     _show(screen, watch, conn, time.monotonic(), start)  # the last figures
     return watch
 
@@ -225,8 +228,10 @@ def _watch(conn: Connection, every: float, live, watch: Watch, screen: Screen,
         now = time.monotonic()
         if chunk.data:
             watch.first_data = watch.first_data or now
-        if watch.settled is None and watch.first_data is not None \
-                and now - watch.first_data >= SETTLE_S:
+        if watch.first_samples is None and any(isinstance(ev, Samples) for ev in chunk.events):
+            watch.first_samples = now
+        if watch.settled is None and watch.first_samples is not None \
+                and now - watch.first_samples >= SETTLE_S:
             watch.settled = (now, conn.decoder.stats.samples)  # (this chunk's samples too)
         for ev in chunk.events:
             if isinstance(ev, Header) and (watch.info is None or ev.changed):
@@ -277,22 +282,30 @@ def verdict(watch: Watch, decoder: StreamDecoder, end: float) -> str:
     declared = watch.info.sample_rate_hz if watch.info else math.nan
     seconds = end - watch.first_data if watch.first_data is not None else 0.0
     got = st.samples / seconds if seconds > 0 else math.inf
+    over = ""
     if watch.settled is not None and end - watch.settled[0] >= SETTLED_MIN_S:
         got = (st.samples - watch.settled[1]) / (end - watch.settled[0])
+        over = f" over the last {end - watch.settled[0]:.1f} s"
     notes = watch.problems()
-    if st.errors:
-        notes.append(f"{st.crc_errors} CRC errors, {st.malformed} malformed frames")
+    if st.errors:  # each kind there is, by name
+        kinds = ((st.crc_errors, "CRC error", "CRC errors"),
+                 (st.malformed, "malformed frame", "malformed frames"),
+                 (st.csv_rejected, "CSV line not read", "CSV lines not read"),
+                 (st.unsupported, "header of an unsupported protocol",
+                  "headers of an unsupported protocol"))
+        notes.append(", ".join(f"{n} {one if n == 1 else many}" for n, one, many in kinds if n)
+                     + (" (a port opened mid-line cuts one)" if st.csv_rejected else ""))
     if st.gaps:
         notes.append(f"{st.gaps} gap{'' if st.gaps == 1 else 's'} ({st.samples_lost} samples "
                      "lost)")
     off = abs(got / declared - 1) if declared > 0 else math.inf
     if off <= RATE_TOLERANCE:
         head = "alive" + ("" if notes else " and sane")
-        rate = f"{got:.1f} Hz received, {declared:g} Hz declared"
+        rate = f"{got:.1f} Hz received{over}, {declared:g} Hz declared"
     else:
         head = ("too slow" if got < declared else "too fast") + ("" if notes else
                                                                  ", otherwise sane")
-        rate = (f"{got:.1f} Hz received, {declared:g} Hz declared: more than "
+        rate = (f"{got:.1f} Hz received{over}, {declared:g} Hz declared: more than "
                 f"{RATE_TOLERANCE:.0%} off")
     return (f"{head}: {st.samples} samples in {seconds:.1f} s ({rate})"
             + ("; " + "; ".join(notes) if notes else ""))

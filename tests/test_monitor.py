@@ -144,9 +144,39 @@ def test_the_verdict_leaves_out_what_waited_in_the_port():
         encode_samples(i, i * 10_000, raw[i:i + 10]) for i in range(0, 450, 10))))
     watch.first_data, watch.settled = 1000.0, (1000.5, 200)  # 150 waiting + 0.5 s at 100 Hz
     assert monitor.verdict(watch, dec, 1003.0) == (
-        "alive and sane: 450 samples in 3.0 s (100.0 Hz received, 100 Hz declared)")
+        "alive and sane: 450 samples in 3.0 s (100.0 Hz received over the last 2.5 s, 100 Hz "
+        "declared)")
     watch.settled = (1002.5, 400)  # too little after it: from the first bytes, as before
     assert monitor.verdict(watch, dec, 1003.0).startswith("too fast")
+
+
+def test_the_rate_counts_from_the_first_samples_not_the_first_bytes(monkeypatch):
+    """A CSV board opened mid-run without names: its rows wait 2 s for a names line, then come
+    at once; counted from 0.5 s after the first bytes, the verdict said `too fast` (111 Hz
+    over 5 s) of a board at 100 Hz. The rate now counts from 0.5 s after the first samples.
+    The watch runs on a scripted clock: a chunk of 10 rows every 0.1 s."""
+    import io
+    from types import SimpleNamespace
+
+    dec = StreamDecoder()
+    now = {"t": 1000.0}
+    monkeypatch.setattr(monitor.time, "monotonic", lambda: now["t"])
+
+    def chunks():
+        for k in range(50):
+            now["t"] = 1000.0 + 0.1 * (k + 1)
+            data = b"".join(b"%d,1,2\n" % (10 * k + i) for i in range(10))
+            yield SimpleNamespace(data=data, events=dec.feed(data))
+
+    conn = SimpleNamespace(chunks=chunks, decoder=dec, port="test", silent_for=lambda t: None)
+    watch = monitor.Watch()
+    monitor._watch(conn, 1.0, None, watch, monitor.Screen(io.StringIO()), 1000.0)
+    # 2 s of rows held (200 lines, the first line not taken): released with the chunk at 2.1 s
+    assert watch.first_samples == pytest.approx(1002.1) and watch.settled[0] == pytest.approx(
+        1002.6)
+    assert monitor.verdict(watch, dec, 1005.0) == (
+        "alive: 499 samples in 4.9 s (100.0 Hz received over the last 2.4 s, 100 Hz declared); "
+        "1 CSV line not read (a port opened mid-line cuts one)")  # (it said 0 CRC errors...)
 
 
 def test_no_samples_counts_the_bytes_held_waiting_for_a_frame_end_as_not_decodable():
