@@ -524,3 +524,34 @@ def test_a_second_training_into_a_folder_being_written_is_refused(dataset, tmp_p
     # the first one ended: the folder is free again
     assert train_main([str(dataset), "--out", str(run), "--quiet", *sets]) == 0
     assert (run / "checkpoint.pt").is_file()
+
+
+def test_a_state_saved_before_the_class_by_class_draw_is_refused_where_it_matters(dataset,
+                                                                                   tmp_path):
+    """A run stopped before takes of one class each were drawn class by class (and a signal
+    centred whole) drew another split: resumed now, its earlier epochs' takes could land in
+    test. Such a state is refused, in one line; one whose split and centring are unchanged
+    goes on."""
+    data = tmp_path / "data"
+    make_dataset(data, takes=4, textures=("non_contact", "paper"), seconds=4, seed=1)
+    for p in data.glob("*.json"):  # takes without users: each its own group, one class each
+        meta = json.loads(p.read_text())
+        del meta["user"]
+        p.write_text(json.dumps(meta))
+    cfg = TrainConfig(**SMALL)
+    train(data, tmp_path / "cut", cfg, progress=False, on_epoch=sigint_after("fit", 1))
+    saved = torch.load(tmp_path / "cut" / RESUME, weights_only=True)
+    assert saved["state"]["prep_version"] == 2
+    del saved["state"]["prep_version"]
+    torch.save(saved, tmp_path / "cut" / RESUME)
+    from tactile.errors import RecordingError
+
+    with pytest.raises(RecordingError, match="saved before takes of one class each were drawn "
+                                             "class by class"):
+        resume_run(tmp_path / "cut")
+    # users holding every class: the same split as before, so the old state goes on
+    train(dataset, tmp_path / "users", cfg, progress=False, on_epoch=sigint_after("fit", 1))
+    saved = torch.load(tmp_path / "users" / RESUME, weights_only=True)
+    del saved["state"]["prep_version"]
+    torch.save(saved, tmp_path / "users" / RESUME)
+    assert not resume_run(tmp_path / "users")["interrupted"]

@@ -234,6 +234,7 @@ class Split:
     test: dict[int, tuple[int, int]]
     description: str
     shared: str | None = None  # users in two parts (test/val named by take): a warning
+    by_class: bool = False  # the draw went class by class (groups of one class each)
 
 
 def split_takes(takes: list[Take], cfg: TrainConfig) -> Split:
@@ -265,7 +266,8 @@ def split_takes(takes: list[Take], cfg: TrainConfig) -> Split:
     by_label: dict[str, list[int]] = {}
     for g, labels in labels_of.items():
         by_label.setdefault(next(iter(labels)), []).append(g)
-    if len(by_label) > 1 and all(len(v) == 1 for v in labels_of.values()):
+    by_class = len(by_label) > 1 and all(len(v) == 1 for v in labels_of.values())
+    if by_class:
         # groups of one class each (takes with no user): drawn class by class, so that every
         # class with takes enough has some in validation and in test, and keeps one to train
         drawn_test, drawn_val = set(), set()
@@ -331,7 +333,8 @@ def split_takes(takes: list[Take], cfg: TrainConfig) -> Split:
                           f"recording, one in {a} and one in {b}: the {b} figures include "
                           f"a recording {'trained' if a == 'training' else 'validated'} on")
     return Split({i: whole[i] for i in sorted(train)}, {i: whole[i] for i in sorted(val)},
-                 {i: whole[i] for i in sorted(test)}, description, "; ".join(shared) or None)
+                 {i: whole[i] for i in sorted(test)}, description, "; ".join(shared) or None,
+                 by_class)
 
 
 

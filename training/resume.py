@@ -21,6 +21,9 @@ from tactile.errors import RecordingError
 from tactile.training.checkpoint import OLD_F_RNN, RESUME, old_f_rnn
 
 AUGMENT_VERSION = 2
+PREP_VERSION = 2
+"""2: takes of one class each drawn class by class into the parts, a high-rate signal centred
+whole (a state without the key was saved before: neither)."""
 """The gain augmentation a resume state was saved with: 2 draws one gain per window and
 modality for granular models (before, per window and feature; the pen's is unchanged)."""
 
@@ -102,7 +105,7 @@ def snapshot(phase: str, state: LoopState, live: Live, fit_history: dict | None,
         "opt": live.opt.state_dict(), "optimizer": type(live.opt).__name__,
         "sched": live.sched.state_dict() if live.sched is not None else None,
         "rng": rng_state(live.gen, live.aug), "fit_history": fit_history, "fit_best": fit_best,
-        "augment_version": AUGMENT_VERSION,
+        "augment_version": AUGMENT_VERSION, "prep_version": PREP_VERSION,
     })
 
 
@@ -138,5 +141,5 @@ def restore(saved: dict, live: Live) -> LoopState:
                              f"({type(e).__name__}: {first})") from None
 
 
-__all__ = ["AUGMENT_VERSION", "LoopState", "Live", "snapshot", "restore", "rng_state",
-           "set_rng_state"]
+__all__ = ["AUGMENT_VERSION", "PREP_VERSION", "LoopState", "Live", "snapshot", "restore",
+           "rng_state", "set_rng_state"]

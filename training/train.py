@@ -90,6 +90,12 @@ def train(data: Path, out: Path, cfg: TrainConfig, progress: bool = True, *,
                         torch.from_numpy(norm.std), channels=channels,
                         rate_hz=takes[0].info.sample_rate_hz, emd_index=norm.emd_index,
                         center_index=norm.center_index)
+    if resume is not None and "prep_version" not in resume and (
+            prep.split.by_class or getattr(model.pre, "center_groups", None)):
+        raise RecordingError(
+            f"{data}: this run was saved before takes of one class each were drawn class by "
+            "class and a high-rate signal was centred whole: it cannot go on as it started; "
+            "train it again")
     t0 = time.perf_counter()
     feats = features(model, prep.parts, cfg.seed, log, dist)
     model.fit_features(feats["train"])  # what the head keeps of them (an F-RNN's input scale)
