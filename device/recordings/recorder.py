@@ -227,10 +227,12 @@ def record(
             if rec.result.samples >= rec.max_samples:
                 break
     finally:
-        rec.close(decoder, complete=sys.exc_info()[0] is None)  # an error: not complete
-        conn.close()
-        for s, h in old.items():
-            signal.signal(s, h)
+        try:  # (closing can raise: the rows a CSV board's names line was awaited for)
+            rec.close(decoder, complete=sys.exc_info()[0] is None)  # an error: not complete
+        finally:
+            conn.close()
+            for s, h in old.items():
+                signal.signal(s, h)
     return rec.result
 
 
