@@ -7,7 +7,8 @@ and seed; prints one markdown table (mean and spread over the seeds) for docs/re
     python bench/baselines.py --out runs/mine --data data/mine --seeds 0   # your own takes
 
 Exit status: 0 when the table is printed, 1 for a bad argument or setting (one line, before
-any dataset is made), 2 when every dataset asked for is skipped (each says why) or when a run
+any dataset is made) or a dataset training refuses (a ``--data`` folder it cannot split: one
+line), 2 when every dataset asked for is skipped (each says why) or when a run
 or baseline in OUT was made with other settings (it says which; finished runs and baselines
 are reused, so other settings need another OUT), 130 on Ctrl-C (finished runs are kept).
 
@@ -53,6 +54,7 @@ report.
 
 from __future__ import annotations
 
+import hashlib
 import json
 import os
 import re
@@ -676,7 +678,7 @@ def _main(argv: list[str] | None = None) -> int:
                    help="your own dataset folder instead (repeatable; with --only as well): "
                         "the defaults against the baselines on it, with --set's settings only "
                         "(e.g. --set split=time for one take a class); its row is named by the "
-                        "folder")
+                        "folder, its runs kept by the takes' content (OUT/takes-DIGEST/)")
     p.add_argument("--seeds", default="0,1,2", help="comma-separated seeds (default 0,1,2)")
     p.add_argument("--cache", type=Path, default=CACHE,
                    help=f"folder for the imported BioTac takes (default {CACHE})")
@@ -727,15 +729,18 @@ def _main(argv: list[str] | None = None) -> int:
             p.error(f"--data {folder}: a second folder named {folder.resolve().name}")
         own[name] = folder
     print(libraries_line(), flush=True)
-    data = {}
+    data, where = {}, {}  # an own folder's runs by its takes' content: other takes, other runs
+    for name, folder in own.items():  # first: a folder that cannot be read stops at once
+        data[name] = folder, load_dataset(folder)
+        digest = hashlib.sha256(" ".join(sorted(t.fingerprint() for t in data[name][1]))
+                                .encode()).hexdigest()[:12]
+        where[name] = args.out / f"takes-{digest}"
     for name in args.only or ([] if own else DATASETS):
         got = prepare(name, args.out, args.cache)
         if isinstance(got, str):
             print(f"<!-- {name}: skipped, {got} -->", flush=True)
             continue
         data[name] = got
-    for name, folder in own.items():
-        data[name] = folder, load_dataset(folder)
     if not data:
         print("baselines.py: every dataset was skipped (the lines above, on stdout): nothing "
               "to run", file=sys.stderr)
@@ -764,8 +769,8 @@ def _main(argv: list[str] | None = None) -> int:
                     for name, got in data.items()}
         print(grid_table(grid, seeds))
         return 0
-    results = {name: run_dataset(name, *got, args.out, seeds, base, args.curves,
-                                 given=_keys(args.set), fitted=fitted)
+    results = {name: run_dataset(name, *got, where.get(name, args.out), seeds, base,
+                                 args.curves, given=_keys(args.set), fitted=fitted)
                for name, got in data.items()}
     print(f"\n| dataset | windows train/val/test | defaults: test accuracy (seed "
           f"{', '.join(map(str, seeds))}) | mean +/- sd | baseline: test accuracy | "

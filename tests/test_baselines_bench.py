@@ -473,8 +473,13 @@ def test_your_own_folder_gets_the_defaults_against_the_baselines(tmp_path, capsy
     row = next(line for line in out.splitlines() if line.startswith("| own-my_takes |"))
     cells = [c.strip() for c in row.split("|")[1:-1]]
     assert 0 <= float(cells[2]) <= 1 and 0 <= float(cells[4]) <= 1, row  # ours, the baseline
-    assert (tmp_path / "out" / "own-my_takes-seed0" / "metrics.json").is_file()
+    assert len(list((tmp_path / "out").glob("takes-*/own-my_takes-seed0/metrics.json"))) == 1
     assert "| small |" not in out  # --data alone: the built-in datasets are not run
+    make_dataset(data, takes=1, textures=("non_contact", "paper"), seconds=4, seed=2,
+                 first_take=5)  # more takes: new runs, not the old figures
+    assert b.main(["--out", str(tmp_path / "out"), "--data", str(data), "--seeds", "0",
+                   *sets]) == 0
+    assert len(list((tmp_path / "out").glob("takes-*/own-my_takes-seed0/metrics.json"))) == 2
     few = tmp_path / "few"
     make_dataset(few, takes=1, textures=("non_contact", "paper"), seconds=2, seed=1)
     assert b.main(["--out", str(tmp_path / "out2"), "--data", str(few), "--seeds", "0",
