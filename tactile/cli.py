@@ -119,7 +119,8 @@ class Parser(argparse.ArgumentParser):
         if m and m.group(2) in given:  # ``--smooth -1s``: argparse took -1s for an option
             k = given.index(m.group(2))
             after = given[k + 1].split("=")[0] if k + 1 < len(given) else ""
-            if after.startswith("-") and after not in self._option_string_actions:
+            if after.startswith("-") and not after.startswith("--") \
+                    and after not in self._option_string_actions:
                 hint = (f"; a value that starts with '-' goes after '=': "
                         f"{m.group(2)}={given[k + 1]}")
         print(f"{self.prog}: error: {message}{hint} (see --help)", file=sys.stderr)

@@ -219,6 +219,8 @@ def test_a_value_that_starts_with_a_dash_is_told_to_go_after_an_equals_sign():
     code, _, err = cli("tactile-run", "--model", "m.onnx", "--replay", "--smooth", "1s")
     assert code == 1 and err == (
         "tactile-run: error: argument --replay: expected one argument (see --help)\n"), err
+    code, _, err = cli("tactile-eval", "r", "d", "--smooth", "--data")  # not an option either
+    assert code == 1 and "goes after" not in err, err
 
 
 @pytest.mark.skipif(not Path("/dev/full").exists(), reason="no /dev/full on this system")

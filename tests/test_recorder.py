@@ -735,7 +735,8 @@ def test_record_keeps_the_user_and_the_metadata_given(tmp_path, capsys):
     for args, says in ((["--meta", "label=desk"], "--meta label: the recordings format's own "
                                                   "key; choose another"),
                        (["--meta", "session"], "--meta 'session': expected KEY=VALUE"),
-                       (["--user", "a", "--meta", "user=b"], "--meta user: given twice")):
+                       (["--user", "a", "--meta", "user=b"], "--meta user: give it as --user"),
+                       (["--meta", "n=1", "--meta", "n=2"], "--meta n: given twice")):
         assert record_main(["--port", "sim://?texture=paper", "--label", "paper", "--out",
                             str(tmp_path / "no"), *args]) == 1
         err = capsys.readouterr().err

@@ -129,11 +129,22 @@ def test_a_copied_take_in_training_and_in_test_is_named(takes, tmp_path):
     both = [*takes, read_take(tmp_path / "again.csv")]
     first = takes[0].path.name  # non_contact-user000, user alice
     s = split_takes(both, TrainConfig(test="user:zoe", val="user:bob", seed=0))
-    assert s.shared == (f"again.csv and {first} hold the same recording, one in training and "
+    assert s.shared == (f"{first} and again.csv hold the same recording, one in training and "
                         "one in test: the test figures include a recording trained on")
     s = split_takes(both, TrainConfig(test="user:alice", val="user:zoe", seed=0))
     assert s.shared == (f"again.csv and {first} hold the same recording, one in validation "
                         "and one in test: the test figures include a recording validated on")
+    for suffix in (".csv", ".json"):  # three copies: training, validation and test
+        shutil.copy(tmp_path / f"again{suffix}", tmp_path / f"third{suffix}")
+    meta["user"] = "yan"
+    (tmp_path / "third.json").write_text(json.dumps(meta))
+    three = [*both, read_take(tmp_path / "third.csv")]
+    s = split_takes(three, TrainConfig(test="user:zoe", val="user:yan", seed=0))
+    assert s.shared == (
+        f"{first} and third.csv hold the same recording, one in training and one in validation: "
+        "the validation figures include a recording trained on; "
+        f"{first} and again.csv hold the same recording, one in training and one in test: the "
+        "test figures include a recording trained on")
     assert split_takes(both, TrainConfig(test="user:alice,zoe", seed=0)).shared is None
 
 

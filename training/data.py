@@ -282,8 +282,10 @@ def split_takes(takes: list[Take], cfg: TrainConfig) -> Split:
             drawn_val |= set(ids[n_test : n_test + n_val].tolist())
         if (named_test is None and not drawn_test) or (named_val is None and not drawn_val):
             raise ConfigError(
-                f"{len(np.unique(groups))} {cfg.split}s cannot be split into train, validation "
-                "and test: record more takes, name fewer test/validation takes or use "
+                f"{len(np.unique(groups))} "
+                f"{'users' if len(group_names) < len(takes) else 'takes'} of one class each "
+                "cannot be split into train, validation and test (a class needs 3 for one in "
+                "each): record more takes, name the test/validation takes or use "
                 "split='time'")
     else:
         ids = rng.permutation(free_groups)
@@ -326,12 +328,21 @@ def split_takes(takes: list[Take], cfg: TrainConfig) -> Split:
                           f"{unit}s seen in training")
     part_of = {**{i: "training" for i in train}, **{i: "validation" for i in val},
                **{i: "test" for i in test}}
-    for i, j in copies(takes):  # a copied take in two parts: its figures are no test
-        a, b = sorted((part_of[i], part_of[j]), key=("training", "validation", "test").index)
-        if a != b:
-            shared.append(f"{takes[i].path.name} and {takes[j].path.name} hold the same "
-                          f"recording, one in {a} and one in {b}: the {b} figures include "
-                          f"a recording {'trained' if a == 'training' else 'validated'} on")
+    order = ("training", "validation", "test")
+    alike: dict[int, list[int]] = {}
+    for i, j in copies(takes):  # the takes of each recording, the first one's index as key
+        alike.setdefault(j, [j]).append(i)
+    for group in alike.values():  # a recording in two parts: the later part's figures
+        where = {}
+        for i in group:
+            where.setdefault(part_of[i], i)
+        parts = sorted(where, key=order.index)
+        for b in parts[1:]:
+            a = parts[0]
+            shared.append(f"{takes[where[a]].path.name} and {takes[where[b]].path.name} hold "
+                          f"the same recording, one in {a} and one in {b}: the {b} figures "
+                          f"include a recording {'trained' if a == 'training' else 'validated'} "
+                          "on")
     return Split({i: whole[i] for i in sorted(train)}, {i: whole[i] for i in sorted(val)},
                  {i: whole[i] for i in sorted(test)}, description, "; ".join(shared) or None,
                  by_class)

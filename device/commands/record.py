@@ -67,9 +67,12 @@ def take_extra(user: str | None, meta: list[str]) -> dict:
             raise ConfigError(f"--meta {item!r}: expected KEY=VALUE (KEY: letters, digits, _)")
         if key in RESERVED_KEYS:
             raise ConfigError(f"--meta {key}: the recordings format's own key; choose another")
+        if key in ("user", "name"):  # (training's selectors read name: as the file's name)
+            raise ConfigError(f"--meta {key}: " + ("give it as --user" if key == "user" else
+                                                   "selectors read name: as the take's file "
+                                                   "name; choose another key"))
         if key in extra:
-            raise ConfigError(f"--meta {key}: given twice" + (" (--user sets user)"
-                                                              if key == "user" else ""))
+            raise ConfigError(f"--meta {key}: given twice")
         extra[key] = int(value) if re.fullmatch(r"-?[0-9]{1,18}", value) else value
     return extra
 
@@ -77,12 +80,13 @@ def take_extra(user: str | None, meta: list[str]) -> dict:
 def _main(args: argparse.Namespace) -> int:
     from tactile.device.link.portlist import find_port
     from tactile.device.recordings.recorder import record
-    from tactile.device.recordings.take import check_label, dataset_folder
+    from tactile.device.recordings.take import check_label, check_label_joins, dataset_folder
     from tactile.errors import DeviceError, RecordingError
     from tactile.postprocess.smoothing import UNCERTAIN
 
     check_label(args.label)  # before the port opens: a mistake costs no take
     extra = take_extra(args.user, args.meta)
+    check_label_joins(args.out, args.label)  # (before looking for a pen, too)
     if args.label == UNCERTAIN:  # a take training would refuse
         raise RecordingError(f"label {UNCERTAIN!r}: the label stream reserves it for no stable "
                              "label, so a model cannot have that class: choose another")

@@ -81,7 +81,7 @@ def _traces(panel: Panel, channels, values: np.ndarray, t: np.ndarray, segments,
     r = len(panel.index) if panel.signal else 1
     offsets = np.arange(r) / (r * rate)
     for c in cols:
-        ys, ts = [], []
+        ys, ts = [np.zeros(0)], [np.zeros(0)]  # (a take with no rows: an empty trace)
         for a, b in segments:
             ys += [values[a:b][:, c].astype(float).reshape(-1), [np.nan]]
             ts += [(t[a:b, None] + offsets).reshape(-1), [np.nan]]

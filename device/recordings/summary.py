@@ -63,8 +63,11 @@ def summarise(takes: list[Take], window: int, hop: int) -> dict:
                 "minutes": round(row["minutes"], 3)}
 
     first = takes[0].info
+    def signals(t: Take) -> tuple:  # as training compares them: names, order and channels
+        return tuple((k, tuple(v)) for k, v in (t.meta.get("signals") or {}).items())
+
     declared = takes[0].meta.get("signals") or {}
-    agree = all((t.meta.get("signals") or {}) == declared for t in takes)
+    agree = all(signals(t) == signals(takes[0]) for t in takes)
     return {
         "takes": len(takes), "classes": sorted(by_class), "users": sorted(by_user, key=natural),
         "channels": [{"name": c.name, "unit": c.unit} for c in first.channels],
