@@ -28,6 +28,7 @@ CSV_AGREE = 3  # readable CSV lines of one width in a row that decide the stream
 CSV_HOLD = 64  # lines held at most while the CSV width is undecided
 CSV_NAMES_WAIT_S = 2.0  # a stream opened mid-run: rows held this long for a names line...
 CSV_NAMES_WAIT_MAX = 2048  # ... and at most this many lines
+CSV_NAMES_WAIT_BYTES = 1 << 18  # ... of at most this many bytes (wide rows: bounded memory)
 _RESTART = ("restart",)  # in the lines held for names: the link was re-opened here
 _NAME = re.compile(r"[A-Za-z_][A-Za-z0-9_./\-]*")
 # Plain decimal numbers as a board prints them: sign, digits, point, exponent. Nothing else
@@ -97,6 +98,7 @@ class CsvLines:
             if self._mid_run and not any(k is not None and k[0] == "names" and k[1] == width
                                          for k, _ in held):
                 self._csv_wait = held  # opened mid-run, no names yet: they may follow
+                self._csv_wait_bytes = sum(n for _, n in held)
                 return
             for k, nbytes in held:
                 self._csv_line(k, nbytes, events)
@@ -113,15 +115,16 @@ class CsvLines:
             self._release_wait(events)
             return  # (the line itself: the names just taken, so nothing)
         self._csv_wait.append((kind, nbytes))
+        self._csv_wait_bytes += nbytes
         limit = min(max(CSV_HOLD, math.ceil(CSV_NAMES_WAIT_S * self.csv_rate_hz)),
                     CSV_NAMES_WAIT_MAX)
-        if len(self._csv_wait) >= limit:
+        if len(self._csv_wait) >= limit or self._csv_wait_bytes > CSV_NAMES_WAIT_BYTES:
             self._release_wait(events)
 
     def _release_wait(self, events: list[Event]) -> None:
         """The lines held for a names line, decoded in order (a re-opened link's ``restart``
         gap where it happened)."""
-        held, self._csv_wait = self._csv_wait, None
+        held, self._csv_wait, self._csv_wait_bytes = self._csv_wait, None, 0
         for k, nbytes in held:
             if k is _RESTART:
                 self._restart_pending = self.info is not None  # (before any row: no break)
@@ -217,4 +220,4 @@ def csv_kind(line: bytes):
 
 
 __all__ = ["CsvLines", "csv_kind", "MAX_CSV_LINE", "CSV_AGREE", "CSV_HOLD",
-           "CSV_NAMES_WAIT_S", "CSV_NAMES_WAIT_MAX"]
+           "CSV_NAMES_WAIT_S", "CSV_NAMES_WAIT_MAX", "CSV_NAMES_WAIT_BYTES"]

@@ -100,6 +100,7 @@ class StreamDecoder(CsvLines):
         self._csv_held: list = []  # (kind, nbytes) while the width is undecided
         self._mid_run = not line_start  # a port opened on a running board: names may follow
         self._csv_wait: list | None = None  # (kind, nbytes) of rows waiting for a names line
+        self._csv_wait_bytes = 0  # ... and their bytes
         self._csv_run = (0, 0)  # (width, readable lines of that width in a row)
         self._csv_names: tuple[str, ...] | None = None
         self._csv_rejected_run = 0
