@@ -29,7 +29,7 @@ from tactile.runtime.units import to_units
 
 INT16 = (-32768, 32767)
 RATE_TOLERANCE = 0.10  # alive: the rate received within 10% of the declared one
-SETTLE_S = 0.5  # the verdict's rate counts from this long after the first bytes...
+SETTLE_S = 0.5  # the verdict's rate counts from this long after the first samples...
 SETTLED_MIN_S = 1.0  # ... when at least this much of the run comes after that
 
 
@@ -274,10 +274,10 @@ def _link_status(decoder: StreamDecoder) -> dict:
 def verdict(watch: Watch, decoder: StreamDecoder, end: float) -> str:
     """One line: alive (the rate received, within :data:`RATE_TOLERANCE` of the declared one;
     else ``too slow`` or ``too fast``) and sane (no errors, gaps, flat or saturated channels;
-    else each is named). The rate counts from :data:`SETTLE_S` after the first bytes to
-    ``end`` (monotonic s), when that is at least :data:`SETTLED_MIN_S`: what waited in the
-    port comes at once when it opens, and made a pen at its rate ``too fast``; a shorter run
-    counts from the first bytes."""
+    else each is named). The rate counts from :data:`SETTLE_S` after the first samples to
+    ``end`` (monotonic s), when that leaves at least :data:`SETTLED_MIN_S`: what waited in the
+    port comes at once when it opens (and a CSV board's rows held for its names line), and
+    made a pen at its rate ``too fast``; a shorter run counts from the first bytes."""
     st = decoder.stats
     declared = watch.info.sample_rate_hz if watch.info else math.nan
     seconds = end - watch.first_data if watch.first_data is not None else 0.0
