@@ -54,11 +54,14 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def take_extra(user: str | None, meta: list[str]) -> dict:
-    """``--user`` and ``--meta KEY=VALUE`` as the take's extra JSON keys; a key the recordings
-    format uses itself, one given twice, or not KEY=VALUE is a :class:`ConfigError`."""
+    """``--user`` and ``--meta KEY=VALUE`` as the take's extra JSON keys; an empty user, a key
+    the recordings format uses itself, ``user`` or ``name`` (the selectors' file name) in
+    ``--meta``, one given twice, or not KEY=VALUE is a :class:`ConfigError`."""
     from tactile.device.recordings.take_meta import RESERVED_KEYS
     from tactile.errors import ConfigError
 
+    if user is not None and not user.strip():
+        raise ConfigError("--user: give a name (or leave --user out)")
     extra: dict = {} if user is None else {"user": user}
     for item in meta:
         key, eq, value = item.partition("=")
