@@ -292,7 +292,10 @@ def _accuracy(loaded, c: ModelContract, data: Path) -> None:
 
     ck = {"classes": list(c.classes), "channels": list(c.channels), "units": list(c.units),
           "sample_rate_hz": c.sample_rate_hz, "config": {
-              "window": c.window, "hop": c.hop,
+              "window": c.window, "hop": c.hop, "model": c.model,
+              "modalities": [m.name for m in c.modalities],
+              # an lstm's file names signals only when its spectral front reads them
+              "front": "spectral" if c.signals else "none",
               "signals": {s.name: list(s.channels) for s in c.signals}},
           "seen_fingerprints": c.training_metrics.get("seen_fingerprints")}
     takes = c.training_metrics.get("test_takes")

@@ -17,7 +17,14 @@ from tactile.device.protocol import PEN_CHANNELS
 from tactile.device.recordings import load_dataset
 from tactile.device.sim import TEXTURES, PenSimulator
 from tactile.errors import RecordingError
-from tactile.training.data import check_model_input, cut, find_test_split, seen_note, seen_takes
+from tactile.training.data import (
+    check_model_input,
+    cut,
+    find_test_split,
+    ordered_signals,
+    seen_note,
+    seen_takes,
+)
 
 CARRY_STEPS = 24
 """Consecutive windows per simulated or random run (the contract asks for >= 20)."""
@@ -64,7 +71,7 @@ def from_dataset(ck: dict, data: Path) -> Probe:
         raise RecordingError(f"{data}: labels {unknown} are not among the model's "
                              f"{list(classes)}")
     check_model_input(takes, tuple(ck["channels"]), ck.get("units"), ck.get("sample_rate_hz"),
-                      data, tuple((cfg.get("signals") or {}).items()))
+                      data, ordered_signals(cfg))
     rows, source, _ = find_test_split(takes, ck.get("test_rows"), ck.get("test_fingerprints"),
                                  data.name)
     if rows is None:  # every take of DATA: say which of them the run has seen

@@ -371,3 +371,19 @@ def test_a_centred_signal_loses_one_mean_not_one_per_sub_sample(tmp_path, capsys
     del ck["center_groups"]  # a checkpoint saved before: each sub-sample centred by itself
     torch.save(ck, run / "checkpoint.pt")
     assert load_checkpoint(run)[0].pre.center_groups == []
+
+
+def test_a_model_that_reads_sub_samples_as_channels_takes_them_in_any_order(tmp_path):
+    """An lstm with front='none' reads a signal's sub-samples as plain channels (its config
+    keeps [signals] as written: for gains and centring, in no time order); tactile-eval
+    checked the takes' declared order against that written list and refused takes the model
+    reads correctly."""
+    from tactile.training.evaluate import evaluate_run
+    from tactile.training.train import train
+
+    data = biotac_takes(tmp_path, frames=60)
+    run = tmp_path / "run"
+    train(data, run, TrainConfig(channels=("f0_pdc", *PAC), front="none", epochs=1, threads=1,
+                                 batch_size=16, signals=(("f0_pac", tuple(reversed(PAC))),)),
+          progress=False)
+    assert evaluate_run(run, data)["windows"] > 0  # the takes declare 00..21, the config 21..00

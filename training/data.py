@@ -90,6 +90,18 @@ def pick_channels(take: Take, patterns: tuple[str, ...]) -> tuple[str, ...]:
     return tuple(out)
 
 
+def ordered_signals(config) -> tuple:
+    """The high-rate signals a model reads in time order, as (name, channels) pairs, from its
+    config (a :class:`TrainConfig` or a checkpoint's dict): a granular model's, a ``linear``
+    head's or a spectral front's; an lstm with ``front='none'`` reads the sub-samples as
+    plain channels, in any order (its config keeps ``[signals]`` as written), so none."""
+    get = config.get if isinstance(config, dict) else (lambda k, d=None: getattr(config, k, d))
+    if not (get("modalities") or get("model") == "linear" or get("front") == "spectral"):
+        return ()
+    signals = get("signals") or ()
+    return tuple(signals.items()) if isinstance(signals, dict) else tuple(signals)
+
+
 def check_model_input(takes: list[Take], channels: tuple[str, ...], units, rate_hz,
                       data: object, signals=()) -> None:
     """The takes carry what a trained model reads, as ``tactile-run`` checks a device: each

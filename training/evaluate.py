@@ -26,6 +26,7 @@ from tactile.training.data import (
     check_model_input,
     cut,
     find_test_split,
+    ordered_signals,
     seen_note,
     seen_takes,
 )
@@ -197,7 +198,7 @@ def evaluate_run(run_dir: Path, data: Path, threads: int | None = None,
         raise RecordingError(f"{data}: labels {unknown} are not among the model's {list(classes)}")
     channels = tuple(ck["channels"])
     rate = float(ck["sample_rate_hz"])
-    check_model_input(takes, channels, ck.get("units"), rate, data, cfg.signals)
+    check_model_input(takes, channels, ck.get("units"), rate, data, ordered_signals(cfg))
     rows, scope, _ = find_test_split(takes, ck.get("test_rows"), ck.get("test_fingerprints"),
                                      str(data))
     # the run's own test split: none of it was seen; else which takes were (None: not known)
