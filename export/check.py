@@ -291,19 +291,15 @@ def _accuracy(loaded, c: ModelContract, data: Path) -> None:
     from tactile.export.windows import from_dataset
 
     ck = {"classes": list(c.classes), "channels": list(c.channels), "units": list(c.units),
-          "sample_rate_hz": c.sample_rate_hz, "config": {
-              "window": c.window, "hop": c.hop, "model": c.model,
-              "modalities": [m.name for m in c.modalities],
-              # an lstm's file names signals only when its spectral front reads them
-              "front": "spectral" if c.signals else "none",
-              "signals": {s.name: list(s.channels) for s in c.signals}},
+          "sample_rate_hz": c.sample_rate_hz, "config": {"window": c.window, "hop": c.hop},
           "seen_fingerprints": c.training_metrics.get("seen_fingerprints")}
     takes = c.training_metrics.get("test_takes")
     if isinstance(takes, dict):  # the run's test split, recorded at export (read defensively)
         ck["test_rows"] = {n: v.get("rows") for n, v in takes.items() if isinstance(v, dict)}
         ck["test_fingerprints"] = {n: v.get("fingerprint") for n, v in takes.items()
                                    if isinstance(v, dict)}
-    probe = from_dataset(ck, data)
+    # a file names the signals its model reads in time order (none read as plain channels)
+    probe = from_dataset(ck, data, tuple((s.name, s.channels) for s in c.signals))
     sess = loaded.session
     labels = np.empty(len(probe), np.int64)
     zero = np.zeros((c.state_layers, 1, c.state_hidden), np.float32)

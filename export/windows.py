@@ -14,17 +14,8 @@ from pathlib import Path
 import numpy as np
 
 from tactile.device.protocol import PEN_CHANNELS
-from tactile.device.recordings import load_dataset
 from tactile.device.sim import TEXTURES, PenSimulator
-from tactile.errors import RecordingError
-from tactile.training.data import (
-    check_model_input,
-    cut,
-    find_test_split,
-    ordered_signals,
-    seen_note,
-    seen_takes,
-)
+from tactile.training.data import cut, model_data, ordered_signals
 
 CARRY_STEPS = 24
 """Consecutive windows per simulated or random run (the contract asks for >= 20)."""
@@ -60,23 +51,14 @@ def probe_windows(ck: dict, data: Path | None = None, max_windows: int = 256) ->
     return stratified(probe, max_windows, block)
 
 
-def from_dataset(ck: dict, data: Path) -> Probe:
-    """The run's test rows of ``data`` when its takes are the run's (by content:
-    :func:`find_test_split`), else every take of it."""
+def from_dataset(ck: dict, data: Path, signals=None) -> Probe:
+    """The run's test rows of ``data`` when its takes are the run's (by content), else every
+    take of it (:func:`~tactile.training.data.model_data`, as ``tactile-eval`` reads them).
+    ``signals``: the ones the model reads in time order (default: its config's)."""
     cfg = ck["config"]
-    classes = tuple(ck["classes"])
-    takes = load_dataset(data)
-    unknown = sorted({t.label for t in takes} - set(classes))
-    if unknown:  # as tactile-eval: a figure on some of DATA's takes is not DATA's
-        raise RecordingError(f"{data}: labels {unknown} are not among the model's "
-                             f"{list(classes)}")
-    check_model_input(takes, tuple(ck["channels"]), ck.get("units"), ck.get("sample_rate_hz"),
-                      data, ordered_signals(cfg))
-    rows, source, _ = find_test_split(takes, ck.get("test_rows"), ck.get("test_fingerprints"),
-                                 data.name)
-    if rows is None:  # every take of DATA: say which of them the run has seen
-        source += seen_note(seen_takes(takes, ck.get("seen_fingerprints")))
-    w = cut(takes, classes, tuple(ck["channels"]), cfg["window"], cfg["hop"], rows)
+    takes, rows, source, _ = model_data(
+        ck, data, data.name, ordered_signals(cfg) if signals is None else signals)
+    w = cut(takes, tuple(ck["classes"]), tuple(ck["channels"]), cfg["window"], cfg["hop"], rows)
     order = np.lexsort((w.start, w.run))
     bounds = np.flatnonzero(np.diff(w.run[order])) + 1
     return Probe(w.x, w.y, np.split(order, bounds), source, w.take)

@@ -196,7 +196,7 @@ def check_device(model: Model, info: DeviceInfo) -> np.ndarray:
         )
     columns = np.array([where[name] for name in want], np.intp)
     got_units = tuple(info.channels[i].unit for i in columns)
-    if info.device == "csv" and not any(ch.unit for ch in info.channels):  # no units, no rate
+    if info.units_unknown:  # a CSV device: no units, no rate
         say(f"CSV device: its values are taken in the model's units "
             f"{list(model.contract.units)}, at the model's {model.contract.sample_rate_hz:g} Hz")
     elif got_units != model.contract.units:

@@ -13,7 +13,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from tactile.device.recordings import Take
+from tactile.device.recordings import Take, load_dataset
 from tactile.device.recordings.reader import copies
 from tactile.device.recordings.take_meta import signal_order_differs
 from tactile.errors import ConfigError, RecordingError
@@ -119,8 +119,7 @@ def check_model_input(takes: list[Take], channels: tuple[str, ...], units, rate_
         index = channel_index(take, channels)
         # a CSV device's take declares no units: taken in the model's, as tactile-run takes
         # a CSV device's values
-        unitless = take.info.device == "csv" and not any(c.unit for c in take.info.channels)
-        if units is not None and not unitless:
+        if units is not None and not take.info.units_unknown:
             got = [take.info.channels[i].unit for i in index]
             bad = [k for k, (u, want) in enumerate(zip(got, units)) if u != want]
             if bad:
@@ -376,6 +375,27 @@ def channel_stats(w: Windows) -> tuple[np.ndarray, np.ndarray]:
     mean, std = flat.mean(0), flat.std(0)
     std[std < 1e-8] = 1.0
     return mean.astype(np.float32), std.astype(np.float32)
+
+
+def model_data(ck: dict, data, folder: str, signals) -> tuple:
+    """DATA's takes as a trained model reads them, for figures on them (``tactile-eval``,
+    ``tactile-export --data``, ``tactile-check --data``): (takes, rows, scope, seen). Their
+    labels must be among the model's classes and they must carry what it reads
+    (:func:`check_model_input`, ``signals`` the ones it reads in time order); ``rows`` is the
+    run's test split when DATA holds it (:func:`find_test_split`, ``folder`` naming DATA in
+    ``scope``), else None (every row); ``seen``: the takes the run trained or validated on
+    among them ([] for its test split; None: not known), named at the end of ``scope``."""
+    takes = load_dataset(data)
+    classes = list(ck["classes"])
+    unknown = sorted({t.label for t in takes} - set(classes))
+    if unknown:  # a figure on some of DATA's takes would not be DATA's
+        raise RecordingError(f"{data}: labels {unknown} are not among the model's {classes}")
+    check_model_input(takes, tuple(ck["channels"]), ck.get("units"), ck.get("sample_rate_hz"),
+                      data, signals)
+    rows, scope, _ = find_test_split(takes, ck.get("test_rows"), ck.get("test_fingerprints"),
+                                     folder)
+    seen = [] if rows is not None else seen_takes(takes, ck.get("seen_fingerprints"))
+    return takes, rows, scope + seen_note(seen), seen
 
 
 def seen_takes(takes: list[Take], seen: object) -> list[str] | None:

@@ -16,20 +16,11 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from tactile.device.recordings import load_dataset
-from tactile.errors import ConfigError, RecordingError
+from tactile.errors import ConfigError
 from tactile.training import feature_pass
 from tactile.training.checkpoint import load_checkpoint
 from tactile.training.config import apply_threads, resolve_threads
-from tactile.training.data import (
-    Windows,
-    check_model_input,
-    cut,
-    find_test_split,
-    ordered_signals,
-    seen_note,
-    seen_takes,
-)
+from tactile.training.data import Windows, cut, model_data, ordered_signals
 from tactile.training.label_stream import stream_figures
 from tactile.training.model import TextureModel
 
@@ -191,19 +182,9 @@ def evaluate_run(run_dir: Path, data: Path, threads: int | None = None,
     model, ck = load_checkpoint(run_dir)
     cfg = model.cfg
     s_threads = apply_threads(threads or resolve_threads(cfg.threads))
-    takes = load_dataset(data)
-    classes = tuple(ck["classes"])
-    unknown = sorted({t.label for t in takes} - set(classes))
-    if unknown:
-        raise RecordingError(f"{data}: labels {unknown} are not among the model's {list(classes)}")
-    channels = tuple(ck["channels"])
+    takes, rows, scope, trained = model_data(ck, data, str(data), ordered_signals(cfg))
+    classes, channels = tuple(ck["classes"]), tuple(ck["channels"])
     rate = float(ck["sample_rate_hz"])
-    check_model_input(takes, channels, ck.get("units"), rate, data, ordered_signals(cfg))
-    rows, scope, _ = find_test_split(takes, ck.get("test_rows"), ck.get("test_fingerprints"),
-                                     str(data))
-    # the run's own test split: none of it was seen; else which takes were (None: not known)
-    trained = [] if rows is not None else seen_takes(takes, ck.get("seen_fingerprints"))
-    scope += seen_note(trained)
     w = cut(takes, classes, channels, cfg.window, cfg.hop, rows)
     probs = predict(model, w)
     s = summary(w.y, probs, classes)

@@ -113,14 +113,10 @@ def signals_of_takes(takes, channels: tuple[str, ...]) -> Signals:
     """The high-rate signals the takes declare (their JSON's ``signals``), restricted to
     signals whose channels are all among ``channels``. Every take must declare the same;
     otherwise a :class:`ConfigError` names the first take that differs."""
-    def of(take) -> Signals:
-        d = take.meta.get("signals") or {}
-        return tuple((k, tuple(v)) for k, v in d.items())
-
-    first = of(takes[0]) if takes else ()
+    first = takes[0].declared_signals if takes else ()
     for t in takes[1:]:
-        if of(t) != first:
-            raise ConfigError(f"{t.path.name}: declares signals {dict(of(t))} but "
+        if t.declared_signals != first:
+            raise ConfigError(f"{t.path.name}: declares signals {dict(t.declared_signals)} but "
                               f"{takes[0].path.name} declares {dict(first)}: the takes must "
                               "agree (or set [signals] in the config)")
     return tuple((k, v) for k, v in first if all(c in channels for c in v))

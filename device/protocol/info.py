@@ -70,6 +70,11 @@ class DeviceInfo:
             raise FrameError(f"protocol version {self.protocol_version}: must be 0..255")
 
     @property
+    def units_unknown(self) -> bool:
+        """A CSV-line device (which declares no units: its values are taken in a model's)."""
+        return self.device == "csv" and not any(c.unit for c in self.channels)
+
+    @property
     def channel_names(self) -> tuple[str, ...]:
         return tuple(c.name for c in self.channels)
 

@@ -63,11 +63,8 @@ def summarise(takes: list[Take], window: int, hop: int) -> dict:
                 "minutes": round(row["minutes"], 3)}
 
     first = takes[0].info
-    def signals(t: Take) -> tuple:  # as training compares them: names, order and channels
-        return tuple((k, tuple(v)) for k, v in (t.meta.get("signals") or {}).items())
-
-    declared = takes[0].meta.get("signals") or {}
-    agree = all(signals(t) == signals(takes[0]) for t in takes)
+    declared = dict(takes[0].declared_signals)
+    agree = all(t.declared_signals == takes[0].declared_signals for t in takes)
     return {
         "takes": len(takes), "classes": sorted(by_class), "users": sorted(by_user, key=natural),
         "channels": [{"name": c.name, "unit": c.unit} for c in first.channels],

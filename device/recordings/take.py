@@ -63,6 +63,12 @@ class Take:
     def channels(self) -> tuple[str, ...]:
         return self.info.channel_names
 
+    @property
+    def declared_signals(self) -> tuple[tuple[str, tuple[str, ...]], ...]:
+        """The high-rate signals the take's JSON declares, (name, channels in time order) in
+        its order: what two takes must agree on to be read alike."""
+        return tuple((k, tuple(v)) for k, v in (self.meta.get("signals") or {}).items())
+
     def values(self) -> np.ndarray:
         """(n, channels) float64 in the channels' units."""
         scale = np.array([c.scale for c in self.info.channels])
