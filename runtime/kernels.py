@@ -78,7 +78,7 @@ def register(options, path: str | os.PathLike) -> bool:
         _state["said"] = True
         from tactile.cli import prefix  # the command's name while one runs
 
-        print(f"{prefix() or 'tactile: '}running the portable EMD/sparse-code graphs ({reason})",
+        print(f"{prefix('tactile: ')}running the portable EMD/sparse-code graphs ({reason})",
               file=sys.stderr)
     return False
 

@@ -420,11 +420,11 @@ def _running() -> list[str]:
     return _local.running
 
 
-def prefix() -> str:
-    """``"tactile-x: "`` while the command ``tactile-x`` runs in this thread, else ``""``: for
-    the library's own warning lines, so that they name the command as its errors do."""
+def prefix(outside: str = "") -> str:
+    """``"tactile-x: "`` while the command ``tactile-x`` runs in this thread, else ``outside``:
+    for the library's own warning lines, so that they name the command as its errors do."""
     running = _running()
-    return f"{running[-1]}: " if running else ""
+    return f"{running[-1]}: " if running else outside
 
 
 def _is_the_process(prog: str, main: Callable[..., int]) -> bool:

@@ -52,7 +52,7 @@ def disabled_by_env() -> bool:
         _warned.add(value)
         from tactile.cli import prefix  # the command's name while one runs
 
-        print(f"{prefix() or 'tactile: '}TACTILE_NATIVE={value!r} is not one of 0/false/off/no "
+        print(f"{prefix('tactile: ')}TACTILE_NATIVE={value!r} is not one of 0/false/off/no "
               "(kernels off) or 1/true/on/yes: the native kernels stay on", file=sys.stderr)
     return False
 
