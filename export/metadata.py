@@ -110,12 +110,12 @@ def _high_rate(cfg: dict, channels: list[str], rate_hz: float) -> list[dict]:
     ``linear`` head over the whole window): per signal its name, sub-sample channels, rate,
     frame and hop (samples at that rate) and band edges (Hz); empty without signals or with
     an lstm's ``front='none'``."""
-    from tactile.training.config import signals_from
+    from tactile.training.config import reads_signals, signals_from
     from tactile.training.frontend import band_edges_hz
     from tactile.training.modality import resolve_signals
 
     linear = cfg["model"] == "linear"
-    if not (linear or cfg.get("front") == "spectral") or not cfg.get("signals"):
+    if not reads_signals(cfg) or not cfg.get("signals"):
         return []
     out = []
     for name, names in resolve_signals(signals_from(cfg["signals"]), tuple(channels)):

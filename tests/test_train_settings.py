@@ -197,8 +197,8 @@ def test_a_modality_size_past_its_cap_is_refused_naming_it():
 
 
 def test_settings_the_training_does_not_read_are_named():
-    """emd_imfs without emd_channels, carry_steps without state='carry', frame with
-    front='none', test_fraction with a named test, an LSTM's sizes for a linear model: each
+    """emd_imfs without emd_channels, carry_steps without state='carry', frame or [signals]
+    with front='none', test_fraction with a named test, an LSTM's sizes for a linear model: each
     trained exactly as without it, with no word."""
     from tactile.training.config import Modality, unused
 
@@ -209,6 +209,14 @@ def test_settings_the_training_does_not_read_are_named():
         "frame=50 (only front='spectral')", "frame_hop=3 (only front='spectral')"]
     assert unused(TrainConfig(test="user:2", test_fraction=0.9, val_fraction=0.5)) == [
         "test_fraction=0.9 (test='user:2' names the test takes)"]
+    vib = (("vib", ("pac_*",)),)  # read as plain channels without the spectral front
+    assert unused(TrainConfig(front="none", signals=vib)) == [
+        "signals={'vib': ['pac_*']} (front='none' reads a signal's sub-samples as plain "
+        "channels)"]
+    assert unused(TrainConfig(signals=vib)) == []
+    assert unused(TrainConfig(model="linear", emd_channels=("accel_x",), front="none",
+                              signals=vib)) == [
+        "front='none' (only model='lstm')"]
     linear = TrainConfig(model="linear", modalities=(Modality("imu", ("accel_*",)),), hidden=3,
                          wide=False, emd_sifts=5, emd_imfs=2)
     assert unused(linear) == [

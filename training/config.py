@@ -413,6 +413,16 @@ class TrainConfig:
         return self.from_dict({**self.to_dict(), **kw})
 
 
+def reads_signals(config) -> bool:
+    """Whether a model reads its high-rate signals at their own rate, sub-samples in time
+    order: a granular model (``modalities``), a ``linear`` head, a spectral front. An lstm with
+    ``front='none'`` reads a signal's sub-samples as plain channels, so ``[signals]`` means
+    nothing to it. ``config``: a :class:`TrainConfig` or a checkpoint's config dict (one saved
+    before ``front`` existed has no spectral front)."""
+    get = config.get if isinstance(config, dict) else (lambda k: getattr(config, k))
+    return bool(get("modalities")) or get("model") == "linear" or get("front") == "spectral"
+
+
 def unused(cfg: TrainConfig) -> list[str]:
     """The settings ``cfg`` moves from their defaults that its model or options never read,
     each as ``key=value (why)``: a training that ran as if they were not there would
@@ -435,12 +445,15 @@ def unused(cfg: TrainConfig) -> list[str]:
          "the granular models read neither"),
         (("test_fraction",), bool(cfg.test), f"test={cfg.test!r} names the test takes"),
         (("val_fraction",), bool(cfg.val), f"val={cfg.val!r} names the validation takes"),
+        (("signals",), not reads_signals(cfg),
+         "front='none' reads a signal's sub-samples as plain channels"),
     ]
     said: dict[str, str] = {}
     for keys, idle, why in rules:
         for k in keys:
             if idle and k not in said and getattr(cfg, k) != getattr(base, k):
-                said[k] = f"{k}={getattr(cfg, k)!r} ({why})"
+                value = cfg.to_dict()[k] if k == "signals" else getattr(cfg, k)
+                said[k] = f"{k}={value!r} ({why})"
     return list(said.values())
 
 
@@ -517,5 +530,5 @@ def resolve_device(device: str, cuda_available: bool | None = None) -> str:
 
 __all__ = ["TrainConfig", "Modality", "unused", "MODELS", "FRONTS", "STATE_MODES",
            "SPLITS", "SCHEDULES", "SELECTS", "REFITS", "BLENDS", "BLENDED_MODELS", "DEVICES",
-           "signals_from", "modalities_from",
+           "signals_from", "modalities_from", "reads_signals",
            "apply_threads", "resolve_threads", "resolve_device", "usable_cpus"]

@@ -17,7 +17,7 @@ from tactile.device.recordings import Take, load_dataset
 from tactile.device.recordings.reader import copies
 from tactile.device.recordings.take_meta import signal_order_differs
 from tactile.errors import ConfigError, RecordingError
-from tactile.training.config import SELECTOR, TrainConfig
+from tactile.training.config import SELECTOR, TrainConfig, reads_signals
 
 
 @dataclass
@@ -95,10 +95,9 @@ def ordered_signals(config) -> tuple:
     config (a :class:`TrainConfig` or a checkpoint's dict): a granular model's, a ``linear``
     head's or a spectral front's; an lstm with ``front='none'`` reads the sub-samples as
     plain channels, in any order (its config keeps ``[signals]`` as written), so none."""
-    get = config.get if isinstance(config, dict) else (lambda k, d=None: getattr(config, k, d))
-    if not (get("modalities") or get("model") == "linear" or get("front") == "spectral"):
+    if not reads_signals(config):
         return ()
-    signals = get("signals") or ()
+    signals = (config.get("signals") if isinstance(config, dict) else config.signals) or ()
     return tuple(signals.items()) if isinstance(signals, dict) else tuple(signals)
 
 

@@ -23,7 +23,7 @@ from tactile.errors import ConfigError, RecordingError
 from tactile.postprocess.smoothing import UNCERTAIN
 from tactile.training import feature_pass
 from tactile.training.checkpoint import Norm
-from tactile.training.config import TrainConfig, unused
+from tactile.training.config import TrainConfig, reads_signals, unused
 from tactile.training.data import (
     Split,
     Windows,
@@ -132,8 +132,8 @@ def prepare(takes: list[Take], classes: tuple[str, ...], channels: tuple[str, ..
     if idle:
         log.warn(f"settings this training does not read: {'; '.join(idle)}")
     signals = ()
-    reads = cfg.modalities or cfg.model == "linear" or cfg.front == "spectral"
-    partial = partial_signals(takes, channels) if reads and not cfg.signals else []
+    partial = (partial_signals(takes, channels) if reads_signals(cfg) and not cfg.signals
+               else [])
     if partial:
         log.warn(f"channels holds some but not all sub-samples of the takes' signal"
                  f"{'s' * (len(partial) > 1)} {', '.join(partial)}: read as plain channels at "
@@ -158,7 +158,7 @@ def prepare(takes: list[Take], classes: tuple[str, ...], channels: tuple[str, ..
             for m in layout))
     else:
         cfg = cfg.replace(channels=channels)
-        if cfg.model == "linear" or cfg.front == "spectral":  # signals at their own rate
+        if reads_signals(cfg):  # signals at their own rate
             signals = signals_for(takes, channels, cfg)
             if signals:
                 cfg = cfg.replace(signals=literal_signals(signals))
