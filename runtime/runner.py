@@ -68,9 +68,10 @@ class Printer:
     """Writes labels and events in the chosen format, flushing each line.
 
     ``smoothed``: the labels carry a post-processor's result (``tactile-run`` without ``--raw``,
-    with settings from the options or the model): CSV then has the columns ``smoothed_p``,
-    ``stable`` and ``reset`` after ``smoothed``, and a text line ends with the smoothed label.
-    Without it the output is the raw stream's alone (the ``smoothed`` column stays empty).
+    with settings from the options or the model): CSV fills the columns ``smoothed``,
+    ``smoothed_p``, ``stable`` and ``reset``, and a text line ends with the smoothed label.
+    Without it the output is the raw stream's alone (those CSV columns stay, empty: one set of
+    columns either way).
     """
 
     def __init__(self, fmt: str, classes: tuple[str, ...], out=None,
@@ -80,9 +81,8 @@ class Printer:
         self.fmt, self.classes, self.out, self.smoothed = fmt, classes, out, smoothed
         if fmt == "csv":  # an event is a row of its own: its seq (if any) and `event` filled
             self._csv = csv.writer(out, lineterminator="\n")  # quotes what needs quoting
-            extra = ["smoothed_p", "stable", "reset"] if smoothed else []
-            self._row(["t", "seq", "label", "p", "latency_ms", "smoothed", *extra, *classes,
-                       "event"])
+            self._row(["t", "seq", "label", "p", "latency_ms", "smoothed", "smoothed_p", "stable",
+                       "reset", *classes, "event"])
 
     def _row(self, cells: list) -> None:
         with self._writing():
@@ -108,7 +108,7 @@ class Printer:
     def label(self, lab: Label) -> None:
         sm = lab.smoothed if self.smoothed else None
         if self.fmt == "csv":
-            extra = [] if not self.smoothed else ["", "", ""] if sm is None else \
+            extra = ["", "", ""] if sm is None else \
                 [f"{sm.p:.6f}", str(sm.stable).lower(), sm.reset or ""]
             self._row([f"{lab.t_us / 1e6:.6f}", lab.seq, lab.label, f"{lab.probability:.6f}",
                        f"{lab.latency_ms:.3f}", sm.label if sm is not None else "", *extra,
@@ -136,7 +136,7 @@ class Printer:
         shown = {k: "" if v is None else v for k, v in fields.items()}  # JSON's null: empty
         if self.fmt == "csv":
             what = " ".join([kind, *(f"{k}={v}" for k, v in shown.items() if k != "seq")])
-            blank = len(self.classes) + 4 + (3 if self.smoothed else 0)
+            blank = len(self.classes) + 7  # label .. reset, the classes
             self._row(["", fields.get("seq", ""), *[""] * blank, what])
         else:
             self._print(f"# {kind} " + " ".join(f"{k}={v}" for k, v in shown.items()))

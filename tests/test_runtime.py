@@ -637,9 +637,11 @@ def test_raw_and_an_old_file_give_todays_output(calibrated, old_file, take_with_
                         for x in (old, raw))
         elif fmt == "csv":
             rows = old.splitlines()
+            # the post-processed run's columns, its four empty: a class is where it is there
             assert rows[0] == ",".join(["t", "seq", "label", "p", "latency_ms", "smoothed",
-                                        *classes, "event"])
-            assert all(r.split(",")[5] == "" for r in rows[1:])
+                                        "smoothed_p", "stable", "reset", *classes, "event"])
+            assert all(r.split(",")[5:9] == [""] * 4 for r in rows[1:])
+            assert {len(r.split(",")) for r in rows} == {len(classes) + 10}  # events too
             old, raw = ([r.split(",")[:4] + r.split(",")[5:] for r in x.splitlines()]
                         for x in (old, raw))
         else:
