@@ -24,6 +24,23 @@ def test_runtime_and_device_import_without_torch():
     assert out.stdout.strip() == "", f"torch-side modules imported: {out.stdout}"
 
 
+def test_python_started_in_the_clones_root_imports_the_whole_package():
+    """Python started in a clone's root finds its tactile/ folder first; an installed copy
+    (not this editable one) would not serve the stages' folders beside it: the clone's
+    tactile/ takes them in, so that `python -c "import tactile.runtime"` works there."""
+    import sysconfig
+
+    # -S: no .pth files, so no editable install's finder; the venv's packages by hand
+    packages = sysconfig.get_paths()["purelib"]
+    code = (f"import sys; sys.path.insert(0, ''); sys.path.append({packages!r})\n"
+            "import tactile.runtime.stream, tactile.device.protocol, tactile.postprocess\n"
+            "print(tactile.runtime.stream.__file__)\n")
+    out = subprocess.run([sys.executable, "-S", "-c", code], capture_output=True, text=True,
+                         cwd=REPO)
+    assert out.returncode == 0, out.stderr
+    assert out.stdout.strip() == str(REPO / "runtime" / "stream.py")
+
+
 def test_base_requirements_are_the_runtime_only():
     meta = tomllib.loads((REPO / "pyproject.toml").read_text())["project"]
     names = {r.split(">")[0].split("=")[0].split("!")[0].split("<")[0].strip()
