@@ -85,14 +85,22 @@ def register(options, path: str | os.PathLike) -> bool:
 
 def paths(custom_ops: list[dict], registered: bool) -> list[str]:
     """One line per custom op type of a file: ``EMD: native kernel`` or ``EMD: portable graph
-    (...)``, as this process runs it (``registered``: the session has the library)."""
+    (...)``, as this process runs it (``registered``: the session has the library). A file
+    without custom ops needs no kernel: one line saying so and whether the library is here
+    (a board's install can be checked with any model file)."""
+    ops = list(dict.fromkeys(c["op"] for c in custom_ops))
+    if not ops:
+        lib = library_path()
+        return ["none needed by this file (no EMD or sparse-code node); " + (
+            f"the kernel library is built ({lib.name})" if lib is not None else
+            "native kernels disabled" if _disabled() else
+            "no kernel library: the package was installed without a C compiler")]
     if registered:
         how = "native kernel"
     elif _disabled():
         how = "portable graph (native kernels disabled)"
     else:
         how = "portable graph (no kernel library)"
-    ops = list(dict.fromkeys(c["op"] for c in custom_ops))
     return [f"{op}: {how}" for op in ops]
 
 

@@ -473,6 +473,31 @@ def test_check_names_the_path_of_each_custom_op(exported, fresh_kernels, capsys,
     assert f"kernels   {line}" in capsys.readouterr().out
 
 
+def test_check_of_a_file_without_custom_ops_says_whether_the_library_is_built(
+        fresh_kernels, monkeypatch, capsys):
+    """The shipped pen model has no EMD: its check still says whether a board's install built
+    the library (the one line a user has to tell the two installs apart)."""
+    from tactile.export.commands.check import main
+
+    shipped = str(Path(__file__).resolve().parents[1] / "models" / "pen-exp2.onnx")
+    built = native.library_path()
+    assert built is not None  # the test install builds it
+    for setup, want in (
+            (lambda: None, f"none needed by this file (no EMD or sparse-code node); the kernel "
+                           f"library is built ({built.name})"),
+            (fresh_kernels.disable, "none needed by this file (no EMD or sparse-code node); "
+                                    "native kernels disabled"),
+            (lambda: monkeypatch.setattr(native, "library_path", lambda: None),
+             "none needed by this file (no EMD or sparse-code node); no kernel library: the "
+             "package was installed without a C compiler")):
+        fresh_kernels._state.update(disabled=False, said=False)
+        setup()
+        assert main([shipped]) == 0
+        out = capsys.readouterr().out
+        assert [ln for ln in out.splitlines() if ln.startswith("  kernels")] == [
+            f"  kernels   {want}"], out
+
+
 def test_tactile_run_no_native_runs_the_portable_graphs(exported, fresh_kernels, tmp_path,
                                                        capsys):
     """``tactile-run --no-native`` on a replayed take: the portable graphs, said once on
