@@ -260,7 +260,7 @@ def _publish(live, ev) -> None:
     elif isinstance(ev, Stall):
         live.feed({"event": "stall", "seconds": ev.seconds})
     elif isinstance(ev, Reconnected):
-        live.feed({"event": "reconnect", "port": ev.port})
+        live.feed({"event": "reconnect", "port": ev.port, "offline_s": ev.offline_s})
     else:
         live.feed(ev)
 

@@ -59,7 +59,7 @@ def labels(
     header, its USB serial number when it has one; another device that takes its name is
     refused). ``on_event`` gets ``("gap", {"seq", "missing", "reason"})``,
     ``("stall", {"seconds"})`` (no data for ``stall_timeout`` s, once per silence) and
-    ``("reconnect", {"port"})``, ``("change", {"from", "to", "t", "seq"})`` (the stable
+    ``("reconnect", {"port", "offline_s"})``, ``("change", {"from", "to", "t", "seq"})`` (the stable
     label changed; ``from`` None after a reset) and ``("invalid", {"seq", "t"})`` (a window
     whose values the model cannot take: no label for it); ``say``, if given, the diagnostic lines
     ``tactile-run`` writes on stderr (lost, waiting, refused). It stops after ``seconds`` (wall

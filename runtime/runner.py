@@ -246,7 +246,7 @@ class Runner:
             if isinstance(ev, Reconnected):  # the same pen, restarted: a new window
                 self.summary.reconnects += 1
                 self.stream.reset("reconnect")
-                self.printer.event("reconnect", port=ev.port)
+                self.printer.event("reconnect", port=ev.port, offline_s=ev.offline_s)
             elif isinstance(ev, Stall):
                 self.summary.stalls += 1
                 self.printer.event("stall", seconds=ev.seconds)

@@ -329,6 +329,9 @@ def test_faults_are_survived_and_counted(models):
     lines = [json.loads(line) for line in out.splitlines()]
     events = [x["event"] for x in lines if "event" in x]
     assert "reconnect" in events and "gap" in events
+    # the log says how long the pen was away: the port cannot open for the unplug's 0.5 s
+    away = [x for x in lines if x.get("event") == "reconnect"]
+    assert len(away) == 1 and 0.45 <= away[0]["offline_s"] < 60, away
     summary = summary_of(err)
     assert summary["reconnects"] == 1
     dec = summary["decoder"]

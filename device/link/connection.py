@@ -62,9 +62,12 @@ class Lost:
 @dataclass(frozen=True)
 class Reconnected:
     """The same pen is back, on ``port``; the decoder was told (:meth:`StreamDecoder.reconnected`)
-    before the events that follow."""
+    before the events that follow. ``offline_s``: wall seconds from the port's loss to its
+    opening again (the samples' own count and clock cannot say: a pen that restarted counts
+    again from zero, and the host's count goes on without a jump)."""
 
     port: str
+    offline_s: float = 0.0
 
 
 @dataclass(frozen=True)
@@ -138,6 +141,7 @@ class Connection:
         self.port = settings.port  # the pen's name now (it may change at a reconnection)
         self.link: serial.SerialBase | None = None
         self.lost: Lost | None = None  # the port went and the pen is not back yet
+        self.lost_at = 0.0  # time.monotonic() when it went
         self.usb: str | None = None  # the pen's USB serial number, when it has one
         self.reconnects = 0
         self.last_data = time.monotonic()
@@ -197,6 +201,7 @@ class Connection:
             self.link.close()
             self.link = None
             self.lost = Lost(self.port, str(lost))
+            self.lost_at = time.monotonic()
             events.append(self.lost)
         return Chunk(data, events)
 
@@ -234,7 +239,8 @@ class Connection:
         self.decoder.reconnected()
         self.last_data, self.stalled = time.monotonic(), False
         # what the probe read to check the header: the pen's data, decoded after the event
-        return Chunk(early, [Reconnected(self.port), *self.decoder.feed(early)])
+        offline = round(self.last_data - self.lost_at, 3)
+        return Chunk(early, [Reconnected(self.port, offline), *self.decoder.feed(early)])
 
     def close(self) -> None:
         if self.link is not None:
