@@ -719,6 +719,24 @@ def test_hostile_channel_names_round_trip(tmp_path):
     assert head == "seq,t_us,a%2Cb,x%0Ay,q%22uote,%23hash,100%25,tab%09here,ünïcødé,雨,ok"
 
 
+@pytest.mark.parametrize("seconds, rows", [("1.1", 110), ("2.3", 230), ("0.29", 29),
+                                           ("0.001", 1)])
+def test_record_seconds_of_any_decimal_stops_with_the_samples_that_cover_them(
+        tmp_path, seconds, rows):
+    """--seconds 1.1 at 100 Hz is 110.00000000000001 samples: the take stopped at 110 while
+    the goal stayed a fraction away, and the command never ended (2.3 kept 229). Run apart,
+    so that a goal never reached fails by the timeout instead of hanging the suite."""
+    out = tmp_path / "d"
+    proc = subprocess.run(
+        [sys.executable, "-m", "tactile.device.commands.record", "--port",
+         "sim://?texture=paper&seed=1&speed=max", "--label", "paper", "--out", str(out),
+         "--seconds", seconds, "--quiet"], capture_output=True, text=True, timeout=120)
+    assert proc.returncode == 0, proc.stderr
+    (take,) = out.glob("*.csv")
+    got = read_take(take)
+    assert len(got.raw) == rows and got.meta["complete"] is True
+
+
 def test_record_keeps_the_user_and_the_metadata_given(tmp_path, capsys):
     """tactile-record wrote no `user` (training's default split then made each take its own
     group) and no session: a script had to edit each take. --user and --meta KEY=VALUE go into

@@ -44,6 +44,16 @@ class RecordResult:
     unrecorded: int = 0  # samples that came before any device header: not in any take
 
 
+def samples_for(seconds: float, rate_hz: float) -> float:
+    """The samples ``seconds`` of data at ``rate_hz`` hold: the whole number that covers them
+    (1.1 s at 100 Hz: 110; 0.001 s: 1), with float error in ``seconds * rate_hz`` forgiven
+    (2.3 * 100 is 229.99999999999997: 230); inf stays inf. A fraction of a sample as the goal
+    could never be reached (the take stopped growing and the command went on for ever)."""
+    if math.isinf(seconds):
+        return math.inf
+    return float(math.ceil(round(seconds * rate_hz, 6)))
+
+
 class Recorder:
     """Decoder events -> take files. Separate from the port loop so tests can drive it."""
 
@@ -71,7 +81,7 @@ class Recorder:
                 if self.writer is not None and ev.changed:
                     self._close(decoder)
                 if self.writer is None:
-                    self.max_samples = self.seconds * ev.info.sample_rate_hz
+                    self.max_samples = samples_for(self.seconds, ev.info.sample_rate_hz)
                     self._open(ev.info)
                     for e in self.early:
                         written += self._put(e)
