@@ -337,13 +337,15 @@ def _fill_closed_streams() -> None:
 
 
 class _ReaderMayGo:
-    """stdout or stderr of a command whose work is its files (training, an export, an
-    import): when the reader of the stream goes away (``2>&1 | head``), the rest of the
-    command's lines go to the null device and the work goes on, instead of the broken pipe
-    ending it half-done with exit 0."""
+    """stdout of a command whose work is its files (training, an export, an import, a
+    recording), and every command's stderr: when the reader of the stream goes away (``2>&1 |
+    head``), the rest of the lines go to the null device and the work goes on, instead of the
+    broken pipe ending it half-done with exit 0. On stderr any failed write does the same (a
+    full disk, an I/O error: ``2>/dev/full``): diagnostics that cannot be written are dropped,
+    as on a closed stderr, never the command's work or its exit code."""
 
-    def __init__(self, stream) -> None:
-        self._stream = stream
+    def __init__(self, stream, errors: type[OSError] = BrokenPipeError) -> None:
+        self._stream, self._errors = stream, errors
 
     def _drop_the_rest(self) -> None:
         devnull = os.open(os.devnull, os.O_WRONLY)
@@ -353,14 +355,14 @@ class _ReaderMayGo:
     def write(self, text: str) -> int:
         try:
             return self._stream.write(text)
-        except BrokenPipeError:
+        except self._errors:
             self._drop_the_rest()
             return self._stream.write(text)
 
     def flush(self) -> None:
         try:
             self._stream.flush()
-        except BrokenPipeError:
+        except self._errors:
             self._drop_the_rest()
             self._stream.flush()
 
@@ -465,7 +467,8 @@ def command(prog: str, *, guarded: bool = False, interruptible: bool = False,
     code for SIGINT, not a traceback; with ``terminable`` SIGTERM does the same (exit 143) where
     its handler is the default (not in a caller that set its own, nor off the main thread).
     ``files``: the command's work is the files it writes, which a reader of its output that
-    goes away does not stop (:class:`_ReaderMayGo`). Run as the process's command (its console
+    goes away does not stop (:class:`_ReaderMayGo`; stderr's reader, or a stderr that cannot
+    be written, stops no command). Run as the process's command (its console
     script, or ``python -m`` its module), a command ignores SIGINT once it has returned its
     code (:func:`_ignore_ctrl_c_from_now`)."""
 
@@ -484,9 +487,10 @@ def command(prog: str, *, guarded: bool = False, interruptible: bool = False,
             if depth == 0 and threading.current_thread() is threading.main_thread():
                 _fill_closed_streams()
                 sys.stdout = _Stdout(sys.stdout)  # the outermost command's, as a process has
-            if files:
-                sys.stdout, sys.stderr = (s if isinstance(s, _ReaderMayGo) else _ReaderMayGo(s)
-                                          for s in (sys.stdout, sys.stderr))
+            if files and not isinstance(sys.stdout, _ReaderMayGo):
+                sys.stdout = _ReaderMayGo(sys.stdout)
+            if not isinstance(sys.stderr, _ReaderMayGo):
+                sys.stderr = _ReaderMayGo(sys.stderr, OSError)
             try:
                 _running().append(prog)
                 return main(argv)

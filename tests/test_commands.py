@@ -240,6 +240,46 @@ def test_stdout_on_a_full_disk_is_exit_4_outside_tactile_run_too(tmp_path, name,
         f"tactile-{name}: error: stdout: cannot write (No space left on device)\n"), proc.stderr
 
 
+@pytest.mark.skipif(not Path("/dev/full").exists(), reason="no /dev/full on this system")
+def test_a_stderr_that_cannot_be_written_stops_no_command(tmp_path):
+    """stderr on a full disk (`2>/dev/full`): tactile-record exited 1 ('bad input') with its
+    take done, tactile-run printed no label and exited 1. Diagnostics that cannot be written
+    are dropped, as on a closed stderr: the work and its exit code stay."""
+    take = make_dataset(tmp_path / "d", takes=1, textures=("paper",), seconds=3)[0]
+    model = str(REPO / "models" / "pen-exp2.onnx")
+    run = [sys.executable, "-m", "tactile.runtime.commands.run", "--model", model, "--replay",
+           str(take)]
+    plain = subprocess.run(run, capture_output=True, text=True, timeout=120)
+    assert plain.returncode == 0 and plain.stdout.count('"label"') >= 5, plain.stderr
+    rec = [sys.executable, "-m", "tactile.device.commands.record", "--port",
+           "sim://?texture=paper&seed=1&speed=max", "--label", "paper", "--out",
+           str(tmp_path / "rec"), "--seconds", "1"]
+    with open("/dev/full", "w") as full:
+        labels = subprocess.run(run, stdout=subprocess.PIPE, stderr=full, text=True,
+                                timeout=120)
+        recorded = subprocess.run(rec, stdout=subprocess.PIPE, stderr=full, text=True,
+                                  timeout=120)
+    assert labels.returncode == 0 and labels.stdout.count('"label"') == plain.stdout.count(
+        '"label"')
+    (got,) = (tmp_path / "rec").glob("*.csv")
+    assert recorded.returncode == 0 and recorded.stdout.strip() == str(got)
+    assert len(read_take(got).raw) == 100 and read_take(got).meta["complete"] is True
+
+
+def test_a_reader_of_stderr_that_goes_away_does_not_stop_a_recording(tmp_path):
+    """`tactile-record ... 2>&1 >list | head -1`: the reader of stderr went at the first
+    progress line and the recording stopped there, exit 0, 100 of 250 samples."""
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "tactile.device.commands.record", "--port",
+         "sim://?texture=paper&seed=1", "--label", "paper", "--out", str(tmp_path / "rec"),
+         "--seconds", "2.5"], stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
+    proc.stderr.readline()  # the first line, then the reader goes away
+    proc.stderr.close()
+    assert proc.wait(timeout=120) == 0
+    (got,) = (tmp_path / "rec").glob("*.csv")
+    assert len(read_take(got).raw) == 250 and read_take(got).meta["complete"] is True
+
+
 def _closing(fd: int):
     return lambda: os.close(fd)  # in the child, before the command starts: `>&-` or `2>&-`
 

@@ -126,7 +126,7 @@ def _main(args: argparse.Namespace) -> int:
     return 0
 
 
-@command("tactile-record", guarded=True)
+@command("tactile-record", guarded=True, files=True)
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     return run("tactile-record", _main, args)
