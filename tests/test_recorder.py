@@ -427,6 +427,21 @@ def test_labels_that_differ_only_in_case_are_refused(tmp_path):
     doc["label"] = "paper"  # one spelling: read
     meta.write_text(json.dumps(doc))
     assert sorted({t.label for t in load_dataset(tmp_path)}) == ["desk", "paper"]
+    # 'café' with an accented e and with an e and a combining accent look the same: one class
+    for name, label in (("desk-user000", "caf\u00e9"), ("desk-user001", "cafe\u0301")):
+        doc = json.loads((tmp_path / f"{name}.json").read_text())
+        (tmp_path / f"{name}.json").write_text(json.dumps({**doc, "label": label}))
+    with pytest.raises(RecordingError, match=r"differ only in case \(or Unicode form\)"):
+        load_dataset(tmp_path)
+
+
+def test_a_label_that_is_not_utf8_text_is_refused_before_the_port_opens(tmp_path, capsys):
+    """`--label $'p\\xffx'` (a byte that is no UTF-8: Python keeps it as a lone surrogate) was
+    recorded and read; training then failed at its end writing the class names."""
+    code = record_main(["--port", "sim://?texture=paper&seed=1&speed=max", "--label",
+                        "p\udcffx", "--out", str(tmp_path / "d"), "--seconds", "0.5"])
+    assert code == 1 and not (tmp_path / "d").exists()
+    assert "must be 1-64 characters of UTF-8 text" in capsys.readouterr().err
 
 
 def test_hapmat_materials_that_differ_only_in_case_are_one_material(tmp_path):
@@ -795,8 +810,8 @@ def test_a_label_spelled_otherwise_in_the_folder_is_refused_before_the_port_open
     with pytest.raises(RecordingError) as e:
         Recorder(tmp_path, "Paper", "test")
     assert str(e.value) == (f"{tmp_path}: holds takes labelled 'paper' ({pen.stem}.json), the "
-                            "label 'Paper' but for case: one class, which a dataset spells one "
-                            "way; record it as 'paper'")
+                            "label 'Paper' but for case (or Unicode form): one class, which a "
+                            "dataset spells one way; record it as 'paper'")
     assert record_main(["--port", "sim://?texture=paper&seed=1&speed=max", "--label", "PAPER",
                         "--out", str(tmp_path), "--seconds", "0.5"]) == 1
     assert sorted(p.name for p in tmp_path.iterdir()) == [pen.name, pen.with_suffix(".json").name]

@@ -270,8 +270,8 @@ def load_dataset(folder: str | os.PathLike) -> list[Take]:
         if other.label != t.label:
             raise RecordingError(
                 f"{folder}: labels {other.label!r} ({other.path.name}) and {t.label!r} "
-                f"({t.path.name}) differ only in case: they would be two classes; give both "
-                "takes one spelling (the 'label' of the take's .json)")
+                f"({t.path.name}) differ only in case (or Unicode form): they would be two "
+                "classes; give both takes one spelling (the 'label' of the take's .json)")
     for t in takes:
         say_mismatch(t)
     first = takes[0]

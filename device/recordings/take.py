@@ -259,8 +259,8 @@ def check_label_joins(folder: Path, label: str) -> None:
             continue
         if isinstance(other, str) and other != label and class_key(other) == key:
             raise RecordingError(f"{folder}: holds takes labelled {other!r} ({p.name}), the "
-                                 f"label {label!r} but for case: one class, which a dataset "
-                                 f"spells one way; record it as {other!r}")
+                                 f"label {label!r} but for case (or Unicode form): one class, "
+                                 f"which a dataset spells one way; record it as {other!r}")
 
 
 def _difference(have: DeviceInfo, info: DeviceInfo) -> str | None:

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import json
 import re
+import unicodedata
 from pathlib import Path
 
 from tactile.device.protocol.info import DeviceInfo
@@ -109,9 +110,11 @@ def _check(obj, schema: dict, where: str, path: Path, closed: bool = False) -> N
 
 # A label names the take's files and a class; these are refused by FAT/exFAT cards (a board's
 # usual storage) or break the CSV/JSON pair: / \ : * ? " < > | , control characters.
-_LABEL_BAD = re.compile(r'[/\\:*?"<>|,\x00-\x1f\x7f]')
-LABEL_RULE = ("1-64 characters, not starting with '.' or a space, none of "
-              "/ \\ : * ? \" < > | , tab or newline")
+# A lone surrogate is a byte of a command-line argument that was not UTF-8 (Python's
+# surrogateescape): no text file can hold it.
+_LABEL_BAD = re.compile('[/\\\\:*?"<>|,\x00-\x1f\x7f\ud800-\udfff]')
+LABEL_RULE = ("1-64 characters of UTF-8 text, no space at either end, not starting with '.', "
+              "none of / \\ : * ? \" < > | , tab or newline")
 
 
 def check_label(label: str) -> str:
@@ -125,9 +128,11 @@ def check_label(label: str) -> str:
 
 def class_key(label: str) -> str:
     """What makes two labels one class: labels equal once case-folded (``Paper``, ``paper``)
-    would train as two classes of one surface, so a dataset's readers refuse them spelled two
-    ways, and an importer refuses two materials that would give them."""
-    return label.casefold()
+    or in one Unicode form (``café`` typed with an accented e or with an e and a combining
+    accent: they look the same) would train as two classes of one surface, so a dataset's
+    readers refuse them spelled two ways, and an importer refuses two materials that would
+    give them."""
+    return unicodedata.normalize("NFC", unicodedata.normalize("NFC", label).casefold())
 
 
 def read_meta(json_path: Path) -> tuple[dict, DeviceInfo]:
