@@ -336,6 +336,19 @@ def _fill_closed_streams() -> None:
             setattr(sys, name, _null_out)
 
 
+def _paths_as_they_are() -> None:
+    """stdout writes a path's bytes that are no UTF-8 as they are (Python reads them into
+    lone surrogates): with a strict stdout, the default in a UTF-8 locale, printing such a
+    path raised after the work had begun (one of two simulated takes written, exit 1). A
+    stream that already forgives is left alone (a test's capture, a pipe in the C locale)."""
+    out = sys.stdout
+    if getattr(out, "errors", None) == "strict" and hasattr(out, "reconfigure"):
+        try:
+            out.reconfigure(errors="surrogateescape")
+        except (ValueError, OSError):  # a closed or detached stream: as it was
+            pass
+
+
 class _ReaderMayGo:
     """stdout of a command whose work is its files (training, an export, an import, a
     recording), and every command's stderr: when the reader of the stream goes away (``2>&1 |
@@ -486,6 +499,7 @@ def command(prog: str, *, guarded: bool = False, interruptible: bool = False,
             was = (sys.stdout, sys.stderr)
             if depth == 0 and threading.current_thread() is threading.main_thread():
                 _fill_closed_streams()
+                _paths_as_they_are()
                 sys.stdout = _Stdout(sys.stdout)  # the outermost command's, as a process has
             if files and not isinstance(sys.stdout, _ReaderMayGo):
                 sys.stdout = _ReaderMayGo(sys.stdout)

@@ -280,6 +280,22 @@ def test_a_reader_of_stderr_that_goes_away_does_not_stop_a_recording(tmp_path):
     assert len(read_take(got).raw) == 250 and read_take(got).meta["complete"] is True
 
 
+def test_a_path_that_is_not_utf8_is_printed_as_its_bytes(tmp_path):
+    """A folder named with a byte that is no UTF-8, under a strict UTF-8 stdout (a UTF-8
+    locale's, or PYTHONIOENCODING=utf-8): tactile-sim --dataset wrote one of two takes, then
+    failed printing its path ('surrogates not allowed'), exit 1."""
+    folder = os.fsencode(tmp_path) + b"/nb\xff"
+    proc = subprocess.run([sys.executable, "-m", "tactile.device.commands.sim", "--dataset",
+                           folder, "--takes", "1", "--seconds", "1", "--textures", "paper,desk"],
+                          capture_output=True, env={**os.environ, "PYTHONIOENCODING": "utf-8"},
+                          timeout=120)
+    assert proc.returncode == 0, proc.stderr
+    assert proc.stdout.splitlines() == [folder + b"/paper-user000.csv",
+                                        folder + b"/desk-user000.csv"]
+    assert sorted(os.listdir(folder)) == [b"desk-user000.csv", b"desk-user000.json",
+                                          b"paper-user000.csv", b"paper-user000.json"]
+
+
 def _closing(fd: int):
     return lambda: os.close(fd)  # in the child, before the command starts: `>&-` or `2>&-`
 
