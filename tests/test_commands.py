@@ -1071,6 +1071,35 @@ def test_plot_groups_many_channels_into_panels():
     assert pen == {("pressure", "N"): 2, ("accel", "g"): 3, ("gyro", "deg/s"): 3}
 
 
+def test_plot_of_too_many_panels_is_one_line_and_channels_choose_them(tmp_path):
+    """A take of 200 channels that share no name prefix (the format allows 2,048) was drawn
+    as one panel each: minutes and gigabytes, then nothing. More than MAX_PANELS is one line
+    naming --channels, which picks the channels to draw (a declared signal whole, or its
+    chosen sub-samples as plain channels)."""
+    from tactile.device.protocol import ChannelSpec, DeviceInfo
+    from tactile.device.recordings.plot import MAX_PANELS, _only, chosen, panels
+
+    names = [f"c{i}" for i in range(200)] + ["v_0", "v_1"]
+    info = DeviceInfo(100.0, tuple(ChannelSpec(n, "V", 1.0) for n in names))
+    with TakeWriter(tmp_path, "x", info, "test", name="x",
+                    extra={"signals": {"v": ["v_0", "v_1"]}}) as w:
+        w.write(0, 0, np.zeros((60, len(names)), np.int16))
+    png, take = tmp_path / "x.png", str(tmp_path / "x.csv")
+    code, _, err = cli("tactile-plot", take, "-o", str(png))
+    assert code == 1 and not png.exists() and err == (
+        f"tactile-plot: error: x.csv: 201 panels (channels grouped by name before their last "
+        f"'_part'), more than a picture shows ({MAX_PANELS}): choose some with --channels "
+        "(e.g. --channels 'c0')\n"), err
+    code, _, err = cli("tactile-plot", take, "-o", str(png), "--channels", "c1?,v_*")
+    assert code == 0 and png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n", err
+    keep = chosen(info.channels, ("c1?", "v_0"))  # c10..c19; one sub-sample of the signal
+    shown = _only(panels(info.channels, {}), keep)
+    assert [(p.name, p.index) for p in shown] == [(f"c1{k}", [10 + k]) for k in range(10)] + [
+        ("v", [200])]
+    code, _, err = cli("tactile-plot", take, "-o", str(png), "--channels", "zz*")
+    assert code == 1 and "--channels 'zz*' matches none of the take's channels: c0, c1" in err
+
+
 def test_plot_draws_a_declared_high_rate_signal_as_one_trace_at_its_rate(tmp_path):
     """A BioTac's 2.2 kHz vibration was drawn as 22 overlapping 100 Hz traces (each every 22nd
     sample); a declared signal is now one trace, its sub-samples at their times in the order the

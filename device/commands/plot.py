@@ -23,6 +23,9 @@ def build_parser() -> argparse.ArgumentParser:
                    "--summary")
     p.add_argument("-o", "--out", type=path_given, required=True,
                    help="image file to write (.png, .svg, .pdf, ...)")
+    p.add_argument("--channels", metavar="PATTERNS", default="",
+                   help="only these channels of a take: comma-separated names or shell-style "
+                   "patterns (f0_*,pdc); default all")
     p.add_argument("--summary", action="store_true", help="plot a dataset folder's summary")
     add_debug(p)
     return p
@@ -41,6 +44,9 @@ def _main(args: argparse.Namespace) -> int:
         raise ConfigError(f"-o {args.out}: name an image file ending in .png, .svg or .pdf "
                           f"(or any of {', '.join(sorted(kinds))})")
     if args.summary:
+        if args.channels:
+            raise ConfigError("--channels chooses a take's channels; --summary plots a folder's "
+                              "minutes and gaps")
         plot_summary(args.source, args.out)
     else:
         if args.source.is_dir():
@@ -49,7 +55,7 @@ def _main(args: argparse.Namespace) -> int:
         say_mismatch(take)  # a finished take that lost rows, as every reader of takes says
         if len(take.seq) == 0:
             raise ConfigError(f"{args.source}: the take holds no samples")
-        plot_take(take, args.out)
+        plot_take(take, args.out, tuple(p for p in args.channels.split(",") if p))
     print(args.out)
     return 0
 

@@ -7,7 +7,8 @@ module does not need it.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+import fnmatch
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
@@ -15,10 +16,14 @@ import numpy as np
 from tactile.device.recordings.reader import load_dataset
 from tactile.device.recordings.summary import summarise
 from tactile.device.recordings.take import Take
+from tactile.errors import ConfigError
 from tactile.files import figure_bytes, write_whole
 
 LEGEND_MAX = 8
 """A panel with more channels than this names them in its label instead of a legend."""
+MAX_PANELS = 48
+"""The most panels one picture draws (a two-finger BioTac take is 46; each panel adds 1.6
+inches: 2,048 ungrouped channels took minutes and gigabytes before failing)."""
 
 
 def _pyplot():
@@ -73,6 +78,18 @@ def panels(channels, signals: dict[str, list[str]] | None = None) -> list[Panel]
     return sorted(out, key=lambda panel: min(panel.index))  # in the take's column order
 
 
+def _only(shown: list[Panel], keep: set[int]) -> list[Panel]:
+    """``shown`` narrowed to the columns of ``keep``: a signal whole or not at all, a group to
+    its chosen channels."""
+    out = []
+    for p in shown:
+        if p.signal:
+            out += [p] if keep.issuperset(p.index) else []
+        elif idx := [i for i in p.index if i in keep]:
+            out.append(replace(p, index=idx))
+    return out
+
+
 def _traces(panel: Panel, channels, values: np.ndarray, t: np.ndarray, segments, rate: float):
     """(label, times, values) of each trace of ``panel``, NaN between gap-free segments (no line
     drawn across a gap). A signal's ``r`` sub-samples of the frame at time ``t`` are at
@@ -90,17 +107,46 @@ def _traces(panel: Panel, channels, values: np.ndarray, t: np.ndarray, segments,
         yield label, np.concatenate(ts), np.concatenate(ys)
 
 
-def plot_take(take: Take, out: Path) -> None:
+def chosen(channels, patterns: tuple[str, ...]) -> set[int]:
+    """The columns whose channel names match any of ``patterns`` (shell-style, ``f0_*``, or
+    exact names; none: all); a pattern that matches no channel is a :class:`ConfigError`."""
+    if not patterns:
+        return set(range(len(channels)))
+    out: set[int] = set()
+    for p in patterns:
+        hit = {i for i, c in enumerate(channels)
+               if c.name == p or fnmatch.fnmatchcase(c.name, p)}
+        if not hit:
+            names = [c.name for c in channels]
+            shown = ", ".join(names[:6]) + (f", ... ({len(names)} in all)" if len(names) > 6
+                                             else "")
+            raise ConfigError(f"--channels {p!r} matches none of the take's channels: {shown}")
+        out |= hit
+    return out
+
+
+def plot_take(take: Take, out: Path, patterns: tuple[str, ...] = ()) -> None:
     """One panel per group of channels or declared high-rate signal (:func:`panels`), values in
     their units, time in seconds from the first sample, every gap a red band over all panels;
-    the title names the label and source."""
-    plt = _pyplot()
+    the title names the label and source. ``patterns``: only the channels they match (a
+    declared signal when all of its sub-samples are among them). More panels than
+    :data:`MAX_PANELS` is a :class:`ConfigError` before anything is drawn."""
     rate = take.info.sample_rate_hz
     t = (take.seq - take.seq[0]) / rate if len(take.seq) else np.zeros(0)
     values = take.values()
     channels = take.info.channels
-    signals = take.meta.get("signals", {})
-    shown = panels(channels, signals)
+    keep = chosen(channels, patterns)
+    names = [c.name for c in channels]
+    # a signal partly chosen: its chosen sub-samples as plain channels
+    signals = {n: c for n, c in take.meta.get("signals", {}).items()
+               if all(names.index(x) in keep for x in c)}
+    shown = _only(panels(channels, signals), keep)
+    if len(shown) > MAX_PANELS:
+        raise ConfigError(f"{take.path.name}: {len(shown)} panels (channels grouped by name "
+                          f"before their last '_part'), more than a picture shows "
+                          f"({MAX_PANELS}): choose some with --channels (e.g. "
+                          f"--channels '{channels[0].name}')")
+    plt = _pyplot()
     fig, axes = plt.subplots(len(shown), 1, figsize=(10, 1.8 + 1.6 * len(shown)),
                              sharex=True, squeeze=False)
     segments = take.segments()
