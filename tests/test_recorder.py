@@ -618,6 +618,15 @@ def test_bad_recordings_are_refused(tmp_path):
     with pytest.raises(RecordingError, match=r"column 10 is missing, the metadata says 'gyro_z' "
                        r"\(9 columns"):
         read_take(csv)
+    csv.write_text(text)  # the JSON's own list of the columns, edited (it was never read)
+    meta_path = tmp_path / "t.json"
+    meta = json.loads(meta_path.read_text())
+    meta_path.write_text(json.dumps({**meta, "columns": meta["columns"][::-1]}))
+    with pytest.raises(RecordingError, match=r"t.csv: key 'columns' differs from the CSV's "
+                       r"header at column 1 \(10 names, the header 10\): one of the pair was "
+                       r"edited$"):
+        read_take(csv)
+    meta_path.write_text(json.dumps(meta))
     csv.write_text(text + "2,0,1,1,1,1,1,1,1,1\n")
     with pytest.raises(RecordingError, match="seq not increasing"):
         read_take(csv)

@@ -70,6 +70,12 @@ def _read_rows(csv_path: Path, meta: dict, info: DeviceInfo) -> Take:
                              f"column {k + 1} is {here}, the metadata says {there} ("
                              f"{len(columns)} column{'s' * (len(columns) != 1)}, the "
                              f"metadata {len(expected)})")
+    if "columns" in meta and meta["columns"] != columns:  # the writer's own record of them
+        k = next((i for i, (a, b) in enumerate(zip(columns, meta["columns"])) if a != b),
+                 min(len(columns), len(meta["columns"])))
+        raise RecordingError(f"{csv_path}: key 'columns' differs from the CSV's header at "
+                             f"column {k + 1} ({len(meta['columns'])} names, the header "
+                             f"{len(columns)}): one of the pair was edited")
     gaps: list[dict] = []
     rows = 0
 
