@@ -626,6 +626,11 @@ def test_bad_recordings_are_refused(tmp_path):
                        r"header at column 1 \(10 names, the header 10\): one of the pair was "
                        r"edited$"):
         read_take(csv)
+    for user in ([1, 2], None, "", True):  # the split named "[1, 2]" and "None" users
+        meta_path.write_text(json.dumps({**meta, "user": user}))
+        with pytest.raises(RecordingError, match=r"key 'user' must be a non-empty string or an "
+                           r"integer"):
+            read_take(csv)
     meta_path.write_text(json.dumps(meta))
     csv.write_text(text + "2,0,1,1,1,1,1,1,1,1\n")
     with pytest.raises(RecordingError, match="seq not increasing"):

@@ -68,12 +68,12 @@ def take_extra(user: str | None, meta: list[str]) -> dict:
         key = key.strip()
         if not eq or not re.fullmatch(r"[A-Za-z_][A-Za-z0-9_]*", key):
             raise ConfigError(f"--meta {item!r}: expected KEY=VALUE (KEY: letters, digits, _)")
-        if key in RESERVED_KEYS:
-            raise ConfigError(f"--meta {key}: the recordings format's own key; choose another")
         if key in ("user", "name"):  # (training's selectors read name: as the file's name)
             raise ConfigError(f"--meta {key}: " + ("give it as --user" if key == "user" else
                                                    "selectors read name: as the take's file "
                                                    "name; choose another key"))
+        if key in RESERVED_KEYS:
+            raise ConfigError(f"--meta {key}: the recordings format's own key; choose another")
         if key in extra:
             raise ConfigError(f"--meta {key}: given twice")
         extra[key] = int(value) if re.fullmatch(r"-?[0-9]{1,18}", value) else value

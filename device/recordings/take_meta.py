@@ -55,6 +55,8 @@ _META = {
     "gaps": (False, lambda v: isinstance(v, list), "a list"),
     "decoder": (False, lambda v: isinstance(v, dict), "an object"),
     "complete": (False, lambda v: isinstance(v, bool), "true or false"),
+    "user": (False, lambda v: (_text(v) and v != "") or _is_int(v),
+             "a non-empty string or an integer (who recorded it: training's split by user)"),
     "signals": (False, lambda v: isinstance(v, dict) and all(
         isinstance(k, str) and k and isinstance(c, list) and c and all(map(_text, c))
         for k, c in v.items()), "an object of signal name -> non-empty list of channel names"),
