@@ -284,6 +284,10 @@ def test_center_patterns_say_what_they_matched(capsys):
     err = capsys.readouterr().err
     assert err.startswith("warning: center patterns accel_*, gyro_* match none of the channels "
                           "pdc, pac_0, electrode_0: no channel is centred")
+    # the defaults (the pen's IMU) on another sensor: said, not a warning to set center=
+    _log_center(log, channels, ("accel_*", "gyro_*"), [], default=True)
+    assert capsys.readouterr().err == ("center: none (the defaults accel_*, gyro_*, the pen's "
+                                       "IMU, match none of these channels)\n")
     many = tuple(f"ele_{i:02d}" for i in range(19))  # a long list is shortened to one line
     _log_center(log, many, ("accel_*",), [])
     assert capsys.readouterr().err.startswith("warning: center patterns accel_* match none of the "

@@ -183,7 +183,8 @@ def prepare(takes: list[Take], classes: tuple[str, ...], channels: tuple[str, ..
     emd_index = [channels.index(c) for c in cfg.emd_channels]
     center_index = [] if cfg.modalities else centered(channels, cfg.center)
     if not cfg.modalities:
-        log_center(log, channels, cfg.center, center_index)
+        log_center(log, channels, cfg.center, center_index,
+                   cfg.center == TrainConfig().center)
         whole = [n for n, names in signals if set(names) & {channels[i] for i in center_index}]
         if whole:  # (the model centres them: training/model.py, TextureModel)
             log.info(f"center: {', '.join(whole)} as whole signals (one mean of all their "
@@ -197,11 +198,15 @@ def centered(channels: tuple[str, ...], patterns: tuple[str, ...]) -> list[int]:
 
 
 def log_center(log: Log, channels: tuple[str, ...], patterns: tuple[str, ...],
-               index: list[int]) -> None:
-    """Say which channels the ``center`` patterns matched; warn when a set of patterns matches
-    none (the defaults name the pen's IMU: on another sensor nothing would be centred)."""
+               index: list[int], default: bool = False) -> None:
+    """Say which channels the ``center`` patterns matched; warn when patterns a user set match
+    none (a misspelt name). The defaults name the pen's IMU: on another sensor they match
+    nothing, which is said, not warned of (centring is no setting to reach for there)."""
     if not patterns:
         log.info("center: none (no patterns)")
+    elif not index and default:
+        log.info(f"center: none (the defaults {', '.join(patterns)}, the pen's IMU, match none "
+                 "of these channels)")
     elif not index:
         log.warn(f"center patterns {', '.join(patterns)} match none of the channels "
                  f"{name_list(list(channels), 8)}: no channel is centred (set center=... to "
