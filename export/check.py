@@ -114,6 +114,7 @@ def describe(path: Path, c: ModelContract, opset: int | None = OPSET,
         f"  window    {c.window} samples, hop {c.hop}, {c.sample_rate_hz:g} Hz; "
         f"state {c.state_mode}, {c.model} ({_state_text(c)})",
         *_granular_lines(c, emd),
+        *_blend_line(c),
         f"  exported  parity {'passed' if c.parity.get('passed') else 'FAILED'} "
         f"(max |dp| {c.parity.get('max_abs_prob_diff')}{_excused(c.parity)})",
         *(f"  codes     {r.get('name')}: {r.get('same_atoms')}/{r.get('rows')} rows the same "
@@ -205,6 +206,24 @@ def _granular_lines(c: ModelContract, emd) -> list[str]:
                      f"{'s' if units != 1 else ''} at {m.rate_hz:g} Hz, {emd_text}, "
                      f"{m.steps} steps{codes}")
     return lines
+
+
+def _blend_line(c: ModelContract) -> list[str]:
+    """What the blended regression reads and weighs (a file exported before it was recorded,
+    or a model without one: no line)."""
+    b = c.training_metrics.get("blend")
+    if not isinstance(b, dict) or "mix" not in b:
+        return []
+    if not b["mix"]:
+        return ["  blend     mix 0: the recurrent model alone (the regression left out)"]
+    read = [s for s in c.signals if s.name in (b.get("signals") or [])]
+    plain = len(c.channels) - sum(len(s.channels) for s in read)
+    at_rate = "".join(f"; {s.name} at {s.rate_hz:g} Hz (mean, log std, third-octave band "
+                      "powers)" for s in read)
+    c_text = f"{b['c']:g}" if isinstance(b.get("c"), (int, float)) else "?"
+    return [f"  blend     {b['mix']:g} x a logistic regression (C {c_text}) on "
+            f"whole-window features: {plain} channel{'s' * (plain != 1)} each by itself "
+            f"(mean, log std, 5 band energies){at_rate}"]
 
 
 def _emd_text(emd) -> str:

@@ -72,7 +72,8 @@ def contract_for(ck: dict, parity: dict, quantization: str = "none",
         state_hidden=int(hidden),
         preprocessing=preprocessing,
         package_version=tactile.__version__,
-        training_metrics={**_metrics(ck.get("metrics", {})), **_test_takes(ck), **_seen(ck)},
+        training_metrics={**_metrics(ck.get("metrics", {})), **_blend(ck, signals),
+                          **_test_takes(ck), **_seen(ck)},
         parity=parity,
         quantization=quantization,
         extra=extra,
@@ -133,6 +134,24 @@ def _metrics(m: dict) -> dict:
     keep = ("windows", "accuracy", "recall", "shifted", "split", "split_windows", "val_accuracy",
             "best_epoch")
     return {k: _finite(m[k]) for k in keep if k in m}
+
+
+def _blend(ck: dict, signals) -> dict:
+    """``{"blend": {c, mix, validation accuracies, signals}}`` for a model with the blended
+    regression: its choice, and the high-rate signals it reads at their own rate (names; the
+    other channels, each by itself); else nothing."""
+    b = (ck.get("metrics") or {}).get("blend")
+    if not isinstance(b, dict):
+        return {}
+    channels = list(ck["channels"])
+    names = {tuple(s.channels): s.name for s in signals}
+    read = [names.get(tuple(channels[i] for i in g), "?") for g in ck.get("blend_signals", [])]
+    keep = ("c", "mix", "val_acc", "regression_val_acc", "recurrent_val_acc")
+    out = {k: _finite(b[k]) for k in keep if k in b}
+    mix = (ck.get("state_dict") or {}).get("head.mix")
+    if mix is not None:  # the weight the file computes with
+        out["mix"] = float(mix)
+    return {"blend": {**out, "signals": read}}
 
 
 def _test_takes(ck: dict) -> dict:

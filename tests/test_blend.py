@@ -299,6 +299,13 @@ def test_a_blended_model_exports_with_parity(dataset, run, tmp_path):
     got = np.concatenate([onnx_model.classify(w.x[i : i + 64], *onnx_model.zero_state(
         len(w.x[i : i + 64])))[0] for i in range(0, len(w), 64)])
     np.testing.assert_allclose(got, want, atol=1e-4)
+    # tactile-check says what the regression reads and how much it weighs
+    from tactile.export.check import describe
+
+    text = describe(tmp_path / "half.onnx", onnx_model.contract)
+    assert (f"  blend     0.5 x a logistic regression (C {ck['metrics']['blend']['c']:g}) on "
+            "whole-window features: 8 channels each by itself (mean, log std, 5 band "
+            "energies)\n") in text, text
 
 
 def test_a_mix_of_0_exports_the_lstm_alone_and_keeps_parity(run, tmp_path):

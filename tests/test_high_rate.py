@@ -166,6 +166,13 @@ def test_a_biotac_take_trains_and_exports_with_parity(tmp_path, capsys):
     text = capsys.readouterr().out
     assert "  emd       none\n  signal    f0_pac: 22 sub-samples per frame (f0_pac_00.." \
         "f0_pac_21), 2200 Hz\n  signal    f1_pac: 22" in text, text
+    blend = json.loads(meta["training_metrics"])["blend"]
+    assert blend["signals"] == ["f0_pac", "f1_pac"] and blend["mix"] in (0, .25, .5, .75, 1)
+    assert (f"  blend     {blend['mix']:g} x a logistic regression (C {blend['c']:g}) on "
+            "whole-window features: 44 channels each by itself (mean, log std, 5 band "
+            "energies); f0_pac at 2200 Hz (mean, log std, third-octave band powers); f1_pac at "
+            "2200 Hz (mean, log std, third-octave band powers)\n" if blend["mix"] else
+            "  blend     mix 0: the recurrent model alone") in text, text
     # a checkpoint saved before (no blend_signals): its regression read the sub-samples as
     # channels, 7 features each, and loads so
     old = {**ck, "state_dict": dict(ck["state_dict"])}
