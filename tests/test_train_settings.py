@@ -233,7 +233,11 @@ def test_tactile_train_says_both_warnings_naming_itself(dataset, tmp_path, capsy
     assert train_main([str(dataset), "--out", str(tmp_path / "r"), *sets, "--set",
                        "carry_steps=5", "--set", "test=name:paper-user000", "--set",
                        "val=user:1"]) == 0
-    err = capsys.readouterr().err.splitlines()
+    out, err = capsys.readouterr()
+    # wall time and CPU, each named (the wall time alone read as CPU beside the docs' figures)
+    assert re.search(r"^trained in [\d.]+ s of wall time, [\d.]+ s of CPU; run in ", out,
+                     re.M), out
+    err = err.splitlines()
     assert ("tactile-train: warning: settings this training does not read: carry_steps=5 "
             "(only state='carry')") in err, err
     assert ("tactile-train: warning: user 0 has takes in test and in training "

@@ -62,7 +62,7 @@ def train(data: Path, out: Path, cfg: TrainConfig, progress: bool = True, *,
     ``resume``: the state :func:`~tactile.training.checkpoint.load_resume` read, to continue an
     interrupted run (``cfg`` must be its config). ``on_epoch(phase, epoch)``: called after each
     finished epoch (1-based; phase ``fit`` or ``refit``), after its state is saved in memory."""
-    t_start = time.perf_counter()
+    t_start, cpu_start = time.perf_counter(), time.process_time()
     dist = Dist.from_env()
     log = Log(progress, dist.is_main)
     threads = apply_threads(resolve_threads(cfg.threads, dist.local_world))
@@ -131,6 +131,7 @@ def train(data: Path, out: Path, cfg: TrainConfig, progress: bool = True, *,
             centered=[channels[i] for i in norm.center_index],
             feature_seconds=round(feature_s, 1),
             train_seconds=round(time.perf_counter() - t_start, 1),
+            train_cpu_seconds=round(time.process_time() - cpu_start, 1),
             threads=threads, device=str(device), processes=dist.world, seed=cfg.seed,
             interrupted=False,
         ), robustness=True)

@@ -205,7 +205,8 @@ def _train(args: argparse.Namespace) -> int:
         print(table(m, tuple(m["classes"]), f"test split ({m['split']})"))
         print(per_take_line(m))
         print(shifted_line(m["shifted"]))
-        print(f"trained in {m['train_seconds']} s; run in {out}")
+        cpu = f", {m['train_cpu_seconds']} s of CPU" if "train_cpu_seconds" in m else ""
+        print(f"trained in {m['train_seconds']} s of wall time{cpu}; run in {out}")
     finally:
         for s, handler in was.items():
             signal.signal(s, handler)
