@@ -735,3 +735,14 @@ def test_an_ensembles_train_loss_is_its_members_mean(dataset, tmp_path, capsys):
                      if ln.startswith("fit epoch 1/"))
         losses[n] = float(re.search(r"train loss ([0-9.]+)", first).group(1))
     assert 0.75 < losses[2] / losses[1] < 1.33, losses
+
+
+def test_the_feature_pass_names_sparse_codes_only_for_a_model_that_has_them(capsys):
+    """An F-RNN (EMD, no dictionaries) logged 'EMD and sparse codes in float64 by ...'."""
+    from types import SimpleNamespace
+
+    from tactile.training.prepare import features
+
+    model = SimpleNamespace(pre=SimpleNamespace(emds=[object()], needs_dictionaries=False))
+    assert features(model, {}, 0, Log(progress=True), None) == {}
+    assert capsys.readouterr().err.startswith("EMD in float64 by ")

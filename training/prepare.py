@@ -220,8 +220,10 @@ def features(model: Classifier, parts: dict[str, Windows], seed: int, log: Log,
     """Every part's features (N, S, F) by ``model.pre``, once. A granular model's
     preprocessing that ``needs_dictionaries`` goes in three steps: the data images, the
     dictionaries learned from the training images (seeded with ``seed``), then the codes."""
-    if len(getattr(model.pre, "emds", ())) or getattr(model.pre, "needs_dictionaries", False):
-        log.info(f"EMD and sparse codes in float64 by {feature_pass.backend()}")
+    coded = getattr(model.pre, "needs_dictionaries", False)
+    if len(getattr(model.pre, "emds", ())) or coded:  # (an F-RNN has EMD, no codes)
+        log.info(f"{'EMD and sparse codes' if coded else 'EMD'} in float64 by "
+                 f"{feature_pass.backend()}")
     with feature_pass.feature_pass():
         return _features_exact(model, parts, seed, log, dist)
 
