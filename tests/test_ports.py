@@ -592,3 +592,17 @@ def test_a_reopened_csv_board_without_names_is_known_by_its_width():
     assert got.why is None and got.data.startswith(b"0,1,2\n")
     got = probe(Board(4), pen, lambda: StreamDecoder(csv_rate_hz=100.0), {"flag": False})
     assert got.why == "4 CSV channels, not 3" and got.other
+
+
+@pytest.mark.parametrize("url", ["socket://127.0.0.1:99999", "socket://", "socket://h:x",
+                                 "socket://:80"])
+def test_a_socket_url_without_host_and_port_is_one_line_naming_the_form(url):
+    """pyserial's own line for these named nothing ('debug|info|warning|error', or "'<=' not
+    supported between instances of 'int' and 'NoneType'"): a bad URL never opens, exit 2."""
+    from tactile.device.link import open_port
+    from tactile.errors import DeviceError
+
+    with pytest.raises(DeviceError) as e:
+        open_port(url, 115200)
+    assert str(e.value) == (f"cannot open {url}: expected socket://HOST:PORT, PORT a number "
+                            "0-65535")

@@ -29,6 +29,7 @@ import os
 import re
 import select
 import time
+import urllib.parse
 from collections.abc import Callable
 from dataclasses import dataclass
 from typing import TypeVar
@@ -91,6 +92,15 @@ def open_port(port: str, baud: int) -> serial.SerialBase:
     Raises :class:`PortBusy` when another program holds it (naming it when ``/proc`` shows
     it), :class:`PortAbsent` when it cannot be opened now, :class:`DeviceError` when it never
     can; each a line naming the port."""
+    if port.lower().startswith("socket://"):  # pyserial's own line for a bad one names nothing
+        parts = urllib.parse.urlsplit(port)
+        try:
+            number = parts.port
+        except ValueError:
+            number = None
+        if not parts.hostname or number is None:
+            raise DeviceError(f"cannot open {port}: expected socket://HOST:PORT, PORT a number "
+                              "0-65535")
     try:
         link = serial.serial_for_url(port, baudrate=baud, timeout=0, exclusive=True,
                                      do_not_open=True)
