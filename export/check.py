@@ -216,14 +216,11 @@ def _blend_line(c: ModelContract) -> list[str]:
         return []
     if not b["mix"]:
         return ["  blend     mix 0: the recurrent model alone (the regression left out)"]
-    read = [s for s in c.signals if s.name in (b.get("signals") or [])]
-    plain = len(c.channels) - sum(len(s.channels) for s in read)
-    at_rate = "".join(f"; {s.name} at {s.rate_hz:g} Hz (mean, log std, third-octave band "
-                      "powers)" for s in read)
+    n = len(c.channels)
     c_text = f"{b['c']:g}" if isinstance(b.get("c"), (int, float)) else "?"
     return [f"  blend     {b['mix']:g} x a logistic regression (C {c_text}) on "
-            f"whole-window features: {plain} channel{'s' * (plain != 1)} each by itself "
-            f"(mean, log std, 5 band energies){at_rate}"]
+            f"whole-window features: {n} channel{'s' * (n != 1)} each by itself "
+            f"(mean, log std, 5 band energies)"]
 
 
 def _emd_text(emd) -> str:

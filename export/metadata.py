@@ -72,7 +72,7 @@ def contract_for(ck: dict, parity: dict, quantization: str = "none",
         state_hidden=int(hidden),
         preprocessing=preprocessing,
         package_version=tactile.__version__,
-        training_metrics={**_metrics(ck.get("metrics", {})), **_blend(ck, signals),
+        training_metrics={**_metrics(ck.get("metrics", {})), **_blend(ck),
                           **_test_takes(ck), **_seen(ck)},
         parity=parity,
         quantization=quantization,
@@ -136,22 +136,19 @@ def _metrics(m: dict) -> dict:
     return {k: _finite(m[k]) for k in keep if k in m}
 
 
-def _blend(ck: dict, signals) -> dict:
-    """``{"blend": {c, mix, validation accuracies, signals}}`` for a model with the blended
-    regression: its choice, and the high-rate signals it reads at their own rate (names; the
-    other channels, each by itself); else nothing."""
+def _blend(ck: dict) -> dict:
+    """``{"blend": {c, mix, validation accuracies}}`` for a model with the blended
+    regression (which reads every channel by itself, a high-rate signal's sub-samples too);
+    else nothing."""
     b = (ck.get("metrics") or {}).get("blend")
     if not isinstance(b, dict):
         return {}
-    channels = list(ck["channels"])
-    names = {tuple(s.channels): s.name for s in signals}
-    read = [names.get(tuple(channels[i] for i in g), "?") for g in ck.get("blend_signals", [])]
     keep = ("c", "mix", "val_acc", "regression_val_acc", "recurrent_val_acc")
     out = {k: _finite(b[k]) for k in keep if k in b}
     mix = (ck.get("state_dict") or {}).get("head.mix")
     if mix is not None:  # the weight the file computes with
         out["mix"] = float(mix)
-    return {"blend": {**out, "signals": read}}
+    return {"blend": out}
 
 
 def _test_takes(ck: dict) -> dict:

@@ -60,43 +60,6 @@ def test_window_features_match_numpy(window):
         assert np.all(np.abs(tone_bands[:, 3] - level) < 0.05), tone_bands[:, 3] - level
 
 
-def test_a_declared_signal_is_read_at_its_own_rate():
-    """A model that reads a high-rate signal at its own rate (the spectral front) has its
-    regression read it so too: the signal's mean, log standard deviation and the log power of
-    its mean-free, Hann-tapered window in the front's third-octave bands up to its Nyquist
-    frequency (numpy's below), after the plain channels' features; not one set of features
-    per sub-sample, each an alias of the signal (here a tone above the frame rate's Nyquist)."""
-    from tactile.training.frontend import LOG_FLOOR, band_bins
-
-    rng = np.random.default_rng(1)
-    window, r, rate = 50, 4, 100.0  # the signal: 200 samples a window at 400 Hz
-    n = window * r
-    t = np.arange(n) / (r * rate)
-    tone = 130.0  # Hz: above the frame rate's Nyquist (50 Hz), below the signal's (200 Hz)
-    z = rng.normal(size=(3, window, 2 + r)) * 0.05
-    sig = 0.3 + 2.0 * np.sin(2 * np.pi * tone * t)[None] + 0.05 * rng.normal(size=(3, n))
-    z[:, :, 2:] = sig.reshape(3, window, r)  # sub-sample k of frame j: sample j * r + k
-    reg = WindowRegression(2 + r, window, 2, signals=[[2, 3, 4, 5]])
-    with torch.no_grad():
-        got = reg.features(torch.tensor(z, dtype=torch.float32)).double().numpy()
-    taper = np.hanning(n)
-    d = sig - sig.mean(axis=1, keepdims=True)
-    power = np.abs(np.fft.rfft(d * taper, axis=1)) ** 2 * 2 / (n * (taper**2).sum())
-    bands = band_bins(n // 2 + 1)
-    floor = [LOG_FLOOR * 2 / (n * (taper**2).sum()) * (b - a) for a, b in bands]
-    want = np.concatenate([
-        reference_features(z[:, :, :2]), sig.mean(axis=1)[:, None],
-        0.5 * np.log(d.var(axis=1) + FLOOR)[:, None],
-        np.log(np.stack([power[:, a:b].sum(axis=1) for a, b in bands], axis=1) + floor)], axis=1)
-    assert got.shape == want.shape == (3, 2 * 7 + 2 + len(bands)) == (3, reg.n_features)
-    np.testing.assert_allclose(got, want, rtol=1e-4, atol=2e-3)
-    hz = [(a * r * rate / n, b * r * rate / n) for a, b in bands]  # bin k: k * 400 / 200 Hz
-    top = int(got[0, 16:].argmax())
-    assert hz[top][0] <= tone < hz[top][1], (hz[top], tone)
-    # the tone's power, A^2 / 2, in its band (its main lobe within the band's bins)
-    assert abs(got[0, 16 + top] - np.log(2.0**2 / 2)) < 0.1, got[0, 16 + top]
-
-
 def test_a_steady_level_keeps_its_small_variation_in_float32():
     """A channel held far above its variation within the window (a pressure held steady: level
     5, variation 1e-3 on the normalised scale): the float32 features stay within 2e-5 of

@@ -59,13 +59,6 @@ class Norm:
     center_index: list[int]
 
 
-def blend_signals(model) -> list[list[int]]:
-    """The high-rate signals a model's blended regression reads at their own rate, as lists
-    of channel indices (none without a blended regression)."""
-    regression = getattr(getattr(model, "head", None), "regression", None)
-    return [list(g) for g in getattr(regression, "signals", [])]
-
-
 def plain(obj):
     """JSON- and weights_only-safe copy (numpy scalars to Python)."""
     if isinstance(obj, dict):
@@ -107,9 +100,6 @@ def save_checkpoint(path: Path, cfg: TrainConfig, model: torch.nn.Module, metric
         # the high-rate signals centred whole (absent in older checkpoints: none)
         "center_groups": [list(g) for g in getattr(getattr(model, "pre", None),
                                                     "center_groups", [])],
-        # the signals the blended regression reads at their own rate (absent in older
-        # checkpoints: none, their sub-samples read as channels)
-        "blend_signals": blend_signals(model),
         "test_rows": {names[i]: list(r) for i, r in test.items()},
         "test_fingerprints": {names[i]: takes[i].fingerprint() for i in test},
         "seen_fingerprints": sorted({takes[i].fingerprint() for i in seen}),
@@ -225,9 +215,6 @@ def check_checkpoint(ck: dict, path: Path) -> TrainConfig:
         ("center_groups", isinstance(ck.get("center_groups", []), list) and all(
             _indices(g, n) and g for g in ck.get("center_groups", [])),
          f"a list of non-empty lists of channel indices < {n}"),
-        ("blend_signals", isinstance(ck.get("blend_signals", []), list) and all(
-            _indices(g, n) and g for g in ck.get("blend_signals", [])),
-         f"a list of non-empty lists of channel indices < {n}"),
         ("test_rows", _rows(ck.get("test_rows", {})), "a table of take name -> [first, end]"),
         ("test_fingerprints", isinstance(ck.get("test_fingerprints", {}), dict) and all(
             isinstance(k, str) and isinstance(v, str)
@@ -290,8 +277,7 @@ def load_checkpoint(run_dir: Path):
                             rate_hz=float(ck["sample_rate_hz"]),
                             emd_index=list(ck["emd_index"]),
                             center_index=list(ck["center_index"]),
-                            center_groups=ck.get("center_groups", []),
-                            blend_signals=ck.get("blend_signals", []))
+                            center_groups=ck.get("center_groups", []))
     except TactileError as e:  # modalities that do not fit the channels
         raise RecordingError(f"{path}: checkpoint key 'config': {e}") from None
     try:

@@ -12,7 +12,7 @@ import math
 import torch
 from torch import Tensor, nn
 
-from tactile.training.config import TrainConfig, reads_signals
+from tactile.training.config import TrainConfig
 from tactile.training.emd import EMD
 from tactile.training.frontend import HighRateFront
 
@@ -276,41 +276,17 @@ class LinearHead(nn.Module):
 
 
 class WindowFeatures(nn.Module):
-    """(B, T, C) normalised channels -> (B, n_features) whole-window features: per plain
+    """(B, T, C) normalised channels -> (B, C * (2 + BANDS)) whole-window features: per
     channel the window's mean, log standard deviation and log energy of the mean-free,
     Hann-tapered window in :data:`BANDS` equal bands up to the Nyquist frequency, grouped
     (the means, the log standard deviations, then each band's log energies), each group
-    channel by channel. No state: its DFT basis and band sums are rebuilt with the module.
-
-    ``signals``: high-rate signals read at their own rate (per signal the indices of its
-    ``r`` sub-sample channels, in time order; every signal the same ``r``): each is then one
-    signal of ``T * r`` samples, not ``r`` aliased channels, and gives, after the plain
-    channels' features, its mean, log standard deviation and the log power of its mean-free
-    window in the third-octave bands of :func:`~tactile.training.frontend.band_bins` up to
-    its Nyquist frequency (:class:`~tactile.training.frontend.HighRateFront` over one frame
-    of the whole window)."""
+    channel by channel. No state: its DFT basis and band sums are rebuilt with the module."""
 
     BANDS = 5
     FLOOR = 1e-8  # of variances and band energies, on the unit-variance normalised scale
 
-    def __init__(self, n_channels: int, window: int,
-                 signals: list[list[int]] | None = None) -> None:
+    def __init__(self, n_channels: int, window: int) -> None:
         super().__init__()
-        self.signals = [list(g) for g in signals or []]
-        inside = {i for g in self.signals for i in g}
-        self.plain = [i for i in range(n_channels) if i not in inside]
-        if self.signals:
-            r = len(self.signals[0])
-            self.register_buffer("plain_index", torch.tensor(self.plain, dtype=torch.long),
-                                 persistent=False)
-            self.register_buffer("signal_index", torch.tensor(
-                [i for g in self.signals for i in g], dtype=torch.long), persistent=False)
-            # the mean-free signals, side by side: r columns each
-            self.high = HighRateFront([list(range(k * r, (k + 1) * r))
-                                       for k in range(len(self.signals))], window, window)
-            for name, buf in list(self.high.named_buffers(recurse=False)):
-                delattr(self.high, name)  # rebuilt with the module, as ours: not saved
-                self.high.register_buffer(name, buf, persistent=False)
         t = torch.arange(window, dtype=torch.float64)
         k = torch.arange(window // 2 + 1, dtype=torch.float64)
         taper = torch.hann_window(window, periodic=False, dtype=torch.float64)
@@ -326,25 +302,9 @@ class WindowFeatures(nn.Module):
         self.register_buffer("bands", nn.functional.one_hot(band, self.BANDS).T.float(),
                              persistent=False)
         self.n_channels = n_channels
-        self.n_features = len(self.plain) * (2 + self.BANDS) + (
-            len(self.signals) * (self.high.n_bands + 2) if self.signals else 0)
+        self.n_features = n_channels * (2 + self.BANDS)
 
     def forward(self, z: Tensor) -> Tensor:
-        if not self.signals:
-            return self._plain(z)
-        b, t, _ = z.shape
-        s = torch.index_select(z, 2, self.signal_index)  # (B, T, S * r)
-        r = len(self.signals[0])
-        whole = s.reshape(b, t, len(self.signals), r)
-        mean = whole.mean(dim=(1, 3))  # (B, S): one mean of all the signal's samples
-        d = (whole - mean[:, None, :, None]).reshape(b, t, -1)
-        log_std = 0.5 * torch.log((d * d).reshape(b, t, len(self.signals), r).mean(dim=(1, 3))
-                                  + self.FLOOR)
-        bands = self.high(d)[:, 0].reshape(b, len(self.signals), -1)[:, :, :-1]  # no mean
-        return torch.cat([self._plain(torch.index_select(z, 2, self.plain_index)), mean,
-                          log_std, bands.flatten(1)], dim=1)
-
-    def _plain(self, z: Tensor) -> Tensor:
         # the mean-free window from the differences to its first sample: a level far above the
         # window's variation (a pressure held steady) would otherwise leave float32's rounding
         # of the mean in every sample, which the taper turns into energy at the lowest bins
@@ -377,14 +337,12 @@ class WindowRegression(nn.Module):
     FLOOR = WindowFeatures.FLOOR
 
     def __init__(self, n_channels: int, window: int, n_classes: int,
-                 given: int | None = None, signals: list[list[int]] | None = None) -> None:
+                 given: int | None = None) -> None:
         super().__init__()
         self.given = given
         n_features = n_channels * (2 + self.BANDS)
-        self.signals = [list(g) for g in signals or []]  # read at their own rate
         if given is None:
-            self.window = WindowFeatures(n_channels, window, self.signals)
-            n_features = self.window.n_features
+            self.window = WindowFeatures(n_channels, window)
         self.n_channels, self.n_features = n_channels, n_features
         self.register_buffer("feature_mean", torch.zeros(n_features))
         self.register_buffer("feature_scale", torch.zeros(n_features))  # 1 / std, or 0
@@ -393,7 +351,7 @@ class WindowRegression(nn.Module):
         self._register_load_state_dict_pre_hook(_without_constants)
 
     def features(self, f: Tensor) -> Tensor:
-        """(B, T, F) -> (B, n_features): :class:`WindowFeatures`."""
+        """(B, T, F) -> (B, C * (2 + BANDS)): :class:`WindowFeatures`."""
         if self.given is not None:
             return f[:, -1, self.given : self.given + self.n_features]
         return self.window(f[:, :, : self.n_channels])
@@ -501,8 +459,7 @@ class TextureModel(Classifier):
     def __init__(self, cfg: TrainConfig, n_classes: int, mean: Tensor, std: Tensor,
                  emd_index: list[int], center_index: list[int] | None = None,
                  signals: list[list[int]] | None = None,
-                 center_groups: list[list[int]] | None = None,
-                 blend_signals: list[list[int]] | None = None):
+                 center_groups: list[list[int]] | None = None):
         super().__init__()
         self.cfg, self.n_classes = cfg, n_classes
         self.signals = [list(s) for s in signals or []]
@@ -521,13 +478,9 @@ class TextureModel(Classifier):
                               signals)
                      for _ in range(cfg.ensemble)]
             self.head = heads[0] if cfg.ensemble == 1 else Ensemble(heads)
-            if cfg.blends:  # the signals the model reads at their own rate, at theirs
-                # (blend_signals: as a checkpoint recorded them; [] in one saved before, whose
-                # regression read a signal's sub-samples as channels)
-                own = self.signals if reads_signals(cfg) else []
-                self.head = Blend(self.head, WindowRegression(
-                    self.pre.n_channels, cfg.window, n_classes,
-                    signals=own if blend_signals is None else blend_signals))
+            if cfg.blends:
+                self.head = Blend(self.head, WindowRegression(self.pre.n_channels, cfg.window,
+                                                              n_classes))
         else:
             self.head = LinearHead(self.pre.n_channels, self.pre.n_emd, n_classes, signals,
                                    cfg.window)

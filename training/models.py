@@ -25,10 +25,9 @@ Builder = Callable[..., Classifier]
 def _texture(cfg: TrainConfig, n_classes: int, mean: Tensor, std: Tensor, *,
              channels: tuple[str, ...], rate_hz: float, emd_index: list[int] | None,
              center_index: list[int] | None,
-             center_groups: list[list[int]] | None = None,
-             blend_signals: list[list[int]] | None = None) -> Classifier:
+             center_groups: list[list[int]] | None = None) -> Classifier:
     return TextureModel(cfg, n_classes, mean, std, list(emd_index or []), center_index,
-                        signal_index(cfg, channels), center_groups, blend_signals)
+                        signal_index(cfg, channels), center_groups)
 
 
 def signal_index(cfg: TrainConfig, channels: tuple[str, ...]) -> list[list[int]] | None:
@@ -43,8 +42,7 @@ def signal_index(cfg: TrainConfig, channels: tuple[str, ...]) -> list[list[int]]
 def _granular(cfg: TrainConfig, n_classes: int, mean: Tensor, std: Tensor, *,
               channels: tuple[str, ...], rate_hz: float, emd_index: list[int] | None,
               center_index: list[int] | None,
-              center_groups: list[list[int]] | None = None,
-              blend_signals: list[list[int]] | None = None) -> Classifier:
+              center_groups: list[list[int]] | None = None) -> Classifier:
     return GranularModel(cfg, n_classes, resolve(cfg, tuple(channels), rate_hz), mean, std)
 
 
@@ -69,23 +67,20 @@ def build_model(cfg: TrainConfig, n_classes: int, mean: Tensor, std: Tensor, *,
                 channels: tuple[str, ...] = (), rate_hz: float = 100.0,
                 emd_index: list[int] | None = None,
                 center_index: list[int] | None = None,
-                center_groups: list[list[int]] | None = None,
-                blend_signals: list[list[int]] | None = None) -> Classifier:
+                center_groups: list[list[int]] | None = None) -> Classifier:
     """The model ``cfg`` describes, untrained: a :class:`TextureModel` (the pen's models), or
     with ``cfg.modalities`` a :class:`~tactile.training.granular.GranularModel` whose
     modalities are resolved against ``channels`` (x's last axis, in order) at ``rate_hz``
     (``cfg.signals`` names the high-rate signals). ``mean``, ``std``: (C,) normalisation;
     ``emd_index``, ``center_index``: channel indices (the pen's models only);
     ``center_groups``: the signals centred whole (None: each signal with a centred sub-sample,
-    as a new run has them; a checkpoint says which); ``blend_signals``: the signals the
-    blended regression reads at their own rate (None: those the model reads so, as a new run
-    has them; a checkpoint says which, [] in one saved before)."""
+    as a new run has them; a checkpoint says which)."""
     builder = MODELS.get((family(cfg), cfg.model))
     if builder is None:  # TrainConfig refuses these combinations first
         raise ConfigError(f"model={cfg.model!r} is not a {family(cfg)} model")
     return builder(cfg, n_classes, mean, std, channels=channels, rate_hz=rate_hz,
                    emd_index=emd_index, center_index=center_index,
-                   center_groups=center_groups, blend_signals=blend_signals)
+                   center_groups=center_groups)
 
 
 __all__ = ["MODELS", "build_model", "family"]

@@ -21,10 +21,9 @@ from tactile.errors import RecordingError
 from tactile.training.checkpoint import OLD_F_RNN, RESUME, old_f_rnn
 
 AUGMENT_VERSION = 2
-PREP_VERSION = 3
+PREP_VERSION = 2
 """2: takes of one class each drawn class by class into the parts, a high-rate signal centred
-whole (a state without the key was saved before: neither); 3: the blended regression reads
-the high-rate signals the model reads at their own rate."""
+whole (a state without the key was saved before: neither)."""
 """The gain augmentation a resume state was saved with: 2 draws one gain per window and
 modality for granular models (before, per window and feature; the pen's is unchanged)."""
 

@@ -31,7 +31,6 @@ from tactile.training import blend
 from tactile.training.checkpoint import (  # load_checkpoint: export reads runs through here
     CHECKPOINT,
     RESUME,
-    blend_signals,
     load_checkpoint,
     save_resume,
 )
@@ -97,10 +96,6 @@ def train(data: Path, out: Path, cfg: TrainConfig, progress: bool = True, *,
             f"{data}: this run was saved before takes of one class each were drawn class by "
             "class and a high-rate signal was centred whole: it cannot go on as it started; "
             "train it again")
-    if resume is not None and resume.get("prep_version", 1) < 3 and blend_signals(model):
-        raise RecordingError(
-            f"{data}: this run was saved before the blended regression read a high-rate "
-            "signal at its own rate: it cannot go on as it started; train it again")
     t0 = time.perf_counter()
     feats = features(model, prep.parts, cfg.seed, log, dist)
     model.fit_features(feats["train"])  # what the head keeps of them (an F-RNN's input scale)
