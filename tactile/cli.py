@@ -361,8 +361,13 @@ class _ReaderMayGo:
         self._stream, self._errors = stream, errors
 
     def _drop_the_rest(self) -> None:
+        try:
+            fd = self._stream.fileno()
+        except (OSError, ValueError):  # a caller's stream without a descriptor: replaced
+            self._stream = open(os.devnull, "w", encoding="utf-8")
+            return
         devnull = os.open(os.devnull, os.O_WRONLY)
-        os.dup2(devnull, self._stream.fileno())
+        os.dup2(devnull, fd)
         os.close(devnull)
 
     def write(self, text: str) -> int:

@@ -266,6 +266,22 @@ def test_a_stderr_that_cannot_be_written_stops_no_command(tmp_path):
     assert len(read_take(got).raw) == 100 and read_take(got).meta["complete"] is True
 
 
+def test_a_callers_stderr_without_a_descriptor_that_fails_is_dropped_too():
+    """An in-process caller's stderr (no file descriptor to point at the null device) whose
+    write fails: the line is dropped and so are the rest, instead of the wrapper's own error."""
+    import io
+
+    from tactile.cli import _ReaderMayGo
+
+    class Full(io.StringIO):
+        def write(self, text):
+            raise OSError(28, "No space left on device")
+
+    err = _ReaderMayGo(Full(), OSError)
+    assert err.write("a line\n") == 7 and err.write("another\n") == 8
+    err.flush()
+
+
 def test_a_reader_of_stderr_that_goes_away_does_not_stop_a_recording(tmp_path):
     """`tactile-record ... 2>&1 >list | head -1`: the reader of stderr went at the first
     progress line and the recording stopped there, exit 0, 100 of 250 samples."""
