@@ -353,17 +353,28 @@ class _ReaderMayGo:
     """stdout of a command whose work is its files (training, an export, an import, a
     recording), and every command's stderr: when the reader of the stream goes away (``2>&1 |
     head``), the rest of the lines go to the null device and the work goes on, instead of the
-    broken pipe ending it half-done with exit 0. On stderr any failed write does the same (a
-    full disk, an I/O error: ``2>/dev/full``): diagnostics that cannot be written are dropped,
-    as on a closed stderr, never the command's work or its exit code."""
+    broken pipe ending it half-done with exit 0. On stderr (``any_final``) a write that fails for
+    good does the same (a full disk, an I/O error: ``2>/dev/full``): diagnostics that cannot
+    be written are dropped, as on a closed stderr, never the command's work or its exit code.
+    The process's own descriptor (1 or 2) is pointed at the null device; a caller's stream is
+    replaced in the wrapper, its descriptor left alone."""
 
-    def __init__(self, stream, errors: type[OSError] = BrokenPipeError) -> None:
-        self._stream, self._errors = stream, errors
+    # the errors after which a stream takes no more lines (a full disk, an I/O error, a quota,
+    # a file too large); not EAGAIN and the like, after which it may
+    FINAL = frozenset({errno.EPIPE, errno.ENOSPC, errno.EIO, errno.EDQUOT, errno.EFBIG})
+
+    def __init__(self, stream, any_final: bool = False) -> None:
+        self._stream, self._any_final = stream, any_final
+
+    def _gone(self, e: OSError) -> bool:
+        return isinstance(e, BrokenPipeError) or (self._any_final and e.errno in self.FINAL)
 
     def _drop_the_rest(self) -> None:
         try:
             fd = self._stream.fileno()
-        except (OSError, ValueError):  # a caller's stream without a descriptor: replaced
+        except (OSError, ValueError):
+            fd = None
+        if fd not in (1, 2):  # a caller's own stream: replaced here, its descriptor left alone
             self._stream = open(os.devnull, "w", encoding="utf-8")
             return
         devnull = os.open(os.devnull, os.O_WRONLY)
@@ -373,14 +384,18 @@ class _ReaderMayGo:
     def write(self, text: str) -> int:
         try:
             return self._stream.write(text)
-        except self._errors:
+        except OSError as e:
+            if not self._gone(e):
+                raise
             self._drop_the_rest()
             return self._stream.write(text)
 
     def flush(self) -> None:
         try:
             self._stream.flush()
-        except self._errors:
+        except OSError as e:
+            if not self._gone(e):
+                raise
             self._drop_the_rest()
             self._stream.flush()
 
@@ -509,7 +524,7 @@ def command(prog: str, *, guarded: bool = False, interruptible: bool = False,
             if files and not isinstance(sys.stdout, _ReaderMayGo):
                 sys.stdout = _ReaderMayGo(sys.stdout)
             if not isinstance(sys.stderr, _ReaderMayGo):
-                sys.stderr = _ReaderMayGo(sys.stderr, OSError)
+                sys.stderr = _ReaderMayGo(sys.stderr, any_final=True)
             try:
                 _running().append(prog)
                 return main(argv)

@@ -277,9 +277,15 @@ def test_a_callers_stderr_without_a_descriptor_that_fails_is_dropped_too():
         def write(self, text):
             raise OSError(28, "No space left on device")
 
-    err = _ReaderMayGo(Full(), OSError)
+    class Busy(io.StringIO):  # a non-blocking stream that may take the line later
+        def write(self, text):
+            raise BlockingIOError(11, "Resource temporarily unavailable")
+
+    err = _ReaderMayGo(Full(), any_final=True)
     assert err.write("a line\n") == 7 and err.write("another\n") == 8
     err.flush()
+    with pytest.raises(BlockingIOError):  # not a reason to drop every line after it
+        _ReaderMayGo(Busy(), any_final=True).write("a line\n")
 
 
 def test_a_reader_of_stderr_that_goes_away_does_not_stop_a_recording(tmp_path):
@@ -1112,6 +1118,7 @@ def test_plot_of_too_many_panels_is_one_line_and_channels_choose_them(tmp_path):
     shown = _only(panels(info.channels, {}), keep)
     assert [(p.name, p.index) for p in shown] == [(f"c1{k}", [10 + k]) for k in range(10)] + [
         ("v", [200])]
+    assert chosen(info.channels, ("v",), {"v": ["v_0", "v_1"]}) == {200, 201}  # by its name
     code, _, err = cli("tactile-plot", take, "-o", str(png), "--channels", "zz*")
     assert code == 1 and "--channels 'zz*' matches none of the take's channels: c0, c1" in err
 

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import math
 import os
 import signal
 import subprocess
@@ -626,7 +627,7 @@ def test_bad_recordings_are_refused(tmp_path):
                        r"header at column 1 \(10 names, the header 10\): one of the pair was "
                        r"edited$"):
         read_take(csv)
-    for user in ([1, 2], None, "", True):  # the split named "[1, 2]" and "None" users
+    for user in ([1, 2], None, "", " ", True):  # the split named "[1, 2]" and "None" users
         meta_path.write_text(json.dumps({**meta, "user": user}))
         with pytest.raises(RecordingError, match=r"key 'user' must be a non-empty string or an "
                            r"integer"):
@@ -764,6 +765,15 @@ def test_record_seconds_of_any_decimal_stops_with_the_samples_that_cover_them(
     (take,) = out.glob("*.csv")
     got = read_take(take)
     assert len(got.raw) == rows and got.meta["complete"] is True
+
+
+def test_record_seconds_beyond_what_a_float_counts_is_no_end():
+    """--seconds 1e307 at 100 Hz: more samples than a float holds; math.ceil of inf raised
+    (a traceback) where it had recorded until stopped."""
+    from tactile.device.recordings.recorder import samples_for
+
+    assert samples_for(1e307, 100.0) == samples_for(math.inf, 100.0) == math.inf
+    assert samples_for(1.1, 100.0) == 110 and samples_for(2.3, 100.0) == 230
 
 
 def test_record_keeps_the_user_and_the_metadata_given(tmp_path, capsys):

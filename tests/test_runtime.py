@@ -619,9 +619,9 @@ def test_the_reset_at_a_gap_shows_in_the_output(calibrated, take_with_a_gap):
 
 
 def test_raw_and_an_old_file_give_todays_output(calibrated, old_file, take_with_a_gap):
-    """``--raw`` on a file with defaults and a file without any print what
-    tactile-run printed before the post-processing existed: the raw fields only, in every
-    format, and no line about post-processing on stderr."""
+    """``--raw`` on a file with defaults and a file without any print the raw fields only, in
+    every format (csv keeps the post-processed run's columns, empty), and no line about
+    post-processing on stderr."""
     classes = Model(SHIPPED).contract.classes
     for fmt in ("jsonl", "csv", "text"):
         runs = []

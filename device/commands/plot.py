@@ -24,8 +24,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("-o", "--out", type=path_given, required=True,
                    help="image file to write (.png, .svg, .pdf, ...)")
     p.add_argument("--channels", metavar="PATTERNS", default="",
-                   help="only these channels of a take: comma-separated names or shell-style "
-                   "patterns (f0_*,pdc); default all")
+                   help="only these channels of a take: comma-separated names, shell-style "
+                   "patterns or declared signals' names (f0_pac,f1_*); default all")
     p.add_argument("--summary", action="store_true", help="plot a dataset folder's summary")
     add_debug(p)
     return p

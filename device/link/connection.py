@@ -62,9 +62,10 @@ class Lost:
 @dataclass(frozen=True)
 class Reconnected:
     """The same pen is back, on ``port``; the decoder was told (:meth:`StreamDecoder.reconnected`)
-    before the events that follow. ``offline_s``: wall seconds from the port's loss to its
-    opening again (the samples' own count and clock cannot say: a pen that restarted counts
-    again from zero, and the host's count goes on without a jump)."""
+    before the events that follow. ``offline_s``: wall seconds from the port's loss until it was
+    open again with the same pen's data coming (its probe included: up to a few seconds more
+    than the cable was out); the samples' own count and clock cannot say (a pen that restarted
+    counts again from zero, and the host's count goes on without a jump)."""
 
     port: str
     offline_s: float = 0.0

@@ -173,7 +173,7 @@ def _labels(source: Path, materials: list[str], shown: list[str]) -> list[str]:
         if key in seen:
             raise RecordingError(f"{source}: more than one recording of one material: "
                                  f"{seen[key]} and {what} (one take per material; names that "
-                                 "differ only in case are one class)")
+                                 "differ only in case or Unicode form are one class)")
         seen[key] = what
         labels.append(label)
     return labels

@@ -22,8 +22,8 @@ from tactile.files import figure_bytes, write_whole
 LEGEND_MAX = 8
 """A panel with more channels than this names them in its label instead of a legend."""
 MAX_PANELS = 48
-"""The most panels one picture draws (a two-finger BioTac take is 46; each panel adds 1.6
-inches: 2,048 ungrouped channels took minutes and gigabytes before failing)."""
+"""The most panels one picture draws (a two-finger BioTac take is 6, the pen 3; each panel adds
+1.6 inches: 2,048 channels of distinct names took minutes and gigabytes before failing)."""
 
 
 def _pyplot():
@@ -107,15 +107,19 @@ def _traces(panel: Panel, channels, values: np.ndarray, t: np.ndarray, segments,
         yield label, np.concatenate(ts), np.concatenate(ys)
 
 
-def chosen(channels, patterns: tuple[str, ...]) -> set[int]:
+def chosen(channels, patterns: tuple[str, ...],
+           signals: dict[str, list[str]] | None = None) -> set[int]:
     """The columns whose channel names match any of ``patterns`` (shell-style, ``f0_*``, or
-    exact names; none: all); a pattern that matches no channel is a :class:`ConfigError`."""
+    exact names, or a declared signal's name for all its sub-samples; none: all); a pattern
+    that matches nothing is a :class:`ConfigError`."""
     if not patterns:
         return set(range(len(channels)))
+    names = [c.name for c in channels]
     out: set[int] = set()
     for p in patterns:
         hit = {i for i, c in enumerate(channels)
                if c.name == p or fnmatch.fnmatchcase(c.name, p)}
+        hit |= {names.index(c) for c in (signals or {}).get(p, [])}
         if not hit:
             names = [c.name for c in channels]
             shown = ", ".join(names[:6]) + (f", ... ({len(names)} in all)" if len(names) > 6
@@ -135,11 +139,11 @@ def plot_take(take: Take, out: Path, patterns: tuple[str, ...] = ()) -> None:
     t = (take.seq - take.seq[0]) / rate if len(take.seq) else np.zeros(0)
     values = take.values()
     channels = take.info.channels
-    keep = chosen(channels, patterns)
+    declared = take.meta.get("signals", {})
+    keep = chosen(channels, patterns, declared)
     names = [c.name for c in channels]
     # a signal partly chosen: its chosen sub-samples as plain channels
-    signals = {n: c for n, c in take.meta.get("signals", {}).items()
-               if all(names.index(x) in keep for x in c)}
+    signals = {n: c for n, c in declared.items() if all(names.index(x) in keep for x in c)}
     shown = _only(panels(channels, signals), keep)
     if len(shown) > MAX_PANELS:
         raise ConfigError(f"{take.path.name}: {len(shown)} panels (channels grouped by name "

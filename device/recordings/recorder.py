@@ -49,9 +49,10 @@ def samples_for(seconds: float, rate_hz: float) -> float:
     (1.1 s at 100 Hz: 110; 0.001 s: 1), with float error in ``seconds * rate_hz`` forgiven
     (2.3 * 100 is 229.99999999999997: 230); inf stays inf. A fraction of a sample as the goal
     could never be reached (the take stopped growing and the command went on for ever)."""
-    if math.isinf(seconds):
+    n = seconds * rate_hz
+    if not math.isfinite(n):  # inf, or more than a float holds (1e307 s): no end
         return math.inf
-    return float(math.ceil(round(seconds * rate_hz, 6)))
+    return float(math.ceil(round(n, 6)))
 
 
 class Recorder:

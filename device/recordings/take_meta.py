@@ -55,7 +55,7 @@ _META = {
     "gaps": (False, lambda v: isinstance(v, list), "a list"),
     "decoder": (False, lambda v: isinstance(v, dict), "an object"),
     "complete": (False, lambda v: isinstance(v, bool), "true or false"),
-    "user": (False, lambda v: (_text(v) and v != "") or _is_int(v),
+    "user": (False, lambda v: (_text(v) and v.strip() != "") or _is_int(v),
              "a non-empty string or an integer (who recorded it: training's split by user)"),
     "signals": (False, lambda v: isinstance(v, dict) and all(
         isinstance(k, str) and k and isinstance(c, list) and c and all(map(_text, c))
@@ -134,7 +134,7 @@ def class_key(label: str) -> str:
     accent: they look the same) would train as two classes of one surface, so a dataset's
     readers refuse them spelled two ways, and an importer refuses two materials that would
     give them."""
-    return unicodedata.normalize("NFC", unicodedata.normalize("NFC", label).casefold())
+    return unicodedata.normalize("NFD", unicodedata.normalize("NFD", label).casefold())
 
 
 def read_meta(json_path: Path) -> tuple[dict, DeviceInfo]:
