@@ -949,10 +949,10 @@ def test_import_force_replaces_nothing_when_an_input_is_bad(tmp_path):
                                   "shape (materials, samples, channels)"),
     (["Paper", "Wood", "paper"], (3, 300, 6), "more than one recording of one material: "
      "classes[0] 'Paper' and classes[2] 'paper' (one take per material; names that differ only "
-     "in case are one class)"),
+     "in case or Unicode form are one class)"),
     (["Wood", "Paper", "Paper"], (3, 300, 6), "more than one recording of one material: "
      "classes[1] 'Paper' and classes[2] 'Paper' (one take per material; names that differ only "
-     "in case are one class)"),
+     "in case or Unicode form are one class)"),
 ])
 def test_import_hapmat_refuses_classes_that_do_not_match_x(tmp_path, classes, x_shape, message):
     """4 names for 5 materials dropped one material without a word, 6 names were an

@@ -758,6 +758,7 @@ def edited_take(models, tmp_path, name, edit):
     rows = src.read_text().splitlines()
     columns = rows[0].split(",")
     edit(meta["device"], columns)
+    meta["columns"] = columns  # the writer's record of the header, as a writer would
     (tmp_path / f"{name}.json").write_text(json.dumps(meta))
     (tmp_path / f"{name}.csv").write_text("\n".join([",".join(columns), *rows[1:]]) + "\n")
     return tmp_path / f"{name}.csv"
