@@ -7,7 +7,8 @@ Prints, for 8-channel 50-sample windows and 1-channel 1000-sample windows (4 IMF
 and 1-channel 1100-sample windows (8 IMFs x 10 sifts: the BioTac's vibration, 0.5 s at 2.2 kHz),
 the same windows for every implementation, measured in this run (``--case`` picks some):
 milliseconds per window and the speed-up over PyEMD ``EMD(FIXE=10).emd(x, max_imf=M)`` looping
-over channels; then the ONNX graph's export time, node counts, file size and session creation
+over channels (onnxruntime: ``export_emd_onnx``'s float32 graph, and an exported model's EMD
+node on its portable path, the same graph in float64 inside); then the ONNX graph's export time, node counts, file size and session creation
 time. The implementations are timed in ``--repeats`` rounds, each running every one of them in
 turn (after a warm-up round), and each timing is the fastest of its rounds (PyEMD's too): on a
 shared machine, interference only ever adds time, so the minimum is the steadiest estimate of
@@ -48,7 +49,7 @@ from emd_pieces import count_nodes, sift_path_nodes, subgraphs  # beside this sc
 from PyEMD import EMD as PyEMD
 
 from tactile.contract import IR_VERSION
-from tactile.export.emd_graph import build_emd_model, export_emd_onnx
+from tactile.export.emd_graph import build_emd_model, emd_node_model, export_emd_onnx
 from tactile.runtime.model import session_options
 from tactile.training.emd import EMD
 from tactile.training.emd.spline import LARGE_ROWS
@@ -123,6 +124,10 @@ def bench_shape(
     t_session = time.perf_counter() - start
     sess_2 = session(path)  # a session per batch size (docs/emd.md: onnxruntime runs a
     sess_256 = session(path)  # body slower at a batch size other than the first it ran)
+    # An exported model's EMD node without the kernel library: the graph in float64 inside.
+    node = ort.InferenceSession(
+        emd_node_model(n_imfs, N_SIFTS, n_channels, n_time).SerializeToString(), options(),
+        providers=["CPUExecutionProvider"])
     model = EMD(n_imfs, N_SIFTS)
     # Every implementation runs once in each round (after one warm-up round), and each keeps its
     # fastest round: a host that slows down for a while hits them all alike, so the ratios stay
@@ -132,6 +137,7 @@ def bench_shape(
         "torch_1": (lambda: [model(torch.from_numpy(x32[i : i + 1])) for i in range(8)], 8),
         "torch_256": (lambda: model(torch.from_numpy(x32)), 256),
         "ort_1": (lambda: [sess.run(None, {"x_in": x32[i : i + 1]}) for i in range(32)], 32),
+        "node_1": (lambda: [node.run(None, {"x_in": x32[i : i + 1]}) for i in range(32)], 32),
         "ort_2": (lambda: [sess_2.run(None, {"x_in": x32[i : i + 2]}) for i in range(0, 32, 2)],
                   32),
         "ort_256": (lambda: sess_256.run(None, {"x_in": x32}), 256),
@@ -149,6 +155,7 @@ def bench_shape(
         ("torch eager, batch 1", best["torch_1"]),
         ("torch eager, batch 256", best["torch_256"]),
         ("onnxruntime, batch 1", best["ort_1"]),
+        ("onnxruntime, a model's EMD node, portable (float64 inside), batch 1", best["node_1"]),
         ("onnxruntime, batch 2", best["ort_2"]),
         ("onnxruntime, batch 256", best["ort_256"]),
     ]

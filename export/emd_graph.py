@@ -454,18 +454,41 @@ def build_emd_model(
     return model
 
 
+def portable_body(n_imfs: int, n_sifts: int, n_channels: int, n_time: int) -> onnx.GraphProto:
+    """The ``ai.tactile::EMD`` node's portable graph: float32 in and out, as the node, and
+    :func:`build_emd_model`'s float64 graph inside (a ``Cast`` each way), so that it computes
+    what the native kernel and training's feature pass compute (float64; in float32 a near-tie
+    of two extrema may place a knot elsewhere and move a window's features). It costs the
+    portable path 0-16% of the EMD's time (``docs/emd.md``)."""
+    from tactile.export.compose import renamed
+
+    inner = {"x_in": "x_in/f64", "imfs": "imfs/f64", "residue": "residue/f64"}
+    g = renamed(build_emd_model(n_imfs, n_sifts, n_channels, n_time, torch.float64), "", inner)
+    f32 = TensorProto.FLOAT
+    nodes = [helper.make_node("Cast", ["x_in"], ["x_in/f64"], to=TensorProto.DOUBLE), *g.node,
+             helper.make_node("Cast", ["imfs/f64"], ["imfs"], to=f32),
+             helper.make_node("Cast", ["residue/f64"], ["residue"], to=f32)]
+    return helper.make_graph(
+        nodes, "emd", [tensor_info("x_in", f32, ["batch", n_channels, n_time])],
+        [tensor_info("imfs", f32, ["batch", n_channels, n_imfs, n_time]),
+         tensor_info("residue", f32, ["batch", n_channels, n_time]),
+         tensor_info("n_valid", TensorProto.INT64, ["batch", n_channels])],
+        initializer=list(g.initializer),
+    )
+
+
 def emd_node_model(n_imfs: int, n_sifts: int, n_channels: int, n_time: int) -> onnx.ModelProto:
     """The EMD as one ``ai.tactile::EMD`` node (float32) whose model-local function holds
-    :func:`build_emd_model`'s graph (:mod:`tactile.export.custom_ops`): the native kernel where
-    onnxruntime has the library registered, the portable graph anywhere else. Same input and
-    outputs as :func:`build_emd_model`'s."""
+    :func:`portable_body` (:mod:`tactile.export.custom_ops`): the native kernel where
+    onnxruntime has the library registered, the portable graph anywhere else; both compute in
+    float64. Same input and outputs as :func:`build_emd_model`'s at float32."""
     from tactile.export.custom_ops import custom_node, function_of, opset_imports
 
-    body = build_emd_model(n_imfs, n_sifts, n_channels, n_time, torch.float32)
+    body = portable_body(n_imfs, n_sifts, n_channels, n_time)
     node = custom_node("EMD", ["x_in"], ["imfs", "residue", "n_valid"], "emd",
                        n_imfs=n_imfs, n_sifts=n_sifts)
-    fn = function_of("EMD", [([n_channels, n_time, n_imfs, n_sifts], body.graph)])
-    graph = helper.make_graph([node], "emd", list(body.graph.input), list(body.graph.output))
+    fn = function_of("EMD", [([n_channels, n_time, n_imfs, n_sifts], body)])
+    graph = helper.make_graph([node], "emd", list(body.input), list(body.output))
     model = helper.make_model(graph, opset_imports=opset_imports(), functions=[fn],
                               producer_name="tactile.training.emd")
     model.ir_version = IR_VERSION
@@ -493,4 +516,4 @@ def export_emd_onnx(
     return model
 
 
-__all__ = ["PCR_ALWAYS", "build_emd_model", "emd_node_model", "export_emd_onnx"]
+__all__ = ["PCR_ALWAYS", "build_emd_model", "emd_node_model", "export_emd_onnx", "portable_body"]

@@ -9,15 +9,16 @@ Any model whose ``pre`` has the three-stage interface (``emds``, ``normalise``, 
 ``finish``; :class:`tactile.training.model.Preprocess` and the granular preprocessing) and whose
 ``head`` maps ``(features, h, c) -> (logits, h, c)`` is exported. Without EMDs the whole model is
 one export. With them the graph is composed of parts, because each EMD is assembled by hand
-with ``Loop`` nodes (:func:`tactile.export.emd_graph.build_emd_model`) rather than
+with ``Loop`` nodes (:func:`tactile.export.emd_graph.portable_body`) rather than
 traced::
 
     x (B, T, C) -> [pre: normalise, emd_inputs] -> z (B, T, C), emd0_in (B, n_0, L_0), ...
-    emdk_in -> [EMD Loop graph k: its own IMFs, sifts, length; float32] -> imfsk (B, n_k, K_k, L_k)
+    emdk_in -> [EMD node k: its own IMFs, sifts, length; float64 inside] -> imfsk (B, n_k, K_k, L_k)
     z, imfs0.., h, c -> [post: finish (features, sparse codes), head, softmax] -> probs, h, c
 
 ``pre`` and ``post`` reuse the trained model's own modules; the export-time parity check
-compares the composed graph with the model's ``forward`` itself, so a drift between this split
+compares the composed graph with the model's ``forward`` itself (its EMDs in float64, as
+training's feature pass computed them), so a drift between this split
 and the training code fails the export.
 """
 
@@ -34,7 +35,7 @@ from tactile.contract import BATCH, INPUTS, IR_VERSION, OPSET, OUTPUTS
 from tactile.export.coder_graph import coder_function, coders_as_nodes
 from tactile.export.compose import join, renamed, value_info
 from tactile.export.custom_ops import DOMAIN, custom_node, function_of, opset_imports
-from tactile.export.emd_graph import build_emd_model
+from tactile.export.emd_graph import portable_body
 from tactile.export.traced import export_traced
 from tactile.training.model import Blend
 
@@ -176,7 +177,7 @@ def _compose(model: nn.Module, x: Tensor, h: Tensor, c: Tensor, state: dict) -> 
         imfs.append(emd(s)[0])  # (B, n_k, K_k, L_k): the post's example input
         key = (int(s.shape[1]), int(s.shape[2]), emd.n_imfs, emd.n_sifts)
         if key not in bodies:
-            bodies[key] = build_emd_model(emd.n_imfs, emd.n_sifts, *key[:2], torch.float32).graph
+            bodies[key] = portable_body(emd.n_imfs, emd.n_sifts, *key[:2])
         emd_nodes.append(custom_node("EMD", [ins[k]], [outs[k], f"emd{k}/residue",
                                                        f"emd{k}/n_valid"], f"emd{k}",
                                      n_imfs=emd.n_imfs, n_sifts=emd.n_sifts))

@@ -1,9 +1,11 @@
 """Parity: the ONNX graph in onnxruntime against the PyTorch model, on the same windows.
 
 The reference is the model's ``forward`` (``TextureModel``, ``GranularModel``) in eager float32
-torch (the model as trained and evaluated), never onnxruntime itself, run in batches of
-:data:`EVAL_BATCH` windows as ``tactile-eval`` runs it. onnxruntime runs the same batches, and
-every window alone (batch 1, as ``tactile-run`` runs it): both must match. Criterion
+torch, its EMDs in float64 as training's feature pass computed them (the model as trained and
+evaluated; the file's EMD nodes compute in float64 on both paths), never onnxruntime itself,
+run in batches of :data:`EVAL_BATCH` windows as ``tactile-eval`` runs it. onnxruntime runs
+the same batches, and every window alone (batch 1, as ``tactile-run`` runs it): both must
+match. Criterion
 (``strict``, float32 files): every probability within :data:`ATOL` and identical labels, except
 windows whose PyTorch top-two margin is below :data:`MARGIN` (a tie a rounding may break either
 way). Window mode runs every window from a zero state; carry mode feeds each output state back,
@@ -197,7 +199,18 @@ def compare(model: nn.Module, onnx_model: bytes | str, probe: Probe, ck: dict,
     (:func:`tactile.export.codes.code_parity`), which must pass too, and the windows above
     :data:`ATOL` explained by the coders' float32 rounding (:mod:`tactile.export.ties`).
     ``native``: run the file's ``ai.tactile`` nodes on the kernel library (the codes and their
-    excuses are read from the portable bodies either way)."""
+    excuses are read from the portable bodies either way). PyTorch computes its EMDs in float64
+    (:func:`tactile.training.feature_pass.feature_pass`: the features the model was trained on,
+    and what the file's EMD nodes compute on either path); its coders stay float32, whose
+    near-tie rules :mod:`tactile.export.ties` judges the graph's coders by."""
+    from tactile.training.feature_pass import feature_pass
+
+    with feature_pass(emd=True, codes=False):
+        return _compare(model, onnx_model, probe, ck, criterion, native)
+
+
+def _compare(model: nn.Module, onnx_model: bytes | str, probe: Probe, ck: dict,
+             criterion: str, native: bool) -> Parity:
     model = model.eval()
     sess = session(onnx_model, native=native)
     carry = model.cfg.state == "carry"
@@ -248,7 +261,7 @@ def compare(model: nn.Module, onnx_model: bytes | str, probe: Probe, ck: dict,
     return Parity(passed, criterion, probe.source, len(p_t), diff, s_diff, diff_1, agreement,
                   int(differ.sum()), int(excused.sum()), n_runs, steps, longest,
                   accuracy_torch=acc_t, accuracy_onnx=acc_o,
-                  reference=f"torch float32 eager, {type(model).__name__}.forward", codes=codes,
+                  reference=_reference(model), codes=codes,
                   **({} if explain is None else {
                       "windows_excused": int(flip.sum()), "max_abs_prob_diff_excused": diff_flip,
                       "windows_excused_float32": int(f32.sum()),
@@ -259,14 +272,15 @@ def compare(model: nn.Module, onnx_model: bytes | str, probe: Probe, ck: dict,
 def compare_on_kernels(model: nn.Module, graph: onnx.ModelProto | str, probe: Probe, ck: dict,
                        criterion: str = "strict") -> Parity:
     """:func:`compare` with the file's ``ai.tactile`` nodes on the kernel library (``graph``, or
-    the file at that path), against PyTorch computing its EMDs in float64: the kernel's
-    precision (in float32 a near-tie of two extrema may place a knot elsewhere) and the
-    features the model was trained on."""
-    from tactile.training.feature_pass import feature_pass
-
+    the file at that path)."""
     onnx_model = graph if isinstance(graph, str) else graph.SerializeToString()
-    with feature_pass(emd=True, codes=False):
-        return compare(model, onnx_model, probe, ck, criterion=criterion, native=True)
+    return compare(model, onnx_model, probe, ck, criterion=criterion, native=True)
+
+
+def _reference(model: nn.Module) -> str:
+    name = f"torch float32 eager, {type(model).__name__}.forward"
+    emds = getattr(getattr(model, "pre", None), "emds", None)
+    return name + ", its EMDs in float64" if emds else name
 
 
 def _window_mode(model: nn.Module, sess: ort.InferenceSession, x: np.ndarray,

@@ -4,7 +4,8 @@ An exported file holds each EMD and each sparse coder as one ``ai.tactile`` node
 model-local function as its portable fallback (``docs/export.md``). Registered in a session's
 options, the package's kernel library (``tactile/native``, built where the install had a C
 compiler) runs those nodes in C; without it onnxruntime runs the functions, the standard-op
-graphs, with the same results up to float32 rounding. :func:`library_path` says which:
+graphs: the same EMD (float64 on both paths), the same codes but where float32 rounding decides
+a near-tie of two atoms (``docs/export.md``). :func:`library_path` says which:
 ``TACTILE_NATIVE=0`` in the environment (or ``false``, ``off``, ``no``), or :func:`disable`
 (``--no-native`` on tactile-run and tactile-check), forces the portable graphs. No torch, no
 onnx: numpy and onnxruntime only.

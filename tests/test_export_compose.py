@@ -159,7 +159,7 @@ def test_parity_reports_and_requires_the_codes(coded):
     assert [r["coder"] for r in p.codes] == ["pre.coders.0", "pre.coders.1", "pre.coders.2"]
     assert p.to_dict()["codes"][0]["rows"] == 24 * model.pre.s
     assert "codes pre.coders.0" in p.table()  # the toy has no layout: named by module path
-    assert p.reference == "torch float32 eager, ToyModel.forward"
+    assert p.reference == "torch float32 eager, ToyModel.forward, its EMDs in float64"
 
 
 @pytest.mark.parametrize("tamper, what", [

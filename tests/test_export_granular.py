@@ -113,7 +113,7 @@ def test_export_parity_and_contract(exported, dataset):
     name, root, report, model, ck, log = exported
     p = report["parity"]
     assert p["passed"] and p["max_abs_prob_diff"] <= ATOL and p["labels_differ"] == 0, p
-    assert p["reference"] == "torch float32 eager, GranularModel.forward"
+    assert p["reference"] == "torch float32 eager, GranularModel.forward, its EMDs in float64"
     _, contract = load_contract(root / "model.onnx")
     assert contract.model == name and contract.format_version == 2
     assert contract.preprocessing_version == 2 and contract.preprocessing["sifts"] == 4

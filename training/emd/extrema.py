@@ -47,7 +47,8 @@ def has_tie(sg: Tensor) -> Tensor:
     one iteration only when it is true. Quantised
     data have ties in the first sift; once a mean envelope has been subtracted they are rare.
     """
-    return torch.prod(sg) == 0.0  # a product of signs: exactly 0 or +-1, one node
+    return sg.abs().amin() == 0.0  # exact; a min, not a product: onnxruntime 1.19 has no
+    # float64 ReduceProd
 
 
 def strict_marks(sg: Tensor) -> Tensor:
