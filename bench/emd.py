@@ -8,11 +8,12 @@ and 1-channel 1100-sample windows (8 IMFs x 10 sifts: the BioTac's vibration, 0.
 the same windows for every implementation, measured in this run (``--case`` picks some):
 milliseconds per window and the speed-up over PyEMD ``EMD(FIXE=10).emd(x, max_imf=M)`` looping
 over channels (onnxruntime: ``export_emd_onnx``'s float32 graph, and an exported model's EMD
-node on its portable path, the same graph in float64 inside); then the ONNX graph's export time, node counts, file size and session creation
-time. The implementations are timed in ``--repeats`` rounds, each running every one of them in
-turn (after a warm-up round), and each timing is the fastest of its rounds (PyEMD's too): on a
-shared machine, interference only ever adds time, so the minimum is the steadiest estimate of
-what the code costs, and a slow spell of the host falls on all of them alike. Instead of that:
+node on its portable path, the same graph in float64 inside); then the ONNX graph's export time,
+node counts, file size and session creation time. The implementations are timed in ``--repeats``
+rounds, each running every one of them in turn (after a warm-up round), and each timing is the
+fastest of its rounds (PyEMD's too): on a shared machine, interference only ever adds time, so
+the minimum is the steadiest estimate of what the code costs, and a slow spell of the host falls
+on all of them alike. Instead of that:
 
 * ``--pieces`` times each piece of one sift on its own, at batch 1 (8 rows of 50 samples) or,
   with ``--rows 2048``, at batch 256 (where element throughput, not node count, decides);

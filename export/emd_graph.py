@@ -458,8 +458,8 @@ def portable_body(n_imfs: int, n_sifts: int, n_channels: int, n_time: int) -> on
     """The ``ai.tactile::EMD`` node's portable graph: float32 in and out, as the node, and
     :func:`build_emd_model`'s float64 graph inside (a ``Cast`` each way), so that it computes
     what the native kernel and training's feature pass compute (float64; in float32 a near-tie
-    of two extrema may place a knot elsewhere and move a window's features). It costs the
-    portable path 0-16% of the EMD's time (``docs/emd.md``)."""
+    of two extrema may place a knot elsewhere and move a window's features). It takes 1.07-1.13x
+    the float32 graph's time at batch 1 (``bench/emd.py``, ``docs/emd.md``)."""
     from tactile.export.compose import renamed
 
     inner = {"x_in": "x_in/f64", "imfs": "imfs/f64", "residue": "residue/f64"}
