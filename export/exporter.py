@@ -45,11 +45,11 @@ def export_run(run_dir: Path, out: Path, data: Path | None = None, int8: bool = 
     t_build = time.perf_counter() - t0
     probe = probe_windows(ck, data, max_windows)
     parity = compare(model, graph.SerializeToString(), probe, ck)
-    log(parity.table())
+    custom = custom_nodes(graph)  # two paths through the file: each table names its own
+    log(("portable graph:\n" if custom else "") + parity.table())
     _require(parity, "float32")
     report = {"build_s": round(t_build, 2), "parity": parity.to_dict()}
     final, quantization, figures = graph, "none", parity.to_dict()
-    custom = custom_nodes(graph)
     if custom and native_available():  # the same file on the kernels: it must pass too
         fast = compare_on_kernels(model, graph, probe, ck, "strict")
         log("native kernels:\n" + fast.table())
@@ -59,7 +59,7 @@ def export_run(run_dir: Path, out: Path, data: Path | None = None, int8: bool = 
     if int8:
         final = quantize_int8(graph)
         q = compare(model, final.SerializeToString(), probe, ck, criterion="int8")
-        log("int8:\n" + q.table())
+        log(("int8, portable graph:\n" if custom else "int8:\n") + q.table())
         _require(q, "int8")
         q_fast = None
         if custom_nodes(final) and native_available():

@@ -114,6 +114,7 @@ def test_export_parity_and_contract(exported, dataset):
     p = report["parity"]
     assert p["passed"] and p["max_abs_prob_diff"] <= ATOL and p["labels_differ"] == 0, p
     assert p["reference"] == "torch float32 eager, GranularModel.forward, its EMDs in float64"
+    assert log.startswith("portable graph:\nwindows checked")  # a file of two paths: each named
     _, contract = load_contract(root / "model.onnx")
     assert contract.model == name and contract.format_version == 2
     assert contract.preprocessing_version == 2 and contract.preprocessing["sifts"] == 4
