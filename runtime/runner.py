@@ -49,7 +49,7 @@ class Summary:
     started: float = field(default_factory=time.monotonic)
     first_label_s: float | None = None
 
-    def to_dict(self, decoder_stats: dict) -> dict:
+    def to_dict(self, decoder_stats: dict | None) -> dict:
         return {
             "windows": self.windows,
             "labels": dict(self.labels),

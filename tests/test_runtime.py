@@ -717,6 +717,8 @@ def test_replay_and_csv_output(models):
     assert len(windows) == (600 - 50) // 25 + 1
     assert all(r.split(",")[5] for r in windows)  # smoothed label present
     assert all(r.split(",")[-1].startswith("change from=") for r in rows[1:] if r not in windows)
+    summary = summary_of(err)  # a replay decodes no bytes: no counters, rather than zeros
+    assert summary["decoder"] is None and summary["windows"] == len(windows)
 
 
 def test_contract_errors_have_clear_messages_and_exit_codes(models, tmp_path):

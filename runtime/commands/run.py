@@ -126,12 +126,13 @@ def _run(args: argparse.Namespace) -> int:
     stream = Stream.for_model(model, hop, post)
     summary = Summary()
     decoder = StreamDecoder(csv_rate_hz=c.sample_rate_hz)
+    counted = None if args.replay is not None else decoder  # a replay decodes no bytes
     try:
         _label(args, model, stream, summary, decoder, post is not None)
     except OutputError:  # stdout is full: stderr still tells what was labelled until then
-        _summarise(summary, decoder)
+        _summarise(summary, counted)
         raise
-    _summarise(summary, decoder)
+    _summarise(summary, counted)
     return 0
 
 
@@ -161,9 +162,11 @@ def _label(args: argparse.Namespace, model: Model, stream: Stream, summary: Summ
             live.close()
 
 
-def _summarise(summary: Summary, decoder: StreamDecoder) -> None:
-    print("tactile-run: summary " + json.dumps(summary.to_dict(decoder.stats.as_dict())),
-          file=sys.stderr, flush=True)
+def _summarise(summary: Summary, decoder: StreamDecoder | None) -> None:
+    """The summary line; ``decoder`` None (a replay): its counters are null, not zeros."""
+    stats = None if decoder is None else decoder.stats.as_dict()
+    print("tactile-run: summary " + json.dumps(summary.to_dict(stats)), file=sys.stderr,
+          flush=True)
 
 
 def _read(args: argparse.Namespace, runner: Runner, decoder: StreamDecoder, deadline: float,
