@@ -140,13 +140,15 @@ def _sealed(c: ModelContract) -> str:
 
 def _postprocess_lines(c: ModelContract) -> list[str]:
     """The label stream's defaults and the validation figures they were chosen on, when the
-    file carries them (an older file: none, it runs raw)."""
+    file carries them; else that it runs raw (an older file, or no setting beat the raw stream
+    on validation)."""
     from tactile.postprocess.calibration import summary_line
     from tactile.postprocess.smoothing import figures_from_metadata, settings_from_metadata
 
     settings = settings_from_metadata(c.extra)
     if settings is None:
-        return []
+        return ["  labels    raw: the file holds no post-processing defaults (tactile-run's "
+                "--smooth, --p-min, --hold set them)"]
     figures = figures_from_metadata(c.extra)
     alone = [f"  labels    {settings.describe()} (post-processing defaults)"]
     if not figures:

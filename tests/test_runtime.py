@@ -1279,6 +1279,18 @@ def test_tactile_check_names_a_recorded_accuracy_out_of_range(tmp_path, capsys, 
             "[0, 1]\n") in text, text
 
 
+def test_tactile_check_says_a_file_without_defaults_runs_raw(old_file, capsys):
+    """A file without post-processing defaults had no labels line: nothing said it runs raw."""
+    from tactile.export.commands.check import main as check_main
+
+    assert check_main([str(old_file)]) == 0
+    labels = [ln for ln in capsys.readouterr().out.splitlines() if ln.startswith("  labels")]
+    assert labels == ["  labels    raw: the file holds no post-processing defaults "
+                      "(tactile-run's --smooth, --p-min, --hold set them)"]
+    code, out, err = run_cli(["--model", str(old_file), "--port", "loop://", "--seconds", "0.1"])
+    assert code == 0 and "labels post-processed" not in err, err
+
+
 def test_tactile_check_shows_the_defaults_the_run_uses(tmp_path, capsys):
     """Keys edited after the calibration: tactile-check showed the calibration record's
     setting, tactile-run used the keys. Both now name the keys' setting."""
