@@ -137,12 +137,23 @@ def class_key(label: str) -> str:
     return unicodedata.normalize("NFD", unicodedata.normalize("NFD", label).casefold())
 
 
+def _unique_keys(pairs: list[tuple[str, object]]) -> dict:
+    """A JSON object whose keys are all different: a key given twice (an edit by hand, two
+    files pasted together) would keep its last value and drop the other unseen."""
+    out: dict = {}
+    for key, value in pairs:
+        if key in out:
+            raise ValueError(f"key {key!r} given twice in one object")
+        out[key] = value
+    return out
+
+
 def read_meta(json_path: Path) -> tuple[dict, DeviceInfo]:
     """A take's JSON, checked key by key: (metadata, device header). Raises
     :class:`RecordingError` naming the file and the key."""
     try:
         text = json_path.read_bytes().decode("utf-8")
-        meta = json.loads(text)
+        meta = json.loads(text, object_pairs_hook=_unique_keys)
     except OSError as e:
         raise RecordingError(f"{json_path}: cannot read ({e.strerror or e})") from None
     except (ValueError, RecursionError) as e:  # JSONDecodeError, bad UTF-8, too deep
