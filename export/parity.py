@@ -32,6 +32,7 @@ import onnxruntime as ort
 import torch
 from torch import nn
 
+from tactile.contract import CUSTOM_DOMAIN
 from tactile.errors import ModelContractError
 from tactile.export.codes import (
     AGREEMENT,
@@ -201,16 +202,43 @@ def compare(model: nn.Module, onnx_model: bytes | str, probe: Probe, ck: dict,
     ``native``: run the file's ``ai.tactile`` nodes on the kernel library (the codes and their
     excuses are read from the portable bodies either way). PyTorch computes its EMDs in float64
     (:func:`tactile.training.feature_pass.feature_pass`: the features the model was trained on,
-    and what the file's EMD nodes compute on either path); its coders stay float32, whose
-    near-tie rules :mod:`tactile.export.ties` judges the graph's coders by."""
+    and what the file's EMD nodes compute on either path), except on the portable path of a
+    file whose EMD function is float32 (exported before it was float64: checked as it was
+    exported); its coders stay float32, whose near-tie rules :mod:`tactile.export.ties`
+    judges the graph's coders by."""
     from tactile.training.feature_pass import feature_pass
 
-    with feature_pass(emd=True, codes=False):
-        return _compare(model, onnx_model, probe, ck, criterion, native)
+    emd64 = native or not _float32_emd(onnx_model)
+    with feature_pass(emd=emd64, codes=False):
+        return _compare(model, onnx_model, probe, ck, criterion, native, emd64)
+
+
+def _float32_emd(onnx_model: bytes | str) -> bool:
+    """Whether the file's ``EMD`` function computes in float32: its body does not cast its
+    input to float64 first (:func:`tactile.export.emd_graph.portable_body`)."""
+    graph = (onnx.load_from_string(onnx_model) if isinstance(onnx_model, bytes)
+             else onnx.load(onnx_model, load_external_data=False))
+    for fn in graph.functions:
+        if fn.domain == CUSTOM_DOMAIN and fn.name == "EMD":
+            return not any(n.op_type == "Cast" and n.input[0] == fn.input[0] and any(
+                a.name == "to" and a.i == onnx.TensorProto.DOUBLE for a in n.attribute)
+                for n in _nodes(fn.node))
+    return False
+
+
+def _nodes(nodes) -> list:
+    """``nodes`` and those of their subgraphs (an ``If`` picking one of several bodies)."""
+    out = []
+    for n in nodes:
+        out.append(n)
+        for a in n.attribute:
+            if a.type == onnx.AttributeProto.GRAPH:
+                out += _nodes(a.g.node)
+    return out
 
 
 def _compare(model: nn.Module, onnx_model: bytes | str, probe: Probe, ck: dict,
-             criterion: str, native: bool) -> Parity:
+             criterion: str, native: bool, emd64: bool = True) -> Parity:
     model = model.eval()
     sess = session(onnx_model, native=native)
     carry = model.cfg.state == "carry"
@@ -261,7 +289,7 @@ def _compare(model: nn.Module, onnx_model: bytes | str, probe: Probe, ck: dict,
     return Parity(passed, criterion, probe.source, len(p_t), diff, s_diff, diff_1, agreement,
                   int(differ.sum()), int(excused.sum()), n_runs, steps, longest,
                   accuracy_torch=acc_t, accuracy_onnx=acc_o,
-                  reference=_reference(model), codes=codes,
+                  reference=_reference(model, emd64), codes=codes,
                   **({} if explain is None else {
                       "windows_excused": int(flip.sum()), "max_abs_prob_diff_excused": diff_flip,
                       "windows_excused_float32": int(f32.sum()),
@@ -277,10 +305,10 @@ def compare_on_kernels(model: nn.Module, graph: onnx.ModelProto | str, probe: Pr
     return compare(model, onnx_model, probe, ck, criterion=criterion, native=True)
 
 
-def _reference(model: nn.Module) -> str:
+def _reference(model: nn.Module, emd64: bool) -> str:
     name = f"torch float32 eager, {type(model).__name__}.forward"
     emds = getattr(getattr(model, "pre", None), "emds", None)
-    return name + ", its EMDs in float64" if emds else name
+    return name + f", its EMDs in float{64 if emd64 else 32}" if emds else name
 
 
 def _window_mode(model: nn.Module, sess: ort.InferenceSession, x: np.ndarray,

@@ -191,6 +191,53 @@ def test_float64_graph_matches_torch_float64(batch):
     np.testing.assert_allclose(residue, ref[1].numpy(), rtol=0, atol=1e-12)
 
 
+def test_a_models_emd_node_runs_float64_without_the_kernels():
+    """An exported model's EMD node on a plain onnxruntime (no kernel library: a board without
+    a compiler) runs its function, the float64 graph with a cast each way: the float64 graph's
+    bits, within float32 output rounding of the float64 torch module; with two shapes in one
+    function (an If picks the body) each its own."""
+    from onnx import helper
+
+    from tactile.export.custom_ops import function_of, opset_imports
+    from tactile.export.emd_graph import emd_node_model, portable_body
+
+    rng = np.random.default_rng(11)
+    for c, t, k in ((2, 50, 4), (1, 300, 6)):
+        x = np.cumsum(rng.standard_normal((3, c, t)), -1).astype(np.float32)
+        node = _session(emd_node_model(k, 10, c, t)).run(None, {"x_in": x})
+        g64 = _session(build_emd_model(k, 10, c, t, torch.float64)).run(
+            None, {"x_in": x.astype(np.float64)})
+        for a, b in zip(node, g64):
+            assert a.dtype == (np.int64 if b.dtype == np.int64 else np.float32)
+            np.testing.assert_array_equal(a, b.astype(a.dtype))
+        ref = EMD(k, 10)(torch.from_numpy(x.astype(np.float64)))
+        std = x.std(-1)[..., None]
+        np.testing.assert_array_equal(node[2], ref[2].numpy())
+        assert (np.abs(node[0] - ref[0].numpy()) / std[..., None]).max() <= 1e-6
+    fn = function_of("EMD", [([2, 50, 4, 10], portable_body(4, 10, 2, 50)),
+                             ([1, 300, 6, 10], portable_body(6, 10, 1, 300))])
+    nodes = [helper.make_node("EMD", ["x1"], ["i1", "r1", "v1"], domain="ai.tactile",
+                              n_imfs=4, n_sifts=10),
+             helper.make_node("EMD", ["x2"], ["i2", "r2", "v2"], domain="ai.tactile",
+                              n_imfs=6, n_sifts=10)]
+    f32 = onnx.TensorProto.FLOAT
+    graph = helper.make_graph(
+        nodes, "two", [helper.make_tensor_value_info("x1", f32, ["b", 2, 50]),
+                       helper.make_tensor_value_info("x2", f32, ["b", 1, 300])],
+        [helper.make_tensor_value_info("i1", f32, ["b", 2, 4, 50]),
+         helper.make_tensor_value_info("i2", f32, ["b", 1, 6, 300])])
+    two = helper.make_model(graph, opset_imports=opset_imports(), functions=[fn])
+    two.ir_version = 8
+    onnx.checker.check_model(two, full_check=True)
+    feed = {"x1": rng.standard_normal((3, 2, 50)).astype(np.float32),
+            "x2": rng.standard_normal((3, 1, 300)).astype(np.float32)}
+    both = _session(two).run(None, feed)
+    for out, (name, k) in zip(both, (("x1", 4), ("x2", 6))):
+        own = _session(build_emd_model(k, 10, *feed[name].shape[1:], torch.float64)).run(
+            None, {"x_in": feed[name].astype(np.float64)})[0]
+        np.testing.assert_array_equal(out, own.astype(np.float32))
+
+
 @pytest.mark.parametrize("layout", ["large", "small"])
 def test_onnxruntime_float32_parity(layout):
     """Over the 50- and 200-sample parity windows pooled (1900 windows), all in one call

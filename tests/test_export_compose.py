@@ -162,6 +162,27 @@ def test_parity_reports_and_requires_the_codes(coded):
     assert p.reference == "torch float32 eager, ToyModel.forward, its EMDs in float64"
 
 
+def test_a_file_with_a_float32_emd_function_is_checked_as_it_was_exported(plain, monkeypatch):
+    """A file exported before the portable EMD computed in float64: its portable path is
+    compared with PyTorch's float32 EMDs (the reference it passed at export), the kernels'
+    with the float64 EMD they compute; a float64 reference would blame the file for
+    float32's near-ties. Two EMDs of different shapes: the function picks its body by an If."""
+    import tactile.export.graph as graph_module
+    from tactile.export.emd_graph import build_emd_model
+
+    model, _ = plain
+    monkeypatch.setattr(graph_module, "portable_body", lambda m, s, c, t: build_emd_model(
+        m, s, c, t, torch.float32).graph)
+    old = build_graph(model).SerializeToString()
+    ck = {"config": {"state": "window"}}
+    p = compare(model, old, _probe(), ck)
+    assert p.passed and p.max_abs_prob_diff <= ATOL
+    assert p.reference == "torch float32 eager, ToyModel.forward, its EMDs in float32"
+    monkeypatch.undo()
+    p = compare(model, plain[1].SerializeToString(), _probe(), ck)  # today's file
+    assert p.passed and p.reference == "torch float32 eager, ToyModel.forward, its EMDs in float64"
+
+
 @pytest.mark.parametrize("tamper, what", [
     (lambda c: setattr(c, "n_nonzero", c.n_nonzero + 1), "agreement"),  # sklearn takes more
     (lambda c: c.dictionary.mul_(1.01), "max_rel_diff"),  # sklearn's codes 1 % smaller

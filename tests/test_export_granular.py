@@ -204,6 +204,7 @@ def test_check_run_compares_both_paths_where_the_kernels_run(exported, capsys,
     assert check_main([model, "--run", str(root / "run"), "--windows", "16", "--no-native"]) == 0
     out = capsys.readouterr().out
     assert "native kernels:" not in out and out.count("result           PASS") == 1
+    assert "portable graph:\nwindows checked  16" in out  # the path it checked, named
 
 
 # -- an SF-RNN over a replayed BioTac trial ------------------------------------------------------

@@ -7,8 +7,9 @@ same thing in the same precision, so a feature pass gives the same features, wit
 rounding before the cast back, whether the kernels are built or not (the kernels are the
 fast path, 10-15x torch's on a BioTac window); in float32 a near-tie of two extrema or two
 atoms can decide a knot or an atom, and float64 is also closer to the references (PyEMD,
-scikit-learn). Outside (export's traced graph, the parity check, gradients) the modules
-compute in their input's dtype as before.
+scikit-learn). Export's parity check runs its PyTorch reference inside one with the EMD alone
+(what the exported file's EMD nodes compute on either path). Outside (export's traced graph,
+gradients) the modules compute in their input's dtype.
 """
 
 from __future__ import annotations
@@ -22,7 +23,7 @@ _on = {"emd": 0, "codes": 0}
 @contextmanager
 def feature_pass(emd: bool = True, codes: bool = True) -> Iterator[None]:
     """Within: EMD (``emd``) and sparse coding (``codes``) in float64, through the native
-    kernels where built. Export's check of the kernel path takes the EMD alone: its graph's
+    kernels where built. Export's parity check takes the EMD alone: the graph's portable
     coders run float32 arithmetic's near-tie rules, which :mod:`tactile.export.ties` judges
     against PyTorch's float32 coders."""
     kinds = [k for k, on in (("emd", emd), ("codes", codes)) if on]

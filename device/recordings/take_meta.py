@@ -137,13 +137,17 @@ def class_key(label: str) -> str:
     return unicodedata.normalize("NFD", unicodedata.normalize("NFD", label).casefold())
 
 
+class _KeyTwice(Exception):
+    """A JSON object names a key twice."""
+
+
 def _unique_keys(pairs: list[tuple[str, object]]) -> dict:
     """A JSON object whose keys are all different: a key given twice (an edit by hand, two
     files pasted together) would keep its last value and drop the other unseen."""
     out: dict = {}
     for key, value in pairs:
         if key in out:
-            raise ValueError(f"key {key!r} given twice in one object")
+            raise _KeyTwice(f"key {key!r} given twice in one object")
         out[key] = value
     return out
 
@@ -156,6 +160,8 @@ def read_meta(json_path: Path) -> tuple[dict, DeviceInfo]:
         meta = json.loads(text, object_pairs_hook=_unique_keys)
     except OSError as e:
         raise RecordingError(f"{json_path}: cannot read ({e.strerror or e})") from None
+    except _KeyTwice as e:
+        raise RecordingError(f"{json_path}: {e}") from None
     except (ValueError, RecursionError) as e:  # JSONDecodeError, bad UTF-8, too deep
         why = "nested too deeply" if isinstance(e, RecursionError) else str(e).splitlines()[0]
         raise RecordingError(f"{json_path}: not valid JSON ({why})") from None

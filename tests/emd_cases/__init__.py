@@ -15,7 +15,7 @@ N_SIFTS = 10
 KINDS = ("tones", "trend", "chirp", "quantised", "pen")
 
 F32_TOL = 2e-5
-"""Max |difference| / window std between a float32 EMD (the torch module, the exported portable
+"""Max |difference| / window std between a float32 EMD (the torch module, ``export_emd_onnx``'s
 graph) and the kernel (float64 inside) on the same float32 window. float32's unit roundoff is
 6e-8 of a value; each sift maps h through envelopes whose gain is of order one, so the rounding
 of up to n_imfs x n_sifts = 80 sifts adds up to a few 1e-7 of the std in the mean, more on long
