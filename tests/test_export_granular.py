@@ -33,6 +33,7 @@ from tactile.runtime.commands.run import main as run_main
 from tactile.runtime.model import Model
 from tactile.training.checkpoint import load_checkpoint
 from tactile.training.config import TrainConfig
+from tactile.training.feature_pass import feature_pass
 from tactile.training.train import train
 
 torch.set_num_threads(1)
@@ -259,7 +260,7 @@ def test_sf_rnn_labels_a_replayed_biotac_trial(tmp_path, capsys):
     assert len(cols) == 42
     x = np.stack([take.values()[d["seq"] - 9 : d["seq"] + 1, cols]
                   for d in labels]).astype(np.float32)
-    with torch.no_grad():
+    with torch.no_grad(), feature_pass(emd=True, codes=False):  # as compare()
         p_t = model(torch.from_numpy(x), *model.zero_state(len(x)))[0].numpy()
     classes = list(ck["classes"])
     p_run = np.array([[d["probs"][k] for k in classes] for d in labels])
@@ -297,7 +298,7 @@ def test_a_model_of_one_finger_runs_on_a_take_of_both(tmp_path, capsys):
     cols = [names.index(n) for n in finger0]
     x = np.stack([take.values()[d["seq"] - 9 : d["seq"] + 1][:, cols] for d in labels])
     model, ck = load_checkpoint(tmp_path / "run")
-    with torch.no_grad():
+    with torch.no_grad(), feature_pass(emd=True, codes=False):  # as compare()
         p_t = model(torch.from_numpy(x.astype(np.float32)), *model.zero_state(len(x)))[0]
     classes = list(ck["classes"])
     p_run = np.array([[d["probs"][k] for k in classes] for d in labels])

@@ -359,14 +359,16 @@ def test_carried_windows_inherit_the_flips_of_their_run(tied, monkeypatch):
 
 
 def _excused_rows(model, graph, probe) -> np.ndarray:
-    """Which rows of compare's results (window mode, then the carried run) were excused."""
+    """Which rows of compare's results (window mode, then the carried run) were excused, with
+    PyTorch's EMDs in float64 as compare runs them."""
     from tactile.export.parity import _carry_mode, _window_mode
     from tactile.export.session import session
     from tactile.export.ties import Examined, Explainer
+    from tactile.training.feature_pass import feature_pass
 
     sess, explain, examined = session(graph.SerializeToString()), Explainer(model, graph), \
         Examined()
-    with torch.no_grad():
+    with torch.no_grad(), feature_pass(emd=True, codes=False):
         _window_mode(model, sess, probe.x, explain, examined)
         _carry_mode(model, sess, probe, explain, examined, first=len(probe))
     return examined.mask(2 * len(probe))
