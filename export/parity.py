@@ -238,7 +238,7 @@ def _nodes(nodes) -> list:
 
 
 def _compare(model: nn.Module, onnx_model: bytes | str, probe: Probe, ck: dict,
-             criterion: str, native: bool, emd64: bool = True) -> Parity:
+             criterion: str, native: bool, emd64: bool) -> Parity:
     model = model.eval()
     sess = session(onnx_model, native=native)
     carry = model.cfg.state == "carry"

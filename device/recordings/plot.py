@@ -121,7 +121,6 @@ def chosen(channels, patterns: tuple[str, ...],
                if c.name == p or fnmatch.fnmatchcase(c.name, p)}
         hit |= {names.index(c) for c in (signals or {}).get(p, [])}
         if not hit:
-            names = [c.name for c in channels]
             shown = ", ".join(names[:6]) + (f", ... ({len(names)} in all)" if len(names) > 6
                                              else "")
             raise ConfigError(f"--channels {p!r} matches none of the take's channels: {shown}")
